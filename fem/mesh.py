@@ -1,0 +1,190 @@
+"""Meshing with gmsh: the tissue section with glued circular stones, and (for an elastic tip) the indenter.
+
+A stone's boundary is a mesh curve shared by tissue and stone (glued = shared nodes). The element size is
+``size_m`` at depth and ``size_m / surface_refine`` along the top surface and (half-way) around the stones.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import numpy as np
+
+_GMSH_LOCK = threading.Lock()   # gmsh is a process-wide singleton
+
+
+@dataclass
+class Mesh:
+    nodes: np.ndarray           # (N, 2) coordinates, m
+    tris: np.ndarray            # (M, 3) or (M, 6) node indices, gmsh order
+    region: np.ndarray          # (M,) 0 = tissue, k = stone k-1 (or the tip body)
+    order: int
+    width_m: float
+    height_m: float
+    top: np.ndarray = field(default=None)     # node indices on the top edge, sorted by x
+    bottom: np.ndarray = field(default=None)  # node indices on the bottom edge, sorted by x
+
+    def __post_init__(self):
+        tol = 1e-9 * max(self.width_m, self.height_m)
+        y = self.nodes[:, 1]
+        if self.top is None:
+            top = np.flatnonzero(np.abs(y - self.height_m) < tol)
+            self.top = top[np.argsort(self.nodes[top, 0])]
+        if self.bottom is None:
+            bot = np.flatnonzero(np.abs(y) < tol)
+            self.bottom = bot[np.argsort(self.nodes[bot, 0])]
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_dofs(self) -> int:
+        return 2 * len(self.nodes)
+
+
+def _start(gmsh):
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    gmsh.option.setNumber("General.Terminal", 0)
+    gmsh.option.setNumber("General.NumThreads", 1)
+    gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
+    gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
+    gmsh.option.setNumber("Mesh.Algorithm", 6)
+
+
+def _extract(gmsh, surfaces_by_region: list[list[int]], order: int, width: float, height: float) -> Mesh:
+    tags, coords, _ = gmsh.model.mesh.getNodes()
+    index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    nodes = coords.reshape(-1, 3)[:, :2].copy()
+    etype = 2 if order == 1 else 9
+    nen = 3 if order == 1 else 6
+    tris, region = [], []
+    for reg, surfs in enumerate(surfaces_by_region):
+        for s in surfs:
+            el = gmsh.model.mesh.getElementsByType(etype, s)[1]
+            conn = index[el.astype(np.int64)].reshape(-1, nen)
+            tris.append(conn)
+            region.append(np.full(len(conn), reg))
+    tris = np.vstack(tris)
+    # drop nodes not used by any triangle (gmsh keeps geometry points), renumber compactly
+    used = np.unique(tris)
+    remap = np.full(len(nodes), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    mesh = Mesh(nodes=nodes[used], tris=remap[tris], region=np.concatenate(region), order=order,
+                width_m=width, height_m=height)
+    _orient(mesh)
+    return mesh
+
+
+def _orient(mesh: Mesh) -> None:
+    """Make every triangle counter-clockwise (positive Jacobian)."""
+    p = mesh.nodes[mesh.tris[:, :3]]
+    det = (p[:, 1, 0] - p[:, 0, 0]) * (p[:, 2, 1] - p[:, 0, 1]) - (p[:, 2, 0] - p[:, 0, 0]) * (p[:, 1, 1] - p[:, 0, 1])
+    bad = det < 0
+    if bad.any():
+        t = mesh.tris[bad]
+        perm = [0, 2, 1] if mesh.order == 1 else [0, 2, 1, 5, 4, 3]
+        mesh.tris[bad] = t[:, perm]
+
+
+def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, float, float]], size_m: float,
+                 surface_refine: float = 4.0, order: int = 2) -> Mesh:
+    """Mesh the rectangle [0, width] x [0, height] with circular stones given as (x_m, y_centre_m, radius_m)."""
+    import gmsh
+    with _GMSH_LOCK:
+        _start(gmsh)
+        try:
+            occ = gmsh.model.occ
+            rect = occ.addRectangle(0, 0, 0, width_m, height_m)
+            disks = [occ.addDisk(x, y, 0, r, r) for x, y, r in stones]
+            if disks:
+                _, fmap = occ.fragment([(2, rect)], [(2, d) for d in disks])
+            occ.synchronize()
+            if disks:
+                stone_surfs = [[t for _, t in fmap[1 + i]] for i in range(len(disks))]
+                flat = {t for ss in stone_surfs for t in ss}
+                tissue_surfs = [t for _, t in gmsh.model.getEntities(2) if t not in flat]
+            else:
+                stone_surfs, tissue_surfs = [], [rect]
+            tol = 1e-5 * max(width_m, height_m)   # OCC bounding boxes are padded by ~1e-7
+            top_curves, stone_curves = [], []
+            for _, c in gmsh.model.getEntities(1):
+                x0, y0, _, x1, y1, _ = gmsh.model.getBoundingBox(1, c)
+                if abs(y0 - height_m) < tol and abs(y1 - height_m) < tol:
+                    top_curves.append(c)
+                elif y0 > tol and y1 < height_m - tol and x0 > tol and x1 < width_m - tol:
+                    stone_curves.append(c)
+            fine = size_m / surface_refine
+            fields = []
+            f = gmsh.model.mesh.field
+            for curves, smin, dist in ((top_curves, fine, 0.35 * height_m),
+                                       (stone_curves, min(2 * fine, size_m), 0.15 * height_m)):
+                if not curves:
+                    continue
+                d = f.add("Distance")
+                f.setNumbers(d, "CurvesList", curves)
+                f.setNumber(d, "Sampling", 400)
+                th = f.add("Threshold")
+                f.setNumber(th, "InField", d)
+                f.setNumber(th, "SizeMin", smin)
+                f.setNumber(th, "SizeMax", size_m)
+                f.setNumber(th, "DistMin", 0.0)
+                f.setNumber(th, "DistMax", dist)
+                fields.append(th)
+            if fields:
+                mn = f.add("Min")
+                f.setNumbers(mn, "FieldsList", fields)
+                f.setAsBackgroundMesh(mn)
+            else:
+                gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
+            gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
+            gmsh.model.mesh.generate(2)
+            if order == 2:
+                gmsh.model.mesh.setOrder(2)
+            return _extract(gmsh, [tissue_surfs] + stone_surfs, order, width_m, height_m)
+        finally:
+            gmsh.finalize()
+
+
+def mesh_tip(radius_m: float, size_m: float, order: int = 2) -> Mesh:
+    """The lower half of a disk of radius R centred at (0, R): a cylindrical tip whose lowest point is the origin.
+    Its flat top edge (y = R) is where the holder grips it. ``height_m`` = R, ``top`` = the gripped edge."""
+    import gmsh
+    with _GMSH_LOCK:
+        _start(gmsh)
+        try:
+            occ = gmsh.model.occ
+            disk = occ.addDisk(0, radius_m, 0, radius_m, radius_m)
+            box = occ.addRectangle(-radius_m, radius_m, 0, 2 * radius_m, radius_m)
+            out, _ = occ.cut([(2, disk)], [(2, box)])
+            occ.synchronize()
+            arc = [c for _, c in gmsh.model.getEntities(1)
+                   if gmsh.model.getBoundingBox(1, c)[4] < radius_m * (1 - 1e-9)]
+            f = gmsh.model.mesh.field
+            d = f.add("Distance")
+            f.setNumbers(d, "CurvesList", arc)
+            f.setNumber(d, "Sampling", 400)
+            th = f.add("Threshold")
+            f.setNumber(th, "InField", d)
+            f.setNumber(th, "SizeMin", size_m / 4)
+            f.setNumber(th, "SizeMax", size_m)
+            f.setNumber(th, "DistMin", 0.0)
+            f.setNumber(th, "DistMax", 0.5 * radius_m)
+            f.setAsBackgroundMesh(th)
+            gmsh.option.setNumber("Mesh.MeshSizeMax", size_m)
+            gmsh.model.mesh.generate(2)
+            if order == 2:
+                gmsh.model.mesh.setOrder(2)
+            m = _extract(gmsh, [[t for _, t in out]], order, 2 * radius_m, radius_m)
+            return m
+        finally:
+            gmsh.finalize()
+
+
+def mesh_scene(scene) -> Mesh:
+    """The mesh of a scene's tissue section and stones (fem.scene.Scene)."""
+    t, a = scene.tissue, scene.analysis
+    stones = [(s.x_m, t.height_m - s.depth_m, s.radius_m) for s in scene.stones]
+    return mesh_section(t.width_m, t.height_m, stones, a.mesh_size_m, a.surface_refine, a.order)

@@ -1,0 +1,141 @@
+"""One scene's discretization: mesh, materials, stiffness, and (optionally) stones reduced to rigid bodies.
+
+Rigid stones ("skip what a scene doesn't need"): a stone E_s times stiffer than tissue deforms E_t/E_s as much as
+the tissue around it (5e-7 for the study's kidney stone). Replacing it by a rigid body tied to the tissue (3 DOFs:
+two translations and a rotation about its centre) removes its DOFs and the 2e6 stiffness contrast from the linear
+system. The solution differs from the elastic stone's by O(E_t/E_s); tests and the bench measure it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from .assembly import Material, element_D, stiffness
+from .mesh import Mesh, mesh_scene
+
+RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
+
+
+@dataclass
+class Model:
+    mesh: Mesh
+    materials: list[Material]            # region 0 tissue, region k stone k-1
+    plane: str
+    centres: list[tuple[float, float]]   # stone centres (x, y)
+    rigid: list[bool]                    # per stone
+    D: np.ndarray = field(init=False)    # (M, 3, 3)
+    K: sp.csr_matrix = field(init=False)  # reduced stiffness (n_red x n_red)
+    P: sp.csr_matrix = field(init=False)  # full DOFs = P @ reduced DOFs
+
+    def __post_init__(self):
+        self.D = element_D(self.mesh, self.materials, self.plane)
+        keep = np.ones(len(self.mesh.tris), bool)
+        for k, r in enumerate(self.rigid):
+            if r:
+                keep &= self.mesh.region != k + 1
+        Kfull = stiffness(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
+        self.P = self._prolongation()
+        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+
+    def _prolongation(self) -> sp.csr_matrix:
+        n = self.mesh.n_dofs
+        if not any(self.rigid):
+            return sp.identity(n, format="csr")
+        owner = np.full(self.mesh.n_nodes, -1)
+        for k, r in enumerate(self.rigid):
+            if r:
+                owner[np.unique(self.mesh.tris[self.mesh.region == k + 1])] = k
+        free_nodes = np.flatnonzero(owner < 0)
+        n_free = 2 * len(free_nodes)
+        rigid_ids = [k for k, r in enumerate(self.rigid) if r]
+        col_of = {k: n_free + 3 * i for i, k in enumerate(rigid_ids)}
+        rows, cols, vals = [], [], []
+        rows += [2 * free_nodes, 2 * free_nodes + 1]
+        cols += [np.arange(0, n_free, 2), np.arange(1, n_free, 2)]
+        vals += [np.ones(len(free_nodes))] * 2
+        for k in rigid_ids:
+            nodes = np.flatnonzero(owner == k)
+            xc, yc = self.centres[k]
+            c = col_of[k]
+            x, y = self.mesh.nodes[nodes, 0] - xc, self.mesh.nodes[nodes, 1] - yc
+            one = np.ones(len(nodes))
+            rows += [2 * nodes, 2 * nodes, 2 * nodes + 1, 2 * nodes + 1]
+            cols += [c + 0 * one, c + 2 + 0 * one, c + 1 + 0 * one, c + 2 + 0 * one]
+            vals += [one, -y, one, x]
+        rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
+        return sp.csr_matrix((vals, (rows, cols.astype(np.int64))), shape=(n, n_free + 3 * len(rigid_ids)))
+
+    @property
+    def n_dofs(self) -> int:
+        return self.K.shape[0]
+
+    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
+        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
+        if not any(self.rigid):
+            return np.asarray(full_dofs)
+        P = self.P[np.asarray(full_dofs)]
+        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
+            raise ValueError("a requested DOF belongs to a rigid stone")
+        return P.indices.copy()
+
+    def partition(self, fixed: np.ndarray) -> "Factored":
+        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
+        return Factored(self, np.asarray(fixed, dtype=np.int64))
+
+
+class Factored:
+    """K_ff factorized once; solves for any prescribed values on the fixed DOFs and any load on the free DOFs."""
+
+    def __init__(self, model: Model, fixed: np.ndarray):
+        self.model = model
+        n = model.n_dofs
+        self.fixed = np.unique(fixed)
+        mask = np.ones(n, bool)
+        mask[self.fixed] = False
+        self.free = np.flatnonzero(mask)
+        K = model.K
+        Kff = K[self.free][:, self.free].tocsc()
+        self.Kfp = K[self.free][:, self.fixed].tocsc()
+        # Symmetric fill-reducing ordering: K_ff is SPD, so no pivoting is needed.
+        self.lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                            options={"SymmetricMode": True})
+        self.free_pos = np.full(n, -1)
+        self.free_pos[self.free] = np.arange(len(self.free))
+
+    def solve(self, prescribed: np.ndarray | None = None, load: np.ndarray | None = None) -> np.ndarray:
+        """Reduced displacement vector (n_red,) for fixed values ``prescribed`` and a reduced load vector."""
+        n = self.model.n_dofs
+        rhs = np.zeros(len(self.free)) if load is None else np.array(load, dtype=float)[self.free]
+        u = np.zeros(n)
+        if prescribed is not None:
+            u[self.fixed] = prescribed
+            rhs = rhs - self.Kfp @ prescribed
+        u[self.free] = self.lu.solve(rhs)
+        return u
+
+    def solve_many(self, free_loads: np.ndarray) -> np.ndarray:
+        """K_ff^{-1} applied to a block of right-hand sides given on the free DOFs (n_free, k)."""
+        return self.lu.solve(np.asfortranarray(free_loads))
+
+    def full(self, u_red: np.ndarray) -> np.ndarray:
+        return self.model.P @ u_red
+
+
+def materials_of(scene) -> list[Material]:
+    t = scene.tissue
+    return [Material(t.youngs_pa, t.poisson)] + [Material(s.youngs_pa, s.poisson) for s in scene.stones]
+
+
+def build_model(scene, mesh: Mesh | None = None, rigid_stones: str | bool = "auto") -> Model:
+    """Discretize a scene. rigid_stones: "auto" (rigid when E_stone >= RIGID_RATIO * E_tissue), True, False."""
+    mesh = mesh if mesh is not None else mesh_scene(scene)
+    t = scene.tissue
+    if rigid_stones == "auto":
+        rigid = [s.youngs_pa >= RIGID_RATIO * t.youngs_pa for s in scene.stones]
+    else:
+        rigid = [bool(rigid_stones)] * len(scene.stones)
+    centres = [(s.x_m, t.height_m - s.depth_m) for s in scene.stones]
+    return Model(mesh=mesh, materials=materials_of(scene), plane=scene.analysis.plane, centres=centres, rigid=rigid)

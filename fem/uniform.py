@@ -1,0 +1,83 @@
+"""Load A of the study: the whole top edge moved down by ``analysis.top_displacement_m`` (u_x free there);
+bottom edge u_y = 0, bottom-left corner u_x = 0, sides traction-free."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import Model, build_model
+from .stress import components, nodal_poisson, recovery_operator
+
+
+@dataclass
+class Profile:
+    """Stresses along the top surface (Pa), nodes sorted by x."""
+    x_m: np.ndarray
+    fields: dict[str, np.ndarray]
+
+    def peak(self, key: str = "von_mises_pa") -> tuple[float, float]:
+        """(x_m, value) of the maximum, refined by a parabola through the largest node and its neighbours."""
+        v = self.fields[key]
+        i = int(np.argmax(v))
+        if 0 < i < len(v) - 1:
+            x0, x1, x2 = self.x_m[i - 1:i + 2]
+            y0, y1, y2 = v[i - 1:i + 2]
+            A = np.array([[x0 ** 2, x0, 1], [x1 ** 2, x1, 1], [x2 ** 2, x2, 1]])
+            a, b, c = np.linalg.solve(A, [y0, y1, y2])
+            if a < 0:
+                xp = -b / (2 * a)
+                if x0 <= xp <= x2:
+                    return float(xp), float(c - b * b / (4 * a))
+        return float(self.x_m[i]), float(v[i])
+
+    def to_json(self) -> dict:
+        xp, vp = self.peak()
+        return {"surface": {"x_m": self.x_m.tolist(), **{k: v.tolist() for k, v in self.fields.items()}},
+                "peak": {"x_m": xp, "von_mises_pa": vp}}
+
+
+@dataclass
+class UniformResult:
+    model: Model
+    u: np.ndarray                      # full displacement (2N,)
+    surface: Profile
+    nodal: dict[str, np.ndarray] | None = None    # full-field stresses and strains at nodes (None: surface only)
+    timings_s: dict = field(default_factory=dict)
+    reaction_n_per_m: float = 0.0      # total vertical force on the top edge per unit thickness (compression > 0)
+
+
+def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
+                  rigid_stones: str | bool = "auto") -> UniformResult:
+    t0 = time.perf_counter()
+    model = model or build_model(scene, rigid_stones=rigid_stones)
+    t1 = time.perf_counter()
+    mesh = model.mesh
+    top, bot = mesh.top, mesh.bottom
+    corner = bot[0]
+    fixed_full = np.concatenate([2 * top + 1, 2 * bot + 1, [2 * corner]])
+    values = np.concatenate([np.full(len(top), -scene.analysis.top_displacement_m), np.zeros(len(bot) + 1)])
+    fixed = model.reduced_index(fixed_full)
+    fac = model.partition(fixed)
+    order = np.searchsorted(fac.fixed, fixed)
+    pres = np.zeros(len(fac.fixed))
+    pres[order] = values
+    u_red = fac.solve(pres)
+    u = fac.full(u_red)
+    t2 = time.perf_counter()
+    reaction = -(model.K @ u_red)[model.reduced_index(2 * top + 1)].sum()
+    plane = model.plane
+    R = recovery_operator(model, top)
+    surf = components((R @ u).reshape(-1, 3), nodal_poisson(model, top), plane)
+    nodal = None
+    if full_field:
+        allnodes = np.arange(mesh.n_nodes)
+        nu = nodal_poisson(model, allnodes)
+        nodal = components((recovery_operator(model) @ u).reshape(-1, 3), nu, plane)
+        eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
+        nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
+    t3 = time.perf_counter()
+    return UniformResult(model=model, u=u, surface=Profile(mesh.nodes[top, 0], surf), nodal=nodal,
+                         timings_s={"mesh_assemble_s": t1 - t0, "solve_s": t2 - t1, "recover_s": t3 - t2},
+                         reaction_n_per_m=float(reaction))
