@@ -13,6 +13,12 @@ Frames
 Each probe: ``approach_pose`` (tip ``motion.approach_height_m`` above the undeformed surface at x_m), then a slow
 straight descent along the tool axis to ``indent_pose`` (tip ``depth_m`` below the undeformed surface), dwell,
 retract to ``approach_pose``.
+
+Timing (planner/timing.py): every move is a moveL; the descent runs at ``motion.probe_speed_m_s`` over approach height
+plus depth, the retract at the approach speed; each move takes the larger of its tool-speed and joint-limit times.
+``notes`` carries the planner's diagnostics: ``solver`` (status, iterations, ``used``: "nlp" or "seed"), ``timing``
+(per-move breakdown), ``times_s``, ``depth_limited_by`` (per probe: "force" or "depth"), ``target_force_n``,
+``branch`` and ``tilt_tol_rad``.
 """
 from __future__ import annotations
 
@@ -51,7 +57,7 @@ class Motion:
 
 @dataclass
 class Frames:
-    tissue_pose_base: list[float] = field(default_factory=lambda: [0.35, -0.035, 0.05, 0.0, 0.0, 0.0])
+    tissue_pose_base: list[float] = field(default_factory=lambda: [0.40, -0.035, 0.05, 0.0, 0.0, math.pi / 2])
     tcp_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.10, 0.0, 0.0, 0.0])
 
 

@@ -1,0 +1,142 @@
+"""`palpate plan SCENE --out plan.json [--plots DIR]`: the CasADi raster plan for a UR5e."""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+DESCRIPTION = """Plan a probing raster over the tissue's top surface for a UR5e and write a plan file.
+
+The planner sees only the prior scene (the tissue without its stones). For every waypoint it picks the
+indentation depth from fem's force prediction for that prior tissue: as deep as the limits allow, i.e. where the
+predicted force reaches --force-fraction x --force-limit-n (head-room for stiffer-than-predicted tissue), never
+deeper than --depth-limit-m. Then one IPOPT problem over the whole raster finds UR5e joint targets for the
+approach and indent poses: tip on target, tool axis within --tilt-tol-deg of the inward surface normal, joint
+limits, one IK branch throughout (no elbow/wrist flips), a margin from the singularities, minimal joint travel.
+Finally every move is timed under the UR joint and tool speed/acceleration limits.
+
+Frames: poses are ur_rtde's [x, y, z, rx, ry, rz] (m, rotation vector) of the TCP in the base frame. The tissue
+frame has its origin at the top-left corner of the section, x along the width, z the outward normal of the top
+surface; --tissue-pose gives it in the base frame (default: the section lying on the arm's table, width along
+base y, centred 0.40 m in front of the base: 0.40 -W/2 H 0 0 pi/2)."""
+
+EPILOG = """examples:
+  palpate plan paper --out plan.json --plots out/                 15 waypoints, 5 mm margins, fem depths
+  palpate plan paper --out plan.json --spacing-m 0.002 --margin-m 0.008
+  palpate plan paper --out fine.json --x-min-m 0.030 --x-max-m 0.040 --waypoints 11   refine an interval
+  palpate plan paper --out plan.json --force-limit-n 0.5 --depth-limit-m 0.006
+  palpate plan scene.toml --out plan.json --tissue-pose 0.45 -0.035 0.08 0 0 1.5708 --tcp-offset 0 0 0.12 0 0 0
+exit status: 0 planned, 2 infeasible request (the message names the option to change)."""
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser("plan", help="CasADi raster plan for a UR5e (plan.json)", description=DESCRIPTION,
+                              epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", help="built-in scene name or TOML file (stones are ignored: the planner sees the prior)")
+    p.add_argument("--out", required=True, metavar="PATH", help="plan file to write (JSON, versioned)")
+    p.add_argument("--plots", metavar="DIR", help="write plan_raster.png and plan_joints.png here")
+    p.add_argument("--json", metavar="PATH", help="machine-readable summary (timings, solver status, ranges)")
+    r = p.add_argument_group("raster (tissue frame x, along the top surface)")
+    g = r.add_mutually_exclusive_group()
+    g.add_argument("--waypoints", type=int, metavar="N", help="number of waypoints, ends included (default 15)")
+    g.add_argument("--spacing-m", type=float, metavar="S", help="waypoint spacing instead of a count")
+    r.add_argument("--margin-m", type=float, default=0.005, help="keep this far from the side edges (default 0.005)")
+    r.add_argument("--x-min-m", type=float, help="raster only [x-min, x-max] (adaptive refinement); overrides margins")
+    r.add_argument("--x-max-m", type=float, help="see --x-min-m")
+    d = p.add_argument_group("depth and force")
+    d.add_argument("--force-limit-n", type=float, default=2.0, help="never plan above this contact force (default 2.0)")
+    d.add_argument("--depth-limit-m", type=float, default=0.008, help="never deeper than this (default 0.008)")
+    d.add_argument("--force-fraction", type=float, default=0.5,
+                   help="plan to at most this fraction of the force limit on the prior tissue (default 0.5)")
+    d.add_argument("--min-depth-m", type=float, default=0.001,
+                   help="shallowest useful probe; refused if even this exceeds the force budget (default 0.001)")
+    d.add_argument("--depth-m", type=float, help="fixed depth for every probe instead of the force-based choice")
+    a = p.add_argument_group("arm and motion")
+    a.add_argument("--tissue-pose", type=float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+                   help="tissue frame in the base frame (m, rotation vector rad)")
+    a.add_argument("--tcp-offset", type=float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+                   help="probe tip in the flange frame, as for setTcp (default 0 0 0.10 0 0 0)")
+    a.add_argument("--approach-height-m", type=float, default=0.010, help="tip above the surface before descending")
+    a.add_argument("--approach-speed-m-s", type=float, default=0.10, help="tool speed between probes")
+    a.add_argument("--probe-speed-m-s", type=float, default=0.002, help="tool speed of the descent")
+    a.add_argument("--dwell-s", type=float, default=0.5, help="hold at depth while sampling")
+    a.add_argument("--tilt-tol-deg", type=float, default=0.5, help="tool axis within this of the normal (default 0.5)")
+    a.add_argument("--branch", default="1,1,-1", metavar="S,E,W",
+                   help="IK branch signs (shoulder, elbow, wrist); default 1,1,-1 = elbow up, tool down")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from fem.scene import load
+    from planner.planfile import Frames, Limits, Motion
+    from planner.plan import plan_raster
+    from planner.raster import PlanningError, interval_positions
+
+    scene = load(args.scene)
+    limits = Limits(force_limit_n=args.force_limit_n, depth_limit_m=args.depth_limit_m)
+    motion = Motion(approach_height_m=args.approach_height_m, approach_speed_m_s=args.approach_speed_m_s,
+                    probe_speed_m_s=args.probe_speed_m_s, dwell_s=args.dwell_s)
+    frames = None
+    if args.tissue_pose or args.tcp_offset:
+        from planner.raster import default_tissue_pose
+        t = scene.tissue
+        frames = Frames(tissue_pose_base=list(args.tissue_pose or default_tissue_pose(t.width_m, t.height_m)),
+                        tcp_offset=list(args.tcp_offset or Frames().tcp_offset))
+    try:
+        branch = tuple(int(s) for s in args.branch.split(","))
+        if len(branch) != 3 or any(s not in (-1, 1) for s in branch):
+            raise ValueError
+    except ValueError:
+        print(f"palpate plan: --branch must be three signs like 1,1,-1, got {args.branch!r}", file=sys.stderr)
+        return 2
+    try:
+        x = None
+        if args.x_min_m is not None or args.x_max_m is not None:
+            lo = args.x_min_m if args.x_min_m is not None else args.margin_m
+            hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - args.margin_m
+            n = args.waypoints if (args.waypoints or args.spacing_m) else 11
+            x = interval_positions(lo, hi, n=None if args.spacing_m else n, spacing_m=args.spacing_m)
+        plan = plan_raster(scene, n_waypoints=args.waypoints, spacing_m=args.spacing_m, margin_m=args.margin_m,
+                           x_positions_m=x, depth_m=args.depth_m, limits=limits, motion=motion, frames=frames,
+                           tilt_tol_rad=math.radians(args.tilt_tol_deg), force_fraction=args.force_fraction,
+                           min_depth_m=args.min_depth_m, branch=branch)
+    except PlanningError as e:
+        print(f"palpate plan: cannot plan: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    plan.save(out)
+    figs = []
+    if args.plots:
+        from planner.plots_plan import plot_plan
+        figs = [str(f) for f in plot_plan(plan, args.plots)]
+    s = summary(plan, out, figs)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(s, indent=1))
+    sv = plan.notes["solver"]
+    print(f"planned {s['n_probes']} probes on {plan.scene['name']}: depth {s['depth_m']['min'] * 1e3:.2f}-"
+          f"{s['depth_m']['max'] * 1e3:.2f} mm, predicted force {s['predicted_force_n']['min']:.3g}-"
+          f"{s['predicted_force_n']['max']:.3g} N (limit {limits.force_limit_n:g} N), "
+          f"execution ~{plan.total_time_s:.1f} s; IPOPT {sv['status']} in {sv['iterations']} iterations, "
+          f"{sv['solve_s'] * 1e3:.0f} ms -> {out}")
+    for f in figs:
+        print(f"figure: {f}")
+    return 0
+
+
+def summary(plan, out, figs) -> dict:
+    import numpy as np
+    d = np.array([p.depth_m for p in plan.probes])
+    f = np.array([p.predicted_force_n for p in plan.probes], dtype=float)
+    sv = plan.notes["solver"]
+    return {"plan": str(out), "version": plan.version, "scene": plan.scene["name"], "n_probes": len(plan.probes),
+            "x_m": [p.x_m for p in plan.probes],
+            "depth_m": {"min": float(d.min()), "max": float(d.max())},
+            "predicted_force_n": {"min": float(np.nanmin(f)), "max": float(np.nanmax(f))},
+            "force_limit_n": plan.limits.force_limit_n, "depth_limit_m": plan.limits.depth_limit_m,
+            "total_time_s": plan.total_time_s,
+            "solver": {k: sv[k] for k in ("status", "success", "iterations", "solve_s", "build_s", "used")},
+            "check": sv["check"], "times_s": plan.notes["times_s"], "figures": figs}

@@ -1,0 +1,162 @@
+"""Where to probe and how deep: raster positions over the top surface, the tissue frame in the base frame, and the
+per-waypoint indentation depth chosen from a force prediction.
+
+2D section: the raster is a line of waypoints along the top surface (tissue-frame x), ``margin_m`` from both side
+edges. Depths come from a force model ``force_n(x_m, depth_m) -> float`` (fem's ``surface_model(prior).force_n``;
+any callable that is 0 at depth 0 and increases with depth) for the *prior* (stone-free) tissue.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Protocol, Sequence
+
+import numpy as np
+
+from planner.kinematics import pose_to_matrix
+
+
+class PlanningError(ValueError):
+    """A request the planner cannot satisfy; the message names the option to change."""
+
+
+class ForceModel(Protocol):
+    def __call__(self, x_m: float, depth_m: float) -> float: ...
+
+
+def default_tissue_pose(width_m: float, height_m: float) -> list[float]:
+    """The tissue frame in the base frame when nobody says otherwise: the section lies on the table the arm stands on
+    (top surface ``height_m`` above the base plane), its width running along the base y axis, centred at y = 0 and
+    0.40 m in front of the base (x); tissue x = base y, tissue z = base z (up), so the tool points straight down."""
+    return [0.40, -0.5 * width_m, float(height_m), 0.0, 0.0, math.pi / 2]
+
+
+def raster_positions(width_m: float, *, n: int | None = None, spacing_m: float | None = None,
+                     margin_m: float = 0.005) -> np.ndarray:
+    """Waypoint x positions (tissue frame) over [margin, width - margin]: ``n`` evenly spaced (both ends included),
+    or as many as fit at ``spacing_m`` centred in the interval. Exactly one of n / spacing_m."""
+    if (n is None) == (spacing_m is None):
+        raise PlanningError("give either a waypoint count (--waypoints) or a spacing (--spacing-m), not both")
+    if not (0 <= margin_m < width_m / 2):
+        raise PlanningError(f"--margin-m {margin_m} must lie in [0, width/2 = {width_m / 2:g}) m")
+    lo, hi = margin_m, width_m - margin_m
+    return interval_positions(lo, hi, n=n, spacing_m=spacing_m)
+
+
+def interval_positions(lo_m: float, hi_m: float, *, n: int | None = None,
+                       spacing_m: float | None = None) -> np.ndarray:
+    """Evenly spaced positions on [lo, hi] (for adaptive refinement over an x-interval)."""
+    if hi_m < lo_m:
+        raise PlanningError(f"empty interval [{lo_m}, {hi_m}] m")
+    if n is not None:
+        if n < 1:
+            raise PlanningError(f"--waypoints must be at least 1, got {n}")
+        return np.array([0.5 * (lo_m + hi_m)]) if n == 1 else np.linspace(lo_m, hi_m, n)
+    if not (spacing_m and spacing_m > 0):
+        raise PlanningError(f"--spacing-m must be positive, got {spacing_m}")
+    k = int(math.floor((hi_m - lo_m) / spacing_m + 1e-9))
+    start = 0.5 * (lo_m + hi_m) - 0.5 * k * spacing_m
+    return start + spacing_m * np.arange(k + 1)
+
+
+@dataclass
+class Targets:
+    """Base-frame targets of a raster: tip positions above / in the tissue and the inward normal."""
+    approach_m: np.ndarray   # (N, 3)
+    indent_m: np.ndarray     # (N, 3)
+    normal_in: np.ndarray    # (3,) unit inward normal of the (flat) top surface, base frame
+
+
+def targets(x_m: Sequence[float], depth_m: Sequence[float], tissue_pose_base: Sequence[float],
+            approach_height_m: float) -> Targets:
+    """Section points (x, top) -> base frame. Tissue frame: (x_m, 0, 0) is the surface point, +z outward."""
+    T = pose_to_matrix(tissue_pose_base)
+    R, o = T[:3, :3], T[:3, 3]
+    x = np.asarray(x_m, dtype=float)
+    d = np.asarray(depth_m, dtype=float)
+    surf = o[None, :] + x[:, None] * R[:, 0][None, :]
+    z_out = R[:, 2]
+    return Targets(approach_m=surf + approach_height_m * z_out, indent_m=surf - d[:, None] * z_out,
+                   normal_in=-z_out.copy())
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# depth choice
+
+def depth_for_force(force_n: Callable[[float, float], float], x_m: float, target_n: float, depth_max_m: float,
+                    guess_m: float | None = None, tol_m: float = 2e-6, rtol_force: float = 5e-4,
+                    power: float = 1.2) -> tuple[float, float]:
+    """The largest depth in [0, depth_max] whose predicted force is <= target (force monotone in depth, 0 at 0), to
+    within ``tol_m`` in depth or ``rtol_force`` in force. Steps are power-law secants (F ~ c d^p, p re-estimated from
+    the last two evaluations) aimed just below the target, kept inside the bracket, else geometric bisection;
+    ``guess_m`` (e.g. the neighbour's depth) usually makes it 2-3 force evaluations. Returns (depth_m, force_n);
+    the returned force never exceeds the target."""
+    lo, f_lo, hi = 0.0, 0.0, None
+    d = depth_max_m if guess_m is None else min(max(guess_m, 1e-6 * depth_max_m), depth_max_m)
+    aim = target_n * (1.0 - 0.5 * rtol_force)
+    prev = None
+    for _ in range(60):
+        f = float(force_n(x_m, d))
+        if f <= target_n:
+            lo, f_lo = d, f
+            if d >= depth_max_m or f >= target_n * (1.0 - rtol_force):
+                break
+        else:
+            hi = d
+        if hi is not None and hi - lo <= tol_m:
+            break
+        p = power
+        if prev is not None and prev[1] > 0 and f > 0 and prev[0] != d:
+            p_est = math.log(f / prev[1]) / math.log(d / prev[0])
+            if 0.3 < p_est < 5.0:
+                p = p_est
+        prev = (d, f)
+        nxt = d * (aim / f) ** (1.0 / p) if f > 0 else 2.0 * d
+        top = depth_max_m if hi is None else hi
+        if not (lo < nxt < top) or nxt == d:
+            nxt = math.sqrt(max(lo, 1e-3 * top) * top) if hi is not None else min(2.0 * d, depth_max_m)
+        d = min(nxt, depth_max_m)
+    return lo, f_lo
+
+
+@dataclass
+class DepthChoice:
+    depth_m: np.ndarray
+    force_n: np.ndarray
+    target_force_n: float
+    limited_by: list[str]    # per waypoint: "depth" (depth limit reached first) or "force"
+
+
+def choose_depths(force_n: Callable[[float, float], float], x_m: Sequence[float], *, force_limit_n: float,
+                  depth_limit_m: float, force_fraction: float = 0.5, min_depth_m: float = 0.001) -> DepthChoice:
+    """Per waypoint: as deep as the limits allow (a deeper probe feels a buried stone more), i.e. the depth where the
+    prior's predicted force reaches ``force_fraction * force_limit_n``, capped at ``depth_limit_m``. The fraction
+    leaves head-room for stiffer-than-predicted tissue (a stone raises the force; the driver stops at the limit).
+    Refuses when even ``min_depth_m`` (the shallowest useful probe) would exceed the force budget."""
+    if depth_limit_m <= 0 or force_limit_n <= 0:
+        raise PlanningError("--force-limit-n and --depth-limit-m must be positive")
+    if not (0 < force_fraction <= 1):
+        raise PlanningError(f"--force-fraction must lie in (0, 1], got {force_fraction}")
+    if min_depth_m > depth_limit_m:
+        raise PlanningError(f"--depth-limit-m {depth_limit_m * 1e3:.2f} mm is below the smallest useful depth "
+                            f"--min-depth-m {min_depth_m * 1e3:.2f} mm: raise the depth limit or lower --min-depth-m")
+    target = force_fraction * force_limit_n
+    depths, forces, why = [], [], []
+    guess = None
+    for x in x_m:
+        d, f = depth_for_force(force_n, float(x), target, depth_limit_m, guess_m=guess)
+        if d < min_depth_m:  # (if d >= min_depth, monotonicity already puts min_depth within the budget)
+            f_min = float(force_n(float(x), min_depth_m))
+            if f_min > target:
+                need = f_min / force_fraction
+                raise PlanningError(
+                    f"force limit {force_limit_n:g} N is too low: the prior tissue is predicted to push back "
+                    f"{f_min:.3g} N at the smallest useful depth {min_depth_m * 1e3:.2f} mm (x = {x * 1e3:.1f} mm), "
+                    f"above the planning budget {force_fraction:g} x {force_limit_n:g} N = {target:.3g} N. Raise "
+                    f"--force-limit-n to at least {need:.3g} N, raise --force-fraction, or lower --min-depth-m.")
+            d, f = min_depth_m, f_min   # within the search tolerance of the root
+        guess = d
+        depths.append(d)
+        forces.append(f)
+        why.append("depth" if d >= depth_limit_m else "force")
+    return DepthChoice(np.array(depths), np.array(forces), target, why)
