@@ -90,8 +90,11 @@ def _orient(mesh: Mesh) -> None:
 
 
 def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, float, float]], size_m: float,
-                 surface_refine: float = 4.0, order: int = 2) -> Mesh:
-    """Mesh the rectangle [0, width] x [0, height] with circular stones given as (x_m, y_centre_m, radius_m)."""
+                 surface_refine: float = 4.0, order: int = 2,
+                 focus: tuple[float, float, float] | None = None) -> Mesh:
+    """Mesh the rectangle [0, width] x [0, height] with circular stones given as (x_m, y_centre_m, radius_m).
+    focus = (x_m, size_m, radius_m): element size size_m within radius_m of the top-surface point x_m, growing by
+    half the distance beyond it (for verification against local closed forms such as Hertz contact)."""
     import gmsh
     with _GMSH_LOCK:
         _start(gmsh)
@@ -133,6 +136,12 @@ def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, floa
                 f.setNumber(th, "DistMin", 0.0)
                 f.setNumber(th, "DistMax", dist)
                 fields.append(th)
+            if focus is not None:
+                fx, fsize, frad = focus
+                me = f.add("MathEval")
+                f.setString(me, "F", f"Min({size_m}, {fsize} + 0.5 * "
+                                     f"Max(0, Sqrt((x - {fx})^2 + (y - {height_m})^2) - {frad}))")
+                fields.append(me)
             if fields:
                 mn = f.add("Min")
                 f.setNumbers(mn, "FieldsList", fields)

@@ -1,0 +1,308 @@
+"""Frictionless unilateral contact of a probe tip with the top surface, fast for many waypoints.
+
+Load case B: bottom edge u_y = 0, bottom-left corner u_x = 0, sides and top traction-free except where the tip
+presses. Small-strain, small-sliding contact: the tip moves straight down, the gap at a top node is measured
+vertically at the node's undeformed x, and frictionless contact lets the surface slide freely.
+
+The fast path (``SurfaceModel``): the scene is meshed and K factorized once; the vertical DOFs of the top edge are
+condensed once into a compliance matrix C (top-node y-displacement per unit downward nodal force). A waypoint
+(x0, depth) is then the LCP  gap = q + C_cc f >= 0, f >= 0, gap . f = 0  over the top nodes under the tip (q: the
+tip's profile minus the surface), solved exactly by fem.lcp. Stresses are linear in the contact forces, so
+influence matrices give the stresses under the tip without another solve.
+
+``indent_full`` is the plain path: a full finite-element solve with the contact nodes as Dirichlet conditions and
+its own active-set loop, refactorizing every iteration. The two must agree to round-off (tests check it).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .lcp import solve_lcp
+from .model import Model, build_model
+from .stress import components, nodal_poisson, recovery_operator
+from .tip import TipCompliance, rigid_tip_bound
+
+
+@dataclass
+class IndentResult:
+    x0_m: float
+    depth_m: float
+    force_n_per_m: float
+    force_n: float
+    max_von_mises_pa: float
+    max_von_mises_at_m: tuple[float, float]     # (x_m, depth below the surface in m) of the maximum
+    half_width_m: float                          # half the extent of the contact (to within half a node spacing)
+    contact_x_m: np.ndarray                      # top nodes under the tip
+    pressure_pa: np.ndarray                      # contact pressure there (-sigma_yy at the surface, >= 0)
+    nodal_force_n_per_m: np.ndarray              # consistent nodal contact forces there
+    gap_m: np.ndarray                            # gaps there (0 where in contact)
+    rigid_tip: bool
+    tip_note: str = ""
+
+    def to_json(self) -> dict:
+        return {"x0_m": self.x0_m, "depth_m": self.depth_m, "force_n_per_m": self.force_n_per_m,
+                "force_n": self.force_n, "max_von_mises_pa": self.max_von_mises_pa,
+                "max_von_mises_at": {"x_m": self.max_von_mises_at_m[0], "depth_m": self.max_von_mises_at_m[1]},
+                "half_width_m": self.half_width_m, "rigid_tip": self.rigid_tip, "tip_note": self.tip_note,
+                "contact": {"x_m": self.contact_x_m.tolist(), "pressure_pa": self.pressure_pa.tolist(),
+                            "gap_m": self.gap_m.tolist()}}
+
+
+def tip_profile(indenter, x0_m: float, depth_m: float, x: np.ndarray) -> np.ndarray:
+    """Height of the tip's lower surface above the undeformed top surface at x (inf where the tip is absent)."""
+    d = x - x0_m
+    R = indenter.radius_m
+    out = np.full(len(x), np.inf)
+    inside = np.abs(d) <= R
+    if indenter.shape == "cylinder":
+        out[inside] = -depth_m + (R - np.sqrt(np.maximum(R * R - d[inside] ** 2, 0.0)))
+    else:  # flat punch of half-width R
+        out[inside] = -depth_m
+    return out
+
+
+def _load_b_fixed(model: Model) -> np.ndarray:
+    mesh = model.mesh
+    return model.reduced_index(np.concatenate([2 * mesh.bottom + 1, [2 * mesh.bottom[0]]]))
+
+
+class SchurFactor:
+    """K_ff factorized with the contact DOFs ordered last, so that the trailing block of L U is the Schur
+    complement S = K_cc - K_ci K_ii^-1 K_ic and the condensed compliance is exactly S^-1: no multi-right-hand-side
+    solve. The interior keeps SuperLU's fill-reducing ordering (taken from a first factorization)."""
+
+    def __init__(self, K, free: np.ndarray, contact: np.ndarray):
+        import scipy.sparse.linalg as spla
+        Kff = K[free][:, free].tocsc()
+        pos = np.full(K.shape[0], -1)
+        pos[free] = np.arange(len(free))
+        c = pos[contact]
+        opts = dict(diag_pivot_thresh=0.0, options={"SymmetricMode": True})   # SPD: no pivoting
+        order = np.argsort(spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", **opts).perm_c)
+        is_c = np.zeros(len(free), bool)
+        is_c[c] = True
+        self.p = np.concatenate([order[~is_c[order]], c])
+        self.lu = spla.splu(Kff[self.p][:, self.p].tocsc(), permc_spec="NATURAL", **opts)
+        n, nc = len(free), len(c)
+        if not (np.array_equal(self.lu.perm_r, np.arange(n)) and np.array_equal(self.lu.perm_c, np.arange(n))):
+            raise RuntimeError("SuperLU reordered the Schur factorization; cannot read the Schur complement")
+        L = self.lu.L.tocsc()[n - nc:, n - nc:].toarray()
+        U = self.lu.U.tocsc()[n - nc:, n - nc:].toarray()
+        S = L @ U
+        self.compliance = np.linalg.inv(0.5 * (S + S.T))
+        self.free, self.c = free, c
+
+    def solve(self, rhs_free: np.ndarray) -> np.ndarray:
+        """K_ff^-1 rhs for rhs given on the free DOFs (n_free,) or (n_free, k)."""
+        x = np.empty_like(rhs_free, dtype=float)
+        x[self.p] = self.lu.solve(np.asfortranarray(rhs_free[self.p]))
+        return x
+
+
+class SurfaceModel:
+    """A scene's condensed top-surface response: build once, then ``indent`` any waypoint in about a millisecond.
+
+    rigid_tip: "auto" treats an elastic tip as rigid when that changes the force by less than ``tip_tolerance``
+    (relative, bound from fem.tip.rigid_tip_bound), True always rigid, False always elastic (if a modulus is given).
+    stress_band_m: depth below the surface over which the maximum von Mises stress is searched (default 2 R).
+    """
+
+    def __init__(self, scene, model: Model | None = None, rigid_tip: str | bool = "auto",
+                 tip_tolerance: float = 1e-3, stress_band_m: float | None = None,
+                 rigid_stones: str | bool = "auto"):
+        t0 = time.perf_counter()
+        self.scene = scene
+        self.model = model or build_model(scene, rigid_stones=rigid_stones)
+        mesh = self.model.mesh
+        t1 = time.perf_counter()
+        fixed = np.unique(_load_b_fixed(self.model))
+        free = np.setdiff1d(np.arange(self.model.n_dofs), fixed)
+        self.top = mesh.top
+        self.x = mesh.nodes[self.top, 0]
+        self.top_red = self.model.reduced_index(2 * self.top + 1)
+        self.fac = SchurFactor(self.model.K, free, self.top_red)
+        self.C = self.fac.compliance          # top-node downward displacement per downward nodal force (m per N/m)
+        t2 = time.perf_counter()
+        ind = scene.indenter
+        self.tip_bound = rigid_tip_bound(scene)
+        if ind.youngs_pa is None:
+            self.rigid_tip, self.tip_note = True, "rigid tip (no modulus given)"
+        elif rigid_tip is True or (rigid_tip == "auto" and self.tip_bound < tip_tolerance):
+            self.rigid_tip = True
+            self.tip_note = (f"tip treated as rigid: its deformation changes the force by about "
+                             f"{self.tip_bound:.1e} (relative, Hertz estimate; measured in tests)")
+        else:
+            self.rigid_tip = False
+            self.tip_note = "elastic tip (condensed tip compliance added)"
+        self.tip = None if self.rigid_tip else TipCompliance(scene)
+        self.band_m = stress_band_m if stress_band_m is not None else 2 * ind.radius_m
+        self._band = None
+        self._top_op = None
+        self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
+
+    # -- fields from contact forces (one back-substitution per waypoint, batched when many) ----------------------
+    def displacements(self, F_top: np.ndarray) -> np.ndarray:
+        """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes."""
+        rhs = np.zeros((len(self.fac.free), F_top.shape[1]))
+        rhs[self.fac.c] = -F_top
+        Y = np.zeros((self.model.n_dofs, F_top.shape[1]))
+        Y[self.fac.free] = self.fac.solve(rhs)
+        return self.model.P @ Y
+
+    def _band_op(self):
+        if self._band is None:
+            mesh = self.model.mesh
+            nodes = np.flatnonzero(mesh.nodes[:, 1] >= mesh.height_m - self.band_m - 1e-12)
+            self._band = (nodes, recovery_operator(self.model, nodes), nodal_poisson(self.model, nodes))
+        return self._band
+
+    def _top_stress_op(self):
+        if self._top_op is None:
+            self._top_op = recovery_operator(self.model, self.top)
+        return self._top_op
+
+    # -- one waypoint --------------------------------------------------------------------------------------------
+    def _window(self, x0_m: float) -> np.ndarray:
+        R = self.scene.indenter.radius_m
+        return np.flatnonzero(np.abs(self.x - x0_m) <= R)
+
+    def contact_forces(self, x0_m: float, depth_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(window top-node indices, nodal forces per unit thickness (N/m), gaps (m)) for one waypoint."""
+        _check(self.scene, x0_m, depth_m)
+        idx = self._window(x0_m)
+        q = tip_profile(self.scene.indenter, x0_m, depth_m, self.x[idx])
+        if depth_m == 0.0 or not np.any(q < 0):
+            return idx, np.zeros(len(idx)), q
+        M = self.C[np.ix_(idx, idx)]
+        if self.tip is not None:
+            M = M + self.tip.compliance(self.x[idx] - x0_m)
+        r = solve_lcp(M, q, start=q < 0)
+        return idx, r.z, r.w
+
+    def force_n_per_m(self, x0_m: float, depth_m: float) -> float:
+        return float(self.contact_forces(x0_m, depth_m)[1].sum())
+
+    def force_n(self, x0_m: float, depth_m: float) -> float:
+        return self.force_n_per_m(x0_m, depth_m) * self.scene.indenter.thickness_m
+
+    def indent(self, x0_m: float, depth_m: float, stresses: bool = True) -> IndentResult:
+        return self.indent_many([x0_m], [depth_m], stresses=stresses)[0]
+
+    def indent_many(self, x0_m, depth_m, stresses: bool = True) -> list[IndentResult]:
+        """Several waypoints; their stress fields come from one batched back-substitution."""
+        x0s = np.atleast_1d(np.asarray(x0_m, float))
+        depths = np.broadcast_to(np.asarray(depth_m, float), x0s.shape)
+        sols = [self.contact_forces(float(x), float(d)) for x, d in zip(x0s, depths)]
+        F = np.zeros((len(self.top), len(sols)))
+        for k, (idx, f, _) in enumerate(sols):
+            F[idx, k] = f
+        if stresses and F.any():
+            U = self.displacements(F)
+            nodes, Rb, nu = self._band_op()
+            Sb = (Rb @ U).reshape(len(nodes), 3, -1)
+            St = (self._top_stress_op() @ U).reshape(len(self.top), 3, -1)
+            vm = components(np.moveaxis(Sb, 2, 0), nu[None, :], self.model.plane)["von_mises_pa"]  # (k, n_band)
+        out = []
+        H = self.model.mesh.height_m
+        for k, ((idx, f, gap), x0, d) in enumerate(zip(sols, x0s, depths)):
+            active = f > 0
+            vm_max, at, pressure = 0.0, (float(x0), 0.0), np.zeros(len(idx))
+            if stresses and active.any():
+                j = int(np.argmax(vm[k]))
+                node = nodes[j]
+                vm_max = float(vm[k, j])
+                at = (float(self.model.mesh.nodes[node, 0]), float(H - self.model.mesh.nodes[node, 1]))
+                pressure = np.where(active, np.maximum(-St[idx, 1, k], 0.0), 0.0)
+            P = float(f.sum())
+            out.append(IndentResult(x0_m=float(x0), depth_m=float(d), force_n_per_m=P,
+                                    force_n=P * self.scene.indenter.thickness_m, max_von_mises_pa=vm_max,
+                                    max_von_mises_at_m=at, half_width_m=_half_width(self.x[idx], active),
+                                    contact_x_m=self.x[idx], pressure_pa=pressure, nodal_force_n_per_m=f,
+                                    gap_m=gap, rigid_tip=self.rigid_tip, tip_note=self.tip_note))
+        return out
+
+    def depth_for_force(self, x0_m: float, force_n: float, depth_max_m: float) -> float:
+        """The depth at which the tip force reaches ``force_n`` (force is monotone in depth); depth_max_m if never."""
+        if self.force_n(x0_m, depth_max_m) <= force_n:
+            return depth_max_m
+        lo, hi = 0.0, depth_max_m
+        while hi - lo > 1e-9 * depth_max_m:
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if self.force_n(x0_m, mid) <= force_n else (lo, mid)
+        return lo
+
+    def full_field(self, x0_m: float, depth_m: float) -> np.ndarray:
+        """Full displacement vector (2N,) for one waypoint: one more back-substitution."""
+        idx, f, _ = self.contact_forces(x0_m, depth_m)
+        F = np.zeros((len(self.top), 1))
+        F[idx, 0] = f
+        return self.displacements(F)[:, 0]
+
+
+def _half_width(xs: np.ndarray, active: np.ndarray) -> float:
+    """Half the contact extent, edges placed midway between the outermost contact node and the next free one."""
+    if not active.any():
+        return 0.0
+    lo, hi = np.flatnonzero(active)[[0, -1]]
+    left = 0.5 * (xs[lo] + xs[lo - 1]) if lo > 0 else xs[lo]
+    right = 0.5 * (xs[hi] + xs[hi + 1]) if hi < len(xs) - 1 else xs[hi]
+    return 0.5 * (right - left)
+
+
+def _check(scene, x0_m: float, depth_m: float) -> None:
+    if not (isinstance(x0_m, (int, float)) and math.isfinite(x0_m)) or not (0.0 <= x0_m <= scene.tissue.width_m):
+        raise ValueError(f"x0_m={x0_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
+    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < scene.tissue.height_m):
+        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {scene.tissue.height_m}) m")
+
+
+_CACHE: dict[tuple, SurfaceModel] = {}
+
+
+def surface_model(scene, **options) -> SurfaceModel:
+    """The SurfaceModel of a scene, built once per scene content and options (in-memory cache)."""
+    key = (scene.key(), tuple(sorted(options.items())))
+    if key not in _CACHE:
+        _CACHE[key] = SurfaceModel(scene, **options)
+    return _CACHE[key]
+
+
+def indent_full(scene, x0_m: float, depth_m: float, model: Model | None = None, max_iter: int = 50) -> dict:
+    """The plain path: the full system solved with the contact nodes as Dirichlet conditions (u_y = tip profile),
+    refactorized at every iteration of its own primal-dual active-set loop (add penetrating nodes, release nodes
+    pulled by tension). No condensation and no LCP solver; rigid tip only. Used to check the fast path and as the
+    "full re-solve per waypoint" baseline of the benchmark."""
+    import scipy.sparse.linalg as spla
+    _check(scene, x0_m, depth_m)
+    model = model or build_model(scene)
+    mesh = model.mesh
+    x = mesh.nodes[mesh.top, 0]
+    q = tip_profile(scene.indenter, x0_m, depth_m, x)
+    top_red = model.reduced_index(2 * mesh.top + 1)
+    base_fixed = _load_b_fixed(model)
+    active = q < 0
+    K = model.K
+    for it in range(1, max_iter + 1):
+        fixed = np.concatenate([base_fixed, top_red[active]])
+        values = np.concatenate([np.zeros(len(base_fixed)), q[active]])
+        free = np.setdiff1d(np.arange(model.n_dofs), fixed)
+        u = np.zeros(model.n_dofs)
+        u[fixed] = values
+        lu = spla.splu(K[free][:, free].tocsc())
+        u[free] = lu.solve(-(K[free][:, fixed] @ values))
+        force = -(K @ u)[top_red]                 # downward force the tip applies at each top node
+        force[~active] = 0.0
+        gap = q - u[top_red]
+        new = (active & (force >= 0)) | (~active & (gap < 0))
+        if np.array_equal(new, active):
+            break
+        active = new
+    else:
+        raise RuntimeError(f"full contact solve did not settle in {max_iter} iterations")
+    P = float(force.sum())
+    return {"x0_m": x0_m, "depth_m": depth_m, "force_n_per_m": P, "force_n": P * scene.indenter.thickness_m,
+            "nodal_force_n_per_m": force, "gap_m": gap, "active": active, "u": model.P @ u, "iterations": it}
