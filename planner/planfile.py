@@ -38,7 +38,7 @@ class PlanError(ValueError):
 @dataclass
 class Limits:
     force_limit_n: float = 2.0           # no probe may be planned or driven above this contact force
-    depth_limit_m: float = 0.008         # no probe deeper than this below the undeformed surface
+    depth_limit_m: float = 0.004         # no probe deeper than this below the undeformed surface (< tip radius)
     workspace_min_m: list[float] = field(default_factory=lambda: [-0.8, -0.8, -0.1])  # base-frame box for the TCP
     workspace_max_m: list[float] = field(default_factory=lambda: [0.8, 0.8, 0.8])
     max_tool_speed_m_s: float = 0.25

@@ -20,9 +20,9 @@ W = 0.070
 
 
 def stand_in_force(x_m, depth_m):
-    """Hertz-like stand-in for fem (stiffer than the real kidney so the force limit binds): 1 N at 4 mm mid-surface,
+    """Hertz-like stand-in for fem (stiffer than the real kidney so the force limit binds): 1 N at 3 mm mid-surface,
     softer towards the free side edges."""
-    return (0.6 + 0.4 * math.sin(math.pi * x_m / W)) * (depth_m / 0.004) ** 1.5
+    return (0.6 + 0.4 * math.sin(math.pi * x_m / W)) * (depth_m / 0.003) ** 1.5
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from planner.planfile import Limits
 
 DESCRIPTION = """Plan a probing raster over the tissue's top surface for a UR5e and write a plan file.
 
@@ -47,7 +48,8 @@ def add_parser(subparsers) -> None:
     r.add_argument("--x-max-m", type=float, help="see --x-min-m")
     d = p.add_argument_group("depth and force")
     d.add_argument("--force-limit-n", type=float, default=2.0, help="never plan above this contact force (default 2.0)")
-    d.add_argument("--depth-limit-m", type=float, default=0.008, help="never deeper than this (default 0.008)")
+    d.add_argument("--depth-limit-m", type=float, default=Limits().depth_limit_m,
+                   help=f"never deeper than this (default {Limits().depth_limit_m}; keep it below the tip radius)")
     d.add_argument("--force-fraction", type=float, default=0.5,
                    help="plan to at most this fraction of the force limit on the prior tissue (default 0.5)")
     d.add_argument("--min-depth-m", type=float, default=0.001,
