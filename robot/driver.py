@@ -1,0 +1,400 @@
+"""The probing driver: runs a plan's probes over ur_rtde's control and receive interfaces (or the simulated arm).
+
+``run_plan(plan, rtde_c, rtde_r, out_dir) -> RunReport``. Per probe: moveL above the waypoint (approach pose),
+zero the F/T sensor there in free air, measure the free-air noise, descend slowly with an *asynchronous* moveL whose
+target is the planned depth (so even a lost link ends the motion there -- never moveUntilContact, which has no
+distance limit) while polling the wrench every controller period, note first contact (filtered force above the
+contact threshold), stop with stopL if the filtered force exceeds the force limit, dwell and sample, retract to the
+approach pose. Only moveL is used (the plan's joint targets q_* are not needed; straight lines keep the path inside
+the convex workspace box). Every command passes safety.GuardedControl; every bool is checked; None/NaN/short
+receive vectors, a protective stop, a lost connection (RuntimeError), stale data and time-outs are faults that end
+the run in a safe state (stopped; retracted when the arm still accepts commands) with a report in run.json.
+
+Contact force convention: getActualTCPForce is the external force on the tool in the base frame; the contact force
+is its projection on the tissue's outward normal n (z axis of ``frames.tissue_pose_base``), times
+``DriverConfig.force_sign`` (+1): tissue pushing the tip back out gives a positive force. Verify the sign on a new
+cell with a gentle push before the first run. Time-outs count controller periods (waitPeriod paces the loop), so
+they are wall time on a real arm and simulated time on the simulated one.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from robot.records import DESCENT, DWELL, FREE, RETRACT, RunLog, done_indices, summarise
+from robot.safety import (GuardedControl, SafetyLimits, SafetyViolation, TissueFrame, check_plan,
+                          move_time as _move_time, preflight)
+
+class ProbeFault(Exception):
+    def __init__(self, kind: str, message: str):
+        super().__init__(f"{kind}: {message}")
+        self.kind, self.message = kind, message
+
+
+@dataclass
+class DriverConfig:
+    period_s: float = 0.002            # controller period (500 Hz on e-Series)
+    filter_window: int = 5             # moving average for contact / force-limit decisions
+    settle_s: float = 0.04             # wait before and after zeroing
+    noise_sample_s: float = 0.1        # free-air sampling after zeroing
+    noise_sigma_factor: float = 5.0    # thresholds must exceed this many filtered-noise sigmas
+    stop_decel_m_s2: float = 10.0
+    retract_speed_m_s: float = 0.02
+    timeout_factor: float = 2.0
+    timeout_margin_s: float = 2.0
+    stale_periods: int = 50            # timestamp not advancing this many periods: data stale
+    payload_kg: float = 0.1
+    payload_cog_m: tuple = (0.0, 0.0, 0.05)
+    force_sign: float = 1.0
+    skip_invalid: bool = False         # True: record unsafe probes as "rejected" and run the others
+    max_consecutive_force_stops: int = 3
+
+
+@dataclass
+class RunReport:
+    status: str                        # ok | fault | interrupted | rejected
+    out_dir: str
+    n_planned: int = 0
+    n_ok: int = 0
+    n_force_limit: int = 0
+    n_rejected: int = 0
+    n_skipped: int = 0                 # already ok in the log (resume)
+    fault: dict | None = None
+    problems: list = field(default_factory=list)
+    records: list = field(default_factory=list)
+    controller_time_s: float = 0.0
+    wall_s: float = 0.0
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.pop("records")
+        return d
+
+
+def _vec6(v) -> bool:
+    try:
+        return v is not None and len(v) == 6 and all(math.isfinite(float(a)) for a in v)
+    except (TypeError, ValueError):
+        return False
+
+
+class _Samples:
+    def __init__(self):
+        self.rows = []
+
+    def add(self, *row):
+        self.rows.append(row)
+
+    def arrays(self) -> dict:
+        cols = ["time_s", "tcp_pose", "wrench", "force_n", "depth_m", "x_m", "phase"]
+        if not self.rows:
+            return {c: np.zeros((0, 6) if c in ("tcp_pose", "wrench") else 0) for c in cols}
+        return {c: np.array([r[i] for r in self.rows], dtype=float) for i, c in enumerate(cols)}
+
+
+class Driver:
+    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None):
+        self.plan, self.cfg = plan, config or DriverConfig()
+        self.lim = SafetyLimits.from_plan(plan)
+        self.tf = TissueFrame(plan.frames.tissue_pose_base)
+        self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
+        self.filt = deque(maxlen=self.cfg.filter_window)
+        self.last_ts, self.stale, self.ts = None, 0, 0.0
+        self.samples = _Samples()
+        self.phase = FREE
+        self.contact_thr = plan.motion.contact_threshold_n
+        self.noise_std = float("nan")
+
+    # ---- primitives --------------------------------------------------------------------------------------
+    def _call(self, fn, *args):
+        try:
+            return fn(*args)
+        except RuntimeError as e:
+            raise ProbeFault("connection_lost", f"{getattr(fn, '__name__', fn)}: {e}") from None
+
+    def _require(self, ok, what: str) -> None:
+        if ok is True:
+            return
+        if self._call(self.r.isProtectiveStopped) is True:
+            raise ProbeFault("protective_stop", f"{what} refused: the controller is protective-stopped")
+        raise ProbeFault("command_failed", f"{what} returned {ok!r}")
+
+    def _read(self, strict=True):
+        r = self.r
+        ts, pose, w, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.getActualTCPForce,
+                                                    r.isProtectiveStopped))
+        if ps is True:
+            raise ProbeFault("protective_stop", "the controller reports a protective stop")
+        if not _vec6(pose):
+            raise ProbeFault("invalid_reading", f"getActualTCPPose returned {pose!r}")
+        if not isinstance(ts, (int, float)) or not math.isfinite(ts):
+            raise ProbeFault("invalid_reading", f"getTimestamp returned {ts!r}")
+        ok_w = _vec6(w)
+        if strict and not ok_w:
+            raise ProbeFault("invalid_reading", f"getActualTCPForce returned {w!r}")
+        self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
+        if self.stale >= self.cfg.stale_periods:
+            raise ProbeFault("timeout", f"controller data stopped updating at t={ts:.3f} s")
+        self.last_ts = self.ts = float(ts)
+        x, depth = self.tf.x_depth(pose)
+        f = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) if ok_w \
+            else float("nan")
+        if ok_w:
+            self.filt.append(f)
+        filt = sum(self.filt) / len(self.filt) if self.filt else float("nan")
+        self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase)
+        return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
+
+    def _loop(self, max_s: float, body, strict=True, what="wait"):
+        """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s."""
+        for _ in range(max(1, int(math.ceil(max_s / self.cfg.period_s)))):
+            t0 = self._call(self.c.initPeriod)
+            res = body(self._read(strict))
+            self._call(self.c.waitPeriod, t0)
+            if res is not None:
+                return res
+        raise ProbeFault("timeout", f"{what} did not finish within {max_s:.1f} s")
+
+    def _wait(self, seconds: float, collect=None):
+        n = [0]
+
+        def body(s):
+            if collect is not None:
+                collect.append((s["f"], s["filt"]))
+            n[0] += 1
+            return True if n[0] * self.cfg.period_s >= seconds else None
+        self._loop(seconds + 1.0, body)
+
+    def _stop(self) -> None:
+        self._call(self.c.stopL, self.cfg.stop_decel_m_s2)
+
+    def _move(self, pose, speed, accel, watch=None, strict=True, what="move"):
+        """Asynchronous moveL to ``pose``, polled each period; ``watch(sample)`` may stop it early (its result)."""
+        start = self._read(strict)["pose"]
+        dist = math.dist(start[:3], pose[:3])
+        before = self._call(self.c.getAsyncOperationProgress)
+        self._require(self._call(self.c.moveL, list(pose), speed, accel, True), f"moveL ({what})")
+        timeout = self.cfg.timeout_factor * _move_time(dist, speed, accel) + self.cfg.timeout_margin_s
+        state = {"started": False, "idle": 0}
+
+        def body(s):
+            if watch is not None:
+                res = watch(s)
+                if res is not None:
+                    return res
+            prog = self._call(self.c.getAsyncOperationProgress)
+            if prog is None:
+                raise ProbeFault("invalid_reading", "getAsyncOperationProgress returned None")
+            # < 0: no operation running; a negative value other than the one before the command marks the end
+            # of this one (ur_rtde toggles -1/-2), so even a move too short to be seen running is detected
+            state["started"] |= prog >= 0 or prog != before
+            if prog < 0:
+                if math.dist(s["pose"][:3], pose[:3]) < 2e-4:
+                    return "reached"
+                state["idle"] += 1
+                if state["idle"] > 25 and (state["started"] or state["idle"] > 100):
+                    raise ProbeFault("move_failed", f"{what} ended {math.dist(s['pose'][:3], pose[:3]) * 1e3:.2f}"
+                                                    f" mm short of its target")
+            return None
+        try:
+            return self._loop(timeout, body, strict, what)
+        except ProbeFault as f:
+            if f.kind == "timeout":
+                self._stop()
+            raise
+
+    # ---- one probe ---------------------------------------------------------------------------------------
+    def _zero(self) -> None:
+        self.phase = FREE
+        self._wait(self.cfg.settle_s)
+        self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor")
+        self.filt.clear()
+        self._wait(self.cfg.settle_s)
+        self.filt.clear()
+        vals: list = []
+        self._wait(self.cfg.noise_sample_s, vals)
+        vals = np.array(vals[self.cfg.filter_window:]).reshape(-1, 2)
+        self.noise_std = float(np.std(vals[:, 0])) if len(vals) > 1 else 0.0
+        noise_f = float(np.std(vals[:, 1])) if len(vals) > 1 else 0.0
+        noise_thr = self.cfg.noise_sigma_factor * noise_f
+        if noise_thr >= 0.5 * self.lim.force_limit_n:
+            raise ProbeFault("sensor_noise", f"free-air force noise {noise_f:.3f} N (filtered) is too large "
+                                             f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
+                                             f"enforced with this sensor")
+        self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
+
+    def _probe(self, p):
+        mo, lim = self.plan.motion, self.lim
+        self.samples, self.phase = _Samples(), FREE
+        t0 = self.ts
+        collision = lambda s: self._halt("collision") if s["filt"] > lim.force_limit_n else None  # noqa: E731
+        self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
+                   collision, what=f"approach to probe {p.index}")
+        self._zero()
+        contact = {}
+
+        hist = deque(maxlen=self.cfg.filter_window + 1)
+        lead = self.cfg.filter_window // 2 + 2      # periods: filter lag + reading latency + stop
+
+        def watch(s):
+            if "depth" not in contact and s["filt"] > self.contact_thr:
+                contact.update(depth=s["depth"], x=s["x"])
+            hist.append(s["filt"])
+            slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
+            if s["filt"] + max(slope, 0.0) * lead > lim.force_limit_n:   # where the force will be when stopped
+                self._stop()
+                return "force_limit"
+            return None
+        self.phase = DESCENT
+        outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
+                             min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
+        if outcome == "reached" and mo.dwell_s > 0:
+            self.phase = DWELL
+            n = [0]
+
+            def dwell(s):
+                n[0] += 1
+                r = watch(s)
+                return r if r is not None else ("reached" if n[0] * self.cfg.period_s >= mo.dwell_s else None)
+            outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell")
+        self.phase = RETRACT
+        self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
+                   min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
+        status = "ok" if outcome == "reached" else "force_limit"
+        raw = self.samples.arrays()
+        return summarise(p, raw, status, contact, t0, self.ts, self.contact_thr, self.noise_std,
+                         lim.depth_limit_m), raw
+
+    def _halt(self, kind):
+        self._stop()
+        raise ProbeFault(kind, f"force above the limit {self.lim.force_limit_n} N outside the descent")
+
+    # ---- safe state --------------------------------------------------------------------------------------
+    def safe_state(self) -> dict:
+        """Stop, then retract along the normal to the approach height if the arm still takes commands."""
+        out = {"stopped": False, "retracted": False, "notes": []}
+        try:
+            pstop = self.r.isProtectiveStopped() is True
+        except RuntimeError:
+            pstop = False
+        if pstop:   # the controller has stopped the arm; it takes no commands until the stop is cleared
+            out["stopped"] = True
+            out["notes"].append("protective stop: the arm halted where it was; clear the stop on the pendant, "
+                                "then resume (the driver first retracts along the tissue normal)")
+            return out
+        for _ in range(2):
+            try:
+                self._stop()
+                out["stopped"] = True
+                break
+            except ProbeFault as f:
+                out["notes"].append(f"stopL failed: {f.message}")
+                ok = False
+                try:
+                    ok = self.c.reconnect() is True and self.r.reconnect() is True
+                except (RuntimeError, AttributeError, SafetyViolation):
+                    pass
+                if not ok:
+                    out["notes"].append("reconnect failed: the last command was a bounded moveL (target no deeper "
+                                        "than the planned depth); the arm stops there at the latest")
+                    return out
+        try:
+            s = self._read(strict=False)
+            out["retracted"] = self._retract_from(s["pose"], s["depth"], s["x"])
+        except (ProbeFault, SafetyViolation) as e:
+            out["notes"].append(f"retract failed: {e}")
+        return out
+
+    def _retract_from(self, pose, depth, x) -> bool:
+        h = self.plan.motion.approach_height_m
+        inside = -1e-3 <= x <= self.lim.width_m + 1e-3
+        if not inside or depth <= -h + 1e-3:
+            return True
+        target = list(np.asarray(pose[:3]) + self.tf.normal * (depth + h)) + list(pose[3:])
+        self._move(target, min(self.cfg.retract_speed_m_s, self.lim.tool_speed_m_s), min(0.5, self.lim.accel_m_s2),
+                   strict=False, what="retract")
+        return True
+
+    # ---- the run -----------------------------------------------------------------------------------------
+    def run(self, out_dir, resume=True, progress=None) -> RunReport:
+        wall0 = time.monotonic()
+        plan, cfg = self.plan, self.cfg
+        done = done_indices(out_dir) if resume else set()
+        pre = preflight(plan, done)
+        problems, bad = check_plan(plan)
+        rep = RunReport("ok", str(out_dir), n_planned=len(plan.probes), problems=problems,
+                        n_skipped=sum(1 for p in plan.probes if p.index in done))
+        log = RunLog(out_dir)
+        try:
+            if problems or (bad and not cfg.skip_invalid):
+                rep.status = "rejected"
+                rep.problems = problems + [f"probe {k}: {v}" for k, v in bad.items()]
+                return rep
+            current = None
+            try:
+                self._setup()
+                consecutive = 0
+                for p in plan.probes:
+                    if p.index in done:
+                        continue
+                    current = p
+                    if p.index in bad:
+                        rep.records.append(log.write_probe({"index": p.index, "x_m": p.x_m, "status": "rejected",
+                                                            "reason": bad[p.index]}))
+                        rep.n_rejected += 1
+                        continue
+                    rec, raw = self._probe(p)
+                    rec = log.write_probe(rec, raw)
+                    rep.records.append(rec)
+                    rep.n_ok += rec["status"] == "ok"
+                    rep.n_force_limit += rec["status"] == "force_limit"
+                    consecutive = consecutive + 1 if rec["status"] == "force_limit" else 0
+                    if progress:
+                        progress(rec, len(rep.records), pre["n_to_run"])
+                    if consecutive >= cfg.max_consecutive_force_stops:
+                        raise ProbeFault("force_limit", f"{consecutive} consecutive probes stopped at the force "
+                                                        f"limit: check the plan and the tissue")
+                    current = None
+            except (ProbeFault, SafetyViolation, KeyboardInterrupt) as e:
+                kind = e.kind if isinstance(e, ProbeFault) else (
+                    "interrupted" if isinstance(e, KeyboardInterrupt) else "safety_violation")
+                safe = self.safe_state()
+                rep.status = "interrupted" if kind == "interrupted" else "fault"
+                rep.fault = {"kind": kind, "message": str(e) or "Ctrl-C", "probe_index": getattr(current, "index",
+                             None), "controller_time_s": self.ts, **safe}
+                if current is not None:
+                    rec = summarise(current, self.samples.arrays(), "interrupted" if kind == "interrupted"
+                                    else "fault", {}, self.ts, self.ts, self.contact_thr, self.noise_std,
+                                    self.lim.depth_limit_m)
+                    rec["reason"] = rep.fault["message"]
+                    rep.records.append(log.write_probe(rec, self.samples.arrays()))
+            return rep
+        finally:
+            rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
+            log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
+                           "commands_sent": len(self.c.sent)})
+            log.close()
+
+    def _setup(self) -> None:
+        cfg, c = self.cfg, self.c
+        if self._call(self.r.isProtectiveStopped) is True:
+            raise ProbeFault("protective_stop", "the arm is protective-stopped: clear it on the pendant first")
+        self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
+        self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
+        s = self._read(strict=False)
+        p = s["pose"]
+        if not all(self.lim.box_min[k] <= p[k] <= self.lim.box_max[k] for k in range(3)):
+            raise SafetyViolation(f"the arm starts at {[round(v, 3) for v in p[:3]]}, outside the workspace box")
+        self._retract_from(p, s["depth"], s["x"])   # a resumed run may start with the tip in tissue
+        self._zero()                                 # free air: zero and check the sensor before moving on
+
+
+def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = None, resume=True,
+             progress=None) -> RunReport:
+    """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py)."""
+    return Driver(plan, rtde_c, rtde_r, config).run(out_dir, resume=resume, progress=progress)

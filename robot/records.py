@@ -1,0 +1,153 @@
+"""What a run leaves on disk, and how a run resumes from it.
+
+``<out>/probes.jsonl``  one JSON object per probe attempt, appended, flushed and fsync'ed before the next probe.
+                        Keys carry units (see ``driver.summarise``); ``status`` is "ok", "force_limit" (stopped at
+                        the force limit, e.g. over a stone), "rejected" (failed the safety checks, never moved),
+                        "fault" or "interrupted" (the attempt ended early; its samples are still kept).
+``<out>/raw/probe_NNN[_aK].npz``  the raw samples of that attempt: ``time_s`` (N), ``tcp_pose`` (N x 6, base
+                        frame), ``wrench`` (N x 6, as read), ``force_n`` (N, contact force along the tissue normal),
+                        ``depth_m`` (N), ``phase`` (N: 0 free air, 1 descent, 2 dwell, 3 retract).
+``<out>/run.json``      the run's summary: status, fault report, counts (written atomically).
+
+Resume: the last record of each index wins; indices whose last status is "ok" are not probed again. A torn last
+line (a crash mid-write) is ignored.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+DONE = ("ok",)
+FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class RunLog:
+    def __init__(self, out_dir: str | Path):
+        self.out = Path(out_dir)
+        (self.out / "raw").mkdir(parents=True, exist_ok=True)
+        self.jsonl = self.out / "probes.jsonl"
+        self._f = open(self.jsonl, "a", encoding="utf-8")
+
+    def _raw_path(self, index: int) -> Path:
+        p = self.out / "raw" / f"probe_{index:03d}.npz"
+        k = 2
+        while p.exists():
+            p = self.out / "raw" / f"probe_{index:03d}_a{k}.npz"
+            k += 1
+        return p
+
+    def write_probe(self, record: dict, raw: dict | None = None) -> dict:
+        """Raw samples first (so a record never points at a missing file), then the summary line; both on disk
+        (flush + fsync) when this returns."""
+        record = dict(record)
+        if raw is not None:
+            path = self._raw_path(int(record["index"]))
+            with open(path, "wb") as f:
+                np.savez(f, **{k: np.asarray(v) for k, v in raw.items()})
+                f.flush()
+                os.fsync(f.fileno())
+            record["raw_file"] = str(path.relative_to(self.out))
+        self._f.write(json.dumps(record, allow_nan=False, default=_jsonable) + "\n")
+        self._f.flush()
+        os.fsync(self._f.fileno())
+        return record
+
+    def write_run(self, summary: dict) -> None:
+        tmp = self.out / "run.json.tmp"
+        with open(tmp, "w", encoding="utf-8") as f:
+            json.dump(summary, f, indent=1, default=_jsonable)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.out / "run.json")
+        _fsync_dir(self.out)
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def _jsonable(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"not JSON serialisable: {type(v).__name__}")
+
+
+def read_records(out_dir: str | Path) -> list[dict]:
+    """Every complete line of probes.jsonl, in order (a torn final line is skipped)."""
+    path = Path(out_dir) / "probes.jsonl"
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return out
+
+
+def latest_by_index(out_dir: str | Path) -> dict[int, dict]:
+    return {int(r["index"]): r for r in read_records(out_dir)}
+
+
+def done_indices(out_dir: str | Path) -> set[int]:
+    return {i for i, r in latest_by_index(out_dir).items() if r.get("status") in DONE}
+
+
+def read_measurements(out_dir: str | Path, statuses=("ok", "force_limit")) -> list[dict]:
+    """For the localizer: the latest record per probe index with a usable measurement, sorted by x_m."""
+    recs = [r for r in latest_by_index(out_dir).values() if r.get("status") in statuses]
+    return sorted(recs, key=lambda r: r["x_m"])
+
+
+def load_raw(out_dir: str | Path, record: dict) -> dict:
+    with np.load(Path(out_dir) / record["raw_file"]) as z:
+        return {k: z[k] for k in z.files}
+
+
+def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, contact_thr: float,
+              noise_std: float, depth_limit_m: float) -> dict:
+    """The summary line of one probe (SI units in the key names) from its raw arrays."""
+    ph, f = raw["phase"], raw["force_n"]
+    sel = ph == DWELL
+    if not sel.any():  # stopped at the force limit (or cut short): the last filter window of the descent
+        idx = np.flatnonzero(ph == DESCENT)[-5:]
+        sel = np.zeros(len(ph), bool)
+        sel[idx] = True
+    fin = sel & np.isfinite(f)
+    active = ((ph == DESCENT) | (ph == DWELL)) & np.isfinite(f)
+
+    def num(v):
+        return None if v is None or not math.isfinite(v) else float(v)
+    rec = {"index": p.index, "x_m": p.x_m, "depth_planned_m": p.depth_m,
+           "depth_target_m": min(p.depth_m, depth_limit_m),
+           "depth_reached_m": num(float(np.mean(raw["depth_m"][sel]))) if sel.any() else None,
+           "contact_x_m": num(float(np.mean(raw["x_m"][sel]))) if sel.any() else None,
+           "contact_depth_m": num(contact.get("depth")),
+           "force_mean_n": num(float(np.mean(f[fin]))) if fin.any() else None,
+           "force_std_n": num(float(np.std(f[fin]))) if fin.any() else None,
+           "force_peak_n": num(float(np.max(f[active]))) if active.any() else None,
+           "force_predicted_prior_n": p.predicted_force_n, "n_samples": int(fin.sum()),
+           "n_samples_total": int(len(ph)), "contact_threshold_n": num(contact_thr),
+           "noise_std_n": num(noise_std), "status": status, "t_s": num(t0), "duration_s": num(t1 - t0),
+           "wall_time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
+    return rec

@@ -1,0 +1,234 @@
+"""Safety guards for probing: hard caps, plan validation, and a guarded control interface.
+
+Every motion command the driver sends goes through ``GuardedControl``, which checks it *before* forwarding it to
+ur_rtde (or the simulated arm) and raises ``SafetyViolation`` instead of sending anything unsafe:
+
+* only ``moveL`` moves (straight lines): with a convex workspace box, a segment whose end points lie in the box
+  stays in it, so checking targets checks whole paths (``moveJ``, ``speedL``, ``servoL``, ``forceMode`` and
+  ``moveUntilContact`` -- which has no distance limit -- are refused);
+* every target is finite and its TCP position lies in the workspace box (the plan's box, clamped to a hard box);
+* a target below the undeformed tissue surface (inside its footprint) lies no deeper than the depth limit, is
+  approached at probe speed (<= ``HARD_PROBE_SPEED_M_S``) with the tool axis within 10 deg of the inward normal;
+* speeds and accelerations never exceed the plan's caps, themselves clamped to hard caps;
+* ``setTcp``/``setPayload`` arguments are plausible.
+
+The force limit is enforced by the driver's force monitor, whose threshold is ``SafetyLimits.force_limit_n`` (the
+plan's limit, clamped to ``HARD_FORCE_LIMIT_N``); no other force threshold can exceed it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from robot import ur5e
+
+HARD_FORCE_LIMIT_N = 10.0          # no plan can ask for more contact force than this
+HARD_DEPTH_LIMIT_M = 0.02
+HARD_TOOL_SPEED_M_S = 0.25
+HARD_PROBE_SPEED_M_S = 0.01        # inside tissue
+HARD_ACCEL_M_S2 = 1.5
+HARD_BOX_MIN_M = (-0.85, -0.85, -0.2)
+HARD_BOX_MAX_M = (0.85, 0.85, 1.0)
+MAX_TCP_OFFSET_M = 0.3
+MAX_PAYLOAD_KG = 5.0
+MAX_TILT_RAD = math.radians(10.0)
+POSE_TOL_M = 5e-4                  # plan poses must match x_m/depth_m/approach height to this
+
+
+class SafetyViolation(Exception):
+    """A command or plan that would break a safety limit; nothing was sent."""
+
+
+@dataclass(frozen=True)
+class SafetyLimits:
+    box_min: tuple
+    box_max: tuple
+    force_limit_n: float
+    depth_limit_m: float
+    tool_speed_m_s: float
+    probe_speed_m_s: float
+    accel_m_s2: float
+    tissue_pose_base: tuple
+    width_m: float
+
+    @staticmethod
+    def from_plan(plan) -> "SafetyLimits":
+        lim, mo = plan.limits, plan.motion
+        lo = tuple(max(a, b) for a, b in zip(lim.workspace_min_m, HARD_BOX_MIN_M))
+        hi = tuple(min(a, b) for a, b in zip(lim.workspace_max_m, HARD_BOX_MAX_M))
+        width = float(plan.scene.get("tissue", {}).get("width_m", 0.07)) if isinstance(plan.scene, dict) else 0.07
+        return SafetyLimits(
+            box_min=lo, box_max=hi,
+            force_limit_n=min(lim.force_limit_n, HARD_FORCE_LIMIT_N),
+            depth_limit_m=min(lim.depth_limit_m, HARD_DEPTH_LIMIT_M),
+            tool_speed_m_s=min(lim.max_tool_speed_m_s, HARD_TOOL_SPEED_M_S),
+            probe_speed_m_s=min(mo.probe_speed_m_s, lim.max_tool_speed_m_s, HARD_PROBE_SPEED_M_S),
+            accel_m_s2=min(max(mo.approach_accel_m_s2, mo.probe_accel_m_s2), HARD_ACCEL_M_S2),
+            tissue_pose_base=tuple(plan.frames.tissue_pose_base), width_m=width)
+
+
+class TissueFrame:
+    """Base <-> tissue frame (planfile.py): x along the section, z the outward normal; depth = -z."""
+
+    def __init__(self, tissue_pose_base):
+        T = ur5e.pose_to_T(tissue_pose_base)
+        self.R, self.o = T[:3, :3], T[:3, 3]
+        self.normal = self.R[:, 2].copy()
+
+    def local(self, p) -> np.ndarray:
+        return self.R.T @ (np.asarray(p[:3], dtype=float) - self.o)
+
+    def x_depth(self, pose) -> tuple[float, float]:
+        p = self.local(pose)
+        return float(p[0]), float(-p[2])
+
+    def tilt(self, pose) -> float:
+        """Angle between the tool z axis and the inward normal (rad)."""
+        z = ur5e.rotvec_to_matrix(pose[3:6])[:, 2]
+        return math.acos(max(-1.0, min(1.0, float(-z @ self.normal))))
+
+
+def _finite(v, n) -> bool:
+    try:
+        return len(v) == n and all(isinstance(a, (int, float)) and math.isfinite(a) for a in v)
+    except TypeError:
+        return False
+
+
+def check_pose(lim: SafetyLimits, tf: TissueFrame, pose, speed: float, accel: float) -> None:
+    """Raise SafetyViolation unless a moveL to ``pose`` at ``speed``/``accel`` is safe."""
+    if not _finite(pose, 6):
+        raise SafetyViolation(f"pose {pose!r} is not 6 finite numbers")
+    if not (isinstance(speed, (int, float)) and 0 < speed <= lim.tool_speed_m_s + 1e-12):
+        raise SafetyViolation(f"speed {speed!r} m/s outside (0, {lim.tool_speed_m_s}]")
+    if not (isinstance(accel, (int, float)) and 0 < accel <= lim.accel_m_s2 + 1e-12):
+        raise SafetyViolation(f"acceleration {accel!r} m/s^2 outside (0, {lim.accel_m_s2}]")
+    for k in range(3):
+        if not (lim.box_min[k] <= pose[k] <= lim.box_max[k]):
+            raise SafetyViolation(f"target {[round(v, 4) for v in pose[:3]]} m leaves the workspace box "
+                                  f"{list(lim.box_min)}..{list(lim.box_max)}")
+    x, depth = tf.x_depth(pose)
+    if depth > 0 and -1e-3 <= x <= lim.width_m + 1e-3:
+        if depth > lim.depth_limit_m + 1e-9:
+            raise SafetyViolation(f"target {depth * 1e3:.2f} mm below the surface exceeds the depth limit "
+                                  f"{lim.depth_limit_m * 1e3:.2f} mm")
+        if speed > lim.probe_speed_m_s + 1e-12:
+            raise SafetyViolation(f"speed {speed} m/s into tissue exceeds the probe speed {lim.probe_speed_m_s}")
+        if tf.tilt(pose) > MAX_TILT_RAD:
+            raise SafetyViolation(f"tool axis {math.degrees(tf.tilt(pose)):.1f} deg off the inward normal")
+
+
+def check_plan(plan) -> tuple[list[str], dict[int, str]]:
+    """(plan-wide problems, {probe index: problem}) -- empty when the plan is safe to execute as written."""
+    lim, tf, mo = SafetyLimits.from_plan(plan), TissueFrame(plan.frames.tissue_pose_base), plan.motion
+    problems, bad = [], {}
+    L = plan.limits
+    if L.force_limit_n > HARD_FORCE_LIMIT_N:
+        problems.append(f"force_limit_n {L.force_limit_n} N exceeds the hard cap {HARD_FORCE_LIMIT_N} N")
+    if L.depth_limit_m > HARD_DEPTH_LIMIT_M:
+        problems.append(f"depth_limit_m {L.depth_limit_m} exceeds the hard cap {HARD_DEPTH_LIMIT_M} m")
+    if not (0 < mo.probe_speed_m_s <= lim.probe_speed_m_s):
+        problems.append(f"motion.probe_speed_m_s {mo.probe_speed_m_s} outside (0, {lim.probe_speed_m_s}]")
+    if not (0 < mo.approach_speed_m_s <= lim.tool_speed_m_s):
+        problems.append(f"motion.approach_speed_m_s {mo.approach_speed_m_s} outside (0, {lim.tool_speed_m_s}]")
+    for name in ("approach_accel_m_s2", "probe_accel_m_s2"):
+        v = getattr(mo, name)
+        if not (0 < v <= HARD_ACCEL_M_S2):
+            problems.append(f"motion.{name} {v} outside (0, {HARD_ACCEL_M_S2}]")
+    if not (0 < mo.contact_threshold_n < lim.force_limit_n):
+        problems.append(f"motion.contact_threshold_n {mo.contact_threshold_n} outside (0, force limit)")
+    if not (0.002 <= mo.approach_height_m <= 0.05):
+        problems.append(f"motion.approach_height_m {mo.approach_height_m} outside [0.002, 0.05] m")
+    if not (0 <= mo.dwell_s <= 10):
+        problems.append(f"motion.dwell_s {mo.dwell_s} outside [0, 10] s")
+    off = plan.frames.tcp_offset
+    if math.dist(off[:3], (0, 0, 0)) > MAX_TCP_OFFSET_M:
+        problems.append(f"frames.tcp_offset {off} longer than {MAX_TCP_OFFSET_M} m")
+    seen = set()
+    for p in plan.probes:
+        why = None
+        if p.index in seen:
+            why = "duplicate index"
+        elif not (0 <= p.x_m <= lim.width_m):
+            why = f"x_m {p.x_m} outside the tissue [0, {lim.width_m}]"
+        elif not (0 < p.depth_m <= lim.depth_limit_m):
+            why = f"depth_m {p.depth_m} outside (0, depth limit {lim.depth_limit_m}]"
+        elif not (0 <= p.predicted_force_n <= lim.force_limit_n):
+            why = f"predicted_force_n {p.predicted_force_n} outside [0, force limit {lim.force_limit_n}]"
+        else:
+            for name, pose, want in (("approach_pose", p.approach_pose, -mo.approach_height_m),
+                                     ("indent_pose", p.indent_pose, p.depth_m)):
+                x, d = tf.x_depth(pose)
+                y = float(tf.local(pose)[1])
+                if max(abs(x - p.x_m), abs(d - want), abs(y)) > POSE_TOL_M or tf.tilt(pose) > MAX_TILT_RAD:
+                    why = f"{name} does not match x_m/depth_m/approach height in the tissue frame"
+                    break
+                try:
+                    check_pose(lim, tf, pose, mo.probe_speed_m_s, min(mo.probe_accel_m_s2, lim.accel_m_s2))
+                except SafetyViolation as e:
+                    why = f"{name}: {e}"
+                    break
+        seen.add(p.index)
+        if why:
+            bad[p.index] = why
+    return problems, bad
+
+
+class GuardedControl:
+    """Wraps an RTDE control interface; every command is checked before it is forwarded. ``sent`` logs them."""
+
+    _PASS = {"stopL", "stopJ", "speedStop", "stopScript", "zeroFtSensor", "getAsyncOperationProgress", "isSteady",
+             "isConnected", "reconnect", "isProgramRunning", "initPeriod", "waitPeriod", "disconnect",
+             "isPoseWithinSafetyLimits", "triggerProtectiveStop"}
+
+    def __init__(self, rtde_c, limits: SafetyLimits):
+        self._c, self.limits, self.tf = rtde_c, limits, TissueFrame(limits.tissue_pose_base)
+        self.sent: list[tuple] = []
+
+    def moveL(self, pose, speed, acceleration, asynchronous=False):
+        pose = [float(v) for v in pose] if _finite(pose, 6) else pose
+        check_pose(self.limits, self.tf, pose, speed, acceleration)
+        self.sent.append(("moveL", tuple(pose), speed, acceleration))
+        return self._c.moveL(pose, speed, acceleration, asynchronous)
+
+    def setTcp(self, pose):
+        if not _finite(pose, 6) or math.dist(pose[:3], (0, 0, 0)) > MAX_TCP_OFFSET_M:
+            raise SafetyViolation(f"TCP offset {pose!r} implausible")
+        self.sent.append(("setTcp", tuple(pose)))
+        return self._c.setTcp(list(pose))
+
+    def setPayload(self, mass, cog):
+        if not (0 <= mass <= MAX_PAYLOAD_KG) or not _finite(cog, 3):
+            raise SafetyViolation(f"payload {mass} kg at {cog} implausible")
+        self.sent.append(("setPayload", mass, tuple(cog)))
+        return self._c.setPayload(mass, list(cog))
+
+    def __getattr__(self, name):
+        if name in self._PASS:
+            return getattr(self._c, name)
+        raise SafetyViolation(f"{name} is not allowed through the guarded interface")
+
+
+def move_time(dist, v, a) -> float:
+    return dist / v + v / a
+
+
+def preflight(plan, done=()) -> dict:
+    """What the operator sees before the arm moves: limits, counts, estimated time, problems."""
+    lim, mo = SafetyLimits.from_plan(plan), plan.motion
+    problems, bad = check_plan(plan)
+    todo = [p for p in plan.probes if p.index not in set(done) and p.index not in bad]
+    t, prev = 0.0, None
+    for p in todo:
+        if prev is not None:
+            t += move_time(math.dist(prev[:3], p.approach_pose[:3]), mo.approach_speed_m_s, mo.approach_accel_m_s2)
+        h = mo.approach_height_m + p.depth_m
+        t += 0.2 + move_time(h, mo.probe_speed_m_s, mo.probe_accel_m_s2) + mo.dwell_s + h / 0.02 + 0.05
+        prev = p.approach_pose
+    return {"workspace_min_m": list(lim.box_min), "workspace_max_m": list(lim.box_max),
+            "force_limit_n": lim.force_limit_n, "depth_limit_m": lim.depth_limit_m,
+            "probe_speed_m_s": lim.probe_speed_m_s, "n_probes": len(plan.probes), "n_done": len(set(done)),
+            "n_to_run": len(todo), "estimated_time_s": round(t, 1), "problems": problems,
+            "rejected_probes": {str(k): v for k, v in bad.items()}}

@@ -1,0 +1,441 @@
+"""The in-memory simulated arm: ``ArmModel`` (physics) and the ur_rtde-shaped facades over it.
+
+``ArmModel`` is independent of the RTDE facade, so the simulated controller (robot/simcontroller.py) can drive the
+same physics. It holds the TRUE tissue (a ``force_model(x_m, depth_m) -> force_n`` built from the true scene);
+the driver only ever sees the plan. Time is simulated: ``step()`` advances one controller period (2 ms); the
+facades step on ``waitPeriod`` and inside blocking moves, so a plan runs in seconds of wall time.
+
+Contact physics: the tip (TCP) is expressed in the tissue frame (planfile.py): x along the section, z the outward
+normal. Below the undeformed surface (depth = -z > 0, 0 <= x <= width) the tissue pushes the tip outward along +z
+with ``force_model(x, depth)``. The wrench reported is the external force ON the tool in the base frame (pressing
+into tissue gives a force along the tissue's outward normal), plus the sensor model, delayed by ``latency_s``.
+
+Force model cache: ``force_model`` is evaluated lazily on a grid (x snapped to ``x_grid_m``, depth nodes every
+``depth_grid_m``) and interpolated linearly in depth. For F ~ k d^1.5 the interpolation error is
+h^2/8 * F'' = 0.09 k h^2 d^-0.5: below 0.3 % of F for d >= 1 mm with h = 0.1 mm (tests measure it).
+"""
+from __future__ import annotations
+
+import datetime
+import math
+from collections import deque
+
+import numpy as np
+
+from robot import ur5e
+from robot.sensor import Sensor
+
+
+class CachedForce:
+    """Lazy grid cache of an expensive ``force_model(x_m, depth_m)``; linear interpolation in depth."""
+
+    def __init__(self, force_model, x_grid_m: float = 1e-5, depth_grid_m: float = 1e-4):
+        self.f, self.hx, self.hd = force_model, x_grid_m, depth_grid_m
+        self.nodes: dict[tuple[int, int], float] = {}
+        self.extrapolated = 0        # nodes the model refused (out of its range), linearly extrapolated
+
+    def _node(self, ix: int, idp: int) -> float:
+        v = self.nodes.get((ix, idp))
+        if v is None:
+            try:
+                v = 0.0 if idp <= 0 else float(self.f(ix * self.hx, idp * self.hd))
+            except ValueError:   # beyond the model's range (fem: depth >= tip radius): continue linearly
+                v = 2 * self._node(ix, idp - 1) - self._node(ix, idp - 2) if idp >= 2 else 0.0
+                self.extrapolated += 1
+            self.nodes[(ix, idp)] = v
+        return v
+
+    def __call__(self, x_m: float, depth_m: float) -> float:
+        if depth_m <= 0:
+            return 0.0
+        ix = int(round(x_m / self.hx))
+        u = depth_m / self.hd
+        i = int(math.floor(u))
+        w = u - i
+        return (1 - w) * self._node(ix, i) + w * self._node(ix, i + 1)
+
+
+def standin_force_model(width_m=0.07, k_n_per_m15=1500.0, stones=((0.035, 0.025, 0.015),), contrast=0.6):
+    """A Hertz-like stand-in for fem: k d^1.5, stiffened near shallow stones ((x_m, depth_m, diameter_m) each)."""
+    def f(x_m, depth_m):
+        if depth_m <= 0 or not (0.0 <= x_m <= width_m):
+            return 0.0
+        g = 1.0
+        for sx, sd, sdia in stones:
+            g += contrast * (sdia / (2 * sd)) * math.exp(-((x_m - sx) / (0.6 * sd)) ** 2)
+        return k_n_per_m15 * g * depth_m ** 1.5
+    return f
+
+
+class _Motion:
+    """A point moving along a path of length L with a trapezoidal speed profile (v, a); stoppable, stallable."""
+
+    def __init__(self, L, v, a, interp):
+        self.L, self.v, self.a, self.interp = L, v, a, interp
+        self.s, self.sdot, self.a_stop, self.stalled = 0.0, 0.0, None, False
+
+    def step(self, dt):
+        if self.a_stop is not None:
+            self.sdot = max(0.0, self.sdot - self.a_stop * dt)
+        elif self.stalled:
+            self.sdot = 0.0
+        else:
+            rem = max(self.L - self.s, 0.0)
+            self.sdot = min(self.v, self.sdot + self.a * dt, math.sqrt(2 * self.a * rem))
+        self.s = min(self.L, self.s + self.sdot * dt)
+        if self.s >= self.L - 1e-12 and self.a_stop is None:
+            self.s = self.L
+            return True
+        return self.a_stop is not None and self.sdot == 0.0
+
+    @property
+    def progress(self):
+        return self.s / self.L if self.L > 0 else 1.0
+
+
+class ArmModel:
+    """A UR5e-like arm touching the true tissue. All units SI; poses are ur_rtde poses in the base frame.
+
+    Parameters: ``force_model`` (x_m, depth_m) -> N for the TRUE scene; ``tissue_pose_base`` and ``width_m`` place
+    the tissue; ``sensor`` a preset name or Sensor; ``q0`` start joints; ``latency_s`` delay of readings;
+    ``safety_force_n`` contact force that triggers a protective stop (the controller's own limit).
+    """
+
+    def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
+                 sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
+                 latency_s=0.002, safety_force_n=30.0, cache=True):
+        f = force_model or (lambda x, d: 0.0)
+        self.force_model = CachedForce(f) if cache else f
+        self.T_tissue = ur5e.pose_to_T(tissue_pose_base)
+        self.n_base = self.T_tissue[:3, 2].copy()
+        self.width_m = width_m
+        self.sensor = sensor if isinstance(sensor, Sensor) else Sensor(sensor, seed=seed)
+        self.period_s, self.safety_force_n = period_s, safety_force_n
+        self.t_s = 0.0
+        self.q = np.array(ur5e.Q_HOME if q0 is None else q0, dtype=float)
+        self.tcp_offset = list(tcp_offset)
+        self.T_tcp = ur5e.fk_flange(self.q) @ ur5e.pose_to_T(self.tcp_offset)
+        self._q_stale = False
+        self.motion: _Motion | None = None
+        self.motion_kind = None
+        self.motions_ended = 0            # count of finished/stopped motions (async progress toggles -1/-2)
+        self.protective_stopped = False
+        self.connected = True
+        self.reconnectable = True
+        self.payload = (0.0, [0.0, 0.0, 0.0])
+        self.faults: list[dict] = []
+        self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
+        self.max_contact_force_n = 0.0
+        n_lat = max(0, int(round(latency_s / period_s)))
+        self.samples: deque = deque(maxlen=n_lat + 1)
+        self._sample()
+
+    # ---- state -------------------------------------------------------------------------------------------
+    @property
+    def tcp_pose(self) -> list[float]:
+        return ur5e.T_to_pose(self.T_tcp)
+
+    def joints(self) -> np.ndarray:
+        if self._q_stale:
+            q = ur5e.ik(ur5e.T_to_pose(self.T_tcp), self.q, self.tcp_offset, tol=1e-7, max_iter=20)
+            if q is not None:
+                self.q = q
+            self._q_stale = False
+        return self.q.copy()
+
+    def tip_in_tissue(self) -> tuple[float, float]:
+        """(x_m, depth_m) of the tip in the tissue frame; depth > 0 below the undeformed surface."""
+        p = self.T_tissue[:3, :3].T @ (self.T_tcp[:3, 3] - self.T_tissue[:3, 3])
+        return float(p[0]), float(-p[2])
+
+    def contact_force_n(self) -> float:
+        x, d = self.tip_in_tissue()
+        if d <= 0 or not (-1e-6 <= x <= self.width_m + 1e-6):   # 1 um: round-off at the edges is not a jump
+            return 0.0
+        return float(self.force_model(min(max(x, 0.0), self.width_m), d))
+
+    def true_wrench(self) -> np.ndarray:
+        w = np.zeros(6)
+        w[:3] = self.contact_force_n() * self.n_base
+        return w
+
+    @property
+    def is_moving(self) -> bool:
+        return self.motion is not None
+
+    # ---- commands ----------------------------------------------------------------------------------------
+    def set_tcp(self, offset) -> None:
+        flange = self.T_tcp @ np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self.tcp_offset = list(offset)
+        self.T_tcp = flange @ ur5e.pose_to_T(self.tcp_offset)
+
+    def move_linear(self, pose, speed, accel) -> None:
+        T0, T1 = self.T_tcp.copy(), ur5e.pose_to_T(pose)
+        dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+        L = max(dist, 0.1 * ur5e.rotation_angle(T0[:3, :3], T1[:3, :3]))
+
+        def interp(u):
+            T = np.eye(4)
+            T[:3, 3] = T0[:3, 3] + u * (T1[:3, 3] - T0[:3, 3])
+            T[:3, :3] = T1[:3, :3] if u >= 1 else ur5e.slerp_matrix(T0[:3, :3], T1[:3, :3], u)
+            self.T_tcp, self._q_stale = T, True
+        self._start(_Motion(L, speed, accel, interp), "linear")
+
+    def move_joint(self, q, speed, accel) -> None:
+        q0, q1 = self.joints(), np.asarray(q, dtype=float)
+        L = float(np.max(np.abs(q1 - q0)))
+
+        def interp(u):
+            self.q = q0 + u * (q1 - q0)
+            self.T_tcp, self._q_stale = ur5e.fk_flange(self.q) @ ur5e.pose_to_T(self.tcp_offset), False
+        self._start(_Motion(L, speed, accel, interp), "joint")
+
+    def _start(self, m, kind):
+        if self.motion is not None:
+            self.motions_ended += 1          # a new command replaces the running one
+        self.motion, self.motion_kind = m, kind
+        if m.L <= 0:
+            m.interp(1.0)
+            self.motion = None
+            self.motions_ended += 1
+
+    def stop(self, decel: float) -> None:
+        if self.motion is not None:
+            self.motion.a_stop = float(decel)
+
+    def zero_sensor(self) -> None:
+        self.sensor.zero(self.true_wrench(), self.t_s)
+
+    # ---- faults ------------------------------------------------------------------------------------------
+    def inject(self, kind, at_s=None, when=None, duration_s=0.0, magnitude_n=0.0, reconnectable=False):
+        """Schedule a fault: at simulated time ``at_s`` or when ``when(arm)`` first holds. Kinds:
+        protective_stop, disconnect, force_spike (magnitude_n along the normal for duration_s), nan (readings
+        NaN for duration_s), stall (the current motion freezes until stopped or replaced)."""
+        if kind not in ("protective_stop", "disconnect", "force_spike", "nan", "stall"):
+            raise ValueError(f"unknown fault {kind!r}")
+        self.faults.append(dict(kind=kind, at_s=at_s, when=when, duration_s=duration_s, magnitude_n=magnitude_n,
+                                reconnectable=reconnectable, fired_s=None))
+
+    def _fire(self, f):
+        f["fired_s"] = self.t_s
+        k = f["kind"]
+        if k == "protective_stop":
+            self.trigger_protective_stop()
+        elif k == "disconnect":
+            self.connected, self.reconnectable = False, f["reconnectable"]
+        elif k == "force_spike":
+            self._spike_until, self._spike_n = self.t_s + max(f["duration_s"], self.period_s), f["magnitude_n"]
+        elif k == "nan":
+            self._nan_until = self.t_s + max(f["duration_s"], self.period_s)
+        elif k == "stall" and self.motion is not None:
+            self.motion.stalled = True
+
+    def trigger_protective_stop(self) -> None:
+        self.protective_stopped = True
+        if self.motion is not None:
+            self.motion = None  # halts at once (the real arm brakes within a few ms)
+            self.motions_ended += 1
+
+    def clear_protective_stop(self) -> None:
+        """What the operator does on the pendant after a protective stop."""
+        self.protective_stopped = False
+
+    # ---- time ----------------------------------------------------------------------------------------------
+    def step(self, dt: float | None = None) -> None:
+        dt = self.period_s if dt is None else dt
+        self.t_s += dt
+        if self.motion is not None and not self.protective_stopped:
+            done = self.motion.step(dt)
+            self.motion.interp(self.motion.progress)
+            if done:
+                self.motion = None
+                self.motions_ended += 1
+        for f in self.faults:
+            if f["fired_s"] is None and ((f["at_s"] is not None and self.t_s >= f["at_s"])
+                                         or (f["when"] is not None and f["when"](self))):
+                self._fire(f)
+        fc = self.contact_force_n()
+        self.max_contact_force_n = max(self.max_contact_force_n, fc)
+        if fc > self.safety_force_n and not self.protective_stopped:
+            self.trigger_protective_stop()
+        self._sample()
+
+    def _sample(self) -> None:
+        w = self.sensor.read(self.true_wrench(), self.t_s)
+        if self.t_s < self._spike_until:
+            w[:3] += self._spike_n * self.n_base
+        if self.t_s < self._nan_until:
+            w[:] = np.nan
+        self.samples.append((self.t_s, ur5e.T_to_pose(self.T_tcp), w))
+
+    def reading(self):
+        """(timestamp_s, tcp_pose, wrench) as the controller reports it now (``latency_s`` old)."""
+        return self.samples[0]
+
+    def run_until_still(self, max_s: float = 120.0) -> None:
+        t_end = self.t_s + max_s
+        while self.motion is not None and not self.protective_stopped and self.t_s < t_end:
+            self.step()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# ur_rtde-shaped facades
+
+class _Facade:
+    def __init__(self, arm: ArmModel):
+        self.arm, self._closed = arm, False
+
+    def _link(self):
+        if self._closed or not self.arm.connected:
+            raise RuntimeError("RTDE: the connection to the controller is lost")
+
+    def isConnected(self) -> bool:
+        return not self._closed and self.arm.connected
+
+    def reconnect(self) -> bool:
+        if self.arm.connected or self.arm.reconnectable:
+            self.arm.connected, self._closed = True, False
+            return True
+        return False
+
+    def disconnect(self) -> None:
+        self._closed = True
+
+
+class SimRTDEControl(_Facade):
+    """RTDEControlInterface's methods (those the driver uses and a few more) over an ArmModel."""
+
+    def _ok(self) -> bool:
+        self._link()
+        return not self.arm.protective_stopped
+
+    @staticmethod
+    def _check_range(speed, accel, vmax, amax):
+        if not (0 < speed <= vmax) or not (0 < accel <= amax):
+            raise ValueError(f"speed {speed} or acceleration {accel} out of range")
+
+    def moveL(self, pose, speed=0.25, acceleration=1.2, asynchronous=False) -> bool:
+        self._check_range(speed, acceleration, 3.0, 150.0)
+        if len(pose) != 6 or not all(math.isfinite(v) for v in pose):
+            raise ValueError("moveL: a pose has 6 finite entries")
+        if not self._ok():
+            return False
+        self.arm.move_linear(pose, speed, acceleration)
+        return asynchronous or self._finish()
+
+    def moveJ(self, q, speed=1.05, acceleration=1.4, asynchronous=False) -> bool:
+        self._check_range(speed, acceleration, math.pi, 40.0)
+        if not self._ok():
+            return False
+        self.arm.move_joint(q, speed, acceleration)
+        return asynchronous or self._finish()
+
+    def _finish(self) -> bool:
+        self.arm.run_until_still()
+        for _ in range(self.arm.samples.maxlen):   # returns once the readings show the arm at rest
+            self.arm.step()
+        self._link()
+        return not self.arm.protective_stopped and not self.arm.is_moving
+
+    def stopL(self, a=10.0, asynchronous=False) -> None:
+        self._link()
+        self.arm.stop(a)
+        if not asynchronous:
+            self.arm.run_until_still(5.0)
+
+    stopJ = stopL
+
+    def speedStop(self, a=10.0) -> bool:
+        self.stopL(a)
+        return not self.arm.protective_stopped
+
+    def stopScript(self) -> None:
+        self._link()
+        self.arm.stop(10.0)
+
+    def _do(self, fn) -> bool:
+        """Run ``fn`` unless protective-stopped (then False, like ur_rtde)."""
+        if not self._ok():
+            return False
+        return fn() is not False
+
+    def zeroFtSensor(self) -> bool:
+        return self._do(self.arm.zero_sensor)
+
+    def setTcp(self, pose) -> bool:
+        return self._do(lambda: self.arm.set_tcp(pose))
+
+    def setPayload(self, mass, cog) -> bool:
+        return self._do(lambda: 0 <= mass <= 5.0 and setattr(self.arm, "payload", (float(mass), list(cog))))
+
+    def getAsyncOperationProgress(self) -> int:
+        self._link()
+        m = self.arm.motion   # like ur_rtde: >= 0 while running; < 0 when done, toggling -1/-2 per operation
+        return -1 - self.arm.motions_ended % 2 if m is None else int(1000 * m.progress)
+
+    def isSteady(self) -> bool:
+        self._link()
+        return not self.arm.is_moving
+
+    def isProgramRunning(self) -> bool:
+        return self.isConnected() and not self.arm.protective_stopped
+
+    def triggerProtectiveStop(self) -> bool:
+        self._link()
+        return self.arm.trigger_protective_stop() or True
+
+    def isPoseWithinSafetyLimits(self, pose) -> bool:
+        self._link()
+        return float(np.linalg.norm(np.asarray(pose[:3]) - [0, 0, ur5e.D[0]])) < 0.85
+
+    def getInverseKinematics(self, x, qnear=(), max_position_error=1e-10, max_orientation_error=1e-10):
+        self._link()
+        q = ur5e.ik(x, qnear if len(qnear) == 6 else self.arm.joints(), self.arm.tcp_offset)
+        return [] if q is None else [float(v) for v in q]
+
+    def initPeriod(self) -> datetime.timedelta:
+        return datetime.timedelta(seconds=self.arm.t_s)
+
+    def waitPeriod(self, t_cycle_start) -> None:
+        self.arm.step()
+
+
+class SimRTDEReceive(_Facade):
+    """RTDEReceiveInterface's getters over an ArmModel (values delayed by the arm's latency)."""
+
+    def _get(self, fn):
+        self._link()
+        return fn(self.arm)
+
+    def getTimestamp(self) -> float:
+        return self._get(lambda a: float(a.reading()[0]))
+
+    def getActualTCPPose(self) -> list[float]:
+        return self._get(lambda a: list(a.reading()[1]))
+
+    def getActualTCPForce(self) -> list[float]:
+        return self._get(lambda a: [float(v) for v in a.reading()[2]])
+
+    def getActualQ(self) -> list[float]:
+        return self._get(lambda a: [float(v) for v in a.joints()])
+
+    def isProtectiveStopped(self) -> bool:
+        return self._get(lambda a: a.protective_stopped)
+
+    def isEmergencyStopped(self) -> bool:
+        return self._get(lambda a: False)
+
+    def getSafetyMode(self) -> int:         # 1 normal, 3 protective stop
+        return self._get(lambda a: 3 if a.protective_stopped else 1)
+
+    def getRobotMode(self) -> int:          # 7 running
+        return self._get(lambda a: 7)
+
+    def getRuntimeState(self) -> int:       # 2 playing, 1 stopped
+        return self._get(lambda a: 1 if a.protective_stopped else 2)
+
+
+def make_sim(force_model=None, **arm_kwargs):
+    """An ArmModel and its (control, receive) facades: ``arm, rtde_c, rtde_r = make_sim(f, ...)``."""
+    arm = ArmModel(force_model, **arm_kwargs)
+    return arm, SimRTDEControl(arm), SimRTDEReceive(arm)

@@ -1,0 +1,197 @@
+"""Injected faults end in a safe state with every completed probe on disk; a resumed run finishes the plan."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import make_plan, make_sim  # noqa: E402
+
+from robot.driver import run_plan  # noqa: E402
+from robot.records import done_indices, load_raw, read_records  # noqa: E402
+from robot.sim import SimRTDEControl, SimRTDEReceive  # noqa: E402
+
+XS = (0.02, 0.035, 0.05)
+DEPTH = 0.003
+
+
+def at_probe(i, min_depth_m):
+    """Trigger: the tip is at probe i's x and at least min_depth_m below the surface."""
+    return lambda a: abs(a.tip_in_tissue()[0] - XS[i]) < 1e-4 and a.tip_in_tissue()[1] >= min_depth_m
+
+
+def run(tmp_path, c, r, **kw):
+    return run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, **kw)
+
+
+def check_safe_end(rep, arm, tmp_path, kind, n_done=1, retracted=True):
+    assert rep.status == "fault" and rep.fault["kind"] == kind, rep.fault
+    assert not arm.is_moving
+    recs = read_records(tmp_path)
+    assert [x["index"] for x in recs if x["status"] == "ok"] == list(range(n_done))
+    last = recs[-1]
+    assert last["status"] == "fault" and last["index"] == n_done and kind in last["reason"]
+    assert len(load_raw(tmp_path, last)["time_s"]) == last["n_samples_total"] > 0    # its samples are kept
+    run_json = json.loads((tmp_path / "run.json").read_text())
+    assert run_json["status"] == "fault" and run_json["fault"]["kind"] == kind
+    assert rep.fault["retracted"] is retracted
+    if retracted:
+        assert arm.tip_in_tissue()[1] <= -0.003          # back at the approach height, out of the tissue
+    return recs
+
+
+def resume_and_check(tmp_path, c, r, n_done_before):
+    rep = run(tmp_path, c, r)
+    assert rep.status == "ok", rep.fault
+    assert rep.n_skipped == n_done_before and rep.n_ok == len(XS) - n_done_before
+    recs = read_records(tmp_path)
+    for i in range(len(XS)):                              # finished probes were not repeated
+        assert sum(1 for x in recs if x["index"] == i and x["status"] == "ok") == 1
+    assert done_indices(tmp_path) == set(range(len(XS)))
+
+
+def test_protective_stop_mid_indent_then_resume(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("protective_stop", when=at_probe(1, 0.0015))
+    rep = run(tmp_path, c, r)
+    check_safe_end(rep, arm, tmp_path, "protective_stop", retracted=False)
+    assert rep.fault["stopped"] and "pendant" in " ".join(rep.fault["notes"])
+    assert arm.tip_in_tissue()[1] > 0.001                 # halted in the tissue: cannot retract while stopped
+    arm.clear_protective_stop()                          # the operator, on the pendant
+    resume_and_check(tmp_path, c, r, 1)                  # the driver retracts first, then finishes
+
+
+def test_resume_refused_while_still_protective_stopped(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("protective_stop", when=at_probe(0, 0.001))
+    assert run(tmp_path, c, r).fault["kind"] == "protective_stop"
+    rep = run(tmp_path, c, r)
+    assert rep.status == "fault" and "pendant" in rep.fault["message"]
+
+
+def test_disconnect_mid_descent(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("disconnect", when=at_probe(1, 0.001))
+    rep = run(tmp_path, c, r)
+    assert not rep.fault["stopped"] and "bounded moveL" in " ".join(rep.fault["notes"])
+    arm.run_until_still()                               # the controller finishes the last (bounded) move
+    check_safe_end(rep, arm, tmp_path, "connection_lost", retracted=False)
+    assert arm.tip_in_tissue()[1] <= DEPTH + 1e-9        # no deeper than planned
+    arm.connected = True                                 # link back: new interfaces, resume
+    c2, r2 = SimRTDEControl(arm), SimRTDEReceive(arm)
+    resume_and_check(tmp_path, c2, r2, 1)
+
+
+def test_transient_disconnect_reconnects_and_retracts(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("disconnect", when=at_probe(1, 0.001), reconnectable=True)
+    rep = run(tmp_path, c, r)
+    check_safe_end(rep, arm, tmp_path, "connection_lost", retracted=True)
+    assert rep.fault["stopped"]
+
+
+def test_force_spike_stops_and_retracts_then_continues(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("force_spike", when=at_probe(1, DEPTH - 1e-6), magnitude_n=5.0, duration_s=0.05)
+    rep = run(tmp_path, c, r)
+    assert rep.status == "ok" and rep.n_ok == 2 and rep.n_force_limit == 1
+    rec = [x for x in rep.records if x["index"] == 1][0]
+    assert rec["status"] == "force_limit" and rec["force_peak_n"] > 2.0
+    assert not arm.is_moving and arm.tip_in_tissue()[1] < 0
+    assert arm.max_contact_force_n < 1.0                   # a sensor spike: the tissue itself was never overloaded
+    rep2 = run(tmp_path, c, r)                             # resume re-probes only the force-limited one
+    assert rep2.n_ok == 1 and rep2.n_skipped == 2
+
+
+def test_nan_reading_is_a_fault(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+    rep = run(tmp_path, c, r)
+    check_safe_end(rep, arm, tmp_path, "invalid_reading")
+    resume_and_check(tmp_path, c, r, 1)
+
+
+def test_stalled_move_times_out(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("stall", when=at_probe(1, 0.001))
+    rep = run(tmp_path, c, r)
+    check_safe_end(rep, arm, tmp_path, "timeout")
+    resume_and_check(tmp_path, c, r, 1)
+
+
+class FrozenReceive(SimRTDEReceive):
+    """Controller data stop updating (timestamp frozen) after t_s."""
+
+    def __init__(self, arm, t_s):
+        super().__init__(arm)
+        self.t_s, self.frozen = t_s, None
+
+    def getTimestamp(self):
+        t = super().getTimestamp()
+        if t >= self.t_s:
+            self.frozen = self.frozen if self.frozen is not None else t
+            return self.frozen
+        return t
+
+
+def test_stale_data_times_out(tmp_path):
+    arm, c, _ = make_sim()
+    rep = run(tmp_path, c, FrozenReceive(arm, 7.0))
+    assert rep.status == "fault" and rep.fault["kind"] == "timeout" and "stopped updating" in rep.fault["message"]
+    assert not arm.is_moving and rep.n_ok == 1
+
+
+class InterruptingReceive(SimRTDEReceive):
+    def __init__(self, arm, when):
+        super().__init__(arm)
+        self.when, self.fired = when, False
+
+    def getActualTCPForce(self):
+        if not self.fired and self.when(self.arm):
+            self.fired = True
+            raise KeyboardInterrupt
+        return super().getActualTCPForce()
+
+
+def test_ctrl_c_stops_and_retracts(tmp_path):
+    arm, c, _ = make_sim()
+    rep = run(tmp_path, c, InterruptingReceive(arm, at_probe(1, 0.002)))
+    assert rep.status == "interrupted" and rep.fault["kind"] == "interrupted"
+    assert rep.fault["stopped"] and rep.fault["retracted"] and not arm.is_moving
+    assert arm.tip_in_tissue()[1] < 0
+    recs = read_records(tmp_path)
+    assert [x["status"] for x in recs] == ["ok", "interrupted"]
+    resume_and_check(tmp_path, c, SimRTDEReceive(arm), 1)
+
+
+def test_builtin_sensor_refused_at_2n_limit(tmp_path):
+    arm, c, r = make_sim(sensor="ur5e-builtin")
+    rep = run(tmp_path, c, r)
+    assert rep.status == "fault" and rep.fault["kind"] == "sensor_noise"
+    assert arm.max_contact_force_n == 0.0 and rep.fault["retracted"]        # never touched the tissue
+
+
+def test_torn_last_line_is_ignored(tmp_path):
+    arm, c, r = make_sim()
+    assert run(tmp_path, c, r).status == "ok"
+    with open(tmp_path / "probes.jsonl", "a") as f:
+        f.write('{"index": 1, "status": "fa')                # a crash mid-write
+    assert done_indices(tmp_path) == {0, 1, 2}
+
+
+@pytest.mark.parametrize("method", ["zeroFtSensor", "setTcp", "moveL"])
+def test_false_returns_are_faults(tmp_path, method):
+    arm, c, r = make_sim()
+    orig = getattr(c, method)
+    calls = []
+
+    def failing(*a, **k):
+        calls.append(1)
+        return False if len(calls) == 2 or method == "setTcp" else orig(*a, **k)
+    setattr(c, method, failing)
+    rep = run(tmp_path, c, r)
+    assert rep.status == "fault" and rep.fault["kind"] == "command_failed" and method in rep.fault["message"]
+    assert not arm.is_moving
