@@ -166,3 +166,102 @@ def _save(fig, path) -> Path:
     fig.savefig(path, dpi=130)
     plt.close(fig)
     return path
+
+
+# ------------------------------------------------------------------------------------------- indentation (load B)
+
+def deformed(mesh: Mesh, u: np.ndarray, scale: float = 1.0) -> Mesh:
+    """A copy of ``mesh`` with its nodes moved by ``scale`` times the interleaved displacement ``u`` (2N,)."""
+    import dataclasses
+    return dataclasses.replace(mesh, nodes=mesh.nodes + scale * np.asarray(u, float).reshape(-1, 2))
+
+
+def draw_tip(ax, indenter, x0_m: float, bottom_y_m: float, **style) -> None:
+    """The probe tip's outline (mm) with its lowest point at (x0_m, bottom_y_m): a circle of radius_m for a
+    cylinder, a rectangle of half-width radius_m for a flat punch."""
+    from matplotlib.patches import Rectangle
+    kw = dict(facecolor="none", edgecolor="k", lw=1.2, ls="-", zorder=4)
+    kw.update(style)
+    R = indenter.radius_m
+    if indenter.shape == "cylinder":
+        ax.add_patch(Circle((x0_m * MM, (bottom_y_m + R) * MM), R * MM, **kw))
+    else:
+        ax.add_patch(Rectangle(((x0_m - R) * MM, bottom_y_m * MM), 2 * R * MM, 1.5 * R * MM, **kw))
+
+
+def indent_panels(path: str | Path, mesh: Mesh, fields: dict[str, np.ndarray], *, indenter, x0_m: float,
+                  tip_bottom_y_m: float, outlines: Sequence[tuple[float, float, float]] = (),
+                  zoom_m: tuple[float, float, float, float] | None = None, overview: str | None = "von_mises_pa",
+                  mark_m: tuple[float, float] | None = None, suptitle: str = "") -> Path:
+    """Contours under an indenting tip (the study's Fig 10): an optional whole-section panel of ``overview``,
+    then one panel per entry of ``fields`` zoomed to ``zoom_m`` = (x_lo, x_hi, y_lo, y_hi) (m). ``mesh`` may be
+    the deformed mesh (see ``deformed``); the tip outline is drawn at its final position in every panel, and
+    ``mark_m`` = (x, y) (m), e.g. the maximum von Mises point, as a white cross on the von Mises panels."""
+    panels = ([("overview", overview)] if overview else []) + [("zoom", k) for k in fields]
+    ncols = 2
+    nrows = -(-len(panels) // ncols)
+    w = mesh.width_m / mesh.height_m
+    fig, axes = plt.subplots(nrows, ncols, figsize=(ncols * (3.2 * w + 1.4), nrows * 3.4), squeeze=False)
+    for ax, (kind, key) in zip(axes.flat, panels):
+        lab = LABELS.get(key, key)
+        contour(ax, mesh, fields[key], outlines=outlines, title=lab + (" (whole section)" if kind == "overview"
+                                                                       else " (under the tip)"), label=lab)
+        draw_tip(ax, indenter, x0_m, tip_bottom_y_m)
+        if mark_m is not None and key == "von_mises_pa":
+            ax.plot([mark_m[0] * MM], [mark_m[1] * MM], "wx", ms=7, mew=1.5, zorder=5)
+        top = mesh.height_m * MM + 2 * indenter.radius_m * MM
+        if kind == "zoom" and zoom_m is not None:
+            ax.set_xlim(zoom_m[0] * MM, zoom_m[1] * MM)
+            ax.set_ylim(zoom_m[2] * MM, zoom_m[3] * MM)
+        else:
+            ax.set_ylim(0, top)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.set_visible(False)
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=11)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def predict_graph(path: str | Path, x_m: np.ndarray, scene: dict[str, np.ndarray], reference: dict[str, np.ndarray],
+                  *, labels: tuple[str, str] = ("stone", "healthy"), stones: Sequence[tuple[float, float]] = (),
+                  title: str = "") -> Path:
+    """Force and maximum von Mises stress against tip position for a scene and its reference (the study's Fig 11),
+    and below their ratios. ``scene``/``reference``: {"force_n": ..., "max_von_mises_pa": ...}; ``stones``:
+    (x_m, diameter_m) of the scene's stones, marked as shaded bands."""
+    x = np.asarray(x_m) * MM
+    fig, (ax, axr) = plt.subplots(2, 1, figsize=(9.5, 7.0), sharex=True, gridspec_kw={"height_ratios": [3, 2]})
+    ax2 = ax.twinx()
+    cf, cs = "tab:blue", "tab:red"
+    ax.plot(x, scene["force_n"], "-", color=cf, lw=1.6, label=f"force, {labels[0]}")
+    ax.plot(x, reference["force_n"], "--", color=cf, lw=1.3, label=f"force, {labels[1]}")
+    ax2.plot(x, scene["max_von_mises_pa"], "-", color=cs, lw=1.6, label=f"max von Mises, {labels[0]}")
+    ax2.plot(x, reference["max_von_mises_pa"], "--", color=cs, lw=1.3, label=f"max von Mises, {labels[1]}")
+    ax.set_ylabel("tip force (N)", color=cf)
+    ax2.set_ylabel("max von Mises under the tip (Pa)", color=cs)
+    ax.tick_params(axis="y", colors=cf)
+    ax2.tick_params(axis="y", colors=cs)
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower center", ncol=2)
+    ax.grid(alpha=0.3)
+    rf = np.asarray(scene["force_n"]) / np.asarray(reference["force_n"])
+    rs = np.asarray(scene["max_von_mises_pa"]) / np.asarray(reference["max_von_mises_pa"])
+    axr.plot(x, rf, "-", color=cf, lw=1.6, label="force ratio")
+    axr.plot(x, rs, "-", color=cs, lw=1.3, label="max von Mises ratio")
+    i = int(np.argmax(rf))
+    axr.plot([x[i]], [rf[i]], "k^", ms=6, label=f"peak force ratio {rf[i]:.3f} at x = {x[i]:.1f} mm")
+    axr.axhline(1.0, color="0.6", lw=0.8)
+    axr.set_ylabel(f"{labels[0]} / {labels[1]}")
+    axr.set_xlabel("tip position x along the top surface (mm)")
+    axr.grid(alpha=0.3)
+    axr.legend(fontsize=8, loc="upper left")
+    for a in (ax, axr):
+        for xs, d in stones:
+            a.axvspan((xs - d / 2) * MM, (xs + d / 2) * MM, color="0.85", zorder=0)
+            a.axvline(xs * MM, color="0.4", ls=":", lw=1)
+    axr.set_xlim(x.min(), x.max())
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

@@ -1,7 +1,8 @@
 """`palpate simulate SCENE --load uniform|indent`: one FEM analysis of a scene, with JSON, figures and VTU.
 
 Load ``uniform`` is the study's load A (the whole top edge moved down by ``analysis.top_displacement_m``).
-Load ``indent`` (a probe tip pressed in at x0) arrives with fem.contact: ``_run_indent`` is its hook.
+Load ``indent`` (load B: a probe tip pressed ``--depth-m`` into the top surface at ``--x0-m``) uses fem.contact's
+condensed surface model: force, contact pressure, maximum von Mises under the tip, Fig 10-like contours.
 """
 from __future__ import annotations
 
@@ -31,15 +32,25 @@ figures (--plots DIR):
   fig6_7_9_compare.png  von Mises along the top for the centred, left, right and small deep stone and healthy
                         tissue on one axes (study Figs 6, 7, 9). Made automatically for the built-in scenes
                         paper, paper-left, paper-right, paper-deep; for other scenes ask with --compare.
-The compared scenes are solved with the same analysis options (order, mesh size, plane) as SCENE."""
+The compared scenes are solved with the same analysis options (order, mesh size, plane) as SCENE.
+  fig10_indent.png      --load indent: von Mises over the deformed section, and von Mises, sigma_xx, sigma_yy
+                        under the tip, tip and stone outlines drawn (study Fig 10)
+
+--load indent (load B): a probe tip pressed --depth-m into the top surface at --x0-m (frictionless contact,
+bottom u_y = 0, one bottom corner u_x = 0). Reports the tip force (N, and N/m of section), the contact half-width
+and pressure, and the maximum von Mises stress within 2 R below the surface and where it lies. The JSON has
+x0_m, depth_m, force_n_per_m, force_n, max_von_mises_pa, contact {x_m, pressure_pa, gap_m, nodal_force_n_per_m}
+and the top-surface stress profile (surface, peak)."""
 
 EXAMPLES = """examples:
   palpate simulate paper --load uniform --plots out/ --json out/paper.json --vtu out/paper.vtu
-  palpate simulate my_kidney.toml --order 1 --mesh-size-m 0.001 --compare paper paper-deep --plots out/"""
+  palpate simulate my_kidney.toml --order 1 --mesh-size-m 0.001 --compare paper paper-deep --plots out/
+  palpate simulate paper --load indent --x0-m 0.035 --depth-m 0.004 --plots out/ --json out/indent.json
+  palpate simulate healthy --load indent --x0-m 0.02 --depth-m 0.003 --indenter-radius-m 0.0025"""
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
-    p = sub.add_parser("simulate", help="one FEM analysis of a scene (load A: uniform top displacement)",
+    p = sub.add_parser("simulate", help="one FEM analysis of a scene (load A: uniform top displacement; load B: --load indent)",
                        description=HELP, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
                                                   "healthy) or a TOML file")
@@ -60,9 +71,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--stones", choices=("auto", "rigid", "elastic"), default="auto",
                    help="auto: stones >= 1e4 times stiffer than tissue are rigid bodies (default)")
     i = p.add_argument_group("indentation (--load indent)")
-    i.add_argument("--x0-m", type=float, help="tip position along the top surface (m)")
-    i.add_argument("--depth-m", type=float, help="indentation depth (m)")
-    i.add_argument("--indenter-radius-m", type=float, help="tip radius (m)")
+    i.add_argument("--x0-m", type=float, help="tip position along the top surface, from the left edge (m)")
+    i.add_argument("--depth-m", type=float, help="indentation depth below the undeformed surface (m)")
+    i.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
     return p
 
@@ -74,9 +85,120 @@ def run(args) -> int:
 
 
 def _run_indent(args) -> int:
-    print("palpate simulate: the indent load arrives with fem.contact (not built yet); use --load uniform",
-          file=sys.stderr)
-    return 2
+    """Load B: the probe tip pressed ``--depth-m`` into the top surface at ``--x0-m`` (fem.contact's fast path)."""
+    import numpy as np
+    from fem.contact import surface_model
+    from fem.stress import components, nodal_poisson, recovery_operator
+    from fem.uniform import Profile
+    if args.x0_m is None or args.depth_m is None:
+        print("palpate simulate: --load indent needs --x0-m X and --depth-m D (tip position along the top surface "
+              "and indentation depth, m)", file=sys.stderr)
+        return 2
+    if args.compare is not None:
+        print("palpate simulate: --compare applies to --load uniform; for the stone/healthy comparison under "
+              "the tip use `palpate predict`", file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    sc = _scene(args)
+    if args.indenter_radius_m is not None:
+        sc = dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, radius_m=args.indenter_radius_m))
+    m = surface_model(sc, rigid_stones=_rigid(args))
+    t1 = time.perf_counter()
+    try:
+        r = m.indent(args.x0_m, args.depth_m)
+    except ValueError as e:
+        print(f"palpate simulate: {e}", file=sys.stderr)
+        return 2
+    t2 = time.perf_counter()
+    model, mesh = m.model, m.model.mesh
+    u = m.full_field(args.x0_m, args.depth_m)
+    top = mesh.top
+    surf = components((recovery_operator(model, top) @ u).reshape(-1, 3), nodal_poisson(model, top), model.plane)
+    profile = Profile(mesh.nodes[top, 0], surf)
+    nodal = None
+    if args.plots or args.vtu:
+        allnodes = np.arange(mesh.n_nodes)
+        nodal = components((recovery_operator(model) @ u).reshape(-1, 3), nodal_poisson(model, allnodes),
+                           model.plane)
+        eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
+        nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
+    t3 = time.perf_counter()
+    res = r.to_json()
+    res["contact"]["nodal_force_n_per_m"] = r.nodal_force_n_per_m.tolist()
+    out = {"scene": sc.name, "load": "indent", **res,
+           "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
+           "rigid_stones": [bool(x) for x in model.rigid],
+           **profile.to_json(),
+           "mesh": {"nodes": int(mesh.n_nodes), "elements": int(len(mesh.tris)), "order": int(mesh.order),
+                    "dofs": int(model.n_dofs), "dofs_full": int(mesh.n_dofs), "contact_candidates": int(len(top))},
+           "timings_s": {**m.timings_s, "model_s": t1 - t0, "indent_s": t2 - t1, "fields_s": t3 - t2},
+           "files": {}}
+    if args.vtu:
+        from fem.export import write_vtu
+        out["files"]["vtu"] = str(write_vtu(args.vtu, mesh, u, point_data=nodal))
+    if args.plots:
+        out["files"].update(_indent_figures(Path(args.plots), sc, m, r, u, nodal))
+    out["timings_s"]["total_s"] = time.perf_counter() - t0
+    _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
+    _write_json(args.json, out)
+    return 0
+
+
+def _write_json(dest, out) -> None:
+    if not dest:
+        return
+    text = json.dumps(out, indent=1)
+    if dest == "-":
+        print(text)
+    else:
+        Path(dest).parent.mkdir(parents=True, exist_ok=True)
+        Path(dest).write_text(text + "\n")
+
+
+def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
+    """fig10_indent.png: von Mises over the deformed section and von Mises, sigma_xx, sigma_yy under the tip."""
+    import numpy as np
+    from fem import plots
+    mesh = m.model.mesh
+    dm = plots.deformed(mesh, u)
+    U = np.asarray(u).reshape(-1, 2)
+    outl = []
+    for k, (x, y, rad) in enumerate(plots.outlines_of(sc)):          # stones drawn where they moved to
+        nodes = np.unique(mesh.tris[mesh.region == k + 1])
+        dx, dy = U[nodes].mean(axis=0) if len(nodes) else (0.0, 0.0)
+        outl.append((x + dx, y + dy, rad))
+    R, H, W = sc.indenter.radius_m, sc.tissue.height_m, sc.tissue.width_m
+    half = max(3 * R, 2.5 * r.depth_m + 2 * R)
+    zoom = (max(0.0, r.x0_m - half), min(W, r.x0_m + half), max(0.0, H - 1.2 * half), H + 0.5 * R)
+    # the maximum's node, where it moved to (max_von_mises_at_m is (x, depth below the undeformed surface))
+    j = np.argmin(np.hypot(mesh.nodes[:, 0] - r.max_von_mises_at_m[0], mesh.nodes[:, 1] - (H - r.max_von_mises_at_m[1])))
+    mark = tuple(dm.nodes[j])
+    a = sc.analysis
+    tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at x0 = {r.x0_m * 1e3:g} mm, depth "
+           f"{r.depth_m * 1e3:g} mm, F = {r.force_n:.4g} N; plane {a.plane}, P{a.order}, h = {a.mesh_size_m * 1e3:g} mm"
+           " (deformed, true scale)")
+    f = plots.indent_panels(d / "fig10_indent.png", dm, {k: nodal[k] for k in ("von_mises_pa", "sxx_pa", "syy_pa")},
+                            indenter=sc.indenter, x0_m=r.x0_m, tip_bottom_y_m=H - r.depth_m, outlines=outl,
+                            zoom_m=zoom, mark_m=mark, suptitle=tag)
+    return {"indent": str(f)}
+
+
+def _indent_summary(sc, r, out, stream) -> None:
+    a, mm, t = sc.analysis, out["mesh"], out["timings_s"]
+    active = r.nodal_force_n_per_m > 0
+    lines = [f"scene {sc.name}: load indent ({sc.indenter.shape} tip, R = {sc.indenter.radius_m * 1e3:g} mm, "
+             f"{sc.indenter.thickness_m * 1e3:g} mm thick) at x0 = {r.x0_m * 1e3:g} mm, depth {r.depth_m * 1e3:g} mm; "
+             f"plane {a.plane}, P{a.order}, h = {a.mesh_size_m * 1e3:g} mm (top {a.mesh_size_m / a.surface_refine * 1e3:g} mm)",
+             f"  mesh: {mm['nodes']} nodes, {mm['elements']} elements, {mm['dofs']} DOFs",
+             f"  force: {r.force_n:.5g} N ({r.force_n_per_m:.5g} N/m)",
+             f"  contact: half-width {r.half_width_m * 1e3:.3f} mm, {int(active.sum())} nodes in contact, "
+             f"peak pressure {r.pressure_pa.max():.4g} Pa",
+             f"  max von Mises {r.max_von_mises_pa:.4g} Pa at x = {r.max_von_mises_at_m[0] * 1e3:.2f} mm, "
+             f"{r.max_von_mises_at_m[1] * 1e3:.2f} mm below the surface",
+             f"  tip: {r.tip_note}",
+             "  time: " + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in t.items())]
+    lines += [f"  wrote {k}: {f}" for k, f in out["files"].items()]
+    print("\n".join(lines), file=stream)
 
 
 # ------------------------------------------------------------------------------------------------- load A

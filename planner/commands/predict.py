@@ -1,0 +1,231 @@
+"""`palpate predict SCENE --waypoints N [--depth-m D]`: what the probe would feel across the surface (load B).
+
+The tip force and the maximum von Mises stress under the tip at N evenly spaced waypoints, for SCENE and for a
+reference (by default SCENE's prior: the same tissue without stones), and their ratio. One mesh and one
+factorization per scene; each waypoint is a small contact problem on the condensed surface (fem.contact), and the
+stresses of all waypoints come from one batched back-substitution.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_DEPTH_M = 0.004
+DEFAULT_MARGIN_M = 0.005
+BATCH = 100            # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
+FIGURE = "fig11_predict.png"
+
+DESCRIPTION = """Predict the probe's tip force and the maximum von Mises stress under the tip at N waypoints across
+the top surface (load B: a tip pressed --depth-m into the surface at each waypoint, frictionless contact), for
+SCENE and for a reference scene, and report their ratio (SCENE / reference).
+
+The reference defaults to SCENE's prior: the same tissue, tip and analysis without the stones (what a surgeon
+knows before probing). --compare NAME uses another scene as the reference (its tissue and stones, SCENE's tip and
+analysis options); --compare none skips it.
+
+The maximum von Mises stress is searched over the nodes within 2 R (R: tip radius) below the surface. Waypoints
+run from --margin-m to width - --margin-m, ends included.
+
+figures (--plots DIR):
+  fig11_predict.png   force (left axis) and max von Mises (right axis) against tip position for SCENE (solid) and
+                      the reference (dashed), and below their ratios; the stones' extent shaded (study Fig 11)"""
+
+EPILOG = """examples:
+  palpate predict paper --waypoints 100 --plots out/ --json out/predict.json
+  palpate predict paper-left --waypoints 50 --depth-m 0.003 --compare healthy
+  palpate predict my_kidney.toml --waypoints 200 --margin-m 0.008 --mesh-size-m 0.003
+JSON (--json): waypoints {x_m, force_n, force_n_per_m, max_von_mises_pa, max_von_mises_at_x_m,
+max_von_mises_at_depth_m, half_width_m}, reference {the same}, ratio [force ratio per waypoint],
+ratio_von_mises [...], peak_ratio {x_m, ratio}, peak_ratio_von_mises {x_m, ratio}, timings_s {...}."""
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("predict", help="tip force and max stress at N waypoints across the surface (load B)",
+                       description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
+                                                  "healthy) or a TOML file")
+    p.add_argument("--waypoints", type=int, default=50, metavar="N", help="number of waypoints (default 50)")
+    p.add_argument("--depth-m", type=float, default=DEFAULT_DEPTH_M,
+                   help=f"indentation depth at every waypoint (default {DEFAULT_DEPTH_M})")
+    p.add_argument("--margin-m", type=float, default=DEFAULT_MARGIN_M,
+                   help=f"keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
+    p.add_argument("--compare", metavar="SCENE", default="prior",
+                   help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML, or 'none'")
+    p.add_argument("--force-only", action="store_true", help="skip the stresses (forces only: much faster)")
+    p.add_argument("--json", metavar="PATH", help="write the machine-readable result here ('-': stdout)")
+    p.add_argument("--plots", metavar="DIR", help=f"write {FIGURE} into DIR")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    g = p.add_argument_group("analysis overrides (default: the scene's [analysis] table)")
+    g.add_argument("--order", type=int, choices=(1, 2), help="1: P1 triangles, 2: P2 triangles")
+    g.add_argument("--mesh-size-m", type=float, metavar="H", help="element size at depth (m)")
+    g.add_argument("--surface-refine", type=float, metavar="F", help="top-surface size = H / F")
+    g.add_argument("--plane", choices=("strain", "stress"), help="plane strain or plane stress")
+    g.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
+    p.set_defaults(func=run)
+    return p
+
+
+def _scenes(args):
+    from fem import scene as S
+    sc = S.load(args.scene)
+    changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
+                                 ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}
+    if changes:
+        sc = sc.with_analysis(**changes)
+    if args.indenter_radius_m is not None:
+        sc = dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, radius_m=args.indenter_radius_m))
+    c = (args.compare or "prior").strip()
+    if c.lower() == "none":
+        ref = None
+    elif c.lower() == "prior":
+        ref = sc.prior()
+    else:   # another scene's tissue and stones, probed with SCENE's tip and analysed like SCENE
+        ref = dataclasses.replace(S.load(c), indenter=sc.indenter, analysis=sc.analysis)
+    return sc, ref
+
+
+def waypoints(width_m: float, n: int, margin_m: float) -> np.ndarray:
+    """N evenly spaced positions on [margin, width - margin] (the centre when N = 1); as planner.raster does."""
+    if n < 1:
+        raise ValueError(f"--waypoints must be at least 1, got {n}")
+    if not (0 <= margin_m < width_m / 2):
+        raise ValueError(f"--margin-m {margin_m} must lie in [0, width/2 = {width_m / 2:g}) m")
+    return np.array([0.5 * width_m]) if n == 1 else np.linspace(margin_m, width_m - margin_m, n)
+
+
+def predict(scene, xs: np.ndarray, depth_m: float, *, stresses: bool = True, progress=None) -> dict:
+    """Force and maximum von Mises at each x for one scene: {"x_m", "force_n", ..., "timings_s"} (lists)."""
+    from fem.contact import surface_model
+    t0 = time.perf_counter()
+    m = surface_model(scene)
+    t1 = time.perf_counter()
+    rows = []
+    for k in range(0, len(xs), BATCH):
+        rows += m.indent_many(xs[k:k + BATCH], depth_m, stresses=stresses)
+        if progress:
+            progress(min(k + BATCH, len(xs)), len(xs))
+    t2 = time.perf_counter()
+    mesh = m.model.mesh
+    return {"x_m": [r.x0_m for r in rows], "force_n": [r.force_n for r in rows],
+            "force_n_per_m": [r.force_n_per_m for r in rows],
+            "max_von_mises_pa": [r.max_von_mises_pa for r in rows] if stresses else None,
+            "max_von_mises_at_x_m": [r.max_von_mises_at_m[0] for r in rows] if stresses else None,
+            "max_von_mises_at_depth_m": [r.max_von_mises_at_m[1] for r in rows] if stresses else None,
+            "half_width_m": [r.half_width_m for r in rows],
+            "tip_note": m.tip_note,
+            "mesh": {"nodes": int(mesh.n_nodes), "elements": int(len(mesh.tris)), "dofs": int(m.model.n_dofs),
+                     "contact_candidates": int(len(m.top))},
+            "timings_s": {"setup_s": t1 - t0, "predict_s": t2 - t1, "per_waypoint_s": (t2 - t1) / len(xs)}}
+
+
+def _peak(xs, ratio) -> dict:
+    i = int(np.argmax(ratio))
+    return {"x_m": float(xs[i]), "ratio": float(ratio[i]), "index": i}
+
+
+def run(args) -> int:
+    t0 = time.perf_counter()
+    sc, ref = _scenes(args)
+    try:
+        xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)
+        from fem.contact import _check
+        _check(sc, float(xs[0]), args.depth_m)
+        if not args.depth_m > 0:
+            raise ValueError(f"--depth-m must be positive, got {args.depth_m}")
+    except ValueError as e:
+        print(f"palpate predict: {e}", file=sys.stderr)
+        return 2
+    stresses = not args.force_only
+    verbose = not args.quiet and args.waypoints > BATCH
+
+    def progress(label):
+        if not verbose:
+            return None
+        return lambda done, total: print(f"  {label}: {done}/{total} waypoints ({time.perf_counter() - t0:.1f} s)",
+                                         file=sys.stderr, flush=True)
+
+    main = predict(sc, xs, args.depth_m, stresses=stresses, progress=progress(sc.name))
+    out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "margin_m": args.margin_m,
+           "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
+           "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}
+    if ref is not None:
+        rd = predict(ref, xs, args.depth_m, stresses=stresses, progress=progress(ref.name))
+        out["reference_scene"] = ref.name
+        out["reference"] = rd
+        ratio = np.asarray(main["force_n"]) / np.asarray(rd["force_n"])
+        out["ratio"] = ratio.tolist()
+        out["peak_ratio"] = _peak(xs, ratio)
+        if stresses:
+            rs = np.asarray(main["max_von_mises_pa"]) / np.asarray(rd["max_von_mises_pa"])
+            out["ratio_von_mises"] = rs.tolist()
+            out["peak_ratio_von_mises"] = _peak(xs, rs)
+    t = {"setup_s": main["timings_s"]["setup_s"], "predict_s": main["timings_s"]["predict_s"],
+         "per_waypoint_s": main["timings_s"]["per_waypoint_s"]}
+    if ref is not None:
+        t.update({"reference_setup_s": out["reference"]["timings_s"]["setup_s"],
+                  "reference_predict_s": out["reference"]["timings_s"]["predict_s"]})
+    if args.plots:
+        if not stresses:
+            print("palpate predict: --plots needs the stresses (drop --force-only)", file=sys.stderr)
+            return 2
+        out["files"]["predict"] = str(_figure(Path(args.plots), sc, ref, out))
+    t["total_s"] = time.perf_counter() - t0
+    out["timings_s"] = t
+    _summary(sc, out, sys.stderr if args.json == "-" else sys.stdout)
+    if args.json:
+        text = json.dumps(out, indent=1)
+        if args.json == "-":
+            print(text)
+        else:
+            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+            Path(args.json).write_text(text + "\n")
+    return 0
+
+
+def _figure(d: Path, sc, ref, out) -> Path:
+    from fem import plots
+    w = out["waypoints"]
+    a = sc.analysis
+    ref_w = out.get("reference") or w
+    title = (f"{sc.name}: {sc.indenter.shape} tip R = {sc.indenter.radius_m * 1e3:g} mm pressed "
+             f"{out['depth_m'] * 1e3:g} mm at {len(w['x_m'])} waypoints; plane {a.plane}, P{a.order}, "
+             f"h = {a.mesh_size_m * 1e3:g} mm")
+    return plots.predict_graph(d / FIGURE, np.asarray(w["x_m"]), w, ref_w,
+                               labels=(sc.name, ref.name if ref is not None else sc.name),
+                               stones=[(s.x_m, s.diameter_m) for s in sc.stones], title=title)
+
+
+def _summary(sc, out, stream) -> None:
+    w, t = out["waypoints"], out["timings_s"]
+    x, f = np.asarray(w["x_m"]), np.asarray(w["force_n"])
+    n = len(x)
+    lines = [f"scene {sc.name}: {n} waypoints from x = {x[0] * 1e3:g} to {x[-1] * 1e3:g} mm, depth "
+             f"{out['depth_m'] * 1e3:g} mm ({sc.indenter.shape} tip R = {sc.indenter.radius_m * 1e3:g} mm, "
+             f"{sc.indenter.thickness_m * 1e3:g} mm thick); {w['mesh']['dofs']} DOFs",
+             f"  force: {f.min():.4g} .. {f.max():.4g} N (max at x = {x[np.argmax(f)] * 1e3:.1f} mm)"]
+    if w["max_von_mises_pa"] is not None:
+        v = np.asarray(w["max_von_mises_pa"])
+        lines.append(f"  max von Mises under the tip: {v.min():.4g} .. {v.max():.4g} Pa "
+                     f"(max at x = {x[np.argmax(v)] * 1e3:.1f} mm)")
+    if "reference" in out:
+        pr = out["peak_ratio"]
+        lines.append(f"  vs {out['reference_scene']}: force ratio peaks at {pr['ratio']:.4f} at x = "
+                     f"{pr['x_m'] * 1e3:.1f} mm" + (f"; max von Mises ratio peaks at "
+                                                     f"{out['peak_ratio_von_mises']['ratio']:.4f} at x = "
+                                                     f"{out['peak_ratio_von_mises']['x_m'] * 1e3:.1f} mm"
+                                                     if "peak_ratio_von_mises" in out else ""))
+    if sc.stones:
+        lines.append("  stones at x = " + ", ".join(f"{s.x_m * 1e3:g} mm" for s in sc.stones))
+    lines.append(f"  tip: {w['tip_note']}")
+    lines.append(f"  time: setup {t['setup_s']:.3f} s, {n} waypoints {t['predict_s']:.3f} s "
+                 f"({t['per_waypoint_s'] * 1e3:.2f} ms each)"
+                 + (f"; reference setup {t['reference_setup_s']:.3f} s, waypoints {t['reference_predict_s']:.3f} s"
+                    if "reference_setup_s" in t else "") + f"; total {t['total_s']:.2f} s")
+    lines += [f"  wrote {k}: {v}" for k, v in out["files"].items()]
+    print("\n".join(lines), file=stream)
