@@ -23,6 +23,7 @@ import numpy as np
 
 from .lcp import solve_lcp
 from .model import Model, build_model
+from .scene import SceneError
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TipCompliance, rigid_tip_bound
 
@@ -113,8 +114,13 @@ class SurfaceModel:
 
     def __init__(self, scene, model: Model | None = None, rigid_tip: str | bool = "auto",
                  tip_tolerance: float = 1e-3, stress_band_m: float | None = None,
-                 rigid_stones: str | bool = "auto"):
+                 rigid_stones: str | bool = "auto", *, _compliance: np.ndarray | None = None,
+                 _tip: TipCompliance | None = None):
+        # _compliance, _tip: restored by fem.cache from disk (then K is factorized only when fields are asked for)
         t0 = time.perf_counter()
+        if scene.analysis.formulation != "displacement":
+            raise SceneError("analysis.formulation = 'mixed' covers load A only; contact (load B) uses the "
+                             "displacement formulation: set formulation = \"displacement\" for indentation")
         self.scene = scene
         self.model = model or build_model(scene, rigid_stones=rigid_stones)
         mesh = self.model.mesh
@@ -123,9 +129,18 @@ class SurfaceModel:
         free = np.setdiff1d(np.arange(self.model.n_dofs), fixed)
         self.top = mesh.top
         self.x = mesh.nodes[self.top, 0]
+        if np.diff(self.x).max() > scene.indenter.radius_m:   # a tip could fall between two top nodes
+            raise SceneError(f"the top-surface node spacing {np.diff(self.x).max() * 1e3:.3g} mm exceeds the tip "
+                             f"radius {scene.indenter.radius_m * 1e3:.3g} mm: contact would go unseen; refine the "
+                             f"surface (smaller mesh_size_m or larger surface_refine)")
         self.top_red = self.model.reduced_index(2 * self.top + 1)
-        self.fac = SchurFactor(self.model.K, free, self.top_red)
-        self.C = self.fac.compliance          # top-node downward displacement per downward nodal force (m per N/m)
+        self._free, self._fac = free, None
+        if _compliance is None:
+            self._fac = SchurFactor(self.model.K, free, self.top_red)
+            _compliance = self._fac.compliance
+        if not np.all(np.isfinite(_compliance)):
+            raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
+        self.C = _compliance                  # top-node downward displacement per downward nodal force (m per N/m)
         t2 = time.perf_counter()
         ind = scene.indenter
         self.tip_bound = rigid_tip_bound(scene)
@@ -138,11 +153,18 @@ class SurfaceModel:
         else:
             self.rigid_tip = False
             self.tip_note = "elastic tip (condensed tip compliance added)"
-        self.tip = None if self.rigid_tip else TipCompliance(scene)
+        self.tip = None if self.rigid_tip else (_tip if _tip is not None else TipCompliance(scene))
         self.band_m = stress_band_m if stress_band_m is not None else 2 * ind.radius_m
         self._band = None
         self._top_op = None
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
+
+    @property
+    def fac(self) -> SchurFactor:
+        """The factorization (made on first use when the compliance came from the disk cache)."""
+        if self._fac is None:
+            self._fac = SchurFactor(self.model.K, self._free, self.top_red)
+        return self._fac
 
     # -- fields from contact forces (one back-substitution per waypoint, batched when many) ----------------------
     def displacements(self, F_top: np.ndarray) -> np.ndarray:
@@ -258,16 +280,22 @@ def _check(scene, x0_m: float, depth_m: float) -> None:
         raise ValueError(f"x0_m={x0_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
     if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < scene.tissue.height_m):
         raise ValueError(f"depth_m={depth_m!r} must lie in [0, {scene.tissue.height_m}) m")
+    R = scene.indenter.radius_m
+    if scene.indenter.shape == "cylinder" and depth_m >= R:
+        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
+                         f"tip's sides, which this contact model does not represent")
 
 
 _CACHE: dict[tuple, SurfaceModel] = {}
 
 
-def surface_model(scene, **options) -> SurfaceModel:
-    """The SurfaceModel of a scene, built once per scene content and options (in-memory cache)."""
+def surface_model(scene, cache: bool | None = None, **options) -> SurfaceModel:
+    """The SurfaceModel of a scene, built once per scene content and options (in-memory cache), and kept on disk
+    keyed by the scene's content (fem.cache; cache=None follows $PALPATE_CACHE, False: memory only)."""
     key = (scene.key(), tuple(sorted(options.items())))
     if key not in _CACHE:
-        _CACHE[key] = SurfaceModel(scene, **options)
+        from .cache import load_or_build_surface
+        _CACHE[key] = load_or_build_surface(scene, options, use=cache)
     return _CACHE[key]
 
 

@@ -124,6 +124,40 @@ class Factored:
         return self.model.P @ u_red
 
 
+NU_WARN = 0.49   # tissue Poisson ratio above which the displacement formulation warns (volumetric locking)
+
+
+def warn_if_locking(scene) -> None:
+    """Volumetric locking: with nu -> 0.5 displacement elements over-stiffen (P1 badly, P2 in its stresses).
+    Errors measured on the paper scene, load A, against the mixed Taylor-Hood solve (bench/bench_runtime_error.py)."""
+    nu = scene.tissue.poisson
+    if nu > NU_WARN and getattr(scene.analysis, "formulation", "displacement") == "displacement":
+        import warnings
+        warnings.warn(f"tissue poisson = {nu} > {NU_WARN} with the displacement formulation: volumetric locking "
+                      f"makes stresses untrustworthy (paper scene, load A, peak von Mises vs the locking-free solve: "
+                      f"P2 off by {LOCKING_ERROR['P2']}, P1 by {LOCKING_ERROR['P1']} at nu = 0.4999); set "
+                      f"[analysis] formulation = \"mixed\" (Taylor-Hood P2/P1)", stacklevel=3)
+
+
+LOCKING_ERROR = {"P2": "+0.5 %", "P1": "+63 %"}   # measured (bench/bench_runtime_error.py --locking)
+ELASTIC_RATIO_WARN = 1.0e8   # an elastic (not rigid) stone stiffer than this loses accuracy to round-off
+
+
+def warn_if_ill_conditioned(scene, rigid: list[bool]) -> None:
+    """An elastic stone E_s/E_t > 1e8 times stiffer than tissue: the sparse solve loses digits (paper scene, 4 mm
+    mesh, vs the rigid stone: load A surface stress 4e-5 off at 1e10, 6e-3 at 1e12; contact force 1.4e-5 and
+    3e-3), while the rigid-body reduction is exact to O(E_t/E_s)."""
+    t = scene.tissue
+    for i, (s, r) in enumerate(zip(scene.stones, rigid)):
+        ratio = s.youngs_pa / t.youngs_pa
+        if not r and ratio > ELASTIC_RATIO_WARN:
+            import warnings
+            warnings.warn(f"stone[{i}] is {ratio:.1e} times stiffer than tissue and meshed elastic: round-off "
+                          f"grows with the ratio (about 4e-5 relative at 1e10, 6e-3 at 1e12); use "
+                          f"rigid_stones='auto' (rigid body, exact to {t.youngs_pa / s.youngs_pa:.0e})",
+                          stacklevel=3)
+
+
 def materials_of(scene) -> list[Material]:
     t = scene.tissue
     return [Material(t.youngs_pa, t.poisson)] + [Material(s.youngs_pa, s.poisson) for s in scene.stones]
@@ -131,11 +165,15 @@ def materials_of(scene) -> list[Material]:
 
 def build_model(scene, mesh: Mesh | None = None, rigid_stones: str | bool = "auto") -> Model:
     """Discretize a scene. rigid_stones: "auto" (rigid when E_stone >= RIGID_RATIO * E_tissue), True, False."""
-    mesh = mesh if mesh is not None else mesh_scene(scene)
+    if mesh is None:
+        from .cache import mesh_for      # the disk cache (fem.cache); meshes with gmsh on a miss
+        mesh = mesh_for(scene)
     t = scene.tissue
+    warn_if_locking(scene)
     if rigid_stones == "auto":
         rigid = [s.youngs_pa >= RIGID_RATIO * t.youngs_pa for s in scene.stones]
     else:
         rigid = [bool(rigid_stones)] * len(scene.stones)
+    warn_if_ill_conditioned(scene, rigid)
     centres = [(s.x_m, t.height_m - s.depth_m) for s in scene.stones]
     return Model(mesh=mesh, materials=materials_of(scene), plane=scene.analysis.plane, centres=centres, rigid=rigid)

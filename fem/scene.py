@@ -58,6 +58,7 @@ class Analysis:
     mesh_size_m: float = 0.002       # element size at depth; the top surface and stones are graded finer
     surface_refine: float = 4.0      # size at the top surface = mesh_size_m / surface_refine
     top_displacement_m: float = 0.005  # load A: the whole top edge moved down by this much
+    formulation: str = "displacement"  # "displacement" (P1/P2) or "mixed" (Taylor-Hood P2/P1 u-p, locking-free)
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,8 @@ class Scene:
         """A content hash: equal scenes (whatever their name) give equal keys."""
         d = self.to_dict()
         d.pop("name")
+        if d["analysis"].get("formulation") == "displacement":   # keys from before the field existed stay valid
+            del d["analysis"]["formulation"]
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -141,6 +144,11 @@ def validate(scene: Scene) -> None:
         raise SceneError(f"analysis.plane must be 'strain' or 'stress', got {a.plane!r}")
     if a.order not in (1, 2):
         raise SceneError(f"analysis.order must be 1 or 2, got {a.order!r}")
+    if a.formulation not in ("displacement", "mixed"):
+        raise SceneError(f"analysis.formulation must be 'displacement' or 'mixed', got {a.formulation!r}")
+    if a.formulation == "mixed" and (a.order != 2 or a.plane != "strain"):
+        raise SceneError("analysis.formulation='mixed' (Taylor-Hood P2/P1) needs order = 2 and plane = 'strain' "
+                         f"(got order = {a.order!r}, plane = {a.plane!r}); plane stress does not lock")
     _check_positive("analysis.mesh_size_m", a.mesh_size_m)
     _check_positive("analysis.surface_refine", a.surface_refine)
     if a.mesh_size_m > min(t.width_m, t.height_m) / 2:
@@ -165,7 +173,7 @@ def _build(cls, table, where: str):
     kwargs = {}
     for k, v in table.items():
         default = fields[k].default
-        if k in ("shape", "plane"):
+        if k in ("shape", "plane", "formulation"):
             if not isinstance(v, str):
                 raise SceneError(f"{where}.{k} must be a string, got {type(v).__name__}")
         elif k == "order":

@@ -11,6 +11,9 @@ from .model import Model, build_model
 from .stress import components, nodal_poisson, recovery_operator
 
 
+RESIDUAL_WARN = 1e-6
+
+
 @dataclass
 class Profile:
     """Stresses along the top surface (Pa), nodes sorted by x."""
@@ -46,10 +49,14 @@ class UniformResult:
     nodal: dict[str, np.ndarray] | None = None    # full-field stresses and strains at nodes (None: surface only)
     timings_s: dict = field(default_factory=dict)
     reaction_n_per_m: float = 0.0      # total vertical force on the top edge per unit thickness (compression > 0)
+    residual: float = 0.0              # relative residual of the free equations, ||(K u)_free|| / ||K_fp u_p||
 
 
 def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
                   rigid_stones: str | bool = "auto") -> UniformResult:
+    if scene.analysis.formulation == "mixed":         # locking-free u-p (fem.mixed)
+        from .mixed import solve_uniform_mixed
+        return solve_uniform_mixed(scene, model=model, full_field=full_field, rigid_stones=rigid_stones)
     t0 = time.perf_counter()
     model = model or build_model(scene, rigid_stones=rigid_stones)
     t1 = time.perf_counter()
@@ -65,8 +72,17 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
     pres[order] = values
     u_red = fac.solve(pres)
     u = fac.full(u_red)
+    if not np.all(np.isfinite(u)):
+        raise FloatingPointError(f"load A on scene {scene.name!r}: the solve produced non-finite displacements")
     t2 = time.perf_counter()
-    reaction = -(model.K @ u_red)[model.reduced_index(2 * top + 1)].sum()
+    Ku = model.K @ u_red
+    residual = float(np.linalg.norm(Ku[fac.free]) / max(np.linalg.norm(fac.Kfp @ pres), 1e-300))
+    if residual > RESIDUAL_WARN:
+        import warnings
+        warnings.warn(f"load A on scene {scene.name!r}: relative residual {residual:.1e} > {RESIDUAL_WARN:g}: the "
+                      f"solution has lost accuracy to round-off (an elastic stone far stiffer than tissue? use "
+                      f"rigid_stones='auto')", stacklevel=2)
+    reaction = -Ku[model.reduced_index(2 * top + 1)].sum()
     plane = model.plane
     R = recovery_operator(model, top)
     surf = components((R @ u).reshape(-1, 3), nodal_poisson(model, top), plane)
@@ -80,4 +96,4 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
     t3 = time.perf_counter()
     return UniformResult(model=model, u=u, surface=Profile(mesh.nodes[top, 0], surf), nodal=nodal,
                          timings_s={"mesh_assemble_s": t1 - t0, "solve_s": t2 - t1, "recover_s": t3 - t2},
-                         reaction_n_per_m=float(reaction))
+                         reaction_n_per_m=float(reaction), residual=residual)

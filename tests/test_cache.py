@@ -1,0 +1,108 @@
+"""The disk cache (fem.cache): restored surface models are bitwise the fresh ones, keys follow the scene's content,
+damaged entries are ignored with a warning, PALPATE_CACHE=0 writes nothing."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from fem import cache, contact
+from fem import scene as S
+
+
+@pytest.fixture
+def cdir(tmp_path, monkeypatch):
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.delenv("PALPATE_CACHE", raising=False)
+    monkeypatch.setattr(contact, "_CACHE", {})
+    return tmp_path / "cache"
+
+
+def _scene(name="paper"):
+    return S.load(name).with_analysis(mesh_size_m=0.004)
+
+
+def test_restored_surface_model_is_bitwise_the_fresh_one(cdir):
+    sc = _scene()
+    fresh = contact.surface_model(sc)
+    assert sorted(p.name.split("-")[0] for p in cdir.glob("*.npz")) == ["mesh", "surface"]
+    contact._CACHE.clear()
+    hits = cache.stats["surface_hit"]
+    restored = contact.surface_model(sc)
+    assert cache.stats["surface_hit"] == hits + 1 and restored is not fresh
+    assert restored._fac is None                       # force queries need no factorization
+    assert np.array_equal(restored.C, fresh.C)
+    assert np.array_equal(restored.model.mesh.nodes, fresh.model.mesh.nodes)
+    xs = np.linspace(0.01, 0.06, 7)
+    assert [restored.force_n(x, 0.004) for x in xs] == [fresh.force_n(x, 0.004) for x in xs]
+    a, b = restored.indent(0.03, 0.004), fresh.indent(0.03, 0.004)   # fields: factorized on first use
+    assert a.max_von_mises_pa == b.max_von_mises_pa and np.array_equal(a.pressure_pa, b.pressure_pa)
+    assert not list(cdir.glob("*.tmp"))
+
+
+def test_elastic_tip_is_cached_too(cdir):
+    sc = _scene("healthy")
+    fresh = contact.surface_model(sc, rigid_tip=False)
+    contact._CACHE.clear()
+    restored = contact.surface_model(sc, rigid_tip=False)
+    assert not restored.rigid_tip and np.array_equal(restored.tip.C, fresh.tip.C)
+    assert restored.force_n(0.035, 0.004) == fresh.force_n(0.035, 0.004)
+
+
+def test_keys_follow_content_not_name():
+    a = _scene()
+    b = dataclasses.replace(a, name="other")
+    stiffer = a.with_stones([dataclasses.replace(a.stones[0], youngs_pa=1e10)])
+    assert cache.surface_key(a, {}) == cache.surface_key(b, {})
+    assert cache.surface_key(a, {}) != cache.surface_key(stiffer, {})
+    assert cache.surface_key(a, {}) != cache.surface_key(a, {"rigid_stones": False})
+    assert cache.mesh_key(a) == cache.mesh_key(stiffer)          # moduli do not change the mesh
+    assert cache.mesh_key(a) != cache.mesh_key(a.with_analysis(order=1))
+
+
+@pytest.mark.parametrize("damage", [b"", b"not an npz file", None])
+def test_damaged_entries_are_ignored_with_a_warning(cdir, damage):
+    sc = _scene()
+    fresh = contact.surface_model(sc)
+    contact._CACHE.clear()
+    path = next(cdir.glob("surface-*.npz"))
+    if damage is None:      # a valid file holding the wrong array
+        np.savez(path, C=np.zeros((3, 3)))
+    else:
+        path.write_bytes(damage)
+    with pytest.warns(UserWarning, match="palpate cache: ignoring"):
+        again = contact.surface_model(sc)
+    assert np.array_equal(again.C, fresh.C)
+    contact._CACHE.clear()
+    assert np.array_equal(contact.surface_model(sc).C, fresh.C)   # the rebuilt entry was written back
+
+
+def test_damaged_mesh_entry(cdir):
+    sc = _scene("healthy")
+    m1 = cache.mesh_for(sc)
+    next(cdir.glob("mesh-*.npz")).write_bytes(b"\x00" * 100)
+    with pytest.warns(UserWarning, match="ignoring"):
+        m2 = cache.mesh_for(sc)
+    assert np.array_equal(m1.nodes, m2.nodes) and np.array_equal(m1.tris, m2.tris)
+
+
+def test_disabled_writes_nothing(cdir, monkeypatch):
+    monkeypatch.setenv("PALPATE_CACHE", "0")
+    sm = contact.surface_model(_scene("healthy"))
+    assert sm.force_n(0.035, 0.004) > 0
+    assert not cdir.exists() or not any(cdir.iterdir())
+    monkeypatch.delenv("PALPATE_CACHE")
+    contact._CACHE.clear()
+    contact.surface_model(_scene("healthy"), cache=False)          # per call
+    assert not cdir.exists() or not any(cdir.iterdir())
+
+
+def test_unwritable_directory_only_warns(tmp_path, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(blocker / "sub"))    # cannot mkdir under a file
+    monkeypatch.setattr(contact, "_CACHE", {})
+    with pytest.warns(UserWarning, match="could not write"):
+        sm = contact.surface_model(_scene("healthy"))
+    assert sm.force_n(0.035, 0.004) > 0
