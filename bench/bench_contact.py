@@ -246,7 +246,7 @@ def markdown(r: dict) -> str:
         row("factor + Schur condensation", s["factor_condense_s"]), row("**setup total**", s["setup_s"]),
         row(f"{r['waypoints']} waypoints, force only", r["force_only_100_s"]),
         row(f"**{r['waypoints']} waypoints, force + max von Mises**", r["with_stresses_100_s"]),
-        row(f"  (same, process CPU time)", r["with_stresses_100_cpu_s"]),
+        row("  (same, process CPU time)", r["with_stresses_100_cpu_s"]),
         row(f"**end to end** (setup + {r['waypoints']} waypoints with stresses)", r["end_to_end_100_s"]),
         row("  (same, process CPU time)", r["end_to_end_100_cpu_s"]),
         f"| per waypoint: force only / with stresses | {ms(r['per_waypoint_s']['force_only'])} / "

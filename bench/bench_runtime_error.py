@@ -248,7 +248,7 @@ def scaling(base, quick, repeat):
             setup = time.perf_counter() - t0
             _, tf = _timed(lambda: [s.force_n_per_m(x, DEPTH) for x in RASTER], repeat)
             t0 = time.perf_counter()
-            ra = load_a(sc)
+            load_a(sc)
             ta = time.perf_counter() - t0
             rows.append({"study": "dofs", "n": len(RASTER), "dofs": s.model.n_dofs, "h_m": h,
                          "mesh_assemble_s": s.timings_s["mesh_assemble_s"],

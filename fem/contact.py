@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -141,7 +141,6 @@ class SurfaceModel:
         if not np.all(np.isfinite(_compliance)):
             raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
         self.C = _compliance                  # top-node downward displacement per downward nodal force (m per N/m)
-        t2 = time.perf_counter()
         ind = scene.indenter
         self.tip_bound = rigid_tip_bound(scene)
         if ind.youngs_pa is None:

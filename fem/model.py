@@ -14,7 +14,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
-from .mesh import Mesh, mesh_scene
+from .mesh import Mesh
 
 RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
 

@@ -172,7 +172,6 @@ def _build(cls, table, where: str):
         raise SceneError(f"unknown key(s) in [{where}]: {', '.join(unknown)} (known: {', '.join(fields)})")
     kwargs = {}
     for k, v in table.items():
-        default = fields[k].default
         if k in ("shape", "plane", "formulation"):
             if not isinstance(v, str):
                 raise SceneError(f"{where}.{k} must be a string, got {type(v).__name__}")

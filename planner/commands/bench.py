@@ -8,9 +8,10 @@ on its own: ``python bench/<name>.py --help``.
 """
 from __future__ import annotations
 
+from planner.commands.output import write_json
+
 import argparse
 import importlib.util
-import json
 import os
 import sys
 import time
@@ -112,11 +113,6 @@ def run(args) -> int:
         summary["parts"][name] = {"status": status, "time_s": round(time.perf_counter() - t0, 2),
                                   "script": str(script), "new_outputs": outputs}
         print(f"== {name}: {status} in {summary['parts'][name]['time_s']} s", flush=True)
-    if args.json:
-        text = json.dumps(summary, indent=2)
-        if args.json == "-":
-            print(text)
-        else:
-            Path(args.json).write_text(text + "\n")
+    write_json(args.json, summary)
     print(f"palpate bench: results in {out}/" + ("" if not failed else " (some parts failed, see above)"))
     return 1 if failed else 0

@@ -1,8 +1,9 @@
 """`palpate plan SCENE --out plan.json [--plots DIR]`: the CasADi raster plan for a UR5e."""
 from __future__ import annotations
 
+from planner.commands.output import write_json
+
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -115,9 +116,7 @@ def run(args) -> int:
         from planner.plots_plan import plot_plan
         figs = [str(f) for f in plot_plan(plan, args.plots)]
     s = summary(plan, out, figs)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(s, indent=1))
+    write_json(args.json, s)
     sv = plan.notes["solver"]
     print(f"planned {s['n_probes']} probes on {plan.scene['name']}: depth {s['depth_m']['min'] * 1e3:.2f}-"
           f"{s['depth_m']['max'] * 1e3:.2f} mm, predicted force {s['predicted_force_n']['min']:.3g}-"

@@ -7,9 +7,10 @@ stresses of all waypoints come from one batched back-substitution.
 """
 from __future__ import annotations
 
+from planner.commands.output import write_json
+
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -178,13 +179,7 @@ def run(args) -> int:
     t["total_s"] = time.perf_counter() - t0
     out["timings_s"] = t
     _summary(sc, out, sys.stderr if args.json == "-" else sys.stdout)
-    if args.json:
-        text = json.dumps(out, indent=1)
-        if args.json == "-":
-            print(text)
-        else:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(text + "\n")
+    write_json(args.json, out)
     return 0
 
 

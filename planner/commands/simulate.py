@@ -6,9 +6,10 @@ condensed surface model: force, contact pressure, maximum von Mises under the ti
 """
 from __future__ import annotations
 
+from planner.commands.output import write_json
+
 import argparse
 import dataclasses
-import json
 import sys
 import time
 from pathlib import Path
@@ -140,19 +141,8 @@ def _run_indent(args) -> int:
         out["files"].update(_indent_figures(Path(args.plots), sc, m, r, u, nodal))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
     _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
-    _write_json(args.json, out)
+    write_json(args.json, out)
     return 0
-
-
-def _write_json(dest, out) -> None:
-    if not dest:
-        return
-    text = json.dumps(out, indent=1)
-    if dest == "-":
-        print(text)
-    else:
-        Path(dest).parent.mkdir(parents=True, exist_ok=True)
-        Path(dest).write_text(text + "\n")
 
 
 def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
@@ -267,13 +257,7 @@ def _run_uniform(args) -> int:
     out["timings_s"]["total_s"] = time.perf_counter() - t0
 
     _summary(sc, res, out, sys.stderr if args.json == "-" else sys.stdout)
-    if args.json:
-        text = json.dumps(out, indent=1)
-        if args.json == "-":
-            print(text)
-        else:
-            Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-            Path(args.json).write_text(text + "\n")
+    write_json(args.json, out)
     return 0
 
 

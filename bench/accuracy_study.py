@@ -1,0 +1,329 @@
+"""Accuracy study of localization and adaptive refinement over random stones (a script, not a test).
+
+    python bench/accuracy_study.py [--quick] [--trials N] [--healthy N] [--sensor nano17] [--out bench-out]
+
+Per trial a random rigid stone (diameter 6-16 mm, top clearance 2-34 mm, centre 5-41 mm deep, x 15-55 mm) is put
+into the prior tissue; fem's surface model of that TRUE scene gives the force; a measurement model with the sensor's
+statistics gives the probe records; the belief side (planner.refine.adaptive -> planner.localize) sees only the prior
+and those records. Outputs: bench-out/accuracy.csv (one row per trial and method), accuracy.md (tables), accuracy.png.
+
+Measurement model (``FastArm``): per probe the dwell mean of the true force at the planned depth plus the simulated
+arm's error terms (robot/sensor.py): white noise of the 250-sample dwell mean, the zero-offset error (50-sample
+average at zeroing), and the sensor's drift rate (random per run) times the time since zeroing. It reproduces what
+robot.sim + robot.driver record about 100x faster (checked: the driver's records on the simulated arm for `paper`
+scatter about fem's force with 0.43-0.49 mN around a drift offset; this model: 0.47 mN). Positions are the ones the
+planner is asked for; the CasADi planner adds joint configurations but does not move waypoints, so it is skipped
+here (``palpate run`` uses it).
+
+Methods compared per stone: ``adaptive`` (15-probe coarse raster + refinement rounds of 10 up to the budget) and
+``dense-N`` uniform rasters (N = 15, 29, 57, 113) with the same fit; ``peak-N`` is the classic sub-waypoint peak of
+the dense raster's contrast (lateral only).
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from fem.contact import SurfaceModel, surface_model  # noqa: E402
+from fem.scene import Stone, load  # noqa: E402
+from planner.detectability import p_detect, probe_sigma_n  # noqa: E402
+from planner.localize import Measurements, localize  # noqa: E402
+from planner.planfile import Motion  # noqa: E402
+from planner.raster import raster_positions  # noqa: E402
+from planner.refine import adaptive  # noqa: E402
+from planner.surrogate import load_surrogate  # noqa: E402
+from robot.sensor import spec as sensor_spec  # noqa: E402
+
+DENSE = (15, 29, 57, 113)
+STRATEGIES = ("design", "raster")
+DEPTH_M = 0.004           # the planner's depth on this tissue (depth limit 4 mm, force far below the limit)
+
+
+class FastArm:
+    """Probe records from a TRUE force model and the sensor's statistics (see module doc)."""
+
+    def __init__(self, force_n, sensor: str, rng, motion: Motion = Motion(), period_s: float = 0.002):
+        self.f, self.sp, self.rng, self.mo = force_n, sensor_spec(sensor), rng, motion
+        self.n = int(round(motion.dwell_s / period_s))
+        self.drift = rng.normal(0.0, self.sp.drift_n_per_s)
+        self.count = 0
+
+    def execute(self, x_m, k=0, depth_m=DEPTH_M):
+        s, recs = self.sp, []
+        for x in np.asarray(x_m, float):
+            tau = (self.mo.approach_height_m + depth_m) / self.mo.probe_speed_m_s + 0.5 * self.mo.dwell_s
+            err = (self.rng.normal(0, s.noise_std_n / math.sqrt(self.n))
+                   + self.rng.normal(0, s.noise_std_n / math.sqrt(50)) + self.drift * tau)
+            std = s.noise_std_n * (1 + self.rng.normal(0, 1 / math.sqrt(2 * self.n)))
+            recs.append({"index": self.count, "x_m": float(x), "depth_reached_m": depth_m, "status": "ok",
+                         "force_mean_n": self.f(float(x), depth_m) + err, "force_std_n": abs(std),
+                         "n_samples": self.n})
+            self.count += 1
+        return recs
+
+
+class _Loc:
+    def __init__(self, detected, lr, x, d, D, sx, sd, sD, px):
+        self.detected, self.lr, self.x_m, self.depth_m, self.diameter_m = detected, lr, x, d, D
+        self.sigma_x_m, self.sigma_depth_m, self.sigma_diameter_m, self.peak_x_m = sx, sd, sD, px
+
+
+def random_stone(rng, W):
+    D = rng.uniform(6e-3, 16e-3)
+    s = rng.uniform(2e-3, min(34e-3, 46e-3 - D))
+    return Stone(x_m=rng.uniform(15e-3, W - 15e-3), depth_m=s + D / 2, diameter_m=D)
+
+
+def trial(prior, sur, stone, sensor, seed, budget, target_m):
+    rng = np.random.default_rng(seed)
+    truth = prior if stone is None else prior.with_stones([stone])
+    model = surface_model(prior) if stone is None else SurfaceModel(truth)
+    fast = FastArm(model.force_n, sensor, rng)
+    W = prior.tissue.width_m
+    rows = []
+
+    def row(method, loc, n, extra=None):
+        r = {"seed": seed, "sensor": sensor, "method": method, "n_probes": n, "detected": int(loc.detected),
+             "lr": loc.lr, "x_est_m": loc.x_m, "depth_est_m": loc.depth_m, "diam_est_m": loc.diameter_m,
+             "sigma_x_m": loc.sigma_x_m, "sigma_depth_m": loc.sigma_depth_m, "sigma_diam_m": loc.sigma_diameter_m,
+             "peak_x_m": loc.peak_x_m}
+        if stone is not None:
+            r.update(x_m=stone.x_m, depth_m=stone.depth_m, diam_m=stone.diameter_m,
+                     err_x_m=loc.x_m - stone.x_m, err_depth_m=loc.depth_m - stone.depth_m,
+                     err_diam_m=loc.diameter_m - stone.diameter_m, err_peak_m=loc.peak_x_m - stone.x_m)
+        r.update(extra or {})
+        rows.append(r)
+
+    coarse = raster_positions(W, n=15, margin_m=0.005)
+    sig = probe_sigma_n(sensor_spec(sensor))
+    pd0 = (p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=coarse, depth_m=np.full(15, DEPTH_M),
+                    sigma_n=sig, surrogate=sur) if stone is not None else float("nan"))
+    for strategy in STRATEGIES:
+        t0 = time.perf_counter()
+        res = adaptive(prior, fast.execute, coarse_x_m=coarse, budget_probes=budget, target_m=target_m,
+                       surrogate=sur, motion=Motion(), strategy=strategy)
+        row(f"adaptive-{strategy}", res.localization, res.probes_used,
+            {"rounds": len(res.rounds), "time_s": time.perf_counter() - t0, "stop": res.stop_reason,
+             "p_detect_pred": pd0})
+        cum = np.cumsum([rd.n_probes for rd in res.rounds])
+        for n in (15, 25, 35, 45):     # the estimate with at most n probes (an early stop keeps its final one)
+            if n > budget:
+                break
+            rd = res.rounds[int(np.searchsorted(cum, n, side="right")) - 1]
+            e = rd.localization["estimate"]
+            loc_r = _Loc(rd.localization["detected"], rd.localization["evidence"]["likelihood_ratio"],
+                         *[e[k]["value"] if e[k]["value"] is not None else float("nan") for k in
+                           ("x_m", "depth_m", "diameter_m")],
+                         *[e[k]["sigma"] if e[k]["sigma"] is not None else float("inf") for k in
+                           ("x_m", "depth_m", "diameter_m")], rd.localization["evidence"]["peak_x_m"] or float("nan"))
+            row(f"round-{strategy}@{n}", loc_r, n)
+    for N in DENSE:
+        x = raster_positions(W, n=N, margin_m=0.005)
+        m = Measurements.from_records(fast.execute(x), Motion())
+        loc = localize(prior, m, sur)
+        pd = (p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=np.full(N, DEPTH_M),
+                       sigma_n=sig, surrogate=sur) if stone is not None else float("nan"))
+        row(f"dense-{N}", loc, N, {"p_detect_pred": pd})
+    return rows
+
+
+def summarize(rows, sensor, methods=None, where=lambda r: True):
+    out = {}
+    methods = methods or ([f"adaptive-{s}" for s in STRATEGIES] + [f"dense-{n}" for n in DENSE])
+    for method in methods:
+        R = [r for r in rows if r["method"] == method and r["sensor"] == sensor and where(r)]
+        st = [r for r in R if "err_x_m" in r]
+        he = [r for r in R if "err_x_m" not in r]
+        det = [r for r in st if r["detected"]]
+        e = lambda k: np.abs([r[k] for r in det]) if det else np.array([np.nan])  # noqa: E731
+        out[method] = {
+            "n_stone": len(st), "n_healthy": len(he),
+            "detection_rate": np.mean([r["detected"] for r in st]) if st else np.nan,
+            "false_alarm_rate": np.mean([r["detected"] for r in he]) if he else np.nan,
+            "median_err_x_mm": float(np.median(e("err_x_m")) * 1e3),
+            "p90_err_x_mm": float(np.percentile(e("err_x_m"), 90) * 1e3),
+            "median_err_depth_mm": float(np.median(e("err_depth_m")) * 1e3),
+            "p90_err_depth_mm": float(np.percentile(e("err_depth_m"), 90) * 1e3),
+            "median_err_diam_mm": float(np.median(e("err_diam_m")) * 1e3),
+            "median_err_peak_mm": float(np.median(e("err_peak_m")) * 1e3),
+            "median_probes": float(np.median([r["n_probes"] for r in st])) if st else np.nan,
+            "mean_probes": float(np.mean([r["n_probes"] for r in st])) if st else np.nan,
+            "pred_detect_rate": float(np.nanmean([r.get("p_detect_pred", np.nan) for r in st])) if st else np.nan,
+        }
+    return out
+
+
+def read_rows(path):
+    rows = []
+    with open(path) as f:
+        for r in csv.DictReader(f):
+            d = {}
+            for k, v in r.items():
+                if v == "":
+                    continue
+                try:
+                    d[k] = float(v)
+                except ValueError:
+                    d[k] = v
+            for k in ("seed", "n_probes", "detected"):
+                if k in d:
+                    d[k] = int(d[k])
+            rows.append(d)
+    return rows
+
+
+def figure(rows, path, sensor):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axs = plt.subplots(2, 2, figsize=(11, 8))
+    ad = [r for r in rows if r["method"] == "adaptive-design" and "err_x_m" in r and r["sensor"] == sensor]
+    det = [r for r in ad if r["detected"]]
+    ax = axs[0, 0]
+    bins = np.linspace(0, 2, 41)
+    ax.hist(np.abs([r["err_x_m"] * 1e3 for r in det]), bins=bins, alpha=0.6, label="lateral |error|")
+    ax.hist(np.abs([r["err_depth_m"] * 1e3 for r in det]), bins=bins, alpha=0.6, label="depth |error|")
+    ax.axvline(0.5, color="C0", ls="--")
+    ax.axvline(1.0, color="C1", ls="--")
+    ax.set_xlabel("|error| (mm), adaptive, detected stones")
+    ax.legend()
+    ax = axs[0, 1]
+    ax.scatter([r["depth_m"] * 1e3 for r in ad], [r["diam_m"] * 1e3 for r in ad],
+               c=["g" if r["detected"] else "r" for r in ad], s=15)
+    ax.set_xlabel("true depth of centre (mm)")
+    ax.set_ylabel("true diameter (mm)")
+    ax.set_title("adaptive: detected (green) / missed (red)")
+    ax = axs[1, 0]
+    for key, lab in (("err_x_m", "lateral (fit)"), ("err_depth_m", "depth (fit)"), ("err_peak_m", "lateral (peak)")):
+        med = []
+        for N in DENSE:
+            R = [abs(r[key]) for r in rows if r["method"] == f"dense-{N}" and "err_x_m" in r and r["detected"]
+                 and r["sensor"] == sensor]
+            med.append(np.median(R) * 1e3 if R else np.nan)
+        ax.loglog(DENSE, med, "o-", label=f"dense raster, {lab}")
+    for strategy, mk in (("design", "*-"), ("raster", "s--")):
+        for key, lab, c in (("err_x_m", "lateral", "C0"), ("err_depth_m", "depth", "C1")):
+            ns, med = [], []
+            for n in (15, 25, 35, 45):
+                R = [abs(r[key]) for r in rows if r["method"] == f"round-{strategy}@{n}" and "err_x_m" in r
+                     and r["detected"] and r["sensor"] == sensor]
+                if R:
+                    ns.append(n)
+                    med.append(np.median(R) * 1e3)
+            ax.loglog(ns, med, mk, color=c, ms=9 if mk[0] == "*" else 5, label=f"adaptive-{strategy}, {lab}")
+    ax.set_xlabel("probes")
+    ax.set_ylabel("median |error| (mm)")
+    ax.legend(fontsize=7)
+    ax.grid(True, which="both", alpha=0.3)
+    ax = axs[1, 1]
+    ax.scatter([r["sigma_x_m"] * 1e3 for r in det], np.abs([r["err_x_m"] * 1e3 for r in det]), s=10, label="x")
+    ax.scatter([r["sigma_depth_m"] * 1e3 for r in det], np.abs([r["err_depth_m"] * 1e3 for r in det]), s=10,
+               label="depth")
+    lim = [1e-2, 10]
+    ax.loglog(lim, lim, "k--", lw=0.8, label="|error| = sigma")
+    ax.set_xlabel("reported 1-sigma (mm)")
+    ax.set_ylabel("|error| (mm)")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="20 stones and 10 healthy scenes")
+    p.add_argument("--trials", type=int, default=100)
+    p.add_argument("--healthy", type=int, default=40)
+    p.add_argument("--sensor", default="nano17")
+    p.add_argument("--budget", type=int, default=45)
+    p.add_argument("--target-m", type=float, default=5e-4)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--out", default="bench-out")
+    p.add_argument("--replot", action="store_true", help="tables and figure again from OUT/accuracy.csv")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.trials, a.healthy = 20, 10
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    prior = load("paper").prior()
+    sur = load_surrogate(prior)
+    rng = np.random.default_rng(a.seed)
+    rows, t0 = [], time.perf_counter()
+    W = prior.tissue.width_m
+    if a.replot:
+        rows = read_rows(out / "accuracy.csv")
+        a.trials = len({r["seed"] for r in rows if "err_x_m" in r})
+        a.healthy = len({r["seed"] for r in rows}) - a.trials
+    for i in range(0 if a.replot else a.trials + a.healthy):
+        stone = random_stone(rng, W) if i < a.trials else None
+        rows += trial(prior, sur, stone, a.sensor, seed=a.seed * 100000 + i, budget=a.budget, target_m=a.target_m)
+        if i % 10 == 0:
+            print(f"  {i + 1}/{a.trials + a.healthy} trials, {time.perf_counter() - t0:.0f} s", file=sys.stderr,
+                  flush=True)
+    if not a.replot:
+        keys = sorted({k for r in rows for k in r})
+        with open(out / "accuracy.csv", "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            w.writerows(rows)
+    summ = summarize(rows, a.sensor)
+    (out / "accuracy.json").write_text(json.dumps(summ, indent=1))
+    lines = [f"Accuracy study: {a.trials} random stones + {a.healthy} healthy scenes, sensor {a.sensor}, "
+             f"budget {a.budget} probes, target 1-sigma {a.target_m * 1e3:g} mm ({time.perf_counter() - t0:.0f} s)",
+             "", "| method | probes (median) | detection rate (predicted) | false alarms | lateral err median / p90 "
+             "(mm) | depth err median / p90 (mm) | diameter err median (mm) | peak-only lateral err (mm) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for m, s in summ.items():
+        lines.append(f"| {m} | {s['median_probes']:.0f} | {s['detection_rate']:.2f} ({s['pred_detect_rate']:.2f}) "
+                     f"| {s['false_alarm_rate']:.2f} | {s['median_err_x_mm']:.2f} / {s['p90_err_x_mm']:.2f} | "
+                     f"{s['median_err_depth_mm']:.2f} / {s['p90_err_depth_mm']:.2f} | {s['median_err_diam_mm']:.2f} | "
+                     f"{s['median_err_peak_mm']:.2f} |")
+    lines.append("")
+    for strategy in STRATEGIES:
+        ad = summ[f"adaptive-{strategy}"]
+        eq = [n for n in DENSE if summ[f"dense-{n}"]["median_err_x_mm"] <= ad["median_err_x_mm"]
+              and summ[f"dense-{n}"]["median_err_depth_mm"] <= ad["median_err_depth_mm"]]
+        lines.append(f"Dense raster of equal accuracy to adaptive-{strategy} (median lateral and depth error no "
+                     f"worse): " + (f"{eq[0]} probes -> ratio {eq[0] / ad['median_probes']:.1f}x" if eq else
+                                    f"none up to {DENSE[-1]} probes (ratio > {DENSE[-1] / ad['median_probes']:.1f}x)"))
+    # accuracy against probes: the adaptive estimate after each round, and dense rasters
+    lines += ["", "Median error against probes used (detected stones with centre <= 30 mm deep; all rounds of the "
+              "adaptive runs):", "", "| probes | adaptive-design x / depth (mm) | adaptive-raster x / depth (mm) | "
+              "dense raster x / depth (mm) |", "|---|---|---|---|"]
+    shallow = lambda r: "depth_m" in r and r["depth_m"] <= 0.030  # noqa: E731
+    for n in (15, 25, 29, 35, 45, 57, 113):
+        cells = []
+        for m in ("round-design", "round-raster", "dense"):
+            key = f"dense-{n}" if m == "dense" else f"{m}@{n}"
+            sm = summarize(rows, a.sensor, [key], shallow)[key]
+            cells.append("-" if not sm["n_stone"] else
+                         f"{sm['median_err_x_mm']:.2f} / {sm['median_err_depth_mm']:.2f} (n={sm['n_stone']})")
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    lines += ["", "By depth of the stone's centre (adaptive-design):", "",
+              "| depth (mm) | stones | detected (predicted) | lateral err median (mm) | depth err median (mm) | "
+              "reported sigma_depth median (mm) |", "|---|---|---|---|---|---|"]
+    for lo, hi in ((0, 15), (15, 25), (25, 35), (35, 50)):
+        band = lambda r, lo=lo, hi=hi: "depth_m" in r and lo * 1e-3 < r["depth_m"] <= hi * 1e-3  # noqa: E731
+        sm = summarize(rows, a.sensor, ["adaptive-design"], band)["adaptive-design"]
+        sdv = [r["sigma_depth_m"] for r in rows if r["method"] == "adaptive-design" and band(r) and r["detected"]]
+        if sm["n_stone"]:
+            lines.append(f"| {lo}-{hi} | {sm['n_stone']} | {sm['detection_rate']:.2f} ({sm['pred_detect_rate']:.2f})"
+                         f" | {sm['median_err_x_mm']:.2f} | {sm['median_err_depth_mm']:.2f} | "
+                         f"{np.median(sdv) * 1e3 if sdv else float('nan'):.2f} |")
+    (out / "accuracy.md").write_text("\n".join(lines) + "\n")
+    figure(rows, out / "accuracy.png", a.sensor)
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""`palpate run [SCENE] [--plan plan.json] [--sim | --host IP] --out DIR`: plan, probe, localize, refine.
+
+Truth and belief (DESIGN.md): SCENE is the truth only for a simulated arm. This command builds two separate things:
+an *executor* (``sim_executor``: the simulated arm, created from the true scene inside a closure; or ``arm_executor``
+on a real arm, where there is no truth) that turns a plan into probe records, and the *belief side*
+(planner.refine.adaptive -> planner.localize.localize) that gets the prior scene (stones removed) and those records
+and nothing else. The truth is written into result.json only after localization, for comparison (``sim`` key).
+"""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("run", help="plan, probe (simulated arm by default), locate the stone, refine",
+                       description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", default="paper",
+                   help="scene: built-in name or TOML (the TRUTH for --sim; only its prior is used for planning)")
+    p.add_argument("--plan", help="use this plan.json as the coarse raster (default: plan one)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--sim", nargs="?", const="inmemory", choices=["inmemory", "controller"],
+                     help="simulated arm (default): inmemory, or controller (the loopback UR controller)")
+    src.add_argument("--host", help="a real UR controller's IP (ur_rtde)")
+    p.add_argument("--yes", action="store_true", help="do not ask before moving a real arm")
+    p.add_argument("--sensor", default="nano17", help="simulated sensor: nano17 | ur5e-builtin (default nano17)")
+    p.add_argument("--seed", type=int, default=0, help="simulated sensor noise seed")
+    p.add_argument("--waypoints", type=int, default=15, help="coarse raster waypoints (default 15)")
+    p.add_argument("--refine-waypoints", type=int, default=10, help="waypoints per refinement round (default 10)")
+    p.add_argument("--budget-probes", type=int, default=45, help="probe budget over all rounds (default 45)")
+    p.add_argument("--target-uncertainty-m", type=float, default=5e-4,
+                   help="stop refining when the 1-sigma x and depth uncertainties are below this (default 0.5 mm)")
+    p.add_argument("--strategy", choices=["design", "raster"], default="design",
+                   help="refinement: design (probes where they shrink the x/depth variance most; default) or raster "
+                        "(an even finer raster around the candidate)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--no-figure", action="store_true")
+    p.add_argument("--json", metavar="PATH", help="also write result.json here")
+    p.set_defaults(func=run)
+
+
+def _say(msg: str) -> None:
+    print(f"palpate run: {msg}", file=sys.stderr, flush=True)
+
+
+class RunAborted(RuntimeError):
+    def __init__(self, report):
+        super().__init__(f"the arm run ended with status {report.status}: {report.fault or report.problems}")
+        self.report = report
+
+
+def _runner(get_interfaces, out: Path, stats: dict):
+    """execute(plan, round) over interfaces from ``get_interfaces(plan)``: renumbered probes, one probes.jsonl."""
+    from planner.refine import renumber
+    from robot.driver import run_plan
+
+    def execute(plan, k):
+        renumber(plan, stats["n_probes"])
+        plan.save(out / f"plan_round{k}.json")
+        c, r = get_interfaces(plan)
+        rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
+        stats["n_probes"] += len(plan.probes)
+        stats["planned_s"] += plan.total_time_s
+        stats["controller_s"] += rep.controller_time_s
+        stats["reports"].append(rep.to_dict())
+        if rep.status != "ok":
+            raise RunAborted(rep)
+        return rep.records
+    return execute
+
+
+def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
+    """The simulated arm holding the TRUE scene (in this closure only); created at the first plan."""
+    import numpy as np
+    from fem.contact import surface_model
+    from robot import ur5e
+    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
+    model = surface_model(truth)
+    W, H = truth.tissue.width_m, truth.tissue.height_m
+    force = (lambda x, d: model.force_n(x, d) if 0.0 <= x <= W and 0.0 < d < H else 0.0)
+    arm = {}
+
+    def interfaces(plan):
+        if "c" not in arm:
+            tcp = plan.frames.tcp_offset
+            s = plan.probes[0].approach_pose
+            start = list(s[:2]) + [s[2] + 0.02] + list(s[3:])
+            q0 = ur5e.ik(start, [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0], tcp)
+            a = ArmModel(force, tissue_pose_base=plan.frames.tissue_pose_base, width_m=W, sensor=sensor,
+                         seed=seed, q0=None if q0 is None else np.asarray(q0), tcp_offset=tcp)
+            arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a))
+        return arm["c"], arm["r"]
+    return _runner(interfaces, out, stats)
+
+
+def arm_executor(host: str, out: Path, stats: dict):
+    from robot.cell import connect
+    link = {}
+
+    def interfaces(plan):
+        if "c" not in link:
+            link["c"], link["r"] = connect(host)
+        return link["c"], link["r"]
+    return _runner(interfaces, out, stats)
+
+
+def run(args) -> int:
+    from fem.scene import from_dict, load
+    from planner.plan import plan_raster, replan
+    from planner.planfile import Plan
+    from planner.refine import adaptive, describe
+    from planner.surrogate import load_surrogate
+
+    t_wall = time.perf_counter()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if (out / "probes.jsonl").exists():
+        (out / "probes.jsonl").unlink()      # a run starts afresh (probe indices restart at 0)
+    scene = load(args.scene)
+    if args.plan:
+        plan0 = Plan.load(args.plan)
+        prior = from_dict(plan0.scene, default_name=plan0.scene.get("name", "prior"))
+        if prior.stones:
+            raise SystemExit("palpate run: the plan's scene has stones; a plan holds the prior scene only")
+        if prior.key() != scene.prior().key():
+            _say(f"warning: the plan's prior scene differs from {args.scene}'s prior")
+    else:
+        prior = scene.prior()
+        _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
+        plan0 = plan_raster(prior, n_waypoints=args.waypoints)
+    _say("loading the fem surrogate (first use on a scene: built with fem and cached, a few minutes)")
+    sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
+
+    from planner.detectability import detectability
+    det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
+                        depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
+                        surrogate=sur, motion=plan0.motion)
+    smallest = {}
+    for r in det["rows"]:
+        if r["detectable"]:
+            k = f"{r['depth_m'] * 1e3:g}"
+            smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
+    _say("detectable before probing (coarse raster, sensor " + args.sensor + "): " + (
+        ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
+        else det["reason"]))
+    stats = {"n_probes": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+    if args.host:
+        where = f"UR controller at {args.host}"
+        from robot.cell import print_preflight
+        from robot.driver import preflight
+        print("WARNING: this moves a real arm into tissue. Check the tissue pose, TCP, force limit "
+              f"{plan0.limits.force_limit_n} N and the emergency stop first.", file=sys.stderr)
+        print_preflight(preflight(plan0, set()), where)
+        if not args.yes and input("type 'yes' to move the arm: ").strip().lower() != "yes":
+            print("not confirmed; nothing sent", file=sys.stderr)
+            return 2
+        execute = arm_executor(args.host, out, stats)
+        truth = None
+    elif args.sim == "controller":
+        raise SystemExit("palpate run: --sim controller is not wired yet (hook: planner/commands/run.py, "
+                         "an executor like sim_executor over robot.simcontroller); use --sim")
+    else:
+        where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
+        truth = scene
+        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats)
+    _say(f"probing on the {where}")
+
+    rounds_planned = {"n": 0}
+
+    def plan_round(x):
+        rounds_planned["n"] += 1
+        return plan0 if rounds_planned["n"] == 1 else replan(plan0, x)
+
+    status, fault = "ok", None
+    from planner.localize import Localization
+    try:
+        res = adaptive(prior, execute, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
+                       budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
+                       target_m=args.target_uncertainty_m, surrogate=sur, progress=_say,
+                       strategy=args.strategy)
+    except RunAborted as e:
+        status, fault, res = "fault", e.report.to_dict(), None
+        _say(str(e))
+    result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
+              "strategy": args.strategy}
+    if res is not None:
+        loc = res.localization
+        result.update(loc.summary())
+        result.update({"probes_used": res.probes_used, "stop_reason": res.stop_reason,
+                       "rounds": [{"index": r.index, "n_probes": r.n_probes, "x_m": r.x_m, "depth_m": r.depth_m,
+                                   "localization": r.localization, "elapsed_s": r.elapsed_s} for r in res.rounds]})
+    else:
+        loc = Localization(detected=False, lr=float("nan"), lr_threshold=float("nan"))
+        result.update(loc.summary())
+        result.update({"probes_used": stats["n_probes"], "fault": fault})
+    result["time"] = {"wall_s": time.perf_counter() - t_wall, "robot_s": stats["controller_s"],
+                      "planned_s": stats["planned_s"]}
+    result["detectability"] = {"sensor": det["sensor"], "usable": det["usable"], "reason": det["reason"],
+                               "probe_sigma_n": det["sigma_n"],
+                               "smallest_detectable_diameter_m_by_depth_mm": smallest}
+    result["surrogate"] = {"build_s": sur.build_s, "bounds": {k: list(v) for k, v in sur.bounds.items()}}
+    if truth is not None:        # comparison only, after the fact
+        st = [{"x_m": s.x_m, "depth_m": s.depth_m, "diameter_m": s.diameter_m} for s in truth.stones]
+        result["sim"] = {"sensor": args.sensor, "seed": args.seed, "truth_stones": st}
+        if st and res is not None and loc.detected:
+            result["sim"]["error"] = {"x_m": loc.x_m - st[0]["x_m"], "depth_m": loc.depth_m - st[0]["depth_m"],
+                                      "diameter_m": loc.diameter_m - st[0]["diameter_m"]}
+    text = json.dumps(result, indent=1)
+    (out / "result.json").write_text(text)
+    if args.json:
+        Path(args.json).write_text(text)
+    if res is not None and not args.no_figure:
+        from planner.plots_run import plot_run
+        plot_run(out / "fig_run.png", prior, loc, res.measurements, surrogate=sur,
+                 truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
+                 title=f"palpate run {args.scene}: {describe(loc)}")
+    print(("STONE " if loc.detected else "NO STONE ") + (describe(loc) if res is not None else f"(run {status})")
+          + f"; {result['probes_used']} probes; results in {out}")
+    return 0 if status == "ok" else 1
