@@ -5,9 +5,13 @@ robot.driver, printing one line per probe; records go to DIR (probes.jsonl, raw/
 A second run with the same DIR resumes: probes already "ok" are skipped (``--fresh`` ignores the log).
 
 ``--sim`` (= ``--sim inmemory``) runs against the in-memory simulated arm (robot/sim.py) instead of a real arm;
-``--sim controller`` starts the simulated UR controller (robot/simcontroller.py) on loopback and connects the real
-ur_rtde client to it. Both hold the TRUE scene (``--truth``, default: the plan's prior scene name without its
-"-prior" suffix) with fem's force; the driver only sees the plan.
+``--sim controller`` starts the simulated UR controller (robot/simcontroller.py) on a loopback address of its own
+(127.a.b.1, so parallel runs do not collide) and connects the real ur_rtde client to it. Both hold the TRUE scene
+(``--truth``, default: the plan's prior scene name without its "-prior" suffix) with fem's force; the driver only
+sees the plan. ``--inject`` faults use one syntax for both (robot.urscript_cmds.parse_inject).
+
+Exit codes: 0 ok, 1 fault, 2 usage / cannot connect, 3 plan rejected, 4 the simulated controller's ports are taken
+on every loopback address tried, 130 interrupted.
 """
 from __future__ import annotations
 
@@ -22,6 +26,12 @@ from robot.driver import DriverConfig, preflight, run_plan
 from robot.records import done_indices
 
 EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_REJECTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_PORTS_UNAVAILABLE = 4     # --sim controller: ur_rtde's fixed ports are taken on every loopback address tried
+
+
+class ControllerPortsUnavailable(Exception):
+    """--sim controller could not bind its ports (robot.simlaunch.PortsUnavailable); not a RuntimeError, so it is
+    not mistaken for a failed connection."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,8 +58,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--force-model", choices=["fem", "standin"], default="fem",
                    help="tissue force: fem for the true scene (default) or a Hertz-like stand-in")
     g.add_argument("--sim-mesh-m", type=float, default=None, help="coarser fem mesh for a faster simulator")
-    g.add_argument("--inject", action="append", default=[], metavar="KIND:AT_S[:N]",
-                   help="in-memory fault: protective_stop|disconnect|force_spike|nan|stall at simulated time AT_S")
+    g.add_argument("--inject", action="append", default=[], metavar="SPEC",
+                   help="fault (repeatable), same syntax for both simulators: KIND-at-s=T[:X] (at simulated time T "
+                        "s) or KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface); the short "
+                        "KIND:T[:X] means KIND-at-s=T[:X]. KIND: protective-stop | disconnect (link lost for good) | "
+                        "drop (link lost, reconnecting allowed) | force-spike (X N for 10 ms) | nan (readings NaN "
+                        "for X s, default 0.01) | stall (the motion freezes); '_' may replace '-' in KIND. "
+                        "Examples: protective_stop:12.5, force-spike-at-depth-m=0.002:5")
     return p
 
 
@@ -73,7 +88,9 @@ def fem_force_model(truth: str, mesh_m: float | None = None):
 
 def inmemory_arm(plan: Plan, args):
     from robot import ur5e
-    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive, standin_force_model
+    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
+    from robot.simforce import standin_force_model
+    from robot.urscript_cmds import parse_inject
     if args.force_model == "fem":
         f, width = fem_force_model(_truth_name(plan, args.truth), args.sim_mesh_m)
     else:
@@ -85,12 +102,7 @@ def inmemory_arm(plan: Plan, args):
     arm = ArmModel(f, tissue_pose_base=plan.frames.tissue_pose_base, width_m=width, sensor=args.sensor,
                    seed=args.seed, q0=q0, tcp_offset=tcp)
     for spec in args.inject:
-        kind, _, rest = spec.partition(":")
-        at, _, mag = rest.partition(":")
-        try:
-            arm.inject(kind, at_s=float(at), magnitude_n=float(mag or 0.0), duration_s=0.01)
-        except ValueError as e:
-            raise SystemExit(f"palpate-cell: bad --inject {spec!r} (KIND:AT_S[:N]): {e}")
+        parse_inject(arm, spec)           # validated in main()
     return arm, SimRTDEControl(arm), SimRTDEReceive(arm)
 
 
@@ -99,7 +111,11 @@ def connect(host: str):
     import rtde_control
     import rtde_receive
     r = rtde_receive.RTDEReceiveInterface(host)
-    c = rtde_control.RTDEControlInterface(host)
+    try:
+        c = rtde_control.RTDEControlInterface(host)
+    except RuntimeError:
+        r.disconnect()
+        raise
     return c, r
 
 
@@ -132,6 +148,16 @@ def main(argv: list[str] | None = None) -> int:
     except PlanError as e:
         print(f"palpate-cell: {e}", file=sys.stderr)
         return EXIT_USAGE
+    if args.inject and not args.sim:
+        print("palpate-cell: --inject needs --sim", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        if args.inject:
+            from robot.urscript_cmds import normalize_inject
+            args.inject = [normalize_inject(s) for s in args.inject]
+    except ValueError as e:
+        print(f"palpate-cell: --inject: {e}", file=sys.stderr)
+        return EXIT_USAGE
     out = Path(args.out)
     done = set() if args.fresh else done_indices(out)
     where = f"simulated arm ({args.sim})" if args.sim else f"UR controller at {args.host}"
@@ -151,6 +177,9 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 c, r = connect(args.host)
             rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
+    except ControllerPortsUnavailable as e:
+        print(f"palpate-cell: simulated controller not started: {e}", file=sys.stderr)
+        return EXIT_PORTS_UNAVAILABLE
     except RuntimeError as e:
         print(f"palpate-cell: cannot connect: {e}", file=sys.stderr)
         return EXIT_USAGE
@@ -169,23 +198,27 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
-    """Hook for the simulated controller: start it (child process, loopback), connect real ur_rtde, run."""
+    """Start the simulated controller (child process, a loopback address of its own), connect real ur_rtde, run."""
     try:
-        from robot.simcontroller import start_controller
+        from robot.simlaunch import PortsUnavailable, start_controller
     except ImportError as e:
         raise RuntimeError(f"the simulated controller is not available: {e}") from None
-    inject = [s for s in args.inject if "-at-" in s]   # the controller's own syntax, see simcontroller.py
     out.mkdir(parents=True, exist_ok=True)
-    with start_controller(scene=_truth_name(plan, args.truth), sensor=args.sensor, seed=args.seed, inject=inject,
-                          force=args.force_model, tissue_pose=plan.frames.tissue_pose_base,
-                          log_path=out / "simcontroller.log"):
-        c, r = connect("127.0.0.1")
+    try:
+        ctl = start_controller(scene=_truth_name(plan, args.truth), sensor=args.sensor, seed=args.seed,
+                               inject=args.inject, force=args.force_model, tissue_pose=plan.frames.tissue_pose_base,
+                               mesh_m=args.sim_mesh_m, host="auto", log_path=out / "simcontroller.log")
+    except PortsUnavailable as e:
+        raise ControllerPortsUnavailable(str(e)) from None
+    with ctl:
+        c, r = connect(ctl.host)
         try:
             return run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
         finally:
             for iface in (c, r):
                 try:
-                    iface.disconnect()
+                    if iface.isConnected():    # ur_rtde 1.6.5: a call after a failed reconnect may block
+                        iface.disconnect()
                 except RuntimeError:
                     pass
 

@@ -7,8 +7,11 @@ distance limit) while polling the wrench every controller period, note first con
 contact threshold), stop with stopL if the filtered force exceeds the force limit, dwell and sample, retract to the
 approach pose. Only moveL is used (the plan's joint targets q_* are not needed; straight lines keep the path inside
 the convex workspace box). Every command passes safety.GuardedControl; every bool is checked; None/NaN/short
-receive vectors, a protective stop, a lost connection (RuntimeError), stale data and time-outs are faults that end
-the run in a safe state (stopped; retracted when the arm still accepts commands) with a report in run.json.
+receive vectors, a protective stop, a lost connection (RuntimeError, or stale data with isConnected() False: what
+ur_rtde shows), stale data and time-outs are faults that end the run in a safe state (stopped; retracted when the
+arm still accepts commands) with a report in run.json. The interrupted probe's record and samples are written
+before any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one
+after its own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
 
 Contact force convention: getActualTCPForce is the external force on the tool in the base frame; the contact force
 is its projection on the tissue's outward normal n (z axis of ``frames.tissue_pose_base``), times
@@ -48,6 +51,8 @@ class DriverConfig:
     timeout_factor: float = 2.0
     timeout_margin_s: float = 2.0
     stale_periods: int = 50            # timestamp not advancing this many periods: data stale
+    reconnect_after_s: float = 5.0     # link lost: wait this long (controller periods) for it to come back on its
+                                       # own before calling reconnect() (ur_rtde reconnects in the background)
     payload_kg: float = 0.1
     payload_cog_m: tuple = (0.0, 0.0, 0.05)
     force_sign: float = 1.0
@@ -138,8 +143,11 @@ class Driver:
         if strict and not ok_w:
             raise ProbeFault("invalid_reading", f"getActualTCPForce returned {w!r}")
         self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
-        if self.stale >= self.cfg.stale_periods:
-            raise ProbeFault("timeout", f"controller data stopped updating at t={ts:.3f} s")
+        if self.stale >= self.cfg.stale_periods:   # ur_rtde keeps returning the last values when the link drops
+            lost = self._call(self.r.isConnected) is False
+            raise ProbeFault("connection_lost" if lost else "timeout",
+                             f"controller data stopped updating at t={ts:.3f} s"
+                             + (" (the receive interface reports no connection)" if lost else ""))
         self.last_ts = self.ts = float(ts)
         x, depth = self.tf.x_depth(pose)
         f = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) if ok_w \
@@ -275,6 +283,37 @@ class Driver:
         raise ProbeFault(kind, f"force above the limit {self.lim.force_limit_n} N outside the descent")
 
     # ---- safe state --------------------------------------------------------------------------------------
+    @staticmethod
+    def _connected(iface) -> bool:
+        try:
+            return iface.isConnected() is True
+        except RuntimeError:
+            return False
+
+    def _await_link(self, out) -> bool:
+        """The link is down: wait ``reconnect_after_s`` for it to come back by itself, then call reconnect() once.
+        ur_rtde 1.6.5 reconnects in the background; a reconnect() or command racing that, or sent after it failed,
+        can block for good, so nothing but isConnected() is called while waiting. The wait counts controller
+        periods (initPeriod/waitPeriod are local to the client): wall time on a real arm, simulated on the sim."""
+        for _ in range(max(1, int(math.ceil(self.cfg.reconnect_after_s / self.cfg.period_s)))):
+            if self._connected(self.c) and self._connected(self.r):
+                out["notes"].append("the link came back by itself")
+                return True
+            t0 = self.c.initPeriod()
+            self.c.waitPeriod(t0)
+        ok = True
+        for iface in (self.c, self.r):
+            if not self._connected(iface):
+                try:
+                    ok = ok and iface.reconnect() is True
+                except (RuntimeError, AttributeError, SafetyViolation):
+                    ok = False
+        out["notes"].append(f"no connection for {self.cfg.reconnect_after_s:g} s; reconnect() "
+                            + ("succeeded" if ok else "failed"))
+        if ok:
+            self.last_ts, self.stale = None, 0
+        return ok
+
     def safe_state(self) -> dict:
         """Stop, then retract along the normal to the approach height if the arm still takes commands."""
         out = {"stopped": False, "retracted": False, "notes": []}
@@ -287,22 +326,27 @@ class Driver:
             out["notes"].append("protective stop: the arm halted where it was; clear the stop on the pendant, "
                                 "then resume (the driver first retracts along the tissue normal)")
             return out
-        for _ in range(2):
+        bounded = ("the last command was a bounded moveL (target no deeper than the planned depth); the arm stops "
+                   "there at the latest")
+        if not self._connected(self.c) and not self._await_link(out):
+            out["notes"].append(f"no connection: no command sent; {bounded}")
+            return out
+        for attempt in range(2):
             try:
                 self._stop()
                 out["stopped"] = True
                 break
             except ProbeFault as f:
                 out["notes"].append(f"stopL failed: {f.message}")
-                ok = False
-                try:
-                    ok = self.c.reconnect() is True and self.r.reconnect() is True
-                except (RuntimeError, AttributeError, SafetyViolation):
-                    pass
-                if not ok:
-                    out["notes"].append("reconnect failed: the last command was a bounded moveL (target no deeper "
-                                        "than the planned depth); the arm stops there at the latest")
+                if attempt == 1:
+                    out["notes"].append(f"stopL failed again after reconnecting: {bounded}")
                     return out
+                if not self._await_link(out):
+                    out["notes"].append(f"reconnect failed: {bounded}")
+                    return out
+        if not self._connected(self.r):
+            out["notes"].append("retract skipped: the receive interface reports no connection")
+            return out
         try:
             s = self._read(strict=False)
             out["retracted"] = self._retract_from(s["pose"], s["depth"], s["x"])
@@ -330,6 +374,11 @@ class Driver:
         rep = RunReport("ok", str(out_dir), n_planned=len(plan.probes), problems=problems,
                         n_skipped=sum(1 for p in plan.probes if p.index in done))
         log = RunLog(out_dir)
+
+        def write_run():
+            rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
+            log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
+                           "commands_sent": len(self.c.sent)})
         try:
             if problems or (bad and not cfg.skip_invalid):
                 rep.status = "rejected"
@@ -363,21 +412,20 @@ class Driver:
             except (ProbeFault, SafetyViolation, KeyboardInterrupt) as e:
                 kind = e.kind if isinstance(e, ProbeFault) else (
                     "interrupted" if isinstance(e, KeyboardInterrupt) else "safety_violation")
-                safe = self.safe_state()
                 rep.status = "interrupted" if kind == "interrupted" else "fault"
                 rep.fault = {"kind": kind, "message": str(e) or "Ctrl-C", "probe_index": getattr(current, "index",
-                             None), "controller_time_s": self.ts, **safe}
-                if current is not None:
-                    rec = summarise(current, self.samples.arrays(), "interrupted" if kind == "interrupted"
-                                    else "fault", {}, self.ts, self.ts, self.contact_thr, self.noise_std,
-                                    self.lim.depth_limit_m)
+                             None), "controller_time_s": self.ts}
+                if current is not None:     # on disk first: a hang in safe_state() must not lose them
+                    raw = self.samples.arrays()
+                    rec = summarise(current, raw, "interrupted" if kind == "interrupted" else "fault", {}, self.ts,
+                                    self.ts, self.contact_thr, self.noise_std, self.lim.depth_limit_m)
                     rec["reason"] = rep.fault["message"]
-                    rep.records.append(log.write_probe(rec, self.samples.arrays()))
+                    rep.records.append(log.write_probe(rec, raw))
+                write_run()                 # the fault, before any command is sent
+                rep.fault.update(self.safe_state())
             return rep
         finally:
-            rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
-            log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
-                           "commands_sent": len(self.c.sent)})
+            write_run()
             log.close()
 
     def _setup(self) -> None:

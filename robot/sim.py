@@ -10,9 +10,7 @@ normal. Below the undeformed surface (depth = -z > 0, 0 <= x <= width) the tissu
 with ``force_model(x, depth)``. The wrench reported is the external force ON the tool in the base frame (pressing
 into tissue gives a force along the tissue's outward normal), plus the sensor model, delayed by ``latency_s``.
 
-Force model cache: ``force_model`` is evaluated lazily on a grid (x snapped to ``x_grid_m``, depth nodes every
-``depth_grid_m``) and interpolated linearly in depth. For F ~ k d^1.5 the interpolation error is
-h^2/8 * F'' = 0.09 k h^2 d^-0.5: below 0.3 % of F for d >= 1 mm with h = 0.1 mm (tests measure it).
+The force model is cached on a grid (robot/simforce.py's ``CachedForce``; ``standin_force_model`` is there too).
 """
 from __future__ import annotations
 
@@ -24,47 +22,7 @@ import numpy as np
 
 from robot import ur5e
 from robot.sensor import Sensor
-
-
-class CachedForce:
-    """Lazy grid cache of an expensive ``force_model(x_m, depth_m)``; linear interpolation in depth."""
-
-    def __init__(self, force_model, x_grid_m: float = 1e-5, depth_grid_m: float = 1e-4):
-        self.f, self.hx, self.hd = force_model, x_grid_m, depth_grid_m
-        self.nodes: dict[tuple[int, int], float] = {}
-        self.extrapolated = 0        # nodes the model refused (out of its range), linearly extrapolated
-
-    def _node(self, ix: int, idp: int) -> float:
-        v = self.nodes.get((ix, idp))
-        if v is None:
-            try:
-                v = 0.0 if idp <= 0 else float(self.f(ix * self.hx, idp * self.hd))
-            except ValueError:   # beyond the model's range (fem: depth >= tip radius): continue linearly
-                v = 2 * self._node(ix, idp - 1) - self._node(ix, idp - 2) if idp >= 2 else 0.0
-                self.extrapolated += 1
-            self.nodes[(ix, idp)] = v
-        return v
-
-    def __call__(self, x_m: float, depth_m: float) -> float:
-        if depth_m <= 0:
-            return 0.0
-        ix = int(round(x_m / self.hx))
-        u = depth_m / self.hd
-        i = int(math.floor(u))
-        w = u - i
-        return (1 - w) * self._node(ix, i) + w * self._node(ix, i + 1)
-
-
-def standin_force_model(width_m=0.07, k_n_per_m15=1500.0, stones=((0.035, 0.025, 0.015),), contrast=0.6):
-    """A Hertz-like stand-in for fem: k d^1.5, stiffened near shallow stones ((x_m, depth_m, diameter_m) each)."""
-    def f(x_m, depth_m):
-        if depth_m <= 0 or not (0.0 <= x_m <= width_m):
-            return 0.0
-        g = 1.0
-        for sx, sd, sdia in stones:
-            g += contrast * (sdia / (2 * sd)) * math.exp(-((x_m - sx) / (0.6 * sd)) ** 2)
-        return k_n_per_m15 * g * depth_m ** 1.5
-    return f
+from robot.simforce import CachedForce
 
 
 class _Motion:
@@ -134,6 +92,12 @@ class ArmModel:
     @property
     def tcp_pose(self) -> list[float]:
         return ur5e.T_to_pose(self.T_tcp)
+
+    @property
+    def q_is_current(self) -> bool:
+        """True when ``q`` matches the TCP pose without an IK solve (``joints()`` is then cheap); False during a
+        linear move, where ``joints()`` solves IK (~0.5 ms)."""
+        return not self._q_stale
 
     def joints(self) -> np.ndarray:
         if self._q_stale:

@@ -29,18 +29,30 @@ def rotvec_to_matrix(r) -> np.ndarray:
     return np.eye(3) + math.sin(th) * K + (1 - math.cos(th)) * (K @ K)
 
 
+_PI_BAND = 1e-6
+
+
 def matrix_to_rotvec(R) -> np.ndarray:
+    """Rotation vector of a rotation matrix, accurate to round-off at every angle including just short of pi (the
+    tool-down orientation): the angle from atan2 (not acos), the axis near pi from the symmetric part.
+
+    Within ``_PI_BAND`` of pi the direction is kept canonical (largest component positive) so that poses a round-off
+    apart do not flip sign (r and -r are both ~pi); the length is then th or 2 pi - th, whichever makes the vector
+    the exact rotation, so it may exceed pi by up to ``_PI_BAND`` (a valid rotation vector for URScript too)."""
     R = np.asarray(R, dtype=float)
-    c = max(-1.0, min(1.0, 0.5 * (np.trace(R) - 1.0)))
-    th = math.acos(c)
-    if th < 1e-9:
-        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) * 0.5
-    if th > math.pi - 1e-6:  # near pi: axis from the symmetric part
-        M = 0.5 * (R + np.eye(3))
-        i = int(np.argmax(np.diag(M)))
-        k = M[:, i] / math.sqrt(max(M[i, i], 1e-300))
-        return k / np.linalg.norm(k) * th
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = 0.5 * (np.trace(R) - 1.0)
+    th = math.atan2(0.5 * float(np.linalg.norm(w)), c)
+    if th < 1e-9:
+        return w * 0.5
+    if th > 0.5 * math.pi:      # axis from the symmetric part, sign from the skew part
+        kk = (0.5 * (R + R.T) - c * np.eye(3)) / (1.0 - c)
+        i = int(np.argmax(np.diag(kk)))
+        k = kk[:, i] / math.sqrt(kk[i, i])
+        k /= np.linalg.norm(k)              # k[i] > 0
+        if math.pi - th < _PI_BAND:          # the same rotation as (k if k @ w >= 0 else -k) * th, exactly
+            return k * (th if k @ w >= 0 else 2 * math.pi - th)
+        return (k if k @ w >= 0 else -k) * th
     return w * (th / (2 * math.sin(th)))
 
 

@@ -7,7 +7,8 @@ import numpy as np
 
 from planner.planfile import Frames, Limits, Motion, Plan, Probe
 from robot import ur5e
-from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive, standin_force_model
+from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
+from robot.simforce import standin_force_model
 
 TCP = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
 TISSUE_POSE = [0.35, -0.035, 0.05, 0.0, 0.0, 0.0]

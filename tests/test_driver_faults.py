@@ -10,7 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import make_plan, make_sim  # noqa: E402
 
-from robot.driver import run_plan  # noqa: E402
+from robot.driver import DriverConfig, run_plan  # noqa: E402
 from robot.records import done_indices, load_raw, read_records  # noqa: E402
 from robot.sim import SimRTDEControl, SimRTDEReceive  # noqa: E402
 
@@ -91,6 +91,56 @@ def test_transient_disconnect_reconnects_and_retracts(tmp_path):
     rep = run(tmp_path, c, r)
     check_safe_end(rep, arm, tmp_path, "connection_lost", retracted=True)
     assert rep.fault["stopped"]
+
+
+class LostLinkReceive(SimRTDEReceive):
+    """ur_rtde 1.6.5 when the controller goes away: the getters keep returning the last values (no exception) and
+    isConnected() turns False."""
+
+    def __init__(self, arm):
+        super().__init__(arm)
+        self.last = {}
+
+    def _get(self, fn):
+        key = sys._getframe(1).f_code.co_name
+        if self.arm.connected:
+            self.last[key] = super()._get(fn)
+        return self.last[key]
+
+
+class LostLinkControl(SimRTDEControl):
+    """... and a command sent then may block for good: here any command after the loss fails the test."""
+
+    def __init__(self, arm):
+        super().__init__(arm)
+        self.progress, self.reconnect_at = -1, []
+
+    def _link(self):
+        if not self.arm.connected:
+            raise AssertionError("a command was sent while ur_rtde reports no connection (it could block for good)")
+
+    def getAsyncOperationProgress(self):
+        if self.arm.connected:
+            self.progress = super().getAsyncOperationProgress()
+        return self.progress
+
+    def reconnect(self):
+        self.reconnect_at.append(self.arm.t_s)
+        return super().reconnect()
+
+
+def test_lost_link_as_ur_rtde_sees_it_sends_no_command(tmp_path):
+    """Stale data with isConnected() False is a lost connection (not a time-out); the fault record is on disk; no
+    command is sent while the link is down, and reconnect() is tried only after ``reconnect_after_s``."""
+    arm, _, _ = make_sim()
+    c, r = LostLinkControl(arm), LostLinkReceive(arm)
+    arm.inject("disconnect", when=at_probe(1, 0.001))
+    rep = run(tmp_path, c, r)
+    assert "no connection" in rep.fault["message"]
+    check_safe_end(rep, arm, tmp_path, "connection_lost", retracted=False)
+    assert not rep.fault["stopped"] and "no command sent" in " ".join(rep.fault["notes"])
+    assert len(c.reconnect_at) == 1 and c.reconnect_at[0] - arm.faults[0]["fired_s"] >= DriverConfig().reconnect_after_s
+    assert arm.tip_in_tissue()[1] <= DEPTH + 1e-9        # the bounded moveL ended the motion
 
 
 def test_force_spike_stops_and_retracts_then_continues(tmp_path):

@@ -17,7 +17,8 @@ from planner.planfile import Frames, Limits, Motion, Plan, Probe  # noqa: E402
 from robot import safety, ur5e  # noqa: E402
 from robot.driver import DriverConfig, run_plan  # noqa: E402
 from robot.safety import GuardedControl, SafetyLimits, SafetyViolation, TissueFrame  # noqa: E402
-from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive, standin_force_model  # noqa: E402
+from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive  # noqa: E402
+from robot.simforce import standin_force_model  # noqa: E402
 
 ALLOWED = {"moveL", "stopL", "zeroFtSensor", "setTcp", "setPayload", "getAsyncOperationProgress", "initPeriod",
            "waitPeriod", "reconnect", "isConnected"}
