@@ -38,7 +38,7 @@ def add_parser(sub) -> None:
                         "(an even finer raster around the candidate)")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--no-figure", action="store_true")
-    p.add_argument("--json", metavar="PATH", help="also write result.json here")
+    p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
 
 
@@ -58,13 +58,14 @@ def _runner(get_interfaces, out: Path, stats: dict):
     from robot.driver import run_plan
 
     def execute(plan, k):
-        renumber(plan, stats["n_probes"])
+        renumber(plan, stats["next_index"])
         plan.save(out / f"plan_round{k}.json")
         c, r = get_interfaces(plan)
         rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
-        stats["n_probes"] += len(plan.probes)
+        stats["next_index"] += len(plan.probes)
+        stats["n_probes"] += sum(1 for rec in rep.records if rec.get("status") in ("ok", "force_limit"))
         stats["planned_s"] += plan.total_time_s
-        stats["controller_s"] += rep.controller_time_s
+        stats["controller_s"] += sum(rec.get("duration_s") or 0.0 for rec in rep.records)   # arm time probing
         stats["reports"].append(rep.to_dict())
         if rep.status != "ok":
             raise RunAborted(rep)
@@ -146,7 +147,7 @@ def run(args) -> int:
     _say("detectable before probing (coarse raster, sensor " + args.sensor + "): " + (
         ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
         else det["reason"]))
-    stats = {"n_probes": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+    stats = {"n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
     if args.host:
         where = f"UR controller at {args.host}"
         from robot.cell import print_preflight
@@ -187,7 +188,9 @@ def run(args) -> int:
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
-        loc = res.localization
+        from planner.localize import localize
+        # the final estimate once more, with the depth's profile-likelihood interval (prior + measurements only)
+        loc = res.localization = localize(prior, res.measurements, sur, profile=True)
         result.update(loc.summary())
         result.update({"probes_used": res.probes_used, "stop_reason": res.stop_reason,
                        "rounds": [{"index": r.index, "n_probes": r.n_probes, "x_m": r.x_m, "depth_m": r.depth_m,
@@ -208,15 +211,16 @@ def run(args) -> int:
         if st and res is not None and loc.detected:
             result["sim"]["error"] = {"x_m": loc.x_m - st[0]["x_m"], "depth_m": loc.depth_m - st[0]["depth_m"],
                                       "diameter_m": loc.diameter_m - st[0]["diameter_m"]}
-    text = json.dumps(result, indent=1)
-    (out / "result.json").write_text(text)
-    if args.json:
-        Path(args.json).write_text(text)
+    (out / "result.json").write_text(json.dumps(result, indent=1))
+    from planner.commands.output import write_json
+    write_json(args.json, result)
     if res is not None and not args.no_figure:
         from planner.plots_run import plot_run
         plot_run(out / "fig_run.png", prior, loc, res.measurements, surrogate=sur,
                  truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
-                 title=f"palpate run {args.scene}: {describe(loc)}")
-    print(("STONE " if loc.detected else "NO STONE ") + (describe(loc) if res is not None else f"(run {status})")
-          + f"; {result['probes_used']} probes; results in {out}")
+                 title=f"palpate run {args.scene}:\n{describe(loc)}")
+    print((("STONE " if loc.detected else "NO STONE ") + describe(loc) if res is not None else
+           f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+          + f"; {result['probes_used']} probes; results in {out}",
+          file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1

@@ -1,0 +1,152 @@
+"""Detectability before any probe: which stones (diameter, depth) can a raster find with a given sensor and force limit?
+
+For a candidate stone the surrogate gives the contrast c_i it adds at each planned probe (same positions and
+force-chosen depths the planner would use). The sensor gives each probe's standard error sigma_i (white noise of the
+dwell mean and of the zeroing; drift is a common offset, which the localizer fits and which is projected out here).
+The expected likelihood ratio of "stone" over "no stone" is then the noncentrality
+
+    lambda = sum (c_i / sigma_i)^2 - (sum c_i tau_i / sigma_i^2)^2 / sum (tau_i / sigma_i)^2
+
+and the detection probability P(LR >= threshold) with LR ~ noncentral chi2(3 dof, lambda) (three fitted stone
+parameters). A stone counts as detectable when that probability is at least 0.9. The same threshold as the localizer
+(planner.localize.LR_THRESHOLD) is used, so the prediction and the accuracy study speak of the same decision.
+
+The sensor must also pass the driver's own check: its filtered free-air noise, times 5, below half the force limit
+(robot.driver refuses to probe otherwise: a force limit it cannot see is no limit).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.stats import ncx2
+
+from planner.localize import LR_THRESHOLD, N_ZERO_AVERAGE
+
+P_DETECT = 0.9
+
+
+def probe_sigma_n(sensor_spec, dwell_s: float = 0.5, period_s: float = 0.002) -> float:
+    """Standard error of one probe's mean force: noise of the dwell mean and of the zero offset."""
+    n = max(1, int(round(dwell_s / period_s)))
+    return float(sensor_spec.noise_std_n * math.sqrt(1.0 / n + 1.0 / N_ZERO_AVERAGE))
+
+
+def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
+    from robot.driver import DriverConfig
+    cfg = DriverConfig()
+    thr = cfg.noise_sigma_factor * sensor_spec.noise_std_n / math.sqrt(cfg.filter_window)
+    if thr >= 0.5 * force_limit_n:
+        return False, (f"sensor {sensor_spec.name}: filtered noise x {cfg.noise_sigma_factor:g} = {thr:.2f} N is "
+                       f"above half the force limit {force_limit_n:g} N; the driver refuses to probe")
+    return True, ""
+
+
+def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_limit_m: float = 0.004,
+                  x_positions_m=None, n_waypoints: int = 15, margin_m: float = 0.005, stones=None, xs_m=None,
+                  surrogate=None, lr_threshold: float = LR_THRESHOLD, motion=None) -> dict:
+    """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) by a raster.
+
+    Returns {"sensor", "usable", "reason", "sigma_n", "depths_m", "rows": [{diameter_m, depth_m, peak_contrast_n,
+    snr, p_detect, detectable}]}. Stones are placed at ``xs_m`` (default: the middle of the section)."""
+    from fem.contact import surface_model
+    from planner.planfile import Motion
+    from planner.raster import choose_depths, raster_positions
+    from planner.surrogate import load_surrogate
+    from robot.sensor import spec as sensor_spec
+    if prior.stones:
+        raise ValueError("detectability() takes the prior scene (no stones)")
+    sp = sensor_spec(sensor)
+    motion = motion or Motion()
+    W = prior.tissue.width_m
+    x = (np.asarray(x_positions_m, float) if x_positions_m is not None
+         else raster_positions(W, n=n_waypoints, margin_m=margin_m))
+    dc = choose_depths(surface_model(prior).force_n, x, force_limit_n=force_limit_n, depth_limit_m=depth_limit_m)
+    d = dc.depth_m
+    usable, reason = sensor_usable(sp, force_limit_n)
+    sig = probe_sigma_n(sp, motion.dwell_s)
+    tau = (motion.approach_height_m + d) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
+    sur = surrogate or load_surrogate(prior)
+    b = sur.bounds
+    if stones is None:
+        stones = [(D, dep) for D in (4e-3, 6e-3, 8e-3, 10e-3, 12e-3, 15e-3)
+                  for dep in (5e-3, 10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3, 40e-3)]
+    xs = 0.5 * W if xs_m is None else float(xs_m)
+    rows = []
+    for D, dep in stones:
+        s = dep - D / 2
+        inside = b["s_m"][0] <= s <= b["s_m"][1] + 1e-12 and b["diam_m"][0] <= D <= b["diam_m"][1] + 1e-12
+        if not inside:
+            rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": None, "snr": None, "p_detect": None,
+                         "detectable": None, "note": "outside the surrogate's range"})
+            continue
+        c = sur.contrast(x, d, xs, dep, D)
+        w = np.full(len(x), 1.0 / sig ** 2)
+        lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
+        p = float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12))) if usable else 0.0
+        rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": float(np.max(c)), "snr": math.sqrt(max(lam, 0)),
+                     "p_detect": p, "detectable": bool(usable and p >= P_DETECT)})
+    return {"sensor": sp.name, "usable": usable, "reason": reason, "sigma_n": sig, "force_limit_n": force_limit_n,
+            "depths_m": [float(v) for v in d], "x_m": [float(v) for v in x], "xs_m": xs, "lr_threshold": lr_threshold,
+            "rows": rows}
+
+
+def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: float = LR_THRESHOLD,
+             tau_s=None) -> float:
+    """Predicted detection probability of one stone (x_m, depth_m, diameter_m) by probes at x_m/depth_m."""
+    c = surrogate.contrast(np.asarray(x_m), np.asarray(depth_m), *stone)
+    tau = np.ones(len(c)) if tau_s is None else np.asarray(tau_s)
+    w = 1.0 / np.asarray(sigma_n) ** 2 * np.ones(len(c))
+    lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
+    return float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12)))
+
+
+def format_table(res: dict) -> str:
+    """A depth x diameter table of p_detect (markdown)."""
+    rows = res["rows"]
+    Ds = sorted({r["diameter_m"] for r in rows})
+    deps = sorted({r["depth_m"] for r in rows})
+    head = "| depth \\ diameter | " + " | ".join(f"{D * 1e3:g} mm" for D in Ds) + " |"
+    lines = [head, "|" + "---|" * (len(Ds) + 1)]
+    for dep in deps:
+        cells = []
+        for D in Ds:
+            r = next(r for r in rows if r["diameter_m"] == D and r["depth_m"] == dep)
+            if r["p_detect"] is None:
+                cells.append("-")
+            else:
+                cells.append(f"{'**yes**' if r['detectable'] else 'no'} {r['p_detect']:.2f} "
+                             f"({r['peak_contrast_n'] * 1e3:.1f} mN)")
+        lines.append(f"| {dep * 1e3:g} mm | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    """``python -m planner.detectability [SCENE] [--sensor S] [--force-limit-n F]``: the table, before any probe."""
+    import argparse
+    import json
+    from fem.scene import load
+    p = argparse.ArgumentParser(prog="python -m planner.detectability", description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", default="paper")
+    p.add_argument("--sensor", default="nano17")
+    p.add_argument("--force-limit-n", type=float, default=2.0)
+    p.add_argument("--waypoints", type=int, default=15)
+    p.add_argument("--json", metavar="PATH")
+    a = p.parse_args(argv)
+    r = detectability(load(a.scene).prior(), sensor=a.sensor, force_limit_n=a.force_limit_n,
+                      n_waypoints=a.waypoints)
+    print(f"{a.waypoints}-probe raster, sensor {r['sensor']} (probe sigma {r['sigma_n'] * 1e3:.2f} mN), force limit "
+          f"{a.force_limit_n:g} N, probe depth {min(r['depths_m']) * 1e3:.2f}-{max(r['depths_m']) * 1e3:.2f} mm; "
+          f"P(detect) at LR >= {r['lr_threshold']:g} (peak contrast):")
+    if not r["usable"]:
+        print("NOT USABLE: " + r["reason"])
+    print(format_table(r))
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(r, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+    sys.exit(main())

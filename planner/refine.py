@@ -1,0 +1,175 @@
+"""Adaptive refinement: a coarse raster, then finer rasters around the candidate until the fit's uncertainty is below
+a target or the probe budget is spent.
+
+Every round is planned by the same CasADi planner with the same safety limits (``plan.replan`` of the coarse plan:
+frames, limits, motion, force-chosen depths), executed by whatever ``execute(plan, round) -> records`` the caller
+hands in (the driver on a simulated or real arm), and localized from the prior scene and *all* measurements so far.
+``adaptive`` never sees a true scene: it gets the prior and measurements only (see commands/run.py for the split).
+
+Where to probe next (``strategy``):
+* "raster": ``n_refine`` waypoints evenly over the candidate x +- h, h = 0.8 depth + 3 mm (clipped to 6..20 mm): the
+  contrast's flanks (lateral position) and its width (depth) live there; far tails carry little. The new waypoints
+  are staggered half a spacing against the previous round's so the profile is sampled ever more finely.
+* "design" (default): the ``n_refine`` positions (0.5 mm grid, repeats allowed) that shrink var(x) + var(depth) of
+  the current estimate most, chosen greedily from the Fisher information of (x, depth, diameter, drift offset) at
+  the estimate (surrogate derivatives). It puts probes on the flanks, the centre and the far ends (the ends pin the
+  drift offset, which is otherwise confounded with a broad, deep stone's contrast).
+Probing the same positions at a second, shallower depth was considered and rejected: with the 4 mm depth limit the
+contrast's shape hardly changes with probe depth (its ratio between depths is the same for a 25 mm and a 40 mm
+deep stone to 0.5 %), so a second depth buys no depth information that another position would not (Fisher check:
+sigma_depth 0.88 mm with half the refinement probes at 2 mm against 0.89 mm all at 4 mm, paper stone).
+A weak candidate (LR above ``weak_lr`` but below the detection threshold) gets refinement rounds too: more probes
+where the evidence is decide between "small or deep stone" and "noise".
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planner.localize import Localization, Measurements, localize
+
+WEAK_LR = 12.0
+
+
+@dataclass
+class Round:
+    index: int
+    x_m: list
+    depth_m: list
+    n_probes: int
+    localization: dict
+    plan: object = None          # planfile.Plan (None in position-only studies)
+    elapsed_s: float = 0.0
+
+
+@dataclass
+class AdaptiveResult:
+    localization: Localization
+    measurements: Measurements
+    rounds: list = field(default_factory=list)
+    probes_used: int = 0
+    stop_reason: str = ""
+
+
+def refine_positions(loc: Localization, n: int, width_m: float, margin_m: float, previous_x=None) -> np.ndarray:
+    """``n`` waypoints around the candidate (see module doc), inside [margin, width - margin]."""
+    if loc.detected and math.isfinite(loc.x_m):
+        centre = loc.x_m
+        h = float(np.clip(0.8 * loc.depth_m + 3e-3, 6e-3, 20e-3)) if math.isfinite(loc.depth_m) else 12e-3
+    else:
+        centre, h = loc.peak_x_m, 12e-3
+    lo, hi = max(margin_m, centre - h), min(width_m - margin_m, centre + h)
+    if hi - lo < 2e-3:
+        lo, hi = max(margin_m, hi - 2e-3), min(width_m - margin_m, lo + 2e-3)
+    x = np.linspace(lo, hi, n)
+    if previous_x is not None and len(previous_x) and n > 1:
+        prev = np.asarray(previous_x)
+        step = (hi - lo) / (n - 1)
+        if np.min(np.abs(x[:, None] - prev[None, :])) < 0.25 * step:
+            x = lo + (np.arange(n) + 0.5) * (hi - lo) / n      # cell midpoints: staggered, still inside
+    return x
+
+
+def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, width_m: float, margin_m: float,
+                     depth_m: float | None = None, step_m: float = 5e-4) -> np.ndarray:
+    """``n`` waypoints chosen one by one to shrink var(x) + var(depth) of the current estimate most (greedy A-optimal
+    sequential design over a 0.5 mm grid; Fisher information of (x, depth, diameter, offset) from the surrogate's
+    derivatives at the estimate plus the probes already made). Repeated positions are allowed (they are re-measured).
+    Falls back to ``refine_positions`` without a detected, finite estimate."""
+    if not (loc.detected and math.isfinite(loc.x_m) and math.isfinite(loc.depth_m)):
+        return refine_positions(loc, n, width_m, margin_m, meas.x_m)
+    d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
+    sig = float(np.median(meas.sigma_n))
+    th = np.array([loc.x_m, loc.depth_m, loc.diameter_m])
+
+    def jac(x, dd):
+        cols = []
+        for i in range(3):
+            h = np.zeros(3)
+            h[i] = 2e-5
+            cols.append((surrogate.contrast(x, dd, *(th + h)) - surrogate.contrast(x, dd, *(th - h))) / 4e-5)
+        cols.append(np.ones(len(x)) * 1e-3)       # offset in mN
+        return np.array(cols).T
+    Je = jac(meas.x_m, meas.depth_m) / meas.sigma_n[:, None]
+    F = Je.T @ Je + 1e-12 * np.eye(4)
+    cand = np.arange(margin_m, width_m - margin_m + 1e-12, step_m)
+    Jc = jac(cand, np.full(len(cand), d)) / sig
+    Fi = np.linalg.inv(F)
+    out = []
+    for _ in range(n):
+        G = Jc @ Fi                               # (ncand, 4)
+        gain = (G[:, 0] ** 2 + G[:, 1] ** 2) / (1.0 + np.sum(G * Jc, axis=1))
+        k = int(np.argmax(gain))
+        out.append(cand[k])
+        g = Fi @ Jc[k]
+        Fi = Fi - np.outer(g, g) / (1.0 + Jc[k] @ g)
+    return np.sort(np.array(out))
+
+
+def converged(loc: Localization, target_m: float) -> bool:
+    return bool(loc.detected and max(loc.sigma_x_m, loc.sigma_depth_m) <= target_m and not loc.at_bound)
+
+
+def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int = 45, n_refine: int = 10,
+             target_m: float = 5e-4, motion=None, surrogate=None, margin_m: float = 0.005, progress=None,
+             weak_lr: float = WEAK_LR, strategy: str = "design") -> AdaptiveResult:
+    """Run the loop. ``plan_round(x_m) -> plan`` makes a plan (None: position-only, ``execute`` gets the positions);
+    ``execute(plan_or_x, round_index) -> list of probe records`` (the driver's dicts). ``prior`` has no stones.
+    ``strategy``: "design" (design_positions) or "raster" (refine_positions: an even, finer raster around it)."""
+    if prior.stones:
+        raise ValueError("adaptive() takes the prior scene (no stones)")
+    W = prior.tissue.width_m
+    say = progress or (lambda msg: None)
+    rounds, meas, loc = [], None, None
+    x = np.asarray(coarse_x_m, float)
+    used, k, reason = 0, 0, "budget"
+    prev_x = None
+    while True:
+        t0 = time.perf_counter()
+        plan = plan_round(x) if plan_round is not None else None
+        recs = execute(plan if plan is not None else x, k)
+        m = Measurements.from_records(recs, motion if plan is None else plan.motion,
+                                      statuses=("ok", "force_limit"))
+        used += len(x)
+        meas = m if meas is None else meas.concat(m)
+        loc = localize(prior, meas, surrogate)
+        dep = [p.depth_m for p in plan.probes] if plan is not None else list(m.depth_m)
+        rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.summary(), plan,
+                            time.perf_counter() - t0))
+        say(f"round {k}: {len(x)} probes ({used} in all): " + describe(loc))
+        if converged(loc, target_m):
+            reason = "target uncertainty reached"
+            break
+        if not loc.detected and loc.lr < weak_lr:
+            reason = "no stone (no candidate worth refining)"
+            break
+        n = min(n_refine, budget_probes - used)
+        if n < 3:
+            reason = "probe budget spent"
+            break
+        prev_x = x
+        if strategy == "design":
+            from planner.surrogate import load_surrogate
+            x = design_positions(loc, meas, n, surrogate or load_surrogate(prior), W, margin_m)
+        else:
+            x = refine_positions(loc, n, W, margin_m, prev_x)
+        k += 1
+    return AdaptiveResult(loc, meas, rounds, used, reason)
+
+
+def describe(loc: Localization) -> str:
+    if not loc.detected:
+        return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.1f} mN)"
+    return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- "
+            f"{loc.sigma_depth_m * 1e3:.2f} mm, diameter {loc.diameter_m * 1e3:.2f} +- "
+            f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})")
+
+
+def renumber(plan, start: int):
+    """The plan with probe indices start, start+1, ... (rounds share one probes.jsonl; the driver resumes by index)."""
+    plan.probes = [dataclasses.replace(p, index=start + i) for i, p in enumerate(plan.probes)]
+    return plan

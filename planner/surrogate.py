@@ -1,0 +1,336 @@
+"""A fem-built forward model of the force contrast a buried stone adds: fast enough for a least-squares fit.
+
+The contrast of a probe at surface position x0 and depth d is ``F_stone(x0, d) - F_prior(x0, d)``: the force the
+tissue with a (rigid) stone pushes back with, minus fem's prediction for the stone-free prior. A full fem surface
+model per candidate stone costs ~0.7 s, far too slow inside an optimizer, so the contrast is tabulated once per prior
+scene on a grid of candidate stones and interpolated:
+
+* stone grid: top clearance ``s = depth - diameter/2`` (geometric nodes, the contrast falls steeply with s), diameter
+  D, lateral position xs over the left half of the section (the section, its supports and the load are mirror
+  symmetric, so a stone at xs > W/2 is the mirror image of one at W - xs);
+* per stone: the contrast at probe depths ``levels_m`` and probe positions x0 on a 0.5 mm grid over the whole surface.
+
+Query (``contrast``): cubic Lagrange weights in (log s, D) over a 4 x 4 stencil; in xs, the two neighbouring grid
+stones' contrast curves are *shifted* to the query position (the contrast is nearly translation invariant; the shift
+keeps a peak sharp where plain interpolation in xs would smear it) and blended linearly (this carries the slow edge
+correction); linear in x0 and in probe depth. Candidate stones are rigid (the paper's 5 GPa stone is treated as rigid
+by fem: a stone 10^6 times stiffer than tissue).
+
+The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``), keyed by the
+prior's content and the grid, and carries a behavioural fingerprint of the fem that built it (``fingerprint``: fem's
+forces for the prior and one grid stone at a few probes, recomputed in ~1 s at load; a mismatch means rebuild). It is
+built once (~10 min on 2 busy cores; 360 fem models) and read in milliseconds. A table for the built-in paper tissue
+may be shipped in planner/data/ (same file name, same check).
+``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+FORMAT = 1
+
+
+@dataclass(frozen=True)
+class Grid:
+    s_m: tuple = (1.5e-3, 2.2e-3, 3.2e-3, 4.5e-3, 6.2e-3, 8.5e-3, 11.5e-3, 15.5e-3, 20.5e-3, 27e-3, 36e-3)
+    diam_m: tuple = (4e-3, 6e-3, 8.5e-3, 11e-3, 14e-3, 17e-3)
+    xs_m: tuple = (10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3)   # left half (for a 70 mm section; scaled by width)
+    levels_m: tuple = (1e-3, 1.5e-3, 2e-3, 2.5e-3, 3e-3, 3.5e-3, 4e-3)
+    dx0_m: float = 0.5e-3
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
+
+
+def cache_path(prior, grid: Grid, root: Path | None = None) -> Path:
+    if root is None:
+        d = os.environ.get("PALPATE_CACHE_DIR")
+        root = Path(d) if d else Path.home() / ".cache" / "palpate"
+    key = hashlib.sha256(json.dumps({"scene": prior.key(), "grid": grid.to_dict(), "format": FORMAT},
+                                    sort_keys=True).encode()).hexdigest()[:16]
+    return root / f"surrogate-{key}.npz"
+
+
+FP_X = (0.012, 0.024, 0.030, 0.036, 0.047)      # fingerprint probe positions (fraction of 70 mm; scaled)
+FP_STONE = (4, 3, 4)                            # grid node (s, diameter, xs) of the fingerprint stone
+
+
+def fingerprint(prior, grid: Grid) -> np.ndarray:
+    """What fem computes *now* for one grid stone and the prior at a few probes (4 mm): a table whose stored
+    fingerprint differs was built by a different fem (mesher, elements, contact...) and is rebuilt. A behavioural
+    check, not a source hash: refactoring fem without changing its numbers keeps the table."""
+    from fem.contact import surface_model
+    from fem.scene import Stone
+    W = prior.tissue.width_m
+    x0 = np.asarray(FP_X) * W / 0.070
+    lv = [grid.levels_m[-1]]
+    i, j, k = FP_STONE
+    s, D, xs = grid.s_m[i], grid.diam_m[j], _grid_xs(prior, grid)[k]
+    st = stone_model(prior.with_stones([Stone(x_m=float(xs), depth_m=float(s + D / 2), diameter_m=float(D))]))
+    return np.concatenate([_forces(surface_model(prior), lv, x0)[0], _forces(st, lv, x0)[0]])
+
+
+def _grid_xs(prior, grid: Grid) -> np.ndarray:
+    return np.asarray(grid.xs_m) * prior.tissue.width_m / 0.070
+
+
+def stone_model(scene):
+    """fem's SurfaceModel of a one-off scene (a candidate or random stone), kept out of fem's disk cache (hundreds
+    of meshes used once would only fill it)."""
+    from fem.contact import SurfaceModel
+    try:
+        from fem.cache import mesh_for
+        from fem.model import build_model
+    except ImportError:
+        return SurfaceModel(scene)
+    return SurfaceModel(scene, model=build_model(scene, mesh=mesh_for(scene, use=False)))
+
+
+def _one_stone(args):
+    """Force curves (levels, x0) of one grid stone. Runs in a worker process."""
+    prior_dict, xs, depth, diam, levels, x0 = args
+    from fem.scene import Stone, from_dict
+    prior = from_dict(prior_dict)
+    return _forces(stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)])), levels, x0)
+
+
+def _forces(model, levels, x0) -> np.ndarray:
+    return np.array([[model.force_n(float(x), float(d)) for x in x0] for d in levels])
+
+
+def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None) -> dict:
+    """Run fem for every grid stone (``workers`` processes). Returns the arrays that ``Surrogate`` reads."""
+    W = prior.tissue.width_m
+    x0 = np.arange(0.0, W + 1e-12, grid.dx0_m)
+    xs = _grid_xs(prior, grid)
+    jobs, idx = [], []
+    H = prior.tissue.height_m
+    for i, s in enumerate(grid.s_m):
+        for j, D in enumerate(grid.diam_m):
+            if s + D > H - 1e-3:
+                continue                  # the stone would leave the bottom: filled by extrapolation below
+            for k, x in enumerate(xs):
+                jobs.append((prior.to_dict(), float(x), float(s + D / 2), float(D), list(grid.levels_m), x0))
+                idx.append((i, j, k))
+    table = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs), len(grid.levels_m), len(x0)))
+    t0 = time.perf_counter()
+    from fem.contact import surface_model
+    base = _forces(surface_model(prior), grid.levels_m, x0)      # the prior's force, subtracted from every stone's
+    if workers > 1:
+        import multiprocessing as mp
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for n, ((i, j, k), res) in enumerate(zip(idx, pool.imap(_one_stone, jobs, chunksize=4))):
+                table[i, j, k] = res - base
+                if progress and n % 20 == 0:
+                    progress(n + 1, len(jobs), time.perf_counter() - t0)
+    else:
+        for n, ((i, j, k), job) in enumerate(zip(idx, jobs)):
+            table[i, j, k] = _one_stone(job) - base
+            if progress and n % 20 == 0:
+                progress(n + 1, len(jobs), time.perf_counter() - t0)
+    _fill_invalid(table, grid, H)
+    return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "xs_m": xs,
+            "levels_m": np.array(grid.levels_m), "x0_m": x0, "table": table, "width_m": np.array(W),
+            "build_s": np.array(time.perf_counter() - t0)}
+
+
+def _fill_invalid(table: np.ndarray, grid: Grid, H: float) -> None:
+    """Grid stones too deep for the section (s + D > H - 1 mm): linear extrapolation in log s from the two shallower
+    nodes, so the cubic stencil stays smooth near the bottom. A fit never ends there (see localize's bounds)."""
+    ls = np.log(grid.s_m)
+    for j, D in enumerate(grid.diam_m):
+        for i, s in enumerate(grid.s_m):
+            if s + D > H - 1e-3 and i >= 2:
+                t = (ls[i] - ls[i - 1]) / (ls[i - 1] - ls[i - 2])
+                table[i, j] = table[i - 1, j] + t * (table[i - 1, j] - table[i - 2, j])
+
+
+def _lagrange4(nodes: np.ndarray, u: float) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (4) and cubic Lagrange weights of u over the 4-node stencil around it (clamped to the range)."""
+    n = len(nodes)
+    u = min(max(u, nodes[0]), nodes[-1])
+    i = int(np.clip(np.searchsorted(nodes, u) - 2, 0, n - 4))
+    st = nodes[i:i + 4]
+    w = np.ones(4)
+    for a in range(4):
+        for b in range(4):
+            if a != b:
+                w[a] *= (u - st[b]) / (st[a] - st[b])
+    return np.arange(i, i + 4), w
+
+
+class Surrogate:
+    """The tabulated contrast; ``contrast(x0_m, depth_m, xs_m, stone_depth_m, diam_m)`` per probe (N)."""
+
+    def __init__(self, data: dict, prior=None):
+        self.prior = prior
+        self.s = np.asarray(data["s_m"])
+        self.logs = np.log(self.s)
+        self.diam = np.asarray(data["diam_m"])
+        self.xs = np.asarray(data["xs_m"])
+        self.levels = np.asarray(data["levels_m"])
+        self.x0 = np.asarray(data["x0_m"])
+        self.T = np.asarray(data["table"])
+        self.W = float(data["width_m"])
+        self.build_s = float(data.get("build_s", 0.0))
+
+    # parameter box the table covers (a fit stays inside it)
+    @property
+    def bounds(self) -> dict:
+        return {"xs_m": (self.xs[0], self.W - self.xs[0]), "s_m": (self.s[0], self.s[-1]),
+                "diam_m": (self.diam[0], self.diam[-1])}
+
+    def contrast(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
+        x0 = np.asarray(x0_m, float)
+        d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
+        s = max(stone_depth_m - 0.5 * diam_m, 1e-6)
+        i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
+        i_d, w_d = _lagrange4(self.diam, float(diam_m))
+        C = np.einsum("i,j,ijkln->kln", w_s, w_d, self.T[np.ix_(i_s, i_d)])   # (nxs, nlev, nx0)
+        xs = float(xs_m)
+        if xs > 0.5 * self.W:                       # mirror image
+            xs, x0 = self.W - xs, self.W - x0
+        k = int(np.clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2))
+        wk = float(np.clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0))
+        # probe depth: linear between levels (clamped)
+        u = np.clip(np.interp(d, self.levels, np.arange(len(self.levels))), 0, len(self.levels) - 1)
+        il = np.minimum(np.floor(u).astype(int), len(self.levels) - 2)
+        wl = u - il
+        out = np.zeros(x0.shape)
+        h = self.x0[1] - self.x0[0]
+        for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
+            if wkk == 0.0:
+                continue
+            xq = np.clip(x0 - xs + self.xs[kk], self.x0[0], self.x0[-1])
+            v = (xq - self.x0[0]) / h
+            ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
+            wx = v - ix
+            Ck = C[kk]
+            val = ((1 - wl) * ((1 - wx) * Ck[il, ix] + wx * Ck[il, ix + 1])
+                   + wl * ((1 - wx) * Ck[il + 1, ix] + wx * Ck[il + 1, ix + 1]))
+            out += wkk * val
+        return out
+
+
+_MEM: dict[str, Surrogate] = {}
+
+
+SHIPPED = Path(__file__).resolve().parent / "data"      # tables shipped with the source (checked like any other)
+
+
+def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int = 2, progress=None,
+                   check: bool = True) -> Surrogate:
+    """The surrogate of a prior scene (stone-free): from memory, the disk cache or the tables shipped in
+    planner/data, provided its fingerprint matches what fem computes now (``fingerprint``, ~1 s); else built with
+    fem (minutes) and written to the cache."""
+    if prior.stones:
+        raise ValueError("the surrogate is built on the prior scene (no stones); pass scene.prior()")
+    path = cache_path(prior, grid)
+    if str(path) in _MEM:
+        return _MEM[str(path)]
+    fp = None
+    data = None
+    for cand in (path, cache_path(prior, grid, SHIPPED)):
+        if not cand.exists():
+            continue
+        try:
+            with np.load(cand) as z:
+                d = {k: z[k] for k in z.files}
+        except (OSError, ValueError) as e:
+            print(f"surrogate: ignoring unreadable table {cand}: {e}", file=sys.stderr)
+            continue
+        if check:
+            fp = fingerprint(prior, grid) if fp is None else fp
+            if "fingerprint" not in d or d["fingerprint"].shape != fp.shape or not np.allclose(
+                    d["fingerprint"], fp, rtol=1e-7, atol=1e-12):
+                print(f"surrogate: {cand} was built by a different fem (fingerprint differs): not used",
+                      file=sys.stderr)
+                continue
+        data = d
+        break
+    if data is None:
+        if not build:
+            raise FileNotFoundError(f"no valid surrogate table at {path}")
+        data = build_table(prior, grid, workers=workers, progress=progress)
+        data["fingerprint"] = fingerprint(prior, grid) if fp is None else fp
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
+        np.savez_compressed(tmp, **data)
+        os.replace(tmp, path)
+    sur = Surrogate(data, prior)
+    _MEM[str(path)] = sur
+    return sur
+
+
+def check_error(sur: Surrogate, prior, n: int = 10, seed: int = 0, depth_m: float = 0.004) -> dict:
+    """Interpolation error against direct fem at ``n`` random rigid stones inside the table's box: the error of the
+    contrast over the surface, relative to the stone's peak contrast (RMS and max over the profile)."""
+    from fem.contact import surface_model
+    from fem.scene import Stone
+    rng = np.random.default_rng(seed)
+    m0 = surface_model(prior)
+    x0 = np.linspace(0.005, prior.tissue.width_m - 0.005, 61)
+    rows = []
+    b = sur.bounds
+    for _ in range(n):
+        D = rng.uniform(*b["diam_m"])
+        s = np.exp(rng.uniform(np.log(b["s_m"][0]), np.log(min(b["s_m"][1], 0.047 - D))))
+        xs = rng.uniform(max(b["xs_m"][0], D / 2 + 1e-3), min(b["xs_m"][1], sur.W - D / 2 - 1e-3))
+        m1 = stone_model(prior.with_stones([Stone(x_m=xs, depth_m=s + D / 2, diameter_m=D)]))
+        true = np.array([m1.force_n(float(x), depth_m) - m0.force_n(float(x), depth_m) for x in x0])
+        est = sur.contrast(x0, depth_m, xs, s + D / 2, D)
+        peak = float(np.max(np.abs(true)))
+        rows.append({"xs_m": xs, "depth_m": s + D / 2, "diam_m": D, "peak_contrast_n": peak,
+                     "rms_err_n": float(np.sqrt(np.mean((est - true) ** 2))),
+                     "max_err_n": float(np.max(np.abs(est - true)))})
+    rel_rms = np.array([r["rms_err_n"] / r["peak_contrast_n"] for r in rows])
+    rel_max = np.array([r["max_err_n"] / r["peak_contrast_n"] for r in rows])
+    return {"n": n, "probe_depth_m": depth_m, "rel_rms_median": float(np.median(rel_rms)),
+            "rel_rms_max": float(rel_rms.max()), "rel_max_median": float(np.median(rel_max)),
+            "rel_max_max": float(rel_max.max()), "abs_max_err_n": float(max(r["max_err_n"] for r in rows)),
+            "stones": rows}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m planner.surrogate", description=__doc__.splitlines()[0])
+    p.add_argument("scene", nargs="?", default="paper")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--check", type=int, default=0, metavar="N", help="measure the error at N random stones")
+    p.add_argument("--json", metavar="PATH")
+    p.add_argument("--ship", action="store_true", help="also write the table (float32) to planner/data/")
+    a = p.parse_args(argv)
+    from fem.scene import load
+    prior = load(a.scene).prior()
+    t0 = time.perf_counter()
+    sur = load_surrogate(prior, workers=a.workers, progress=lambda i, n, t: print(
+        f"  surrogate: {i}/{n} stones, {t:.0f} s", file=sys.stderr, flush=True))
+    print(f"surrogate for {a.scene}: {cache_path(prior, Grid())} ({time.perf_counter() - t0:.1f} s; "
+          f"built in {sur.build_s:.0f} s)")
+    if a.ship:
+        with np.load(cache_path(prior, Grid())) as z:
+            d = {k: z[k] for k in z.files}
+        d["table"] = d["table"].astype(np.float32)      # 1e-7 relative: far below the interpolation error
+        SHIPPED.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(cache_path(prior, Grid(), SHIPPED), **d)
+        print(f"shipped: {cache_path(prior, Grid(), SHIPPED)}")
+    if a.check:
+        r = check_error(sur, prior, n=a.check)
+        print(f"interpolation error at {a.check} random stones (relative to peak contrast): RMS median "
+              f"{r['rel_rms_median']:.3%}, max {r['rel_rms_max']:.3%}; pointwise max median {r['rel_max_median']:.3%}"
+              f", max {r['rel_max_max']:.3%}; largest absolute {r['abs_max_err_n'] * 1e3:.3f} mN")
+        if a.json:
+            Path(a.json).write_text(json.dumps(r, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,118 @@
+"""Localization units: peak, fit and detection on an analytic stand-in surrogate (no fem tables), refinement
+positions, detectability, and the truth/belief split (the localizer refuses a scene with stones)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from fem.scene import Stone, load
+from planner.localize import LR_THRESHOLD, Measurements, localize, peak_estimate
+from planner.refine import adaptive, refine_positions
+
+
+class ToySurrogate:
+    """contrast = A exp(-(x0 - xs)^2 / w^2) (d/4mm)^1.3 with w = 0.6 depth + 3 mm and A = 0.02 N (D/15mm)^3 (25mm/depth)^2:
+    the width tells the depth, the height the size (the structure of fem's contrast, not its values)."""
+    s = np.array([1.5e-3, 3e-3, 6e-3, 12e-3, 20e-3, 27e-3])
+    diam = np.array([4e-3, 8e-3, 12e-3, 17e-3])
+    bounds = {"xs_m": (0.010, 0.060), "s_m": (1.5e-3, 27e-3), "diam_m": (4e-3, 17e-3)}
+
+    def contrast(self, x0, depth, xs, stone_depth, diam):
+        x0 = np.asarray(x0, float)
+        w = 0.6 * stone_depth + 3e-3
+        A = 0.02 * (diam / 15e-3) ** 3 * (25e-3 / stone_depth) ** 2
+        return A * np.exp(-((x0 - xs) / w) ** 2) * (np.asarray(depth) / 4e-3) ** 1.3
+
+
+@pytest.fixture(scope="module")
+def prior():
+    return load("paper").prior()
+
+
+def synth(prior, stone, x, sigma=1e-3, seed=0, offset=0.0, sur=ToySurrogate()):
+    from fem.contact import surface_model
+    rng = np.random.default_rng(seed)
+    m = surface_model(prior)
+    d = np.full(len(x), 0.004)
+    F = np.array([m.force_n(float(a), 0.004) for a in x])
+    if stone is not None:
+        F = F + sur.contrast(x, d, stone.x_m, stone.depth_m, stone.diameter_m)
+    F = F + offset + rng.normal(0, sigma, len(x))
+    return Measurements(np.asarray(x, float), d, F, np.full(len(x), sigma), np.full(len(x), 7.25), np.arange(len(x)))
+
+
+def test_peak_estimate_between_waypoints():
+    x = np.linspace(0, 10, 11)
+    assert peak_estimate(x, -(x - 4.3) ** 2)[0] == pytest.approx(4.3, abs=1e-9)   # exact for a parabola
+    assert peak_estimate(x, -(x - 0.0) ** 2)[0] == 0.0                              # at the end: the end
+
+
+def test_fit_recovers_stone_and_reports_uncertainty(prior):
+    st = Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012)
+    x = np.linspace(0.005, 0.065, 31)
+    loc = localize(prior, synth(prior, st, x, offset=0.002), ToySurrogate())
+    assert loc.detected and loc.lr > LR_THRESHOLD
+    assert abs(loc.x_m - st.x_m) < 4 * loc.sigma_x_m + 1e-4
+    assert abs(loc.depth_m - st.depth_m) < 4 * loc.sigma_depth_m + 1e-4
+    assert loc.sigma_x_m < 1e-3 and loc.sigma_depth_m < 6e-3
+    assert loc.offset_drift_n_per_s * 7.25 == pytest.approx(0.002, abs=1e-3)     # the drift offset is fitted
+    assert -1 <= loc.corr_depth_diameter <= 1
+
+
+def test_no_stone_in_noise_and_offset(prior):
+    x = np.linspace(0.005, 0.065, 15)
+    lrs = [localize(prior, synth(prior, None, x, seed=s, offset=0.003), ToySurrogate()).lr for s in range(8)]
+    assert max(lrs) < LR_THRESHOLD, lrs
+
+
+def test_localizer_refuses_the_truth():
+    """Truth and belief: handing the localizer a scene with stones is an error, not a shortcut."""
+    truth = load("paper")
+    m = Measurements(np.linspace(0.01, 0.06, 5), np.full(5, 0.004), np.full(5, 0.1), np.full(5, 1e-3), np.ones(5))
+    with pytest.raises(ValueError, match="prior"):
+        localize(truth, m, ToySurrogate())
+    with pytest.raises(ValueError, match="prior"):
+        adaptive(truth, lambda plan, k: [], coarse_x_m=[0.03])
+
+
+def test_refine_positions_around_candidate(prior):
+    st = Stone(x_m=0.050, depth_m=0.015, diameter_m=0.012)
+    x = np.linspace(0.005, 0.065, 15)
+    loc = localize(prior, synth(prior, st, x), ToySurrogate())
+    xr = refine_positions(loc, 10, 0.07, 0.005, previous_x=x)
+    assert len(xr) >= 9 and xr.min() >= 0.005 and xr.max() <= 0.065
+    assert abs(np.mean(xr) - st.x_m) < 0.006 and np.ptp(xr) < 0.04
+    assert np.median(np.min(np.abs(xr[:, None] - x[None, :]), axis=1)) > 5e-4   # staggered against the coarse raster
+
+
+def test_adaptive_loop_narrows_uncertainty(prior):
+    st = Stone(x_m=0.027, depth_m=0.018, diameter_m=0.010)
+    rng = np.random.default_rng(5)
+    from fem.contact import surface_model
+    m = surface_model(prior)
+    sur = ToySurrogate()
+
+    def execute(x, k):
+        x = np.asarray(x)
+        f = [m.force_n(float(a), 0.004) for a in x] + sur.contrast(x, 0.004, st.x_m, st.depth_m, st.diameter_m)
+        return [{"index": 100 * k + i, "x_m": float(a), "depth_reached_m": 0.004, "force_mean_n": float(v)
+                 + rng.normal(0, 1e-3), "force_std_n": 1e-3 * math.sqrt(50 * 250 / 300), "n_samples": 250,
+                 "status": "ok"} for i, (a, v) in enumerate(zip(x, f))]
+    res = adaptive(prior, execute, coarse_x_m=np.linspace(0.005, 0.065, 15), budget_probes=45, target_m=1e-9,
+                   surrogate=sur)
+    s0 = res.rounds[0].localization["estimate"]
+    s1 = res.localization
+    assert res.probes_used == 45 and len(res.rounds) == 4 and res.stop_reason == "probe budget spent"
+    assert s1.sigma_x_m < s0["x_m"]["sigma"] and s1.sigma_depth_m < s0["depth_m"]["sigma"]
+    assert abs(s1.x_m - st.x_m) < 1e-3
+
+
+def test_detectability_orders_stones_by_contrast(prior):
+    from planner.detectability import detectability
+    r = detectability(prior, sensor="nano17", stones=[(12e-3, 10e-3), (12e-3, 30e-3)], surrogate=ToySurrogate())
+    shallow, deep = r["rows"]
+    assert r["usable"] and shallow["snr"] > deep["snr"] > 0 and shallow["detectable"]
+    r2 = detectability(prior, sensor="ur5e-builtin", stones=[(12e-3, 10e-3)], surrogate=ToySurrogate())
+    assert not r2["usable"] and not r2["rows"][0]["detectable"] and "refuses" in r2["reason"]
