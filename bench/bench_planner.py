@@ -78,9 +78,9 @@ def main(argv=None) -> int:
         for n in a.sizes:
             x = raster_positions(prior.tissue.width_m, n=n)
             t0 = time.perf_counter()
-            choose_depths(m.force_n, x, force_limit_n=0.3, depth_limit_m=0.008)
+            choose_depths(m.force_n, x, force_limit_n=0.15, depth_limit_m=0.0045)
             fem["depth_choice_s"][str(n)] = time.perf_counter() - t0
-        print(f"fem surface model build {fem['fem_build_s']:.2f} s; depth choice (force-limited, 0.15 N): "
+        print(f"fem surface model build {fem['fem_build_s']:.2f} s; depth choice (force-limited, 0.075 N): "
               + ", ".join(f"{k} wp {v * 1e3:.0f} ms" for k, v in fem["depth_choice_s"].items()))
     res = {"benchmark": "planner", "fk_build_s": fk_build, "load_average": os.getloadavg(), "rows": rows, "fem": fem,
            "machine": {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()},
