@@ -77,12 +77,8 @@ def controller(scene_file, tmp_path, **kw):
 
 @contextlib.contextmanager
 def clients(host):
-    r = rtde_receive.RTDEReceiveInterface(host)
-    try:
-        c = rtde_control.RTDEControlInterface(host)
-    except Exception:
-        r.disconnect()
-        raise
+    from robot.cell import connect
+    c, r = connect(host)
     try:
         yield c, r
     finally:
