@@ -119,6 +119,17 @@ def connect(host: str):
     return c, r
 
 
+def disconnect(*interfaces) -> None:
+    """Close ur_rtde interfaces that are still connected (ur_rtde 1.6.5: a call after a failed reconnect may block,
+    so a lost link is left alone)."""
+    for iface in interfaces:
+        try:
+            if iface.isConnected():
+                iface.disconnect()
+        except RuntimeError:
+            pass
+
+
 def print_preflight(pre: dict, where: str) -> None:
     print(f"pre-flight ({where}):")
     print(f"  workspace box    {pre['workspace_min_m']} .. {pre['workspace_max_m']} m (TCP, base frame)")
@@ -215,12 +226,7 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
         try:
             return run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
         finally:
-            for iface in (c, r):
-                try:
-                    if iface.isConnected():    # ur_rtde 1.6.5: a call after a failed reconnect may block
-                        iface.disconnect()
-                except RuntimeError:
-                    pass
+            disconnect(c, r)
 
 
 if __name__ == "__main__":

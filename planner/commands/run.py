@@ -8,6 +8,8 @@ and nothing else. The truth is written into result.json only after localization,
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import math
 import sys
@@ -97,13 +99,34 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
     return _runner(interfaces, out, stats)
 
 
-def arm_executor(host: str, out: Path, stats: dict):
-    from robot.cell import connect
+def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStack):
+    """A real UR controller at ``host``, over ur_rtde (no truth: only the prior scene exists)."""
+    from robot.cell import connect, disconnect
     link = {}
 
     def interfaces(plan):
         if "c" not in link:
             link["c"], link["r"] = connect(host)
+            cleanup.callback(disconnect, link["c"], link["r"])
+        return link["c"], link["r"]
+    return _runner(interfaces, out, stats)
+
+
+def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, stats: dict,
+                        cleanup: contextlib.ExitStack):
+    """The simulated UR controller (robot.simcontroller, a child process holding the TRUE scene), driven through the
+    real ur_rtde client; started at the first plan, stopped when the run ends."""
+    from robot.cell import connect, disconnect
+    from robot.simlaunch import start_controller
+    link = {}
+
+    def interfaces(plan):
+        if "c" not in link:
+            ctl = cleanup.enter_context(start_controller(
+                scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
+                host="auto", log_path=out / "simcontroller.log"))
+            link["c"], link["r"] = connect(ctl.host)
+            cleanup.callback(disconnect, link["c"], link["r"])
         return link["c"], link["r"]
     return _runner(interfaces, out, stats)
 
@@ -148,6 +171,7 @@ def run(args) -> int:
         ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
         else det["reason"]))
     stats = {"n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+    cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
     if args.host:
         where = f"UR controller at {args.host}"
         from robot.cell import print_preflight
@@ -158,11 +182,13 @@ def run(args) -> int:
         if not args.yes and input("type 'yes' to move the arm: ").strip().lower() != "yes":
             print("not confirmed; nothing sent", file=sys.stderr)
             return 2
-        execute = arm_executor(args.host, out, stats)
+        execute = arm_executor(args.host, out, stats, cleanup)
         truth = None
     elif args.sim == "controller":
-        raise SystemExit("palpate run: --sim controller is not wired yet (hook: planner/commands/run.py, "
-                         "an executor like sim_executor over robot.simcontroller); use --sim")
+        where = f"simulated UR controller over ur_rtde (sensor {args.sensor}, seed {args.seed}; real time)"
+        truth = scene
+        execute = controller_executor(args.scene, sensor=args.sensor, seed=args.seed, out=out, stats=stats,
+                                      cleanup=cleanup)
     else:
         where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
         truth = scene
@@ -185,6 +211,8 @@ def run(args) -> int:
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
         _say(str(e))
+    finally:
+        cleanup.close()
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
