@@ -102,8 +102,6 @@ class Factored:
         # Symmetric fill-reducing ordering: K_ff is SPD, so no pivoting is needed.
         self.lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                             options={"SymmetricMode": True})
-        self.free_pos = np.full(n, -1)
-        self.free_pos[self.free] = np.arange(len(self.free))
 
     def solve(self, prescribed: np.ndarray | None = None, load: np.ndarray | None = None) -> np.ndarray:
         """Reduced displacement vector (n_red,) for fixed values ``prescribed`` and a reduced load vector."""
@@ -115,10 +113,6 @@ class Factored:
             rhs = rhs - self.Kfp @ prescribed
         u[self.free] = self.lu.solve(rhs)
         return u
-
-    def solve_many(self, free_loads: np.ndarray) -> np.ndarray:
-        """K_ff^{-1} applied to a block of right-hand sides given on the free DOFs (n_free, k)."""
-        return self.lu.solve(np.asfortranarray(free_loads))
 
     def full(self, u_red: np.ndarray) -> np.ndarray:
         return self.model.P @ u_red

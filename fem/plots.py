@@ -123,15 +123,8 @@ def surface_graph(path: str | Path, profile, *, keys: Sequence[str] = ("sxx_pa",
     for xs in stones_x:
         ax.axvline(xs * MM, color="0.5", ls=":", lw=1)
     ax.axhline(0, color="0.7", lw=0.6)
-    ax.set_xlabel("x along the top surface (mm)")
-    ax.set_ylabel("stress (Pa)")
     ax.set_xlim(x.min(), x.max())
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-    if title:
-        ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    return _save(fig, path)
+    return _finish_surface_axes(fig, ax, path, "stress (Pa)", title)
 
 
 def compare_profiles(path: str | Path, curves: Sequence[tuple[str, object, Sequence[float]]], *,
@@ -150,8 +143,13 @@ def compare_profiles(path: str | Path, curves: Sequence[tuple[str, object, Seque
             line.set_label(f"{label}: no stone")
         for xs in stones_x:
             ax.axvline(xs * MM, color=line.get_color(), ls=":", lw=0.9)
+    return _finish_surface_axes(fig, ax, path, LABELS.get(key, key), title)
+
+
+def _finish_surface_axes(fig, ax, path, ylabel: str, title: str) -> Path:
+    """Labels, grid, the legend outside the axes, title; then save."""
     ax.set_xlabel("x along the top surface (mm)")
-    ax.set_ylabel(LABELS.get(key, key))
+    ax.set_ylabel(ylabel)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     if title:
