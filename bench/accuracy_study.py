@@ -8,16 +8,21 @@ statistics gives the probe records; the belief side (planner.refine.adaptive -> 
 and those records. Outputs: bench-out/accuracy.csv (one row per trial and method), accuracy.md (tables), accuracy.png.
 
 Measurement model (``FastArm``): per probe the dwell mean of the true force at the planned depth plus the simulated
-arm's error terms (robot/sensor.py): white noise of the 250-sample dwell mean, the zero-offset error (50-sample
-average at zeroing), and the sensor's drift rate (random per run) times the time since zeroing. It reproduces what
-robot.sim + robot.driver record about 100x faster (checked: the driver's records on the simulated arm for `paper`
-scatter about fem's force with 0.43-0.49 mN around a drift offset; this model: 0.47 mN). Positions are the ones the
-planner is asked for; the CasADi planner adds joint configurations but does not move waypoints, so it is skipped
-here (``palpate run`` uses it).
+arm's error terms (robot/sensor.py) as the driver records them (robot/records.py): white noise of the 250-sample
+dwell mean and of the descent's 2250-sample free-air baseline it is referenced to (the zeroing's 50-sample error
+cancels between the two), and the sensor's drift rate (random per run) times the 5 s between the two. It reproduces
+what robot.sim + robot.driver record about 100x faster (checked: on the simulated arm, `palpate run paper --sim`,
+the baseline-referenced forces scatter about fem's with 0.20 mN around a drift offset; this model: 0.20 mN; test:
+tests/test_robot_sim.py::test_free_air_baseline_removes_the_zeroing_error). Positions are the ones the planner is
+asked for; the CasADi planner adds joint configurations but does not move waypoints, so it is skipped here
+(``palpate run`` uses it).
 
-Methods compared per stone: ``adaptive`` (15-probe coarse raster + refinement rounds of 10 up to the budget) and
-``dense-N`` uniform rasters (N = 15, 29, 57, 113) with the same fit; ``peak-N`` is the classic sub-waypoint peak of
-the dense raster's contrast (lateral only).
+Methods compared per stone: ``adaptive`` (15-probe coarse raster + refinement rounds of 10 until the target
+uncertainty or the budget) and ``dense-N`` even rasters (N = 15 ... 113) with the same fem fit; for each even raster
+(and the larger ``peak-N``, N = 161, 241) also the classic model-free answer, the raster's maximum: ``peak_fit``
+(parabola over the top half of the contrast) and the 3-point vertex. ``equal_accuracy`` turns these into "how many
+probes does an even raster need for the adaptive run's error" with bootstrap intervals. Outputs also
+accuracy_ratio.json. How much any placement could gain at all: bench/design_bound.py (Cramer-Rao).
 """
 from __future__ import annotations
 
@@ -35,15 +40,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from fem.contact import surface_model  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
-from planner.detectability import p_detect, probe_sigma_n  # noqa: E402
-from planner.localize import Measurements, localize  # noqa: E402
+from planner.detectability import baseline_samples, p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
+from planner.localize import Measurements, localize, prior_force  # noqa: E402
 from planner.planfile import Motion  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402
 from planner.refine import adaptive  # noqa: E402
 from planner.surrogate import load_surrogate, stone_model  # noqa: E402
 from robot.sensor import spec as sensor_spec  # noqa: E402
 
-DENSE = (15, 29, 57, 113)
+DENSE = (15, 21, 29, 41, 57, 81, 113)   # even rasters localized with the same fem fit (and the model-free peak fit)
+PEAK_ONLY = (161, 241)                  # larger even rasters for the model-free maximum finder only
+BOOT = 1000                             # bootstrap resamples of the stones for the ratios' intervals
 STRATEGIES = ("design", "raster")
 DEPTH_M = 0.004           # the planner's depth on this tissue (depth limit 4 mm, force far below the limit)
 
@@ -54,19 +61,23 @@ class FastArm:
     def __init__(self, force_n, sensor: str, rng, motion: Motion = Motion(), period_s: float = 0.002):
         self.f, self.sp, self.rng, self.mo = force_n, sensor_spec(sensor), rng, motion
         self.n = int(round(motion.dwell_s / period_s))
+        self.nb = baseline_samples(motion, period_s)
         self.drift = rng.normal(0.0, self.sp.drift_n_per_s)
         self.count = 0
 
     def execute(self, x_m, k=0, depth_m=DEPTH_M):
         s, recs = self.sp, []
         for x in np.asarray(x_m, float):
-            tau = (self.mo.approach_height_m + depth_m) / self.mo.probe_speed_m_s + 0.5 * self.mo.dwell_s
-            err = (self.rng.normal(0, s.noise_std_n / math.sqrt(self.n))
-                   + self.rng.normal(0, s.noise_std_n / math.sqrt(50)) + self.drift * tau)
+            tau = float(probe_tau_s(self.mo, depth_m))
+            t_base = 0.5 * self.nb * 0.002                      # from zeroing to the baseline's middle
+            zero_err = self.rng.normal(0, s.noise_std_n / math.sqrt(50))
+            base = self.rng.normal(0, s.noise_std_n / math.sqrt(self.nb)) - zero_err + self.drift * t_base
+            dwell = (self.f(float(x), depth_m) + self.rng.normal(0, s.noise_std_n / math.sqrt(self.n)) - zero_err
+                     + self.drift * (t_base + tau))
             std = s.noise_std_n * (1 + self.rng.normal(0, 1 / math.sqrt(2 * self.n)))
             recs.append({"index": self.count, "x_m": float(x), "depth_reached_m": depth_m, "status": "ok",
-                         "force_mean_n": self.f(float(x), depth_m) + err, "force_std_n": abs(std),
-                         "n_samples": self.n})
+                         "force_mean_n": dwell, "force_std_n": abs(std), "n_samples": self.n,
+                         "force_baseline_n": base, "n_samples_baseline": self.nb, "baseline_to_dwell_s": tau})
             self.count += 1
         return recs
 
@@ -130,40 +141,156 @@ def trial(prior, sur, stone, sensor, seed, budget, target_m):
                          *[e[k]["sigma"] if e[k]["sigma"] is not None else float("inf") for k in
                            ("x_m", "depth_m", "diameter_m")], rd.localization["evidence"]["peak_x_m"] or float("nan"))
             row(f"round-{strategy}@{n}", loc_r, n)
-    for N in DENSE:
+    for N in DENSE + PEAK_ONLY:
         x = raster_positions(W, n=N, margin_m=0.005)
         m = Measurements.from_records(fast.execute(x), Motion())
+        pf = peak_fit(m.x_m, m.force_n - prior_force(prior, m))
+        extra = {"peakfit_x_m": pf}
+        if stone is not None:
+            extra["err_peakfit_m"] = pf - stone.x_m
+        if N in PEAK_ONLY:          # no fit, no detection decision: every stone counts (no healthy rows)
+            if stone is not None:
+                rows.append({"seed": seed, "sensor": sensor, "method": f"peak-{N}", "n_probes": N, "detected": 1,
+                             "x_m": stone.x_m, "depth_m": stone.depth_m, **extra})
+            continue
         loc = localize(prior, m, sur)
         pd = (p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=np.full(N, DEPTH_M),
                        sigma_n=sig, surrogate=sur) if stone is not None else float("nan"))
-        row(f"dense-{N}", loc, N, {"p_detect_pred": pd})
+        row(f"dense-{N}", loc, N, {"p_detect_pred": pd, **extra})
     return rows
+
+
+def peak_fit(x, c) -> float:
+    """The best model-free maximum finder we know for a dense raster: the least-squares parabola through the
+    contiguous run of probes whose (3-point smoothed) contrast is at least half the largest, vertex clipped to that
+    run (at least the largest point and its two neighbours). Unbiased for a symmetric bump, and it averages noise
+    over the whole top of the bump, where the 3-point vertex (``localize.peak_estimate``) uses three probes."""
+    o = np.argsort(x)
+    x, c = np.asarray(x, float)[o], np.asarray(c, float)[o]
+    cs = np.convolve(np.pad(c, 1, mode="edge"), np.ones(3) / 3, mode="valid")
+    k = int(np.argmax(cs))
+    lo = hi = k
+    while lo > 0 and cs[lo - 1] >= 0.5 * cs[k]:
+        lo -= 1
+    while hi < len(c) - 1 and cs[hi + 1] >= 0.5 * cs[k]:
+        hi += 1
+    lo, hi = max(0, min(lo, k - 1)), min(len(c) - 1, max(hi, k + 1))
+    if hi - lo < 2:
+        return float(x[k])
+    a, b, _ = np.polyfit(x[lo:hi + 1] - x[k], c[lo:hi + 1], 2)
+    if a >= 0:
+        return float(x[k])
+    return float(np.clip(x[k] - b / (2 * a), x[lo], x[hi]))
+
+
+def _stat(v, fn):
+    v = np.asarray(v, float)
+    v = v[np.isfinite(v)]
+    return float(fn(v)) if len(v) else float("nan")
 
 
 def summarize(rows, sensor, methods=None, where=lambda r: True):
     out = {}
-    methods = methods or ([f"adaptive-{s}" for s in STRATEGIES] + [f"dense-{n}" for n in DENSE])
+    methods = methods or ([f"adaptive-{s}" for s in STRATEGIES] + [f"dense-{n}" for n in DENSE]
+                          + [f"peak-{n}" for n in PEAK_ONLY])
     for method in methods:
         R = [r for r in rows if r["method"] == method and r["sensor"] == sensor and where(r)]
-        st = [r for r in R if "err_x_m" in r]
-        he = [r for r in R if "err_x_m" not in r]
+        st = [r for r in R if "x_m" in r]            # a stone scene (its truth is in the row)
+        he = [r for r in R if "x_m" not in r]
         det = [r for r in st if r["detected"]]
-        e = lambda k: np.abs([r[k] for r in det]) if det else np.array([np.nan])  # noqa: E731
+
+        def e(k, q=None):
+            v = np.abs([r.get(k, np.nan) for r in det]) * 1e3
+            return _stat(v, np.median if q is None else (lambda a: np.percentile(a, q)))
         out[method] = {
             "n_stone": len(st), "n_healthy": len(he),
             "detection_rate": np.mean([r["detected"] for r in st]) if st else np.nan,
             "false_alarm_rate": np.mean([r["detected"] for r in he]) if he else np.nan,
-            "median_err_x_mm": float(np.median(e("err_x_m")) * 1e3),
-            "p90_err_x_mm": float(np.percentile(e("err_x_m"), 90) * 1e3),
-            "median_err_depth_mm": float(np.median(e("err_depth_m")) * 1e3),
-            "p90_err_depth_mm": float(np.percentile(e("err_depth_m"), 90) * 1e3),
-            "median_err_diam_mm": float(np.median(e("err_diam_m")) * 1e3),
-            "median_err_peak_mm": float(np.median(e("err_peak_m")) * 1e3),
+            "median_err_x_mm": e("err_x_m"), "p90_err_x_mm": e("err_x_m", 90),
+            "median_err_depth_mm": e("err_depth_m"), "p90_err_depth_mm": e("err_depth_m", 90),
+            "median_err_diam_mm": e("err_diam_m"), "median_err_peak_mm": e("err_peak_m"),
+            "median_err_peakfit_mm": e("err_peakfit_m"),
             "median_probes": float(np.median([r["n_probes"] for r in st])) if st else np.nan,
             "mean_probes": float(np.mean([r["n_probes"] for r in st])) if st else np.nan,
-            "pred_detect_rate": float(np.nanmean([r.get("p_detect_pred", np.nan) for r in st])) if st else np.nan,
+            "pred_detect_rate": _stat([r.get("p_detect_pred", np.nan) for r in st], np.mean),
         }
     return out
+
+
+def _errors(rows, sensor, method, key):
+    """{seed: |error|} of the detected stone scenes of one method."""
+    return {r["seed"]: abs(r[key]) for r in rows if r["method"] == method and r["sensor"] == sensor and "x_m" in r
+            and r["detected"] and np.isfinite(r.get(key, np.nan))}
+
+
+def _crossing(ns, err, target) -> float:
+    """The smallest raster size whose median error reaches ``target``: log-log interpolation between the two
+    observed sizes around the first crossing; inf if no observed size reaches it."""
+    for i, e in enumerate(err):
+        if e <= target:
+            if i == 0:
+                return float(ns[0])
+            t = (math.log(target) - math.log(err[i - 1])) / (math.log(e) - math.log(err[i - 1]))
+            return float(math.exp(math.log(ns[i - 1]) + t * (math.log(ns[i]) - math.log(ns[i - 1]))))
+    return math.inf
+
+
+def equal_accuracy(rows, sensor, method, n_boot: int = BOOT) -> dict:
+    """How many probes an even raster needs for the adaptive method's median errors, and the ratio to the adaptive
+    run's mean probe count; 90 % intervals by resampling the stones (bootstrap).
+
+    * ``fit``: the even raster localized with the same fem fit, equal median lateral AND depth error. Its median
+      errors over the raster sizes DENSE are fitted with a power law (error ~ N^b, in log-log least squares), which
+      is solved for the size that reaches the adaptive run's medians.
+    * ``peak``: the even raster localized by its maximum (``peak_fit``, model-free; gives no depth), equal median
+      lateral error, from the observed sizes DENSE + PEAK_ONLY (inf: none of them reaches it)."""
+    seeds = sorted({r["seed"] for r in rows if r["method"] == method and r["sensor"] == sensor and "x_m" in r})
+    n_ad = {r["seed"]: r["n_probes"] for r in rows if r["method"] == method and "x_m" in r}
+    ad = [_errors(rows, sensor, method, k) for k in ("err_x_m", "err_depth_m")]
+    fit = {N: [_errors(rows, sensor, f"dense-{N}", k) for k in ("err_x_m", "err_depth_m")] for N in DENSE}
+    pk_n = DENSE + PEAK_ONLY
+    pk = {N: _errors(rows, sensor, f"dense-{N}" if N in DENSE else f"peak-{N}", "err_peakfit_m") for N in pk_n}
+
+    def one(sample):
+        def med(d):
+            v = [d[s] for s in sample if s in d]
+            return float(np.median(v)) if v else float("nan")
+        n = float(np.mean([n_ad[s] for s in sample]))
+        need, slopes = [], []
+        for j in (0, 1):
+            b, c = np.polyfit(np.log(DENSE), np.log([med(fit[N][j]) for N in DENSE]), 1)
+            slopes.append(float(b))
+            need.append(float(np.exp((math.log(med(ad[j])) - c) / b)) if b < 0 else math.inf)
+        n_fit = max(need)
+        n_pk = _crossing(pk_n, [med(pk[N]) for N in pk_n], med(ad[0]))
+        return {"adaptive_probes": n, "adaptive_err_x_mm": med(ad[0]) * 1e3, "adaptive_err_depth_mm": med(ad[1]) * 1e3,
+                "fit_probes": n_fit, "fit_ratio": n_fit / n, "fit_slope_x": slopes[0], "fit_slope_depth": slopes[1],
+                "fit_limited_by": "lateral" if need[0] >= need[1] else "depth",
+                "peak_probes": n_pk, "peak_ratio": n_pk / n}
+    out = one(seeds)
+    rng = np.random.default_rng(0)
+    boots = [one(list(rng.choice(seeds, len(seeds)))) for _ in range(n_boot)]
+    for k in ("fit_ratio", "peak_ratio"):
+        v = np.array([b[k] for b in boots])
+        out[k + "_90"] = [float(np.quantile(v, q, method="nearest")) for q in (0.05, 0.95)]
+        out[k + "_inf_fraction"] = float(np.mean(~np.isfinite(v)))
+    return out
+
+
+def equal_accuracy_lines(eq: dict, strategy: str) -> list:
+    def r(k):
+        lo, hi = eq[k + "_90"]
+        return (f"{eq[k]:.1f}x (90 % bootstrap interval {lo:.1f}-{hi:.1f}x)" if math.isfinite(eq[k]) else
+                f"not reached by any raster up to {PEAK_ONLY[-1]} probes: > {PEAK_ONLY[-1] / eq['adaptive_probes']:.1f}x")
+    return [f"adaptive-{strategy}: {eq['adaptive_probes']:.1f} probes (mean), median error {eq['adaptive_err_x_mm']:.2f} mm "
+            f"lateral / {eq['adaptive_err_depth_mm']:.2f} mm depth.",
+            f"- even raster, same fem fit, equal lateral and depth error: {eq['fit_probes']:.0f} probes -> ratio "
+            f"{r('fit_ratio')}; set by the {eq['fit_limited_by']} error (raster error ~ N^{eq['fit_slope_x']:.2f} "
+            f"lateral, N^{eq['fit_slope_depth']:.2f} depth)" + (" (beyond the largest raster: extrapolated)"
+                                                                  if eq["fit_probes"] > DENSE[-1] else ""),
+            f"- even raster localized by its maximum (model-free peak fit, no depth), equal lateral error: "
+            + (f"{eq['peak_probes']:.0f} probes -> ratio " if math.isfinite(eq["peak_probes"]) else "")
+            + r("peak_ratio"), ""]
 
 
 def read_rows(path):
@@ -187,6 +314,7 @@ def read_rows(path):
 
 def figure(rows, path, sensor):
     import matplotlib
+    import matplotlib.ticker
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axs = plt.subplots(2, 2, figsize=(11, 8))
@@ -209,13 +337,15 @@ def figure(rows, path, sensor):
     ax.set_ylabel("true diameter (mm)")
     ax.set_title("adaptive: detected (green) / missed (red)")
     ax = axs[1, 0]
-    for key, lab in (("err_x_m", "lateral (fit)"), ("err_depth_m", "depth (fit)"), ("err_peak_m", "lateral (peak)")):
-        med = []
-        for N in DENSE:
-            R = [abs(r[key]) for r in rows if r["method"] == f"dense-{N}" and "err_x_m" in r and r["detected"]
-                 and r["sensor"] == sensor]
-            med.append(np.median(R) * 1e3 if R else np.nan)
-        ax.loglog(DENSE, med, "o-", label=f"dense raster, {lab}")
+    for key, lab in (("err_x_m", "lateral (fem fit)"), ("err_depth_m", "depth (fem fit)"),
+                     ("err_peak_m", "lateral (3-point peak)"), ("err_peakfit_m", "lateral (peak fit)")):
+        ns, med = [], []
+        for N in DENSE + PEAK_ONLY:
+            e = _errors(rows, sensor, f"dense-{N}" if N in DENSE else f"peak-{N}", key)
+            if e:
+                ns.append(N)
+                med.append(np.median(list(e.values())) * 1e3)
+        ax.loglog(ns, med, "o-", ms=4, label=f"even raster, {lab}")
     for strategy, mk in (("design", "*-"), ("raster", "s--")):
         for key, lab, c in (("err_x_m", "lateral", "C0"), ("err_depth_m", "depth", "C1")):
             ns, med = [], []
@@ -226,9 +356,12 @@ def figure(rows, path, sensor):
                     ns.append(n)
                     med.append(np.median(R) * 1e3)
             ax.loglog(ns, med, mk, color=c, ms=9 if mk[0] == "*" else 5, label=f"adaptive-{strategy}, {lab}")
+    ax.set_xticks([15, 25, 35, 45, 57, 81, 113, 161, 241])
+    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax.set_xlabel("probes")
     ax.set_ylabel("median |error| (mm), detected stones")
-    ax.set_ylim(0.05, 4)
+    ax.set_ylim(0.02, 4)
     ax.legend(fontsize=6, loc="upper center", ncol=2)
     ax.grid(True, which="both", alpha=0.3)
     ax = axs[1, 1]
@@ -286,28 +419,30 @@ def main(argv=None) -> int:
     (out / "accuracy.json").write_text(json.dumps(summ, indent=1))
     lines = [f"Accuracy study: {a.trials} random stones + {a.healthy} healthy scenes, sensor {a.sensor}, "
              f"budget {a.budget} probes, target 1-sigma {a.target_m * 1e3:g} mm ({time.perf_counter() - t0:.0f} s)",
-             "", "| method | probes (median) | detection rate (predicted) | false alarms | lateral err median / p90 "
-             "(mm) | depth err median / p90 (mm) | diameter err median (mm) | peak-only lateral err (mm) |",
-             "|---|---|---|---|---|---|---|---|"]
+             "", "| method | probes (mean) | detection rate (predicted) | false alarms | lateral err median / p90 "
+             "(mm) | depth err median / p90 (mm) | diameter err median (mm) | 3-point peak lateral err (mm) | "
+             "peak-fit lateral err (mm) |", "|---|---|---|---|---|---|---|---|---|"]
+
+    def f2(v):
+        return "-" if not np.isfinite(v) else f"{v:.2f}"
     for m, s in summ.items():
-        lines.append(f"| {m} | {s['median_probes']:.0f} | {s['detection_rate']:.2f} ({s['pred_detect_rate']:.2f}) "
-                     f"| {s['false_alarm_rate']:.2f} | {s['median_err_x_mm']:.2f} / {s['p90_err_x_mm']:.2f} | "
-                     f"{s['median_err_depth_mm']:.2f} / {s['p90_err_depth_mm']:.2f} | {s['median_err_diam_mm']:.2f} | "
-                     f"{s['median_err_peak_mm']:.2f} |")
+        lines.append(f"| {m} | {s['mean_probes']:.1f} | {f2(s['detection_rate'])} ({f2(s['pred_detect_rate'])}) "
+                     f"| {f2(s['false_alarm_rate'])} | {f2(s['median_err_x_mm'])} / {f2(s['p90_err_x_mm'])} | "
+                     f"{f2(s['median_err_depth_mm'])} / {f2(s['p90_err_depth_mm'])} | {f2(s['median_err_diam_mm'])} | "
+                     f"{f2(s['median_err_peak_mm'])} | {f2(s['median_err_peakfit_mm'])} |")
     lines.append("")
+    ratios = {}
     for strategy in STRATEGIES:
-        ad = summ[f"adaptive-{strategy}"]
-        eq = [n for n in DENSE if summ[f"dense-{n}"]["median_err_x_mm"] <= ad["median_err_x_mm"]
-              and summ[f"dense-{n}"]["median_err_depth_mm"] <= ad["median_err_depth_mm"]]
-        lines.append(f"Dense raster of equal accuracy to adaptive-{strategy} (median lateral and depth error no "
-                     f"worse): " + (f"{eq[0]} probes -> ratio {eq[0] / ad['median_probes']:.1f}x" if eq else
-                                    f"none up to {DENSE[-1]} probes (ratio > {DENSE[-1] / ad['median_probes']:.1f}x)"))
+        eq = equal_accuracy(rows, a.sensor, f"adaptive-{strategy}")
+        ratios[strategy] = eq
+        lines += equal_accuracy_lines(eq, strategy)
+    (out / "accuracy_ratio.json").write_text(json.dumps(ratios, indent=1))
     # accuracy against probes: the adaptive estimate after each round, and dense rasters
     lines += ["", "Median error against probes used (detected stones with centre <= 30 mm deep; all rounds of the "
               "adaptive runs):", "", "| probes | adaptive-design x / depth (mm) | adaptive-raster x / depth (mm) | "
               "dense raster x / depth (mm) |", "|---|---|---|---|"]
     shallow = lambda r: "depth_m" in r and r["depth_m"] <= 0.030  # noqa: E731
-    for n in (15, 25, 29, 35, 45, 57, 113):
+    for n in sorted(set((15, 25, 35, 45) + DENSE)):
         cells = []
         for m in ("round-design", "round-raster", "dense"):
             key = f"dense-{n}" if m == "dense" else f"{m}@{n}"

@@ -21,15 +21,40 @@ import math
 import numpy as np
 from scipy.stats import ncx2
 
-from planner.localize import LR_THRESHOLD, N_ZERO_AVERAGE
+from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR, N_ZERO_AVERAGE
 
 P_DETECT = 0.9
 
 
-def probe_sigma_n(sensor_spec, dwell_s: float = 0.5, period_s: float = 0.002) -> float:
-    """Standard error of one probe's mean force: noise of the dwell mean and of the zero offset."""
-    n = max(1, int(round(dwell_s / period_s)))
-    return float(sensor_spec.noise_std_n * math.sqrt(1.0 / n + 1.0 / N_ZERO_AVERAGE))
+def baseline_samples(motion, period_s: float = 0.002) -> int:
+    """Free-air samples of one descent the driver's records average as the force baseline (robot.records)."""
+    from robot.records import BASELINE_CLEARANCE_M
+    return max(0, int((motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s / period_s))
+
+
+def probe_sigma_n(sensor_spec, motion=None, period_s: float = 0.002) -> float:
+    """Standard error of one probe's force: noise of the dwell mean and of the free-air baseline it is taken
+    relative to (robot.records; the sensor's 50-sample zeroing if the descent is too short for a baseline)."""
+    from planner.planfile import Motion
+    from robot.records import MIN_BASELINE_SAMPLES
+    motion = motion or Motion()
+    n = max(1, int(round(motion.dwell_s / period_s)))
+    nb = baseline_samples(motion, period_s)
+    return float(sensor_spec.noise_std_n * math.sqrt(1.0 / n + 1.0 / (nb if nb >= MIN_BASELINE_SAMPLES
+                                                                        else N_ZERO_AVERAGE)))
+
+
+def fit_weights(sigma_n, contrast_n) -> np.ndarray:
+    """1 / sigma^2 per probe as the localizer weighs it: sensor noise plus the forward model's error allowance."""
+    c = np.asarray(contrast_n, float)
+    return 1.0 / (np.asarray(sigma_n, float) ** 2 + MODEL_ABS_ERR_N ** 2 + (MODEL_REL_ERR * np.maximum(c, 0.0)) ** 2)
+
+
+def probe_tau_s(motion, depth_m):
+    """Time from the middle of the free-air baseline to the middle of the dwell (the drift offset grows with it)."""
+    from robot.records import BASELINE_CLEARANCE_M
+    base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s
+    return 0.5 * base_s + (BASELINE_CLEARANCE_M + np.asarray(depth_m)) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
 
 
 def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
@@ -64,8 +89,8 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
     dc = choose_depths(surface_model(prior).force_n, x, force_limit_n=force_limit_n, depth_limit_m=depth_limit_m)
     d = dc.depth_m
     usable, reason = sensor_usable(sp, force_limit_n)
-    sig = probe_sigma_n(sp, motion.dwell_s)
-    tau = (motion.approach_height_m + d) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
+    sig = probe_sigma_n(sp, motion)
+    tau = probe_tau_s(motion, d)
     sur = surrogate or load_surrogate(prior)
     b = sur.bounds
     if stones is None:
@@ -81,7 +106,7 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
                          "detectable": None, "note": "outside the surrogate's range"})
             continue
         c = sur.contrast(x, d, xs, dep, D)
-        w = np.full(len(x), 1.0 / sig ** 2)
+        w = fit_weights(sig, c)
         lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
         p = float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12))) if usable else 0.0
         rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": float(np.max(c)), "snr": math.sqrt(max(lam, 0)),
@@ -96,7 +121,7 @@ def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: fl
     """Predicted detection probability of one stone (x_m, depth_m, diameter_m) by probes at x_m/depth_m."""
     c = surrogate.contrast(np.asarray(x_m), np.asarray(depth_m), *stone)
     tau = np.ones(len(c)) if tau_s is None else np.asarray(tau_s)
-    w = 1.0 / np.asarray(sigma_n) ** 2 * np.ones(len(c))
+    w = fit_weights(sigma_n, c)
     lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
     return float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12)))
 

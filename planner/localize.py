@@ -9,8 +9,8 @@ stones) and ``Measurements`` (probe positions, reached depths, measured forces a
 2. Peak: the largest contrast, refined between waypoints by the parabola through it and its neighbours.
 3. Fit: the stone (xs, depth, diameter) whose fem contrast (planner.surrogate) best explains the measurements, by
    weighted least squares (scipy least_squares, sigma = sensor noise of each probe's mean plus the surrogate's
-   interpolation error), with a nuisance force offset that grows with the time since the sensor was zeroed (F/T drift;
-   constant for probes of equal depth). Uncertainty: the Jacobian covariance (inflated by chi2/dof when above 1),
+   interpolation error), with a nuisance force offset that grows with the time since the force's reference was
+   taken (F/T drift: the free-air baseline of the same descent, or the sensor's zeroing; ``Measurements.tau_s``). Uncertainty: the Jacobian covariance (inflated by chi2/dof when above 1),
    propagated to (x, depth, diameter); the depth-diameter correlation is reported (a larger, deeper stone looks like a
    smaller, shallower one: the profile's *width* tells the depth, its *height* then the size).
 4. Detection: likelihood ratio of "stone" against "no stone" (prior + offset only): LR = chi2_0 - chi2_1. A stone is
@@ -39,7 +39,8 @@ class Measurements:
     depth_m: np.ndarray          # depth reached
     force_n: np.ndarray          # mean contact force over the dwell
     sigma_n: np.ndarray          # standard error of force_n (sensor noise of the mean and of the zeroing)
-    tau_s: np.ndarray            # time from zeroing the sensor to the middle of the dwell (drift grows with it)
+    tau_s: np.ndarray            # time from the force's reference (free-air baseline, else the sensor's zeroing)
+    #                              to the middle of the dwell (the drift grows with it)
     index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
 
     def __len__(self):
@@ -47,8 +48,11 @@ class Measurements:
 
     @staticmethod
     def from_records(records, motion=None, statuses=("ok",)) -> "Measurements":
-        """From the driver's probe records (probes.jsonl dicts). ``motion`` (planfile.Motion) gives the time from
-        zeroing to the dwell; without it every probe gets the same time (the drift is a plain offset)."""
+        """From the driver's probe records (probes.jsonl dicts). A record with a free-air baseline (robot.records:
+        the descent's readings >= 1 mm above the surface) gives dwell mean - baseline, whose noise is that of the two
+        means (the zeroing's error cancels), and the time between them. Without one: the dwell mean relative to the
+        sensor's zeroing, with its 50-sample error; ``motion`` (planfile.Motion) then gives the time from zeroing to
+        the dwell, and without it every probe gets the same time (the drift is a plain offset)."""
         rows = []
         for r in records:
             if r.get("status") not in statuses or r.get("force_mean_n") is None or r.get("depth_reached_m") is None:
@@ -57,10 +61,17 @@ class Measurements:
             d = float(r["depth_reached_m"])
             std = r.get("force_std_n") or r.get("noise_std_n") or 0.0
             n = max(int(r.get("n_samples") or 1), 1)
-            sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / N_ZERO_AVERAGE))
-            tau = 1.0 if motion is None else ((motion.approach_height_m + d) / motion.probe_speed_m_s
-                                              + 0.5 * motion.dwell_s)
-            rows.append((float(x), d, float(r["force_mean_n"]), sig, tau, int(r["index"])))
+            f = float(r["force_mean_n"])
+            if r.get("force_baseline_n") is not None and r.get("baseline_to_dwell_s") is not None:
+                # relative to the free-air baseline of the same descent: the zeroing's error cancels
+                f -= float(r["force_baseline_n"])
+                sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / max(int(r["n_samples_baseline"]), 1)))
+                tau = float(r["baseline_to_dwell_s"])
+            else:
+                sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / N_ZERO_AVERAGE))
+                tau = 1.0 if motion is None else ((motion.approach_height_m + d) / motion.probe_speed_m_s
+                                                  + 0.5 * motion.dwell_s)
+            rows.append((float(x), d, f, sig, tau, int(r["index"])))
         rows.sort()
         a = np.array(rows, dtype=float).reshape(-1, 6)
         return Measurements(a[:, 0], a[:, 1], a[:, 2], np.maximum(a[:, 3], 1e-5), a[:, 4], a[:, 5].astype(int))

@@ -24,6 +24,8 @@ import numpy as np
 
 DONE = ("ok",)
 FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
+BASELINE_CLEARANCE_M = 1e-3      # free-air baseline: descent samples at least this far above the surface
+MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relative to the sensor's zeroing)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -135,6 +137,12 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
         sel[idx] = True
     fin = sel & np.isfinite(f)
     active = ((ph == DESCENT) | (ph == DWELL)) & np.isfinite(f)
+    # free-air baseline: the descent's readings while the tip is still >= BASELINE_CLEARANCE_M above the surface
+    # (above the nominal surface and above where contact was first felt). It measures what the sensor reads at
+    # zero force right now -- the zeroing's own noise error and the drift since -- from thousands of samples.
+    top = -BASELINE_CLEARANCE_M + min(0.0, contact.get("depth", 0.0) or 0.0)
+    base = (ph == DESCENT) & np.isfinite(f) & (raw["depth_m"] <= top)
+    n_base = int(base.sum())
 
     def num(v):
         return None if v is None or not math.isfinite(v) else float(v)
@@ -146,6 +154,10 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
            "force_mean_n": num(float(np.mean(f[fin]))) if fin.any() else None,
            "force_std_n": num(float(np.std(f[fin]))) if fin.any() else None,
            "force_peak_n": num(float(np.max(f[active]))) if active.any() else None,
+           "force_baseline_n": num(float(np.mean(f[base]))) if n_base >= MIN_BASELINE_SAMPLES else None,
+           "n_samples_baseline": n_base,
+           "baseline_to_dwell_s": (num(float(np.mean(raw["time_s"][fin]) - np.mean(raw["time_s"][base])))
+                                   if n_base >= MIN_BASELINE_SAMPLES and fin.any() else None),
            "force_predicted_prior_n": p.predicted_force_n, "n_samples": int(fin.sum()),
            "n_samples_total": int(len(ph)), "contact_threshold_n": num(contact_thr),
            "noise_std_n": num(noise_std), "status": status, "t_s": num(t0), "duration_s": num(t1 - t0),

@@ -181,3 +181,36 @@ def test_cell_script_against_simulated_controller(tmp_path, capsys):
     rec = read_records(tmp_path / "run")[0]
     assert rec["status"] == "ok"
     assert abs(rec["force_mean_n"] - standin_force_model()(rec["contact_x_m"], rec["depth_reached_m"])) < 0.01
+
+
+def test_free_air_baseline_removes_the_zeroing_error(tmp_path, fem_truth):
+    """Each record carries the descent's free-air baseline (>= 1 mm above the surface); the force relative to it
+    scatters about fem's with the noise of the two means only: sqrt(1/250 + 1/2250) sigma = 0.2 mN for the nano17,
+    where the dwell mean relative to the sensor's 50-sample zeroing scatters with sqrt(1/250 + 1/50) sigma = 0.47 mN."""
+    from planner.detectability import baseline_samples, probe_sigma_n, probe_tau_s
+    from planner.localize import Measurements
+    from planner.planfile import Motion
+    xs = np.linspace(0.012, 0.058, 20)
+    plan = make_plan(xs, depth_m=0.004, solve_q=True, motion=Motion())      # the planner's default motion
+    arm, c, r = make_sim(fem_truth, sensor="nano17", seed=5)
+    assert run_plan(plan, c, r, tmp_path).status == "ok"
+    recs = read_records(tmp_path)
+    nb = baseline_samples(plan.motion)
+    rel, zeroed = [], []
+    for rec in recs:
+        assert abs(rec["n_samples_baseline"] - nb) <= 0.02 * nb
+        assert rec["baseline_to_dwell_s"] == pytest.approx(float(probe_tau_s(plan.motion, 0.004)), rel=0.05)
+        truth = fem_truth(rec["contact_x_m"], rec["depth_reached_m"])
+        rel.append(rec["force_mean_n"] - rec["force_baseline_n"] - truth)
+        zeroed.append(rec["force_mean_n"] - truth)
+    sd_rel, sd_zero = np.std(rel, ddof=1), np.std(zeroed, ddof=1)
+    sig = probe_sigma_n(arm.sensor.spec, plan.motion)
+    print(f"scatter about fem: {sd_rel * 1e3:.3f} mN (baseline), {sd_zero * 1e3:.3f} mN (zeroing); model {sig * 1e3:.3f}")
+    assert 0.6 * sig < sd_rel < 1.4 * sig          # 20 probes: the std is known to about +-16 %
+    assert sd_rel < 0.7 * sd_zero
+    m = Measurements.from_records(recs, plan.motion)
+    np.testing.assert_allclose(m.sigma_n, sig, rtol=0.3)
+    np.testing.assert_allclose(m.force_n, sorted_force := [rec["force_mean_n"] - rec["force_baseline_n"] for rec in
+                                                           sorted(recs, key=lambda q: q["contact_x_m"])], rtol=0,
+                               atol=1e-12)
+    assert len(sorted_force) == len(xs)

@@ -1,0 +1,45 @@
+"""Detectability's prediction against Monte-Carlo detection (a marginal stone, the real fem surrogate).
+
+planner.detectability predicts P(LR >= threshold) from the expected contrast and the localizer's weights (noncentral
+chi2 with 3 dof). Here 60 simulated 15-probe rasters over a 4 mm stone 30 mm deep (predicted about 0.5: the most
+sensitive case) are localized and counted. Probe records come from the accuracy study's measurement model
+(bench/accuracy_study.py FastArm, itself checked against the simulated arm in test_robot_sim)."""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
+from accuracy_study import DEPTH_M, FastArm  # noqa: E402
+
+from fem.scene import Stone, load  # noqa: E402
+from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
+from planner.localize import Measurements, localize  # noqa: E402
+from planner.planfile import Motion  # noqa: E402
+from planner.raster import raster_positions  # noqa: E402
+from planner.surrogate import load_surrogate, stone_model  # noqa: E402
+from robot.sensor import spec  # noqa: E402
+
+
+def test_predicted_detection_rate_matches_monte_carlo():
+    prior = load("paper").prior()
+    sur = load_surrogate(prior)
+    x = raster_positions(prior.tissue.width_m, n=15, margin_m=0.005)
+    st = Stone(x_m=0.035, depth_m=0.030, diameter_m=0.004)
+    truth = stone_model(prior.with_stones([st]))          # the simulator's side
+    pred = p_detect(prior, (st.x_m, st.depth_m, st.diameter_m), x_m=x, depth_m=np.full(len(x), DEPTH_M),
+                    sigma_n=probe_sigma_n(spec("nano17")), surrogate=sur,
+                    tau_s=np.full(len(x), float(probe_tau_s(Motion(), DEPTH_M))))
+    n = 60
+    hits = 0
+    for k in range(n):
+        arm = FastArm(truth.force_n, "nano17", np.random.default_rng(1000 + k))
+        hits += localize(prior, Measurements.from_records(arm.execute(x), Motion()), sur).detected
+    rate = hits / n
+    se = math.sqrt(max(pred * (1 - pred), 0.05) / n)
+    print(f"predicted {pred:.2f}, Monte Carlo {rate:.2f} (+- {se:.2f})")
+    assert 0.2 < pred < 0.8                          # a marginal stone: the check has teeth
+    assert abs(rate - pred) < 3 * se + 0.05
