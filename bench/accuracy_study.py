@@ -282,13 +282,13 @@ def equal_accuracy_lines(eq: dict, strategy: str) -> list:
         lo, hi = eq[k + "_90"]
         return (f"{eq[k]:.1f}x (90 % bootstrap interval {lo:.1f}-{hi:.1f}x)" if math.isfinite(eq[k]) else
                 f"not reached by any raster up to {PEAK_ONLY[-1]} probes: > {PEAK_ONLY[-1] / eq['adaptive_probes']:.1f}x")
-    return [f"adaptive-{strategy}: {eq['adaptive_probes']:.1f} probes (mean), median error {eq['adaptive_err_x_mm']:.2f} mm "
-            f"lateral / {eq['adaptive_err_depth_mm']:.2f} mm depth.",
+    return [f"adaptive-{strategy}: {eq['adaptive_probes']:.1f} probes (mean), median error "
+            f"{eq['adaptive_err_x_mm']:.2f} mm lateral / {eq['adaptive_err_depth_mm']:.2f} mm depth.",
             f"- even raster, same fem fit, equal lateral and depth error: {eq['fit_probes']:.0f} probes -> ratio "
             f"{r('fit_ratio')}; set by the {eq['fit_limited_by']} error (raster error ~ N^{eq['fit_slope_x']:.2f} "
             f"lateral, N^{eq['fit_slope_depth']:.2f} depth)" + (" (beyond the largest raster: extrapolated)"
                                                                   if eq["fit_probes"] > DENSE[-1] else ""),
-            f"- even raster localized by its maximum (model-free peak fit, no depth), equal lateral error: "
+            "- even raster localized by its maximum (model-free peak fit, no depth), equal lateral error: "
             + (f"{eq['peak_probes']:.0f} probes -> ratio " if math.isfinite(eq["peak_probes"]) else "")
             + r("peak_ratio"), ""]
 

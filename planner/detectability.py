@@ -28,8 +28,9 @@ P_DETECT = 0.9
 
 def baseline_samples(motion, period_s: float = 0.002) -> int:
     """Free-air samples of one descent the driver's records average as the force baseline (robot.records)."""
-    from robot.records import BASELINE_CLEARANCE_M
-    return max(0, int((motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s / period_s))
+    from robot.records import BASELINE_CLEARANCE_M, BASELINE_SETTLE_S
+    base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s - BASELINE_SETTLE_S
+    return max(0, int(base_s / period_s))
 
 
 def probe_sigma_n(sensor_spec, motion=None, period_s: float = 0.002) -> float:
@@ -52,8 +53,8 @@ def fit_weights(sigma_n, contrast_n) -> np.ndarray:
 
 def probe_tau_s(motion, depth_m):
     """Time from the middle of the free-air baseline to the middle of the dwell (the drift offset grows with it)."""
-    from robot.records import BASELINE_CLEARANCE_M
-    base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s
+    from robot.records import BASELINE_CLEARANCE_M, BASELINE_SETTLE_S
+    base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s - BASELINE_SETTLE_S
     return 0.5 * base_s + (BASELINE_CLEARANCE_M + np.asarray(depth_m)) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
 
 

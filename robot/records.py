@@ -26,6 +26,7 @@ DONE = ("ok",)
 FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
 BASELINE_CLEARANCE_M = 1e-3      # free-air baseline: descent samples at least this far above the surface
 MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relative to the sensor's zeroing)
+BASELINE_SETTLE_S = 0.05         # ... and not in the descent's first 50 ms (acceleration)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -140,8 +141,11 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
     # free-air baseline: the descent's readings while the tip is still >= BASELINE_CLEARANCE_M above the surface
     # (above the nominal surface and above where contact was first felt). It measures what the sensor reads at
     # zero force right now -- the zeroing's own noise error and the drift since -- from thousands of samples.
+    # The first BASELINE_SETTLE_S of the descent are left out: the tool accelerating is an inertial force too.
     top = -BASELINE_CLEARANCE_M + min(0.0, contact.get("depth", 0.0) or 0.0)
-    base = (ph == DESCENT) & np.isfinite(f) & (raw["depth_m"] <= top)
+    desc = ph == DESCENT
+    t_start = raw["time_s"][desc][0] if desc.any() else 0.0
+    base = desc & np.isfinite(f) & (raw["depth_m"] <= top) & (raw["time_s"] >= t_start + BASELINE_SETTLE_S)
     n_base = int(base.sum())
 
     def num(v):

@@ -111,53 +111,48 @@ def test_real_client_connect_move_receive(scene_file, tmp_path):
         assert np.allclose(r.getActualQ(), Q0, atol=1e-9)
         # data at 500 Hz, simulated time = real time
         t0, w0 = r.getTimestamp(), time.monotonic()
-        time.sleep(0.3)
+        time.sleep(0.5)
         dt_sim, dt_wall = r.getTimestamp() - t0, time.monotonic() - w0
-        assert abs(dt_sim - dt_wall) < 0.05
+        assert abs(dt_sim - dt_wall) < 0.15             # real time (a loaded 2-core machine lags a few periods)
         flange = r.getActualTCPPose()
         assert c.setTcp(TCP) is True
-        time.sleep(0.02)
-        tip = r.getActualTCPPose()
-        assert np.allclose(tip[:3], np.array(flange[:3]) - 0.10 * NORMAL, atol=1e-6)  # tool z points inward
+        _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], np.array(flange[:3]) - 0.10 * NORMAL, atol=1e-6))
+        tip = r.getActualTCPPose()                                                      # tool z points inward
         assert c.setPayload(0.1, [0.0, 0.0, 0.05]) is True
         assert c.zeroFtSensor() is True
-        time.sleep(0.02)
-        assert np.linalg.norm(r.getActualTCPForce()[:3]) < 0.02          # free air, nano17, just zeroed
+        _wait_for(lambda: np.linalg.norm(r.getActualTCPForce()[:3]) < 0.02)  # free air, nano17, just zeroed
         # blocking moveL: 20 mm at 0.05 m/s, 0.5 m/s^2 takes 0.4 + 0.1 s
         target = list(tip)
         target[0] += 0.02
         w0 = time.monotonic()
         assert c.moveL(target, 0.05, 0.5) is True
-        assert 0.45 < time.monotonic() - w0 < 0.9
-        time.sleep(0.01)
-        assert np.allclose(r.getActualTCPPose(), target, atol=1e-6)
+        assert 0.45 < time.monotonic() - w0 < 2.0                        # 0.5 s of motion, in real time
+        _wait_for(lambda: np.allclose(r.getActualTCPPose(), target, atol=1e-6))
         # asynchronous moveL: progress >= 0 while moving, -1 when done; stopL halts it early
         back = list(tip)
         assert c.moveL(back, 0.02, 0.5, True) is True
         time.sleep(0.2)
         assert c.getAsyncOperationProgress() >= 0
         c.stopL(2.0)
-        time.sleep(0.05)
-        assert c.getAsyncOperationProgress() < 0
+        _wait_for(lambda: c.getAsyncOperationProgress() < 0)
+        time.sleep(0.1)                                                  # the receive data lags a period or two
         stopped = r.getActualTCPPose()
         assert 0.001 < stopped[0] - back[0] < 0.019                      # stopped part-way
         time.sleep(0.1)
         assert np.allclose(r.getActualTCPPose(), stopped, atol=1e-9)     # and stays there
         # moveJ: joint-space move to the start configuration
         assert c.moveJ(list(Q0), 1.0, 2.0) is True
-        time.sleep(0.01)
-        assert np.allclose(r.getActualQ(), Q0, atol=1e-6)
+        _wait_for(lambda: np.allclose(r.getActualQ(), Q0, atol=1e-6))
         # a path: ur_rtde stops its program, re-uploads it with the path injected, then runs it
         assert c.moveL([_pose_at(0.035, 0.03) + [0.1, 1.0, 0.0], list(tip) + [0.1, 1.0, 0.0]]) is True
-        time.sleep(0.01)
+        _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], tip[:3], atol=1e-5))
         got = r.getActualTCPPose()                 # ur_rtde writes path poses with 6 significant digits
-        assert np.allclose(got[:3], tip[:3], atol=1e-5)
         # 6 digits put the tool rotation ~5e-6 rad short of pi (robot.ur5e.matrix_to_rotvec is exact there, see
         # tests/test_ur5e.py); the rotation itself is exact to ~1e-5
         assert ur5e.rotation_angle(ur5e.rotvec_to_matrix(got[3:]), ur5e.rotvec_to_matrix(tip[3:])) < 1e-4
         # into the (stand-in) tissue: the sensor sees the tissue push back along its outward normal
         assert c.moveL(_pose_at(0.035, -0.003), 0.05, 0.5) is True
-        time.sleep(0.05)
+        _wait_for(lambda: np.asarray(r.getActualTCPForce()[:3]) @ NORMAL > 0.05)
         f = np.asarray(r.getActualTCPForce()[:3])
         assert f @ NORMAL > 0.05 and np.linalg.norm(f - (f @ NORMAL) * NORMAL) < 0.02
         # the dashboard as ur_rtde's DashboardClient and the pendant's remote users see it

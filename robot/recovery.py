@@ -1,0 +1,107 @@
+"""After a fault: bring the arm to a safe state (the driver's recovery half; ``Driver`` inherits it).
+
+``safe_state()``: a protective stop needs nothing (the controller halted the arm; it takes no commands until the
+stop is cleared on the pendant). Otherwise stop (stopL), then retract along the tissue normal to the approach
+height when the arm still takes commands. A lost link: wait for it (only ``isConnected()`` is called meanwhile:
+ur_rtde 1.6.5 can block for good on a command or reconnect() that races its own background reconnect), then call
+reconnect() once; with no link no command is sent, and the last command was a bounded moveL that ends no deeper than
+the planned depth. Uses the driver's primitives (``_stop``, ``_read``, ``_move``) and state (``c``, ``r``, ``cfg``,
+``plan``, ``lim``, ``tf``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from robot.safety import SafetyViolation
+
+
+class ProbeFault(Exception):
+    def __init__(self, kind: str, message: str):
+        super().__init__(f"{kind}: {message}")
+        self.kind, self.message = kind, message
+
+
+class Recovery:
+    @staticmethod
+    def _connected(iface) -> bool:
+        try:
+            return iface.isConnected() is True
+        except RuntimeError:
+            return False
+
+    def _await_link(self, out) -> bool:
+        """The link is down: wait ``reconnect_after_s`` for it to come back by itself, then call reconnect() once.
+        ur_rtde 1.6.5 reconnects in the background; a reconnect() or command racing that, or sent after it failed,
+        can block for good, so nothing but isConnected() is called while waiting. The wait counts controller
+        periods (initPeriod/waitPeriod are local to the client): wall time on a real arm, simulated on the sim."""
+        for _ in range(max(1, int(math.ceil(self.cfg.reconnect_after_s / self.cfg.period_s)))):
+            if self._connected(self.c) and self._connected(self.r):
+                out["notes"].append("the link came back by itself")
+                return True
+            t0 = self.c.initPeriod()
+            self.c.waitPeriod(t0)
+        ok = True
+        for iface in (self.c, self.r):
+            if not self._connected(iface):
+                try:
+                    ok = ok and iface.reconnect() is True
+                except (RuntimeError, AttributeError, SafetyViolation):
+                    ok = False
+        out["notes"].append(f"no connection for {self.cfg.reconnect_after_s:g} s; reconnect() "
+                            + ("succeeded" if ok else "failed"))
+        if ok:
+            self.last_ts, self.stale = None, 0
+        return ok
+
+    def safe_state(self) -> dict:
+        """Stop, then retract along the normal to the approach height if the arm still takes commands."""
+        out = {"stopped": False, "retracted": False, "notes": []}
+        try:
+            pstop = self.r.isProtectiveStopped() is True
+        except RuntimeError:
+            pstop = False
+        if pstop:   # the controller has stopped the arm; it takes no commands until the stop is cleared
+            out["stopped"] = True
+            out["notes"].append("protective stop: the arm halted where it was; clear the stop on the pendant, "
+                                "then resume (the driver first retracts along the tissue normal)")
+            return out
+        bounded = ("the last command was a bounded moveL (target no deeper than the planned depth); the arm stops "
+                   "there at the latest")
+        if not self._connected(self.c) and not self._await_link(out):
+            out["notes"].append(f"no connection: no command sent; {bounded}")
+            return out
+        for attempt in range(2):
+            try:
+                self._stop()
+                out["stopped"] = True
+                break
+            except ProbeFault as f:
+                out["notes"].append(f"stopL failed: {f.message}")
+                if attempt == 1:
+                    out["notes"].append(f"stopL failed again after reconnecting: {bounded}")
+                    return out
+                if not self._await_link(out):
+                    out["notes"].append(f"reconnect failed: {bounded}")
+                    return out
+        if not self._connected(self.r):
+            out["notes"].append("retract skipped: the receive interface reports no connection")
+            return out
+        try:
+            s = self._read(strict=False)
+            out["retracted"] = self._retract_from(s["pose"], s["depth"], s["x"])
+        except (ProbeFault, SafetyViolation) as e:
+            out["notes"].append(f"retract failed: {e}")
+        return out
+
+    def _retract_from(self, pose, depth, x) -> bool:
+        h = self.plan.motion.approach_height_m
+        inside = -1e-3 <= x <= self.lim.width_m + 1e-3
+        if not inside or depth <= -h + 1e-3:
+            return True
+        target = list(np.asarray(pose[:3]) + self.tf.normal * (depth + h)) + list(pose[3:])
+        self._move(target, min(self.cfg.retract_speed_m_s, self.lim.tool_speed_m_s), min(0.5, self.lim.accel_m_s2),
+                   strict=False, what="retract")
+        return True
+
