@@ -244,18 +244,19 @@ def equal_accuracy(rows, sensor, method, n_boot: int = BOOT) -> dict:
       is solved for the size that reaches the adaptive run's medians.
     * ``peak``: the even raster localized by its maximum (``peak_fit``, model-free; gives no depth), equal median
       lateral error, from the observed sizes DENSE + PEAK_ONLY (inf: none of them reaches it)."""
-    seeds = sorted({r["seed"] for r in rows if r["method"] == method and r["sensor"] == sensor and "x_m" in r})
-    n_ad = {r["seed"]: r["n_probes"] for r in rows if r["method"] == method and "x_m" in r}
+    n_ad = {r["seed"]: r["n_probes"] for r in rows if r["method"] == method and r["sensor"] == sensor and "x_m" in r}
     ad = [_errors(rows, sensor, method, k) for k in ("err_x_m", "err_depth_m")]
     fit = {N: [_errors(rows, sensor, f"dense-{N}", k) for k in ("err_x_m", "err_depth_m")] for N in DENSE}
     pk_n = DENSE + PEAK_ONLY
     pk = {N: _errors(rows, sensor, f"dense-{N}" if N in DENSE else f"peak-{N}", "err_peakfit_m") for N in pk_n}
+    # paired: the stones every method detected (all of them when detection is 100 %)
+    seeds = sorted(set(n_ad).intersection(*ad, *[d for N in DENSE for d in fit[N]], *pk.values()))
 
     def one(sample):
         def med(d):
             v = [d[s] for s in sample if s in d]
             return float(np.median(v)) if v else float("nan")
-        n = float(np.mean([n_ad[s] for s in sample]))
+        n = float(np.mean([n_ad[s] for s in sample]))      # the adaptive run's probes, spent on these stones
         need, slopes = [], []
         for j in (0, 1):
             b, c = np.polyfit(np.log(DENSE), np.log([med(fit[N][j]) for N in DENSE]), 1)
@@ -268,6 +269,7 @@ def equal_accuracy(rows, sensor, method, n_boot: int = BOOT) -> dict:
                 "fit_limited_by": "lateral" if need[0] >= need[1] else "depth",
                 "peak_probes": n_pk, "peak_ratio": n_pk / n}
     out = one(seeds)
+    out["n_stones_paired"] = len(seeds)
     rng = np.random.default_rng(0)
     boots = [one(list(rng.choice(seeds, len(seeds)))) for _ in range(n_boot)]
     for k in ("fit_ratio", "peak_ratio"):
@@ -435,7 +437,17 @@ def main(argv=None) -> int:
     for strategy in STRATEGIES:
         eq = equal_accuracy(rows, a.sensor, f"adaptive-{strategy}")
         ratios[strategy] = eq
+        ad = summ[f"adaptive-{strategy}"]
+        direct = [n for n in DENSE if summ[f"dense-{n}"]["median_err_x_mm"] <= ad["median_err_x_mm"]
+                  and summ[f"dense-{n}"]["median_err_depth_mm"] <= ad["median_err_depth_mm"]]
+        eq["direct_probes"] = direct[0] if direct else None
         lines += equal_accuracy_lines(eq, strategy)
+        lines[-1:-1] = ["- read directly: the smallest even raster (same fit) no worse in both medians: "
+                        + (f"{direct[0]} probes -> ratio {direct[0] / ad['mean_probes']:.1f}x" if direct else "none")]
+    targets = [n for n in DENSE if summ[f"dense-{n}"]["median_err_x_mm"] < 0.5
+               and summ[f"dense-{n}"]["median_err_depth_mm"] < 1.0]
+    lines += ["Smallest even raster (same fit) meeting the targets (median lateral < 0.5 mm, depth < 1 mm): "
+              + (f"{targets[0]} probes" if targets else "none"), ""]
     (out / "accuracy_ratio.json").write_text(json.dumps(ratios, indent=1))
     # accuracy against probes: the adaptive estimate after each round, and dense rasters
     lines += ["", "Median error against probes used (detected stones with centre <= 30 mm deep; all rounds of the "

@@ -62,10 +62,11 @@ class Measurements:
             std = r.get("force_std_n") or r.get("noise_std_n") or 0.0
             n = max(int(r.get("n_samples") or 1), 1)
             f = float(r["force_mean_n"])
-            if r.get("force_baseline_n") is not None and r.get("baseline_to_dwell_s") is not None:
+            if all(r.get(k) is not None for k in ("force_baseline_n", "n_samples_baseline", "baseline_to_dwell_s")):
                 # relative to the free-air baseline of the same descent: the zeroing's error cancels
                 f -= float(r["force_baseline_n"])
-                sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / max(int(r["n_samples_baseline"]), 1)))
+                std_b = r.get("force_baseline_std_n") or std
+                sig = math.sqrt(std ** 2 / n + std_b ** 2 / max(int(r["n_samples_baseline"]), 1))
                 tau = float(r["baseline_to_dwell_s"])
             else:
                 sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / N_ZERO_AVERAGE))

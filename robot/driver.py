@@ -22,6 +22,7 @@ they are wall time on a real arm and simulated time on the simulated one.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import math
 import time
 from collections import deque
@@ -53,6 +54,9 @@ class DriverConfig:
     force_sign: float = 1.0
     skip_invalid: bool = False         # True: record unsafe probes as "rejected" and run the others
     max_consecutive_force_stops: int = 3
+    watchdog_hz: float = 5.0           # the controller's RTDE watchdog (ur_rtde setWatchdog): if the driver's inputs
+                                       # stop for 1/watchdog_hz (a lost link, a hung host) the controller stops the
+                                       # program and the motion. Kicked every period. 0: off.
 
 
 @dataclass
@@ -109,6 +113,7 @@ class Driver(Recovery):
         self.phase = FREE
         self.contact_thr = plan.motion.contact_threshold_n
         self.noise_std = float("nan")
+        self.watchdog_on = False
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -157,6 +162,7 @@ class Driver(Recovery):
         """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s."""
         for _ in range(max(1, int(math.ceil(max_s / self.cfg.period_s)))):
             t0 = self._call(self.c.initPeriod)
+            self._kick()
             res = body(self._read(strict))
             self._call(self.c.waitPeriod, t0)
             if res is not None:
@@ -172,6 +178,36 @@ class Driver(Recovery):
             n[0] += 1
             return True if n[0] * self.cfg.period_s >= seconds else None
         self._loop(seconds + 1.0, body)
+
+    def _arm_watchdog(self) -> None:
+        """Enable the controller's watchdog (again after a reconnect: a new program starts without one)."""
+        self.watchdog_on = False
+        if self.cfg.watchdog_hz > 0:
+            self._require(self._call(self.c.setWatchdog, self.cfg.watchdog_hz), "setWatchdog")
+            self.watchdog_on = True
+
+    def _ensure_program(self, configure: bool = False) -> None:
+        """At rest (set-up, before each probe): the control program must run, with the plan's TCP and payload and
+        the watchdog armed. The watchdog may have ended it while the arm stood still (the host busy writing a
+        record or planning the next round): upload it again (ur_rtde's reuploadScript) and configure the new
+        program -- TCP and payload set by a program do not outlive it. A stop during a motion is a fault instead
+        (a kick fails)."""
+        c, cfg = self.c, self.cfg
+        if self._call(c.isProgramRunning) is not True:
+            self._require(self._call(c.reuploadScript), "reuploadScript")
+            self._loop(5.0, lambda s: True if self._call(c.isProgramRunning) is True else None, strict=False,
+                       what="restart of the control script")
+            configure = True
+        if configure:
+            self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
+            self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
+            self._arm_watchdog()
+
+    def _kick(self) -> None:
+        """Feed the watchdog. Not while the link is down -- that is the point: the controller then stops the
+        motion within 1/watchdog_hz, whatever the driver can or cannot send."""
+        if self.watchdog_on and self._connected(self.c):
+            self._require(self._call(self.c.kickWatchdog), "kickWatchdog (the control program has stopped)")
 
     def _stop(self) -> None:
         self._call(self.c.stopL, self.cfg.stop_decel_m_s2)
@@ -287,6 +323,10 @@ class Driver(Recovery):
         rep = RunReport("ok", str(out_dir), n_planned=len(plan.probes), problems=problems,
                         n_skipped=sum(1 for p in plan.probes if p.index in done))
         log = RunLog(out_dir)
+        # No garbage-collector pauses in the control loop (a full collection of a big heap can take longer than
+        # the watchdog allows); reference counting frees what a run makes.
+        gc_was_enabled = gc.isenabled()
+        gc.disable()
 
         def write_run():
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
@@ -310,6 +350,7 @@ class Driver(Recovery):
                                                             "reason": bad[p.index]}))
                         rep.n_rejected += 1
                         continue
+                    self._ensure_program()
                     rec, raw = self._probe(p)
                     rec = log.write_probe(rec, raw)
                     rep.records.append(rec)
@@ -340,13 +381,13 @@ class Driver(Recovery):
         finally:
             write_run()
             log.close()
+            if gc_was_enabled:
+                gc.enable()
 
     def _setup(self) -> None:
-        cfg, c = self.cfg, self.c
         if self._call(self.r.isProtectiveStopped) is True:
             raise ProbeFault("protective_stop", "the arm is protective-stopped: clear it on the pendant first")
-        self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
-        self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
+        self._ensure_program(configure=True)
         s = self._read(strict=False)
         p = s["pose"]
         if not all(self.lim.box_min[k] <= p[k] <= self.lim.box_max[k] for k in range(3)):

@@ -142,7 +142,9 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
     # (above the nominal surface and above where contact was first felt). It measures what the sensor reads at
     # zero force right now -- the zeroing's own noise error and the drift since -- from thousands of samples.
     # The first BASELINE_SETTLE_S of the descent are left out: the tool accelerating is an inertial force too.
-    top = -BASELINE_CLEARANCE_M + min(0.0, contact.get("depth", 0.0) or 0.0)
+    # Contact is noticed only once the force passes the threshold (about 1 mm into tissue): stay 2 mm behind that.
+    top = min(-BASELINE_CLEARANCE_M, (contact.get("depth") if contact.get("depth") is not None else 0.0)
+              - 2 * BASELINE_CLEARANCE_M)
     desc = ph == DESCENT
     t_start = raw["time_s"][desc][0] if desc.any() else 0.0
     base = desc & np.isfinite(f) & (raw["depth_m"] <= top) & (raw["time_s"] >= t_start + BASELINE_SETTLE_S)
@@ -159,6 +161,7 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
            "force_std_n": num(float(np.std(f[fin]))) if fin.any() else None,
            "force_peak_n": num(float(np.max(f[active]))) if active.any() else None,
            "force_baseline_n": num(float(np.mean(f[base]))) if n_base >= MIN_BASELINE_SAMPLES else None,
+           "force_baseline_std_n": num(float(np.std(f[base]))) if n_base >= MIN_BASELINE_SAMPLES else None,
            "n_samples_baseline": n_base,
            "baseline_to_dwell_s": (num(float(np.mean(raw["time_s"][fin]) - np.mean(raw["time_s"][base])))
                                    if n_base >= MIN_BASELINE_SAMPLES and fin.any() else None),

@@ -53,6 +53,10 @@ class Recovery:
                             + ("succeeded" if ok else "failed"))
         if ok:
             self.last_ts, self.stale = None, 0
+            try:
+                self._arm_watchdog()       # the re-uploaded program has no watchdog yet
+            except ProbeFault as f:
+                out["notes"].append(f"watchdog not re-armed: {f.message}")
         return ok
 
     def safe_state(self) -> dict:

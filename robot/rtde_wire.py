@@ -182,7 +182,7 @@ class Conn:
 
 
 def serve_rtde(c: "Conn", ctl) -> None:
-    """One RTDE client session. ``ctl`` (the controller) holds ``lock``, ``inputs`` (input register values),
+    """One RTDE client session. ``ctl`` (the controller) holds ``lock``, ``receive_inputs(values)`` (input updates),
     ``input_owner`` (which connection set up which input) and ``controller_version``. Data packages go out from
     the controller's cycle to every started connection's output recipes (``Recipe.decimation``)."""
     while True:
@@ -199,7 +199,7 @@ def serve_rtde(c: "Conn", ctl) -> None:
                             len(payload), r.id, r.struct.size)
                 continue
             with ctl.lock:
-                ctl.inputs.update(values)
+                ctl.receive_inputs(values)
         elif mtype == REQUEST_PROTOCOL_VERSION:
             (version,) = struct.unpack(">H", payload[:2])
             c.send(frame(mtype, bytes([1 if version == 2 else 0])))

@@ -181,7 +181,7 @@ class GuardedControl:
 
     _PASS = {"stopL", "stopJ", "speedStop", "stopScript", "zeroFtSensor", "getAsyncOperationProgress", "isSteady",
              "isConnected", "reconnect", "isProgramRunning", "initPeriod", "waitPeriod", "disconnect",
-             "isPoseWithinSafetyLimits", "triggerProtectiveStop"}
+             "isPoseWithinSafetyLimits", "triggerProtectiveStop", "reuploadScript"}
 
     def __init__(self, rtde_c, limits: SafetyLimits):
         self._c, self.limits, self.tf = rtde_c, limits, TissueFrame(limits.tissue_pose_base)
@@ -204,6 +204,15 @@ class GuardedControl:
             raise SafetyViolation(f"payload {mass} kg at {cog} implausible")
         self.sent.append(("setPayload", mass, tuple(cog)))
         return self._c.setPayload(mass, list(cog))
+
+    def setWatchdog(self, min_frequency):
+        if not (isinstance(min_frequency, (int, float)) and 1.0 <= min_frequency <= 500.0):
+            raise SafetyViolation(f"watchdog frequency {min_frequency!r} Hz outside [1, 500]")
+        self.sent.append(("setWatchdog", float(min_frequency)))
+        return self._c.setWatchdog(float(min_frequency))
+
+    def kickWatchdog(self):
+        return self._c.kickWatchdog()
 
     def __getattr__(self, name):
         if name in self._PASS:

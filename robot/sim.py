@@ -24,6 +24,8 @@ from robot import ur5e
 from robot.sensor import Sensor
 from robot.simforce import CachedForce
 
+PROGRAM_STOP_DECEL_M_S2 = 4.0     # a stopped program brakes a running move (a controlled stop)
+
 
 class _Motion:
     """A point moving along a path of length L with a trapezoidal speed profile (v, a); stoppable, stallable."""
@@ -78,6 +80,10 @@ class ArmModel:
         self.motion_kind = None
         self.motions_ended = 0            # count of finished/stopped motions (async progress toggles -1/-2)
         self.protective_stopped = False
+        self.program_running = True       # ur_rtde's control script on the controller
+        self.watchdog_hz = 0.0            # rtde_set_watchdog: the program stops when inputs stop for 1/hz
+        self.last_input_s = 0.0
+        self.watchdog_fired_s = None
         self.connected = True
         self.reconnectable = True
         self.payload = (0.0, [0.0, 0.0, 0.0])
@@ -167,6 +173,15 @@ class ArmModel:
         if self.motion is not None:
             self.motion.a_stop = float(decel)
 
+    def input_update(self) -> None:
+        """An RTDE input package from the client arrived (every command and every kickWatchdog send one)."""
+        self.last_input_s = self.t_s
+
+    def stop_program(self) -> None:
+        """The control program ends (the controller removes its watchdogs); a running motion stops."""
+        self.program_running, self.watchdog_hz = False, 0.0
+        self.stop(PROGRAM_STOP_DECEL_M_S2)
+
     def zero_sensor(self) -> None:
         self.sensor.zero(self.true_wrench(), self.t_s)
 
@@ -208,6 +223,9 @@ class ArmModel:
     def step(self, dt: float | None = None) -> None:
         dt = self.period_s if dt is None else dt
         self.t_s += dt
+        if self.watchdog_hz > 0 and self.program_running and self.t_s - self.last_input_s > 1.0 / self.watchdog_hz:
+            self.watchdog_fired_s = self.t_s
+            self.stop_program()
         if self.motion is not None and not self.protective_stopped:
             done = self.motion.step(dt)
             self.motion.interp(self.motion.progress)
@@ -269,9 +287,38 @@ class _Facade:
 class SimRTDEControl(_Facade):
     """RTDEControlInterface's methods (those the driver uses and a few more) over an ArmModel."""
 
+    def __init__(self, arm: ArmModel):
+        super().__init__(arm)
+        arm.program_running = True           # like ur_rtde's constructor: the control script is uploaded
+        arm.input_update()
+
     def _ok(self) -> bool:
+        """The link is up (else RuntimeError); the command's input package reaches the controller; it is executed
+        unless the arm is protective-stopped or the control program has stopped (ur_rtde then returns False)."""
         self._link()
-        return not self.arm.protective_stopped
+        self.arm.input_update()
+        return not self.arm.protective_stopped and self.arm.program_running
+
+    def reconnect(self) -> bool:
+        ok = super().reconnect()
+        if ok and not self.arm.program_running:      # ur_rtde's reconnect() uploads the control script again
+            self.arm.program_running = True
+        return ok
+
+    def setWatchdog(self, min_frequency=10.0) -> bool:
+        if not self._ok():
+            return False
+        self.arm.watchdog_hz = float(min_frequency)
+        return True
+
+    def kickWatchdog(self) -> bool:
+        return self._ok()
+
+    def reuploadScript(self) -> bool:
+        self._link()
+        self.arm.input_update()
+        self.arm.program_running = True
+        return True
 
     @staticmethod
     def _check_range(speed, accel, vmax, amax):
@@ -303,6 +350,7 @@ class SimRTDEControl(_Facade):
 
     def stopL(self, a=10.0, asynchronous=False) -> None:
         self._link()
+        self.arm.input_update()
         self.arm.stop(a)
         if not asynchronous:
             self.arm.run_until_still(5.0)
@@ -315,7 +363,8 @@ class SimRTDEControl(_Facade):
 
     def stopScript(self) -> None:
         self._link()
-        self.arm.stop(10.0)
+        self.arm.input_update()
+        self.arm.stop_program()
 
     def _do(self, fn) -> bool:
         """Run ``fn`` unless protective-stopped (then False, like ur_rtde)."""
@@ -342,7 +391,7 @@ class SimRTDEControl(_Facade):
         return not self.arm.is_moving
 
     def isProgramRunning(self) -> bool:
-        return self.isConnected() and not self.arm.protective_stopped
+        return self.isConnected() and not self.arm.protective_stopped and self.arm.program_running
 
     def triggerProtectiveStop(self) -> bool:
         self._link()
@@ -396,7 +445,7 @@ class SimRTDEReceive(_Facade):
         return self._get(lambda a: 7)
 
     def getRuntimeState(self) -> int:       # 2 playing, 1 stopped
-        return self._get(lambda a: 1 if a.protective_stopped else 2)
+        return self._get(lambda a: 1 if a.protective_stopped or not a.program_running else 2)
 
 
 def make_sim(force_model=None, **arm_kwargs):

@@ -27,6 +27,7 @@ import numpy as np
 
 from robot import rtde_wire as W
 from robot.rtde_wire import Conn
+from robot.sim import PROGRAM_STOP_DECEL_M_S2
 from robot.urscript_cmds import ArmPort, ControlScript, build_arm, split_programs
 
 log = logging.getLogger("simcontroller")
@@ -58,6 +59,7 @@ class SimController:
         self.lock = threading.RLock()
         self.stop_event = threading.Event()
         self.inputs: dict = {}
+        self.input_t: dict = {}        # simulated time of each input variable's last update (RTDE watchdogs)
         self.outputs: dict = {}
         self.input_owner: dict = {}
         self.script: ControlScript | None = None
@@ -67,6 +69,7 @@ class SimController:
         self.listeners: dict = {}
         self.threads: list[threading.Thread] = []
         self._prev, self._q, self._qd, self._n = None, None, np.zeros(6), 0
+        self.watchdog_fired_s = None
         self.overruns = 0              # times the process was held up > MAX_CATCH_UP_S (a very busy machine)
         self.failed = False
 
@@ -147,12 +150,16 @@ class SimController:
             behind = int((time.perf_counter() - t_next) / PERIOD_S)
             if behind * PERIOD_S > MAX_CATCH_UP_S:
                 self.overruns += 1
-                log.debug("held up %.0f ms: simulated time drops behind real time", 1e3 * behind * PERIOD_S)
+                log.info("held up %.0f ms: simulated time drops behind real time", 1e3 * behind * PERIOD_S)
                 t_next, behind = time.perf_counter(), 0
             steps = 1 + max(behind, 0)
             with self.lock:
                 for _ in range(steps):
-                    self._cycle()
+                    self._cycle(check_watchdog=steps == 1)
+                if steps > 1 and self.script is not None:
+                    # this process was held up: the client's inputs of that time are still unread in the socket,
+                    # so the watchdog's timing restarts (a real controller is never held up)
+                    self.script.watchdog_since = self.arm.t_s
                 values = self._snapshot()
             t_next += steps * PERIOD_S
             n += 1
@@ -165,9 +172,31 @@ class SimController:
             if lag < 0:
                 time.sleep(-lag)
 
-    def _cycle(self):
+    def receive_inputs(self, values: dict) -> None:
+        """An RTDE input package (under ``lock``)."""
+        self.inputs.update(values)
+        self.input_t.update(dict.fromkeys(values, self.arm.t_s))
+
+    def _watchdog(self) -> None:
+        """rtde_set_watchdog(var, hz, "stop"): no update of ``var`` for 1/hz stops the program and the motion."""
+        sc = self.script
+        if sc is None or not sc.running or sc.watchdog_hz <= 0:
+            return
+        if sc.watchdog_since is None:
+            sc.watchdog_since = self.arm.t_s
+        last = max(self.input_t.get(sc.watchdog_var, -1.0), sc.watchdog_since)
+        if self.arm.t_s - last > 1.0 / sc.watchdog_hz:
+            log.warning("RTDE watchdog: no update of %s for %.0f ms at t=%.3f s; program stopped", sc.watchdog_var,
+                        1e3 * (self.arm.t_s - last), self.arm.t_s)
+            sc.stop()
+            self.arm.stop(PROGRAM_STOP_DECEL_M_S2)
+            self.watchdog_fired_s = self.arm.t_s
+
+    def _cycle(self, check_watchdog: bool = True):
         arm = self.arm
         arm.step(PERIOD_S)
+        if check_watchdog:
+            self._watchdog()
         if not arm.connected:
             self.drop_connections(refuse=not arm.reconnectable)
             arm.connected = True

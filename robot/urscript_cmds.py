@@ -83,7 +83,9 @@ class ControlScript:
         self.path_index = 0
         self.async_op_id = 0
         self.async_wr_count = 0
-        self.watchdog_hz = 0.0
+        self.watchdog_hz = 0.0               # the controller's RTDE watchdog (SimController._watchdog enforces it)
+        self.watchdog_var = f"input_int_register_{self.off}"
+        self.watchdog_since = None
         self._reset_async_progress()
         self._w_int(0, READY)
         log.info("control script started (%d bytes, register offset %d, %d path entries)",
@@ -239,8 +241,11 @@ class ControlScript:
         elif cmd == PROTECTIVE_STOP:
             arm.request_protective_stop("triggerProtectiveStop() from the client")
             self._done()
-        elif cmd == SET_WATCHDOG:
+        elif cmd == SET_WATCHDOG:        # rtde_set_watchdog("input_int_register_<off>", hz, "stop")
             self.watchdog_hz = self._r_double(inputs, 0)
+            self.watchdog_since = None       # the controller stamps it (SimController._watchdog)
+            log.info("RTDE watchdog on %s at %g Hz (the program stops without an update for %.0f ms)",
+                     self.watchdog_var, self.watchdog_hz, 1e3 / self.watchdog_hz if self.watchdog_hz > 0 else 0)
             self._done()
         elif cmd == IS_POSE_WITHIN_SAFETY_LIMITS:
             self._w_int(1, 1 if arm.is_pose_reachable(self._r_vec(inputs, 0)) else 0)

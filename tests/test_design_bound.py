@@ -47,3 +47,19 @@ def test_peak_fit_finds_a_symmetric_bump_between_probes():
         for centre in (0.0301, 0.03537, 0.041):
             c = 0.02 / (1 + ((x - centre) / 0.012) ** 2) + 0.001
             assert abs(peak_fit(x, c) - centre) < 1e-4
+
+
+def test_bound_on_a_real_stone_is_consistent():
+    """bound_one on the fem surrogate (the paper stone): the achieved joint gain lies below its certified bound and
+    below each single-parameter bound, is at least about 1 (an even spread is itself a design), and the minimax gap
+    is small."""
+    from design_bound import bound_one
+
+    from fem.scene import load
+    from planner.surrogate import load_surrogate
+    prior = load("paper").prior()
+    r = bound_one(load_surrogate(prior), np.array([0.035, 0.025, 0.015]), prior.tissue.width_m)
+    assert 0.98 <= r["gain_best"] <= r["gain_bound"] * (1 + 1e-9)
+    assert r["gain_best"] <= min(r["gain_x_bound"], r["gain_depth_bound"]) * (1 + 1e-9)
+    assert r["gain_x"] <= r["gain_x_bound"] * (1 + 1e-9) and r["gain_depth"] <= r["gain_depth_bound"] * (1 + 1e-9)
+    assert r["gap"] < 0.1 and r["gain_bound"] < 5

@@ -1,8 +1,10 @@
 """Detectability's prediction against Monte-Carlo detection (a marginal stone, the real fem surrogate).
 
 planner.detectability predicts P(LR >= threshold) from the expected contrast and the localizer's weights (noncentral
-chi2 with 3 dof). Here 60 simulated 15-probe rasters over a 4 mm stone 30 mm deep (predicted about 0.5: the most
-sensitive case) are localized and counted. Probe records come from the accuracy study's measurement model
+chi2 with 3 dof). Here 150 simulated 15-probe rasters over a 4 mm stone 30 mm deep (predicted about 0.5: the most
+sensitive case) are localized and counted. Measured: 0.43 +- 0.04 against 0.52 predicted -- the chi2 approximation
+(the detection LR maximises over the stone's position too) is optimistic by about 0.1 at the margin; the
+tolerance below is 3 standard errors plus that 0.1, no more. Probe records come from the accuracy study's measurement model
 (bench/accuracy_study.py FastArm, itself checked against the simulated arm in test_robot_sim)."""
 from __future__ import annotations
 
@@ -33,13 +35,13 @@ def test_predicted_detection_rate_matches_monte_carlo():
     pred = p_detect(prior, (st.x_m, st.depth_m, st.diameter_m), x_m=x, depth_m=np.full(len(x), DEPTH_M),
                     sigma_n=probe_sigma_n(spec("nano17")), surrogate=sur,
                     tau_s=np.full(len(x), float(probe_tau_s(Motion(), DEPTH_M))))
-    n = 60
+    n = 150
     hits = 0
     for k in range(n):
         arm = FastArm(truth.force_n, "nano17", np.random.default_rng(1000 + k))
         hits += localize(prior, Measurements.from_records(arm.execute(x), Motion()), sur).detected
     rate = hits / n
-    se = math.sqrt(max(pred * (1 - pred), 0.05) / n)
+    se = math.sqrt(pred * (1 - pred) / n)
     print(f"predicted {pred:.2f}, Monte Carlo {rate:.2f} (+- {se:.2f})")
     assert 0.2 < pred < 0.8                          # a marginal stone: the check has teeth
-    assert abs(rate - pred) < 3 * se + 0.05
+    assert abs(rate - pred) < 3 * se + 0.1

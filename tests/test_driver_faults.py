@@ -77,12 +77,58 @@ def test_disconnect_mid_descent(tmp_path):
     arm.inject("disconnect", when=at_probe(1, 0.001))
     rep = run(tmp_path, c, r)
     assert not rep.fault["stopped"] and "bounded moveL" in " ".join(rep.fault["notes"])
-    arm.run_until_still()                               # the controller finishes the last (bounded) move
+    arm.run_until_still()          # the controller's watchdog has stopped the program (and the move)
     check_safe_end(rep, arm, tmp_path, "connection_lost", retracted=False)
     assert arm.tip_in_tissue()[1] <= DEPTH + 1e-9        # no deeper than planned
     arm.connected = True                                 # link back: new interfaces, resume
     c2, r2 = SimRTDEControl(arm), SimRTDEReceive(arm)
     resume_and_check(tmp_path, c2, r2, 1)
+
+
+@pytest.mark.parametrize("watchdog_hz", [5.0, 0.0])
+def test_lost_link_watchdog_stops_the_motion(tmp_path, watchdog_hz):
+    """A lost link mid-descent: the driver can send nothing, so the controller must stop the arm by itself. With
+    the RTDE watchdog (the default) the program, and the motion, stop within 1/watchdog_hz of the last input; without
+    it the async moveL runs on to the planned depth, unsupervised (what the hypothesis search once caught: 30 N
+    against a 7.7 N limit, ended only by the controller's own force protective stop)."""
+    arm, c, r = make_sim()
+    arm.inject("disconnect", when=at_probe(1, 0.0005))
+    rep = run(tmp_path, c, r, config=DriverConfig(watchdog_hz=watchdog_hz))
+    arm.run_until_still()
+    assert rep.fault["kind"] == "connection_lost" and not arm.is_moving
+    t_loss = arm.faults[0]["fired_s"]
+    depth_now = arm.tip_in_tissue()[1]
+    if watchdog_hz:
+        assert arm.watchdog_fired_s is not None and not arm.program_running
+        assert arm.watchdog_fired_s - t_loss <= 1.0 / watchdog_hz + 2 * arm.period_s
+        v = make_plan(XS, depth_m=DEPTH).motion.probe_speed_m_s
+        assert depth_now <= 0.0005 + v * (1.0 / watchdog_hz + 3 * arm.period_s) + 1e-6
+    else:
+        assert arm.watchdog_fired_s is None and abs(depth_now - DEPTH) < 1e-6
+
+
+def test_watchdog_stop_while_at_rest_restarts_the_program(tmp_path, monkeypatch):
+    """The host is busy for 0.5 s after each probe (writing its record) while the controller runs on: the watchdog
+    ends the program with the arm at rest. Before the next probe the driver uploads the program again, sets TCP,
+    payload and watchdog anew, and the run completes."""
+    from robot import driver as drv
+    arm, c, r = make_sim()
+    write = drv.RunLog.write_probe
+
+    def slow_write(self, rec, raw=None):
+        out = write(self, rec, raw)
+        for _ in range(250):                             # 0.5 s of controller time with no input from the host
+            arm.step()
+        return out
+    monkeypatch.setattr(drv.RunLog, "write_probe", slow_write)
+    calls = []
+    set_tcp = c.setTcp
+    c.setTcp = lambda pose: calls.append(arm.t_s) or set_tcp(pose)
+    rep = run(tmp_path, c, r)
+    assert rep.status == "ok" and rep.n_ok == len(XS), rep.fault
+    assert arm.watchdog_fired_s is not None              # it did fire ...
+    assert len(calls) == 1 + (len(XS) - 1)               # ... and each new program got the TCP again
+    assert max(rec["force_peak_n"] for rec in read_records(tmp_path)) < 2.0
 
 
 def test_transient_disconnect_reconnects_and_retracts(tmp_path):

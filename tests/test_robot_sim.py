@@ -198,7 +198,7 @@ def test_free_air_baseline_removes_the_zeroing_error(tmp_path, fem_truth):
     nb = baseline_samples(plan.motion)
     rel, zeroed = [], []
     for rec in recs:
-        assert abs(rec["n_samples_baseline"] - nb) <= 0.02 * nb
+        assert abs(rec["n_samples_baseline"] - nb) <= 0.05 * nb      # less the 2 mm kept behind felt contact
         assert rec["baseline_to_dwell_s"] == pytest.approx(float(probe_tau_s(plan.motion, 0.004)), rel=0.05)
         truth = fem_truth(rec["contact_x_m"], rec["depth_reached_m"])
         rel.append(rec["force_mean_n"] - rec["force_baseline_n"] - truth)

@@ -6,6 +6,7 @@ in planner/data (validated against today's fem by its fingerprint; see planner/s
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -80,14 +81,23 @@ def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
     """The main job over the real ur_rtde client and the loopback controller (real time: a 5-probe raster)."""
     pytest.importorskip("rtde_control")
-    rc = main(["run", "paper", "--sim", "controller", "--waypoints", "5", "--budget-probes", "5", "--no-figure",
+    rc = main(["run", "paper", "--sim", "controller", "--waypoints", "5", "--budget-probes", "8", "--no-figure",
                "--out", str(tmp_path)])
     assert rc == 0
     res = json.loads((tmp_path / "result.json").read_text())
-    assert res["status"] == "ok" and res["probes_used"] == 5
+    assert res["status"] == "ok" and res["probes_used"] == 8 and len(res["rounds"]) == 2
     assert res["detected"] is True
     assert abs(res["estimate"]["x_m"]["value"] - 0.035) < 0.002
     recs = [json.loads(line) for line in (tmp_path / "probes.jsonl").read_text().splitlines()]
-    assert [r["status"] for r in recs] == ["ok"] * 5
+    assert [r["status"] for r in recs] == ["ok"] * 8
     log = (tmp_path / "simcontroller.log").read_text()
     assert log                                              # the controller ran (and was stopped: no hang here)
+    assert "RTDE watchdog on input_int_register_0 at 5 Hz" in log     # the driver armed it through ur_rtde
+    fired = re.findall(r"RTDE watchdog: no update .* at t=([0-9.]+) s", log)
+    end_s = max(r["t_s"] + r["duration_s"] for r in recs)
+    ends = sorted(r["t_s"] + r["duration_s"] for r in recs)
+    starts = sorted(r["t_s"] for r in recs)
+    for t in map(float, fired):   # kicked while probing: it fires only between rounds (planning) or once done
+        assert not any(a <= t <= b for a, b in zip(starts, ends)), (t, list(zip(starts, ends)))
+    # a round after such a stop starts by uploading the control script again
+    assert log.count("control script started") == 1 + sum(float(t) < end_s for t in fired)

@@ -102,6 +102,29 @@ def make_plan(xs=(0.015, 0.035, 0.055), depth_m=0.003):
                 limits=Limits(force_limit_n=1.0), motion=mo, probes=probes)
 
 
+def test_watchdog_stops_program_and_motion_when_inputs_stop(scene_file, tmp_path):
+    """ur_rtde's setWatchdog through the real client: kicks keep the program running; when they stop (what a lost
+    link looks like from the controller) the program ends within 1/hz and the motion with it."""
+    with controller(scene_file, tmp_path, force="standin") as ctl, clients(ctl.host) as (c, r):
+        _wait_for(lambda: r.getRuntimeState() == 2)
+        assert c.setTcp(TCP) is True and c.setWatchdog(25.0) is True
+        t_end = time.monotonic() + 0.3
+        while time.monotonic() < t_end:                    # kicked at ~100 Hz: the program keeps running
+            assert c.kickWatchdog() is True
+            time.sleep(0.01)
+        assert c.isProgramRunning()
+        start = r.getActualTCPPose()
+        assert c.moveL(_pose_at(0.035, 0.02), 0.005, 0.5, True) is True     # 20 mm down at 5 mm/s: 4 s
+        time.sleep(0.5)                                    # no input for 0.5 s
+        _wait_for(lambda: not c.isProgramRunning())
+        p1 = r.getActualTCPPose()
+        time.sleep(0.2)
+        assert np.allclose(r.getActualTCPPose(), p1, atol=1e-9)         # the motion has stopped
+        moved = math.dist(p1[:3], start[:3])
+        assert moved < 0.0015, moved          # 40 ms at 5 mm/s is 0.2 mm; unsupervised it would have gone 3.5 mm
+    assert "RTDE watchdog" in (tmp_path / "controller.log").read_text()
+
+
 def test_real_client_connect_move_receive(scene_file, tmp_path):
     with controller(scene_file, tmp_path, force="standin") as ctl, clients(ctl.host) as (c, r):
         assert c.isConnected() and r.isConnected() and c.isProgramRunning()
