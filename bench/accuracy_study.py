@@ -9,7 +9,7 @@ and those records. Outputs: bench-out/accuracy.csv (one row per trial and method
 
 Measurement model (``FastArm``): per probe the dwell mean of the true force at the planned depth plus the simulated
 arm's error terms (robot/sensor.py) as the driver records them (robot/records.py): white noise of the 250-sample
-dwell mean and of the descent's 2250-sample free-air baseline it is referenced to (the zeroing's 50-sample error
+dwell mean and of the descent's ~2200-sample free-air baseline it is referenced to (the zeroing's 50-sample error
 cancels between the two), and the sensor's drift rate (random per run) times the 5 s between the two. It reproduces
 what robot.sim + robot.driver record about 100x faster (checked: on the simulated arm, `palpate run paper --sim`,
 the baseline-referenced forces scatter about fem's with 0.20 mN around a drift offset; this model: 0.20 mN; test:
