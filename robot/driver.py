@@ -125,8 +125,10 @@ class Driver(Recovery):
     def _require(self, ok, what: str) -> None:
         if ok is True:
             return
-        if self._call(self.r.isProtectiveStopped) is True:
-            raise ProbeFault("protective_stop", f"{what} refused: the controller is protective-stopped")
+        for _ in range(10):     # why? The receive data may lag the control interface's by a period or two
+            if self._call(self.r.isProtectiveStopped) is True:
+                raise ProbeFault("protective_stop", f"{what} refused: the controller is protective-stopped")
+            self._call(self.c.waitPeriod, self._call(self.c.initPeriod))
         raise ProbeFault("command_failed", f"{what} returned {ok!r}")
 
     def _read(self, strict=True):
@@ -194,6 +196,7 @@ class Driver(Recovery):
         (a kick fails)."""
         c, cfg = self.c, self.cfg
         if self._call(c.isProgramRunning) is not True:
+            self.watchdog_on = False                 # nothing to kick until the new program runs
             self._require(self._call(c.reuploadScript), "reuploadScript")
             self._loop(5.0, lambda s: True if self._call(c.isProgramRunning) is True else None, strict=False,
                        what="restart of the control script")

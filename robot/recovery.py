@@ -5,7 +5,7 @@ stop is cleared on the pendant). Otherwise stop (stopL), then retract along the 
 height when the arm still takes commands. A lost link: wait for it (only ``isConnected()`` is called meanwhile:
 ur_rtde 1.6.5 can block for good on a command or reconnect() that races its own background reconnect), then call
 reconnect() once; with no link no command is sent, and the last command was a bounded moveL that ends no deeper than
-the planned depth. Uses the driver's primitives (``_stop``, ``_read``, ``_move``) and state (``c``, ``r``, ``cfg``,
+the planned depth. Uses the driver's primitives (``_stop``, ``_read``, ``_move``, ``_ensure_program``) and state (``c``, ``r``, ``cfg``,
 ``plan``, ``lim``, ``tf``).
 """
 from __future__ import annotations
@@ -53,10 +53,10 @@ class Recovery:
                             + ("succeeded" if ok else "failed"))
         if ok:
             self.last_ts, self.stale = None, 0
-            try:
-                self._arm_watchdog()       # the re-uploaded program has no watchdog yet
+            try:       # reconnect() uploads a new program: it has the installation's TCP and no watchdog yet
+                self._ensure_program(configure=True)
             except ProbeFault as f:
-                out["notes"].append(f"watchdog not re-armed: {f.message}")
+                out["notes"].append(f"TCP, payload or watchdog not set again: {f.message}")
         return ok
 
     def safe_state(self) -> dict:

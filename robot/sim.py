@@ -84,6 +84,7 @@ class ArmModel:
         self.watchdog_hz = 0.0            # rtde_set_watchdog: the program stops when inputs stop for 1/hz
         self.last_input_s = 0.0
         self.watchdog_fired_s = None
+        self.start_program_at_s = None    # a re-uploaded program starts running then
         self.connected = True
         self.reconnectable = True
         self.payload = (0.0, [0.0, 0.0, 0.0])
@@ -223,6 +224,9 @@ class ArmModel:
     def step(self, dt: float | None = None) -> None:
         dt = self.period_s if dt is None else dt
         self.t_s += dt
+        if self.start_program_at_s is not None and self.t_s >= self.start_program_at_s:
+            self.program_running, self.start_program_at_s = True, None
+            self.last_input_s = self.t_s
         if self.watchdog_hz > 0 and self.program_running and self.t_s - self.last_input_s > 1.0 / self.watchdog_hz:
             self.watchdog_fired_s = self.t_s
             self.stop_program()
@@ -315,9 +319,10 @@ class SimRTDEControl(_Facade):
         return self._ok()
 
     def reuploadScript(self) -> bool:
+        """Like ur_rtde: sends the program and returns; it runs a few periods later."""
         self._link()
         self.arm.input_update()
-        self.arm.program_running = True
+        self.arm.start_program_at_s = self.arm.t_s + 0.01
         return True
 
     @staticmethod

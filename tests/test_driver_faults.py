@@ -64,6 +64,21 @@ def test_protective_stop_mid_indent_then_resume(tmp_path):
     resume_and_check(tmp_path, c, r, 1)                  # the driver retracts first, then finishes
 
 
+def test_protective_stop_seen_first_by_the_control_interface(tmp_path):
+    """ur_rtde's two interfaces have separate data streams: a command (here the watchdog kick) can be refused
+    before the receive interface reports the protective stop. The fault is still classified as one."""
+    class LaggingReceive(SimRTDEReceive):
+        def isProtectiveStopped(self):
+            fired = [f["fired_s"] for f in self.arm.faults if f["fired_s"] is not None]
+            return bool(fired) and self.arm.t_s - fired[0] > 0.008          # four periods late
+
+    arm, c, _ = make_sim()
+    arm.inject("protective_stop", when=at_probe(1, 0.0015))
+    rep = run(tmp_path, c, LaggingReceive(arm))
+    assert rep.fault["kind"] == "protective_stop", rep.fault
+    assert "kickWatchdog" in rep.fault["message"]
+
+
 def test_resume_refused_while_still_protective_stopped(tmp_path):
     arm, c, r = make_sim()
     arm.inject("protective_stop", when=at_probe(0, 0.001))

@@ -125,6 +125,27 @@ def test_watchdog_stops_program_and_motion_when_inputs_stop(scene_file, tmp_path
     assert "RTDE watchdog" in (tmp_path / "controller.log").read_text()
 
 
+def test_program_ended_at_rest_is_uploaded_again(scene_file, tmp_path, monkeypatch):
+    """The host stalls 0.5 s after each probe (writing its record): the watchdog ends the program with the arm at
+    rest, and before the next probe the driver re-uploads it through the real client (reuploadScript), sets TCP,
+    payload and watchdog again, and the plan completes."""
+    from robot import driver as drv
+    write = drv.RunLog.write_probe
+
+    def slow_write(self, rec, raw=None):
+        out = write(self, rec, raw)
+        time.sleep(0.5)
+        return out
+    monkeypatch.setattr(drv.RunLog, "write_probe", slow_write)
+    plan, out = make_plan(xs=(0.02, 0.05)), tmp_path / "run"
+    with controller(scene_file, tmp_path, force="standin") as ctl, clients(ctl.host) as (c, r):
+        rep = drv.run_plan(plan, c, r, out)
+    assert rep.status == "ok" and rep.n_ok == 2, rep.fault
+    log = (tmp_path / "controller.log").read_text()
+    assert log.count("control script started") >= 2 and "program stopped" in log
+    assert log.count("RTDE watchdog on") == log.count("control script started")
+
+
 def test_real_client_connect_move_receive(scene_file, tmp_path):
     with controller(scene_file, tmp_path, force="standin") as ctl, clients(ctl.host) as (c, r):
         assert c.isConnected() and r.isConnected() and c.isProgramRunning()
