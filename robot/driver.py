@@ -55,8 +55,19 @@ class DriverConfig:
     skip_invalid: bool = False         # True: record unsafe probes as "rejected" and run the others
     max_consecutive_force_stops: int = 3
     watchdog_hz: float = 5.0           # the controller's RTDE watchdog (ur_rtde setWatchdog): if the driver's inputs
-                                       # stop for 1/watchdog_hz (a lost link, a hung host) the controller stops the
-                                       # program and the motion. Kicked every period. 0: off.
+                                       # stop for 1/rate (a lost link, a hung host) the controller stops the program
+                                       # and the motion. Kicked every period. This is the lowest rate; 0: off.
+    max_unsupervised_travel_m: float = 4e-4   # ... and the rate is raised so that a probe moving at its speed
+                                       # travels at most this far before that stop (see watchdog_rate_hz)
+
+
+def watchdog_rate_hz(cfg: DriverConfig, probe_speed_m_s: float) -> float:
+    """The watchdog rate for probes at ``probe_speed_m_s``: at least ``cfg.watchdog_hz``, enough that a lost link
+    lets a probe travel at most ``cfg.max_unsupervised_travel_m`` unsupervised, at most 100 Hz (kicks go out at
+    500 Hz; a faster watchdog would trip on ordinary host jitter). 0 when the watchdog is off."""
+    if cfg.watchdog_hz <= 0:
+        return 0.0
+    return float(min(100.0, max(cfg.watchdog_hz, probe_speed_m_s / cfg.max_unsupervised_travel_m)))
 
 
 @dataclass
@@ -73,6 +84,7 @@ class RunReport:
     records: list = field(default_factory=list)
     controller_time_s: float = 0.0
     wall_s: float = 0.0
+    program_restarts: int = 0          # control programs uploaded again at rest (the watchdog ended one)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -114,6 +126,8 @@ class Driver(Recovery):
         self.contact_thr = plan.motion.contact_threshold_n
         self.noise_std = float("nan")
         self.watchdog_on = False
+        self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
+        self.program_restarts = 0
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -181,30 +195,33 @@ class Driver(Recovery):
             return True if n[0] * self.cfg.period_s >= seconds else None
         self._loop(seconds + 1.0, body)
 
-    def _arm_watchdog(self) -> None:
-        """Enable the controller's watchdog (again after a reconnect: a new program starts without one)."""
-        self.watchdog_on = False
-        if self.cfg.watchdog_hz > 0:
-            self._require(self._call(self.c.setWatchdog, self.cfg.watchdog_hz), "setWatchdog")
-            self.watchdog_on = True
+    def _link_up(self, what: str) -> None:
+        """No command while ur_rtde reports the link down (one sent then can block for good)."""
+        if not self._connected(self.c):
+            raise ProbeFault("connection_lost", f"{what}: the control interface reports no connection")
 
-    def _ensure_program(self, configure: bool = False) -> None:
-        """At rest (set-up, before each probe): the control program must run, with the plan's TCP and payload and
-        the watchdog armed. The watchdog may have ended it while the arm stood still (the host busy writing a
-        record or planning the next round): upload it again (ur_rtde's reuploadScript) and configure the new
-        program -- TCP and payload set by a program do not outlive it. A stop during a motion is a fault instead
+    def _ensure_program(self) -> None:
+        """At rest, before any motion of set-up, a probe or a retract: the control program runs, with the plan's TCP,
+        payload and watchdog -- set every time, because a program ur_rtde restarted on its own (its background
+        reconnect) or our own re-upload starts with the installation's TCP and no watchdog. The watchdog may have
+        ended the program while the arm stood still (the host busy writing a record, planning the next round):
+        then it is uploaded again (reuploadScript, counted in run.json). A stop during a motion is a fault instead
         (a kick fails)."""
         c, cfg = self.c, self.cfg
+        self._link_up("before configuring the control program")
+        if self._call(self.r.isProtectiveStopped) is True:
+            raise ProbeFault("protective_stop", "the arm is protective-stopped: clear it on the pendant first")
+        self.watchdog_on = False
         if self._call(c.isProgramRunning) is not True:
-            self.watchdog_on = False                 # nothing to kick until the new program runs
             self._require(self._call(c.reuploadScript), "reuploadScript")
             self._loop(5.0, lambda s: True if self._call(c.isProgramRunning) is True else None, strict=False,
                        what="restart of the control script")
-            configure = True
-        if configure:
-            self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
-            self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
-            self._arm_watchdog()
+            self.program_restarts += 1
+        self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
+        self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
+        if self.watchdog_hz > 0:
+            self._require(self._call(c.setWatchdog, self.watchdog_hz), "setWatchdog")
+            self.watchdog_on = True
 
     def _kick(self) -> None:
         """Feed the watchdog. Not while the link is down -- that is the point: the controller then stops the
@@ -219,6 +236,7 @@ class Driver(Recovery):
         """Asynchronous moveL to ``pose``, polled each period; ``watch(sample)`` may stop it early (its result)."""
         start = self._read(strict)["pose"]
         dist = math.dist(start[:3], pose[:3])
+        self._link_up(f"moveL ({what})")
         before = self._call(self.c.getAsyncOperationProgress)
         self._require(self._call(self.c.moveL, list(pose), speed, accel, True), f"moveL ({what})")
         timeout = self.cfg.timeout_factor * _move_time(dist, speed, accel) + self.cfg.timeout_margin_s
@@ -254,6 +272,7 @@ class Driver(Recovery):
     def _zero(self) -> None:
         self.phase = FREE
         self._wait(self.cfg.settle_s)
+        self._link_up("zeroFtSensor")
         self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor")
         self.filt.clear()
         self._wait(self.cfg.settle_s)
@@ -333,6 +352,7 @@ class Driver(Recovery):
 
         def write_run():
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
+            rep.program_restarts = self.program_restarts
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
                            "commands_sent": len(self.c.sent)})
         try:
@@ -388,9 +408,7 @@ class Driver(Recovery):
                 gc.enable()
 
     def _setup(self) -> None:
-        if self._call(self.r.isProtectiveStopped) is True:
-            raise ProbeFault("protective_stop", "the arm is protective-stopped: clear it on the pendant first")
-        self._ensure_program(configure=True)
+        self._ensure_program()
         s = self._read(strict=False)
         p = s["pose"]
         if not all(self.lim.box_min[k] <= p[k] <= self.lim.box_max[k] for k in range(3)):

@@ -53,10 +53,6 @@ class Recovery:
                             + ("succeeded" if ok else "failed"))
         if ok:
             self.last_ts, self.stale = None, 0
-            try:       # reconnect() uploads a new program: it has the installation's TCP and no watchdog yet
-                self._ensure_program(configure=True)
-            except ProbeFault as f:
-                out["notes"].append(f"TCP, payload or watchdog not set again: {f.message}")
         return ok
 
     def safe_state(self) -> dict:
@@ -91,6 +87,11 @@ class Recovery:
                     return out
         if not self._connected(self.r):
             out["notes"].append("retract skipped: the receive interface reports no connection")
+            return out
+        try:       # the program may be a new one (reconnect, ur_rtde's own, the watchdog's stop): TCP first
+            self._ensure_program()
+        except (ProbeFault, SafetyViolation) as e:
+            out["notes"].append(f"retract skipped: the control program could not be configured ({e})")
             return out
         try:
             s = self._read(strict=False)

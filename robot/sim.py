@@ -320,8 +320,7 @@ class SimRTDEControl(_Facade):
 
     def reuploadScript(self) -> bool:
         """Like ur_rtde: sends the program and returns; it runs a few periods later."""
-        self._link()
-        self.arm.input_update()
+        self._link()                          # the script port, not RTDE: no input update
         self.arm.start_program_at_s = self.arm.t_s + 0.01
         return True
 
