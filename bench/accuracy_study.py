@@ -38,15 +38,19 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from core.contracts import (  # noqa: E402
+    Motion,  # noqa: E402
+    ProbeRecord,
+    ProbeStatus,
+    sensor_spec,
+)
 from fem.contact import surface_model  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
 from planner.detectability import baseline_samples, p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
 from planner.localize import Measurements, localize, prior_force  # noqa: E402
-from planner.planfile import Motion  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402
 from planner.refine import adaptive  # noqa: E402
 from planner.surrogate import load_surrogate, stone_model  # noqa: E402
-from robot.sensor import spec as sensor_spec  # noqa: E402
 
 DENSE = (15, 21, 29, 41, 57, 81, 113)   # even rasters localized with the same fem fit (and the model-free peak fit)
 PEAK_ONLY = (161, 241)                  # larger even rasters for the model-free maximum finder only
@@ -75,9 +79,9 @@ class FastArm:
             dwell = (self.f(float(x), depth_m) + self.rng.normal(0, s.noise_std_n / math.sqrt(self.n)) - zero_err
                      + self.drift * (t_base + tau))
             std = s.noise_std_n * (1 + self.rng.normal(0, 1 / math.sqrt(2 * self.n)))
-            recs.append({"index": self.count, "x_m": float(x), "depth_reached_m": depth_m, "status": "ok",
-                         "force_mean_n": dwell, "force_std_n": abs(std), "n_samples": self.n,
-                         "force_baseline_n": base, "n_samples_baseline": self.nb, "baseline_to_dwell_s": tau})
+            recs.append(ProbeRecord(index=self.count, x_m=float(x), depth_reached_m=depth_m, status=ProbeStatus.OK,
+                                    force_mean_n=dwell, force_std_n=abs(std), n_samples=self.n,
+                                    force_baseline_n=base, n_samples_baseline=self.nb, baseline_to_dwell_s=tau))
             self.count += 1
         return recs
 

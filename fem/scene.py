@@ -3,7 +3,7 @@
 All quantities are SI (m, Pa). The 2D section lies in the x-y plane: x from the left edge (0 .. width_m),
 y up from the bottom edge (0 .. height_m). A stone's ``depth_m`` is the depth of its centre below the top surface.
 
-A scene plays two roles in a simulated run (see DESIGN.md, "Truth and belief"): the simulator holds the full scene
+A scene plays two roles in a simulated run (see docs/architecture.md, "Truth and belief"): the simulator holds the full scene
 (the truth), the planner and the localizer hold ``scene.prior()`` — the same tissue with its stones removed.
 """
 from __future__ import annotations

@@ -16,19 +16,35 @@ The sensor must also pass the driver's own check: its filtered free-air noise, t
 """
 from __future__ import annotations
 
+import argparse
+import json
 import math
+import sys
 
 import numpy as np
 from scipy.stats import ncx2
 
-from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR, N_ZERO_AVERAGE
+from core.contracts import (
+    BASELINE_CLEARANCE_M,
+    BASELINE_SETTLE_S,
+    FILTER_WINDOW,
+    MIN_BASELINE_SAMPLES,
+    N_ZERO_AVERAGE,
+    NOISE_SIGMA_FACTOR,
+    Motion,
+    sensor_spec,
+)
+from fem.contact import surface_model
+from fem.scene import load
+from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR
+from planner.raster import choose_depths, raster_positions
+from planner.surrogate import load_surrogate
 
 P_DETECT = 0.9
 
 
 def baseline_samples(motion, period_s: float = 0.002) -> int:
     """Free-air samples of one descent the driver's records average as the force baseline (robot.records)."""
-    from robot.records import BASELINE_CLEARANCE_M, BASELINE_SETTLE_S
     base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s - BASELINE_SETTLE_S
     return max(0, int(base_s / period_s))
 
@@ -36,8 +52,6 @@ def baseline_samples(motion, period_s: float = 0.002) -> int:
 def probe_sigma_n(sensor_spec, motion=None, period_s: float = 0.002) -> float:
     """Standard error of one probe's force: noise of the dwell mean and of the free-air baseline it is taken
     relative to (robot.records; the sensor's 50-sample zeroing if the descent is too short for a baseline)."""
-    from planner.planfile import Motion
-    from robot.records import MIN_BASELINE_SAMPLES
     motion = motion or Motion()
     n = max(1, int(round(motion.dwell_s / period_s)))
     nb = baseline_samples(motion, period_s)
@@ -53,17 +67,14 @@ def fit_weights(sigma_n, contrast_n) -> np.ndarray:
 
 def probe_tau_s(motion, depth_m):
     """Time from the middle of the free-air baseline to the middle of the dwell (the drift offset grows with it)."""
-    from robot.records import BASELINE_CLEARANCE_M, BASELINE_SETTLE_S
     base_s = (motion.approach_height_m - BASELINE_CLEARANCE_M) / motion.probe_speed_m_s - BASELINE_SETTLE_S
     return 0.5 * base_s + (BASELINE_CLEARANCE_M + np.asarray(depth_m)) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
 
 
 def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
-    from robot.driver import DriverConfig
-    cfg = DriverConfig()
-    thr = cfg.noise_sigma_factor * sensor_spec.noise_std_n / math.sqrt(cfg.filter_window)
+    thr = NOISE_SIGMA_FACTOR * sensor_spec.noise_std_n / math.sqrt(FILTER_WINDOW)
     if thr >= 0.5 * force_limit_n:
-        return False, (f"sensor {sensor_spec.name}: filtered noise x {cfg.noise_sigma_factor:g} = {thr:.2f} N is "
+        return False, (f"sensor {sensor_spec.name}: filtered noise x {NOISE_SIGMA_FACTOR:g} = {thr:.2f} N is "
                        f"above half the force limit {force_limit_n:g} N; the driver refuses to probe")
     return True, ""
 
@@ -75,11 +86,6 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
 
     Returns {"sensor", "usable", "reason", "sigma_n", "depths_m", "rows": [{diameter_m, depth_m, peak_contrast_n,
     snr, p_detect, detectable}]}. Stones are placed at ``xs_m`` (default: the middle of the section)."""
-    from fem.contact import surface_model
-    from planner.planfile import Motion
-    from planner.raster import choose_depths, raster_positions
-    from planner.surrogate import load_surrogate
-    from robot.sensor import spec as sensor_spec
     if prior.stones:
         raise ValueError("detectability() takes the prior scene (no stones)")
     sp = sensor_spec(sensor)
@@ -149,9 +155,6 @@ def format_table(res: dict) -> str:
 
 def main(argv=None) -> int:
     """``python -m planner.detectability [SCENE] [--sensor S] [--force-limit-n F]``: the table, before any probe."""
-    import argparse
-    import json
-    from fem.scene import load
     p = argparse.ArgumentParser(prog="python -m planner.detectability", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", default="paper")
     p.add_argument("--sensor", default="nano17")
@@ -174,5 +177,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
     sys.exit(main())

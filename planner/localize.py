@@ -26,8 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from core.contracts import N_ZERO_AVERAGE
+from fem.contact import surface_model
+from planner.surrogate import load_surrogate
+
 LR_THRESHOLD = 20.0          # detection threshold on chi2_0 - chi2_1 (see module doc)
-N_ZERO_AVERAGE = 50          # samples the sensor zeroing averages (its offset error is noise / sqrt(50))
 MODEL_REL_ERR = 0.01         # surrogate interpolation error, relative to the contrast (measured: max 1.4 %, RMS 0.12 %)
 MODEL_ABS_ERR_N = 2e-4       # and an absolute floor (N)
 
@@ -55,24 +58,24 @@ class Measurements:
         the dwell, and without it every probe gets the same time (the drift is a plain offset)."""
         rows = []
         for r in records:
-            if r.get("status") not in statuses or r.get("force_mean_n") is None or r.get("depth_reached_m") is None:
+            if r.status not in statuses or r.force_mean_n is None or r.depth_reached_m is None:
                 continue
-            x = r.get("contact_x_m") if r.get("contact_x_m") is not None else r["x_m"]
-            d = float(r["depth_reached_m"])
-            std = r.get("force_std_n") or r.get("noise_std_n") or 0.0
-            n = max(int(r.get("n_samples") or 1), 1)
-            f = float(r["force_mean_n"])
-            if all(r.get(k) is not None for k in ("force_baseline_n", "n_samples_baseline", "baseline_to_dwell_s")):
+            x = r.contact_x_m if r.contact_x_m is not None else r.x_m
+            d = float(r.depth_reached_m)
+            std = r.force_std_n or r.noise_std_n or 0.0
+            n = max(int(r.n_samples or 1), 1)
+            f = float(r.force_mean_n)
+            if r.force_baseline_n is not None and r.baseline_to_dwell_s is not None:
                 # relative to the free-air baseline of the same descent: the zeroing's error cancels
-                f -= float(r["force_baseline_n"])
-                std_b = r.get("force_baseline_std_n") or std
-                sig = math.sqrt(std ** 2 / n + std_b ** 2 / max(int(r["n_samples_baseline"]), 1))
-                tau = float(r["baseline_to_dwell_s"])
+                f -= float(r.force_baseline_n)
+                std_b = r.force_baseline_std_n or std
+                sig = math.sqrt(std ** 2 / n + std_b ** 2 / max(int(r.n_samples_baseline), 1))
+                tau = float(r.baseline_to_dwell_s)
             else:
                 sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / N_ZERO_AVERAGE))
                 tau = 1.0 if motion is None else ((motion.approach_height_m + d) / motion.probe_speed_m_s
                                                   + 0.5 * motion.dwell_s)
-            rows.append((float(x), d, f, sig, tau, int(r["index"])))
+            rows.append((float(x), d, f, sig, tau, int(r.index)))
         rows.sort()
         a = np.array(rows, dtype=float).reshape(-1, 6)
         return Measurements(a[:, 0], a[:, 1], a[:, 2], np.maximum(a[:, 3], 1e-5), a[:, 4], a[:, 5].astype(int))
@@ -109,7 +112,7 @@ class Localization:
     fit_contrast_n: np.ndarray | None = None   # per probe: the fitted stone's contrast
     depth_interval_m: dict = field(default_factory=dict)   # profile likelihood: {"68": [lo, hi], "95": [lo, hi]}
 
-    def summary(self) -> dict:
+    def to_dict(self) -> dict:
         def f(v):
             return None if v is None or not math.isfinite(v) else float(v)
         return {"detected": bool(self.detected),
@@ -128,7 +131,6 @@ class Localization:
 
 def prior_force(prior, meas: Measurements) -> np.ndarray:
     """fem's force for the prior (stone-free) tissue at each probe's position and reached depth."""
-    from fem.contact import surface_model
     m = surface_model(prior)
     W = prior.tissue.width_m
     return np.array([m.force_n(float(min(max(x, 0.0), W)), float(d)) for x, d in zip(meas.x_m, meas.depth_m)])
@@ -206,7 +208,6 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     if len(meas) < 4:
         raise ValueError(f"need at least 4 probe measurements, got {len(meas)}")
     if surrogate is None:
-        from planner.surrogate import load_surrogate
         surrogate = load_surrogate(prior)
     F0 = prior_force(prior, meas)
     r0 = meas.force_n - F0

@@ -8,7 +8,7 @@ Constraints (bounds carry the targets and margins, so one built solver serves ev
 * approach and indent orientations alike: ``dot(x_tool(qa_k), x_tool(qi_k)) >= cos(tilt_tol)`` (the descent is a
   straight moveL along the tool axis),
 * IK branch and singularity margins: ``sign_b * indicator_b(q) >= margin_b`` for b in shoulder / elbow / wrist
-  (kinematics.branch_indicators): every configuration stays on the seed's branch, so no neighbour flips,
+  (ur5e.branch_indicators): every configuration stays on the seed's branch, so no neighbour flips,
 * joint limits as simple bounds.
 
 Objective: joint travel ``sum_k 2|qi_k - qa_k|^2 + |qa_{k+1} - qa_k|^2`` (down-and-up plus moves between probes), a
@@ -28,8 +28,19 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from core import ur5e
+from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
+from fem.contact import surface_model
+from fem.scene import from_dict, load
 from planner import kinematics as kin
-from planner.raster import PlanningError, Targets
+from planner.raster import (
+    Targets,
+    choose_depths,
+    default_tissue_pose,
+    raster_positions,
+    targets,
+)
+from planner.timing import raster_timing
 
 W_REG = 1e-3     # pull towards the seed [1/rad^2]
 W_TILT = 100.0   # penalty on 1 - cos(tilt) ~ tilt^2/2: tilt is spent only where it buys real joint travel
@@ -83,7 +94,7 @@ class RasterNLP:
         """q_seed: (n, 2, 6) [approach, indent]. Returns the optimal (n, 2, 6) and solver statistics."""
         n = self.n
         x0 = np.asarray(q_seed, dtype=float).reshape(-1)
-        p = np.concatenate([tg.normal_in, kin.pose_to_matrix(tcp_offset).reshape(-1, order="F"), x0])
+        p = np.concatenate([tg.normal_in, ur5e.pose_to_T(tcp_offset).reshape(-1, order="F"), x0])
         lo, hi = [], []
         c = math.cos(tilt_tol_rad * (1 - 1e-4))  # a hair inside: the cosine is flat near 0, IPOPT's 1e-10 is ~1e-8 rad
         s = np.asarray(branch, dtype=float)
@@ -93,8 +104,8 @@ class RasterNLP:
         for k in range(n):
             lo += [*tg.approach_m[k], *tg.indent_m[k], c, c, c, *b_lo, *b_lo]
             hi += [*tg.approach_m[k], *tg.indent_m[k], np.inf, np.inf, np.inf, *b_hi, *b_hi]
-        lbx = np.tile(kin.JOINT_LOWER_RAD, 2 * n)
-        ubx = np.tile(kin.JOINT_UPPER_RAD, 2 * n)
+        lbx = np.tile(ur5e.JOINT_LOWER_RAD, 2 * n)
+        ubx = np.tile(ur5e.JOINT_UPPER_RAD, 2 * n)
         t0 = time.perf_counter()
         r = self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=np.array(lo), ubg=np.array(hi))
         dt = time.perf_counter() - t0
@@ -136,14 +147,14 @@ def _describe_branch_failure(k: int, which: str, point, branch, tcp_offset, norm
     helper = [1.0, 0, 0] if abs(normal_in[0]) < 0.9 else [0, 1.0, 0]
     for yaw in np.linspace(0, 2 * math.pi, 12, endpoint=False):
         T[:3, :3] = tool_rotation(normal_in, helper, yaw)
-        n_any += len(kin.ik(T, tcp_offset))
+        n_any += len(ur5e.ik_all(T, tcp_offset))
     dist = float(np.linalg.norm(np.asarray(point)[:2]))
     if n_any == 0:
-        far = float(np.linalg.norm(np.asarray(point) - [0.0, 0.0, kin.D1])) > 0.45
+        far = float(np.linalg.norm(np.asarray(point) - [0.0, 0.0, ur5e.D1])) > 0.45
         fix = ("move the tissue closer to the base (--tissue-pose), shorten the TCP offset (--tcp-offset), or narrow "
                "the raster (--margin-m / --x-min-m / --x-max-m)") if far else (
                "move the tissue farther from the base (--tissue-pose)")
-        why = f"too far; reach about {kin.REACH_M:g} m" if far else "too close to the base"
+        why = f"too far; reach about {ur5e.REACH_M:g} m" if far else "too close to the base"
         return (f"waypoint {k} ({which} tip at {p} m in the base frame, {dist:.3f} m from the base axis) is out of "
                 f"reach of the UR5e ({why}) with the tool along the surface normal: {fix}")
     return (f"waypoint {k} ({which} tip at {p} m) has no inverse-kinematics solution on the branch "
@@ -151,41 +162,41 @@ def _describe_branch_failure(k: int, which: str, point, branch, tcp_offset, norm
             f"move the tissue (--tissue-pose)")
 
 
-def seed_configurations(tg: Targets, tissue_x, tcp_offset, branch=kin.DEFAULT_BRANCH,
+def seed_configurations(tg: Targets, tissue_x, tcp_offset, branch=ur5e.DEFAULT_BRANCH,
                         yaws=np.linspace(-math.pi, math.pi, 24, endpoint=False)) -> tuple[np.ndarray, float]:
     """Closed-form IK (vectorized) for every target with the tool exactly along the normal, all on ``branch``, each
     unwrapped next to its neighbour (continued outwards from the middle waypoint). The yaw about the tool axis is the
     one (from ``yaws``) whose middle-waypoint solution is nearest the UR home pose. Returns ((n, 2, 6), yaw)."""
     n = len(tg.approach_m)
     mid = n // 2
-    Tinv = kin.rigid_inv(kin.pose_to_matrix(tcp_offset))
+    Tinv = ur5e.rigid_inv(ur5e.pose_to_T(tcp_offset))
     T = np.zeros((len(yaws), 4, 4))
     T[:, 3, 3] = 1.0
     T[:, :3, :3] = [tool_rotation(tg.normal_in, tissue_x, y) for y in yaws]
     T[:, :3, 3] = tg.approach_m[mid]
-    Qy = kin.ik_branch_batch(T @ Tinv, branch)
-    cost = [np.sum((kin.unwrap_near(q, kin.HOME_RAD)[1:] - kin.HOME_RAD[1:]) ** 2) if np.all(np.isfinite(q))
+    Qy = ur5e.ik_branch_batch(T @ Tinv, branch)
+    cost = [np.sum((ur5e.unwrap_near(q, ur5e.Q_HOME)[1:] - ur5e.Q_HOME[1:]) ** 2) if np.all(np.isfinite(q))
             else np.inf for q in Qy]
     b = int(np.argmin(cost))
     if not np.isfinite(cost[b]):
-        raise PlanningError(_describe_branch_failure(mid, "approach", tg.approach_m[mid], branch, tcp_offset,
+        raise PlanError(_describe_branch_failure(mid, "approach", tg.approach_m[mid], branch, tcp_offset,
                                                      tg.normal_in))
     yaw = float(yaws[b])
     T = np.zeros((n, 2, 4, 4))
     T[..., 3, 3] = 1.0
     T[..., :3, :3] = tool_rotation(tg.normal_in, tissue_x, yaw)
     T[:, 0, :3, 3], T[:, 1, :3, 3] = tg.approach_m, tg.indent_m
-    Q = kin.ik_branch_batch((T @ Tinv).reshape(-1, 4, 4), branch).reshape(n, 2, 6)
+    Q = ur5e.ik_branch_batch((T @ Tinv).reshape(-1, 4, 4), branch).reshape(n, 2, 6)
     for k in range(n):
         for j, which in enumerate(("approach", "indent")):
             if not np.all(np.isfinite(Q[k, j])):
                 pts = tg.approach_m if j == 0 else tg.indent_m
-                raise PlanningError(_describe_branch_failure(k, which, pts[k], branch, tcp_offset, tg.normal_in))
-    Q[mid, 0] = kin.unwrap_near(Q[mid, 0], kin.unwrap_near(Qy[b], kin.HOME_RAD))
+                raise PlanError(_describe_branch_failure(k, which, pts[k], branch, tcp_offset, tg.normal_in))
+    Q[mid, 0] = ur5e.unwrap_near(Q[mid, 0], ur5e.unwrap_near(Qy[b], ur5e.Q_HOME))
     for k in list(range(mid + 1, n)) + list(range(mid - 1, -1, -1)):
-        Q[k, 0] = kin.unwrap_near(Q[k, 0], Q[k - 1, 0] if k > mid else Q[k + 1, 0])
+        Q[k, 0] = ur5e.unwrap_near(Q[k, 0], Q[k - 1, 0] if k > mid else Q[k + 1, 0])
     for k in range(n):
-        Q[k, 1] = kin.unwrap_near(Q[k, 1], Q[k, 0])
+        Q[k, 1] = ur5e.unwrap_near(Q[k, 1], Q[k, 0])
     return Q, yaw
 
 
@@ -218,7 +229,7 @@ def check_configurations(Q: np.ndarray, tg: Targets, tcp_offset, branch, margins
     worst = ind.min(axis=0)
     b_ok = bool(np.all(ind > 0))
     m_ok = bool(np.all(ind >= margins.as_array() - 1e-9))
-    lim = bool(np.all(Q >= kin.JOINT_LOWER_RAD - 1e-9) and np.all(Q <= kin.JOINT_UPPER_RAD + 1e-9))
+    lim = bool(np.all(Q >= ur5e.JOINT_LOWER_RAD - 1e-9) and np.all(Q <= ur5e.JOINT_UPPER_RAD + 1e-9))
     return Check(pos_err, tilt, b_ok, m_ok, lim, dict(zip(("shoulder_m", "elbow", "wrist"), worst.tolist())))
 
 
@@ -237,16 +248,16 @@ def margin_failure_message(chk: Check, margins: Margins) -> str:
     return "; ".join(parts) or "constraints violated"
 
 
-def solve_raster(tg: Targets, tissue_x, tcp_offset, *, branch=kin.DEFAULT_BRANCH, margins: Margins | None = None,
+def solve_raster(tg: Targets, tissue_x, tcp_offset, *, branch=ur5e.DEFAULT_BRANCH, margins: Margins | None = None,
                  tilt_tol_rad: float = math.radians(0.5)) -> tuple[np.ndarray, dict]:
-    """Seed from the closed form, then solve the NLP. Returns ((n, 2, 6) joints, info). Raises PlanningError."""
+    """Seed from the closed form, then solve the NLP. Returns ((n, 2, 6) joints, info). Raises PlanError."""
     margins = margins or Margins()
     t0 = time.perf_counter()
     Q0, yaw = seed_configurations(tg, tissue_x, tcp_offset, branch)
     seed_s = time.perf_counter() - t0
     chk0 = check_configurations(Q0, tg, tcp_offset, branch, margins)
     if not chk0.margins_ok:
-        raise PlanningError("the raster cannot keep the singularity margins: " + margin_failure_message(chk0, margins))
+        raise PlanError("the raster cannot keep the singularity margins: " + margin_failure_message(chk0, margins))
     nlp = nlp_for(len(Q0))
     Q, info = nlp.solve(Q0, tg, tcp_offset, branch, margins, tilt_tol_rad)
     chk = check_configurations(Q, tg, tcp_offset, branch, margins)
@@ -266,24 +277,18 @@ def solve_raster(tg: Targets, tissue_x, tcp_offset, *, branch=kin.DEFAULT_BRANCH
 # the whole plan
 
 def _prior(scene):
-    from fem.scene import load
     scene = load(scene)
     return scene if (not scene.stones and scene.name.endswith("-prior")) else scene.prior()
 
 
 def default_force_model(prior):
     """fem's condensed surface model of the prior scene (built once per scene by fem, ~1 s)."""
-    try:
-        from fem.contact import surface_model
-    except ImportError as e:
-        raise PlanningError(f"fem.contact is not available ({e}); pass force_n=callable(x_m, depth_m)") from None
     return surface_model(prior).force_n
 
 
 def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | None = None, margin_m: float = 0.005,
                 x_positions_m=None, depth_m=None, force_n=None, limits=None, motion=None, frames=None,
-                tilt_tol_rad: float = math.radians(0.5), force_fraction: float = 0.5, min_depth_m: float = 0.001,
-                branch=kin.DEFAULT_BRANCH, margins: Margins | None = None, joint_limits=None):
+                options: PlanOptions | None = None, margins: Margins | None = None, joint_limits=None):
     """Plan a probing raster over the top surface of ``scene``'s prior (its stones are dropped before anything else).
 
     Waypoints: ``x_positions_m`` (tissue-frame x, e.g. a finer set over an interval for adaptive refinement: see
@@ -291,32 +296,33 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     (default 15 waypoints). Depths: ``depth_m`` (a number or one per waypoint) if given, else chosen per waypoint from
     ``force_n(x_m, depth_m)`` (default: fem's surface model of the prior) as the deepest probe whose predicted force
     stays within ``force_fraction * limits.force_limit_n`` and ``limits.depth_limit_m``.
+    ``options`` (core.contracts.PlanOptions): IK branch, tilt tolerance, force fraction, minimum depth.
     Frames default to the tissue lying on the arm's table 0.40 m in front of the base (raster.default_tissue_pose).
-    Returns a planfile.Plan; raises PlanningError with a message naming what to change."""
-    from planner.planfile import Frames, Limits, Motion, Plan, Probe
-    from planner.raster import choose_depths, raster_positions, targets, default_tissue_pose
-    from planner.timing import raster_timing
+    Returns a core.contracts.Plan; raises PlanError with a message naming what to change."""
 
     t_all = time.perf_counter()
     prior = _prior(scene)
     tis = prior.tissue
     limits = limits or Limits()
     motion = motion or Motion()
+    options = options or PlanOptions()
+    branch, tilt_tol_rad = tuple(options.branch), options.tilt_tol_rad
+    force_fraction, min_depth_m = options.force_fraction, options.min_depth_m
     frames = frames or Frames(tissue_pose_base=default_tissue_pose(tis.width_m, tis.height_m))
     for name, v in (("approach_speed_m_s", motion.approach_speed_m_s), ("probe_speed_m_s", motion.probe_speed_m_s)):
         if not (0 < v <= limits.max_tool_speed_m_s):
-            raise PlanningError(f"motion.{name} = {v} m/s must lie in (0, limits.max_tool_speed_m_s = "
+            raise PlanError(f"motion.{name} = {v} m/s must lie in (0, limits.max_tool_speed_m_s = "
                                 f"{limits.max_tool_speed_m_s}]")
     if x_positions_m is not None:
         x = np.asarray(x_positions_m, dtype=float).reshape(-1)
         if x.size == 0 or np.any(x < 0) or np.any(x > tis.width_m):
-            raise PlanningError(f"x positions must be non-empty and lie on the surface [0, {tis.width_m}] m")
+            raise PlanError(f"x positions must be non-empty and lie on the surface [0, {tis.width_m}] m")
     else:
         if n_waypoints is None and spacing_m is None:
             n_waypoints = 15
         x = raster_positions(tis.width_m, n=n_waypoints, spacing_m=spacing_m, margin_m=margin_m)
 
-    tissue_x = kin.pose_to_matrix(frames.tissue_pose_base)[:3, 0]
+    tissue_x = ur5e.pose_to_T(frames.tissue_pose_base)[:3, 0]
     if force_n is None:
         # fail fast, before fem builds its model (~1-5 s): every waypoint reachable down to the depth limit
         seed_configurations(targets(x, np.full(x.shape, limits.depth_limit_m), frames.tissue_pose_base,
@@ -327,10 +333,10 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     if depth_m is not None:
         d = np.broadcast_to(np.asarray(depth_m, dtype=float), x.shape).copy()
         if np.any(d <= 0) or np.any(d > limits.depth_limit_m):
-            raise PlanningError(f"depths must lie in (0, --depth-limit-m = {limits.depth_limit_m}] m")
+            raise PlanError(f"depths must lie in (0, --depth-limit-m = {limits.depth_limit_m}] m")
         f = np.array([force_n(float(a), float(b)) for a, b in zip(x, d)])
         if f.max() > limits.force_limit_n:
-            raise PlanningError(f"the fixed depth gives a predicted force of {f.max():.3g} N, above the force "
+            raise PlanError(f"the fixed depth gives a predicted force of {f.max():.3g} N, above the force "
                                 f"limit {limits.force_limit_n} N: lower --depth-m or raise --force-limit-n")
         limited_by, target_n = ["fixed"] * len(x), None
     else:
@@ -344,7 +350,7 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     for k, pts in enumerate(zip(tg.approach_m, tg.indent_m)):
         for p in pts:
             if np.any(p < lo) or np.any(p > hi):
-                raise PlanningError(f"waypoint {k} (tip at {np.round(p, 4).tolist()} m) leaves the workspace box "
+                raise PlanError(f"waypoint {k} (tip at {np.round(p, 4).tolist()} m) leaves the workspace box "
                                     f"{lo.tolist()}..{hi.tolist()} m (limits.workspace_min_m/max_m): move the tissue "
                                     f"(--tissue-pose)")
     Q, info = solve_raster(tg, tissue_x, frames.tcp_offset, branch=branch, margins=margins,
@@ -353,19 +359,17 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     probes, prev = [], None
     T_all = kin.fk_batch(Q.reshape(-1, 6), frames.tcp_offset)[0].reshape(len(x), 2, 4, 4)
     for k in range(len(x)):
-        pa = kin.matrix_to_pose(T_all[k, 0], near=prev)
-        pi = kin.matrix_to_pose(T_all[k, 1], near=pa)
+        pa = ur5e.T_to_pose(T_all[k, 0], near=prev)
+        pi = ur5e.T_to_pose(T_all[k, 1], near=pa)
         prev = pa
         probes.append(Probe(index=k, x_m=float(x[k]), depth_m=float(d[k]), predicted_force_n=float(f[k]),
                             approach_pose=pa, indent_pose=pi,
                             q_approach_rad=Q[k, 0].tolist(), q_indent_rad=Q[k, 1].tolist(),
                             t_start_s=tm.t_start_s[k], duration_s=tm.duration_s[k]))
-    notes = {"planner": "casadi-ipopt raster v1", "branch": list(branch), "tilt_tol_rad": tilt_tol_rad,
-             "force_fraction": force_fraction, "target_force_n": target_n, "min_depth_m": min_depth_m,
-             "depth_limited_by": limited_by, "solver": info, "timing": tm.to_dict(),
+    notes = {"planner": "casadi-ipopt raster v1", "target_force_n": target_n, "depth_limited_by": limited_by, "solver": info, "timing": tm.to_dict(),
              "times_s": {"depth_choice": depth_s, "seed": info["seed_s"], "solve": info["solve_s"],
                          "build_once": info["build_s"], "total": time.perf_counter() - t_all}}
-    plan = Plan(scene=prior.to_dict(), frames=frames, limits=limits, motion=motion, probes=probes,
+    plan = Plan(scene=prior.to_dict(), frames=frames, limits=limits, motion=motion, options=options, probes=probes,
                 total_time_s=tm.total_s, notes=notes)
     plan.check()
     return plan
@@ -373,13 +377,9 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
 
 def replan(plan, x_positions_m, *, force_n=None, **overrides):
     """A new plan over ``x_positions_m`` (tissue-frame x; e.g. ``raster.interval_positions(lo, hi, n=11)`` around a
-    suspected stone) with everything else taken from ``plan``: its prior scene, frames, limits, motion, tilt
-    tolerance, force fraction, minimum depth and IK branch. ``overrides`` go to ``plan_raster``."""
-    from fem.scene import from_dict
+    suspected stone) with everything else taken from ``plan``: its prior scene, frames, limits, motion and options.
+    ``overrides`` go to ``plan_raster``."""
     prior = from_dict(plan.scene, default_name=plan.scene.get("name", "prior"))
-    nt = plan.notes
-    kw = dict(frames=plan.frames, limits=plan.limits, motion=plan.motion,
-              tilt_tol_rad=nt.get("tilt_tol_rad", math.radians(0.5)), force_fraction=nt.get("force_fraction", 0.5),
-              min_depth_m=nt.get("min_depth_m", 0.001), branch=tuple(nt.get("branch", kin.DEFAULT_BRANCH)))
+    kw = dict(frames=plan.frames, limits=plan.limits, motion=plan.motion, options=plan.options)
     kw.update(overrides)
     return plan_raster(prior, x_positions_m=x_positions_m, force_n=force_n, **kw)

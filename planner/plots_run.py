@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 
+from fem.contact import surface_model
+
 
 def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> None:
     """Top: measured force (error bars: 2 sigma) and fem's prior prediction; middle: the contrast (measured - prior -
@@ -26,7 +28,6 @@ def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=
 
     ax = axs[0]
     xx = np.linspace(max(0.0, x.min() - 1), min(W, x.max() + 1), 200)
-    from fem.contact import surface_model
     m0 = surface_model(prior)
     for dep in np.unique(np.round(meas.depth_m, 5)):
         ax.plot(xx, [m0.force_n(v * 1e-3, float(dep)) * 1e3 for v in xx], "k-", lw=1,

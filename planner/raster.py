@@ -9,19 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Protocol, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-from planner.kinematics import pose_to_matrix
-
-
-class PlanningError(ValueError):
-    """A request the planner cannot satisfy; the message names the option to change."""
-
-
-class ForceModel(Protocol):
-    def __call__(self, x_m: float, depth_m: float) -> float: ...
+from core.contracts import PlanError
+from core.ur5e import pose_to_T
 
 
 def default_tissue_pose(width_m: float, height_m: float) -> list[float]:
@@ -36,9 +29,9 @@ def raster_positions(width_m: float, *, n: int | None = None, spacing_m: float |
     """Waypoint x positions (tissue frame) over [margin, width - margin]: ``n`` evenly spaced (both ends included),
     or as many as fit at ``spacing_m`` centred in the interval. Exactly one of n / spacing_m."""
     if (n is None) == (spacing_m is None):
-        raise PlanningError("give either a waypoint count (--waypoints) or a spacing (--spacing-m), not both")
+        raise PlanError("give either a waypoint count (--waypoints) or a spacing (--spacing-m), not both")
     if not (0 <= margin_m < width_m / 2):
-        raise PlanningError(f"--margin-m {margin_m} must lie in [0, width/2 = {width_m / 2:g}) m")
+        raise PlanError(f"--margin-m {margin_m} must lie in [0, width/2 = {width_m / 2:g}) m")
     lo, hi = margin_m, width_m - margin_m
     return interval_positions(lo, hi, n=n, spacing_m=spacing_m)
 
@@ -47,13 +40,13 @@ def interval_positions(lo_m: float, hi_m: float, *, n: int | None = None,
                        spacing_m: float | None = None) -> np.ndarray:
     """Evenly spaced positions on [lo, hi] (for adaptive refinement over an x-interval)."""
     if hi_m < lo_m:
-        raise PlanningError(f"empty interval [{lo_m}, {hi_m}] m")
+        raise PlanError(f"empty interval [{lo_m}, {hi_m}] m")
     if n is not None:
         if n < 1:
-            raise PlanningError(f"--waypoints must be at least 1, got {n}")
+            raise PlanError(f"--waypoints must be at least 1, got {n}")
         return np.array([0.5 * (lo_m + hi_m)]) if n == 1 else np.linspace(lo_m, hi_m, n)
     if not (spacing_m and spacing_m > 0):
-        raise PlanningError(f"--spacing-m must be positive, got {spacing_m}")
+        raise PlanError(f"--spacing-m must be positive, got {spacing_m}")
     k = int(math.floor((hi_m - lo_m) / spacing_m + 1e-9))
     start = 0.5 * (lo_m + hi_m) - 0.5 * k * spacing_m
     return start + spacing_m * np.arange(k + 1)
@@ -70,7 +63,7 @@ class Targets:
 def targets(x_m: Sequence[float], depth_m: Sequence[float], tissue_pose_base: Sequence[float],
             approach_height_m: float) -> Targets:
     """Section points (x, top) -> base frame. Tissue frame: (x_m, 0, 0) is the surface point, +z outward."""
-    T = pose_to_matrix(tissue_pose_base)
+    T = pose_to_T(tissue_pose_base)
     R, o = T[:3, :3], T[:3, 3]
     x = np.asarray(x_m, dtype=float)
     d = np.asarray(depth_m, dtype=float)
@@ -134,11 +127,11 @@ def choose_depths(force_n: Callable[[float, float], float], x_m: Sequence[float]
     leaves head-room for stiffer-than-predicted tissue (a stone raises the force; the driver stops at the limit).
     Refuses when even ``min_depth_m`` (the shallowest useful probe) would exceed the force budget."""
     if depth_limit_m <= 0 or force_limit_n <= 0:
-        raise PlanningError("--force-limit-n and --depth-limit-m must be positive")
+        raise PlanError("--force-limit-n and --depth-limit-m must be positive")
     if not (0 < force_fraction <= 1):
-        raise PlanningError(f"--force-fraction must lie in (0, 1], got {force_fraction}")
+        raise PlanError(f"--force-fraction must lie in (0, 1], got {force_fraction}")
     if min_depth_m > depth_limit_m:
-        raise PlanningError(f"--depth-limit-m {depth_limit_m * 1e3:.2f} mm is below the smallest useful depth "
+        raise PlanError(f"--depth-limit-m {depth_limit_m * 1e3:.2f} mm is below the smallest useful depth "
                             f"--min-depth-m {min_depth_m * 1e3:.2f} mm: raise the depth limit or lower --min-depth-m")
     target = force_fraction * force_limit_n
     depths, forces, why = [], [], []
@@ -149,7 +142,7 @@ def choose_depths(force_n: Callable[[float, float], float], x_m: Sequence[float]
             f_min = float(force_n(float(x), min_depth_m))
             if f_min > target:
                 need = f_min / force_fraction
-                raise PlanningError(
+                raise PlanError(
                     f"force limit {force_limit_n:g} N is too low: the prior tissue is predicted to push back "
                     f"{f_min:.3g} N at the smallest useful depth {min_depth_m * 1e3:.2f} mm (x = {x * 1e3:.1f} mm), "
                     f"above the planning budget {force_fraction:g} x {force_limit_n:g} N = {target:.3g} N. Raise "

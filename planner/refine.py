@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planner.localize import Localization, Measurements, localize
+from planner.surrogate import load_surrogate
 
 WEAK_LR = 12.0
 
@@ -138,7 +139,7 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
         meas = m if meas is None else meas.concat(m)
         loc = localize(prior, meas, surrogate)
         dep = [p.depth_m for p in plan.probes] if plan is not None else list(m.depth_m)
-        rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.summary(), plan,
+        rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.to_dict(), plan,
                             time.perf_counter() - t0))
         say(f"round {k}: {len(x)} probes ({used} in all): " + describe(loc))
         if converged(loc, target_m):
@@ -153,7 +154,6 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
             break
         prev_x = x
         if strategy == "design":
-            from planner.surrogate import load_surrogate
             x = design_positions(loc, meas, n, surrogate or load_surrogate(prior), W, margin_m)
         else:
             x = refine_positions(loc, n, W, margin_m, prev_x)

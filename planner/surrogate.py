@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import multiprocessing as mp
 import os
 import sys
 import time
@@ -35,6 +36,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from fem.cache import mesh_for
+from fem.contact import SurfaceModel, surface_model
+from fem.model import build_model
+from fem.scene import Stone, from_dict, load
 
 FORMAT = 1
 
@@ -68,8 +74,6 @@ def fingerprint(prior, grid: Grid) -> np.ndarray:
     """What fem computes *now* for one grid stone and the prior at a few probes (4 mm): a table whose stored
     fingerprint differs was built by a different fem (mesher, elements, contact...) and is rebuilt. A behavioural
     check, not a source hash: refactoring fem without changing its numbers keeps the table."""
-    from fem.contact import surface_model
-    from fem.scene import Stone
     W = prior.tissue.width_m
     x0 = np.asarray(FP_X) * W / 0.070
     lv = [grid.levels_m[-1]]
@@ -86,19 +90,12 @@ def _grid_xs(prior, grid: Grid) -> np.ndarray:
 def stone_model(scene):
     """fem's SurfaceModel of a one-off scene (a candidate or random stone), kept out of fem's disk cache (hundreds
     of meshes used once would only fill it)."""
-    from fem.contact import SurfaceModel
-    try:
-        from fem.cache import mesh_for
-        from fem.model import build_model
-    except ImportError:
-        return SurfaceModel(scene)
     return SurfaceModel(scene, model=build_model(scene, mesh=mesh_for(scene, use=False)))
 
 
 def _one_stone(args):
     """Force curves (levels, x0) of one grid stone. Runs in a worker process."""
     prior_dict, xs, depth, diam, levels, x0 = args
-    from fem.scene import Stone, from_dict
     prior = from_dict(prior_dict)
     return _forces(stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)])), levels, x0)
 
@@ -123,10 +120,8 @@ def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None) -> 
                 idx.append((i, j, k))
     table = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs), len(grid.levels_m), len(x0)))
     t0 = time.perf_counter()
-    from fem.contact import surface_model
     base = _forces(surface_model(prior), grid.levels_m, x0)      # the prior's force, subtracted from every stone's
     if workers > 1:
-        import multiprocessing as mp
         with mp.get_context("spawn").Pool(workers) as pool:
             for n, ((i, j, k), res) in enumerate(zip(idx, pool.imap(_one_stone, jobs, chunksize=4))):
                 table[i, j, k] = res - base
@@ -271,20 +266,33 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
     return sur
 
 
+BOTTOM_CLEARANCE_M = 3e-3      # random stones keep this far from the tissue's bottom
+
+
+def random_stones(bounds: dict, width_m: float, height_m: float, n: int, rng) -> list[tuple[float, float, float]]:
+    """``n`` random rigid stones (x_m, top depth s_m, diameter_m) inside a table's bounds and inside the tissue:
+    the stone's bottom at least BOTTOM_CLEARANCE_M above the tissue's bottom, 1 mm from the side edges."""
+    out = []
+    for _ in range(n):
+        D = rng.uniform(*bounds["diam_m"])
+        s_hi = min(bounds["s_m"][1], height_m - BOTTOM_CLEARANCE_M - D)
+        if s_hi <= bounds["s_m"][0]:
+            raise ValueError(f"tissue height {height_m} m leaves no room for a {D * 1e3:.1f} mm stone")
+        s = float(np.exp(rng.uniform(np.log(bounds["s_m"][0]), np.log(s_hi))))
+        xs = float(rng.uniform(max(bounds["xs_m"][0], D / 2 + 1e-3), min(bounds["xs_m"][1], width_m - D / 2 - 1e-3)))
+        out.append((xs, s, float(D)))
+    return out
+
+
 def check_error(sur: Surrogate, prior, n: int = 10, seed: int = 0, depth_m: float = 0.004) -> dict:
     """Interpolation error against direct fem at ``n`` random rigid stones inside the table's box: the error of the
     contrast over the surface, relative to the stone's peak contrast (RMS and max over the profile)."""
-    from fem.contact import surface_model
-    from fem.scene import Stone
     rng = np.random.default_rng(seed)
     m0 = surface_model(prior)
     x0 = np.linspace(0.005, prior.tissue.width_m - 0.005, 61)
     rows = []
     b = sur.bounds
-    for _ in range(n):
-        D = rng.uniform(*b["diam_m"])
-        s = np.exp(rng.uniform(np.log(b["s_m"][0]), np.log(min(b["s_m"][1], 0.047 - D))))
-        xs = rng.uniform(max(b["xs_m"][0], D / 2 + 1e-3), min(b["xs_m"][1], sur.W - D / 2 - 1e-3))
+    for xs, s, D in random_stones(b, sur.W, prior.tissue.height_m, n, rng):
         m1 = stone_model(prior.with_stones([Stone(x_m=xs, depth_m=s + D / 2, diameter_m=D)]))
         true = np.array([m1.force_n(float(x), depth_m) - m0.force_n(float(x), depth_m) for x in x0])
         est = sur.contrast(x0, depth_m, xs, s + D / 2, D)
@@ -308,7 +316,6 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="PATH")
     p.add_argument("--ship", action="store_true", help="also write the table (float32) to planner/data/")
     a = p.parse_args(argv)
-    from fem.scene import load
     prior = load(a.scene).prior()
     t0 = time.perf_counter()
     sur = load_surrogate(prior, workers=a.workers, progress=lambda i, n, t: print(

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.kinematics import MAX_JOINT_ACCEL_RAD_S2, MAX_JOINT_SPEED_RAD_S
+from core.ur5e import MAX_JOINT_ACCEL_RAD_S2, MAX_JOINT_SPEED_RAD_S
 
 
 def trapezoid_time(distance: float, v_max: float, a_max: float) -> float:

@@ -30,18 +30,39 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from robot.records import DESCENT, DWELL, FREE, RETRACT, RunLog, done_indices, summarise
+from core.contracts import (
+    DESCENT,
+    DWELL,
+    FILTER_WINDOW,
+    FREE,
+    NOISE_SIGMA_FACTOR,
+    PERIOD_S,
+    RETRACT,
+    FaultKind,
+    ProbeRecord,
+    ProbeStatus,
+    RunStatus,
+)
+from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
-from robot.safety import (GuardedControl, SafetyLimits, SafetyViolation, TissueFrame, check_plan,
-                          move_time as _move_time, preflight)
+from robot.safety import (
+    GuardedControl,
+    SafetyLimits,
+    SafetyViolation,
+    TissueFrame,
+    check_plan,
+    preflight,
+)
+from robot.safety import move_time as _move_time
+
 
 @dataclass
 class DriverConfig:
-    period_s: float = 0.002            # controller period (500 Hz on e-Series)
-    filter_window: int = 5             # moving average for contact / force-limit decisions
+    period_s: float = PERIOD_S         # controller period (500 Hz on e-Series)
+    filter_window: int = FILTER_WINDOW  # moving average for contact / force-limit decisions
     settle_s: float = 0.04             # wait before and after zeroing
     noise_sample_s: float = 0.1        # free-air sampling after zeroing
-    noise_sigma_factor: float = 5.0    # thresholds must exceed this many filtered-noise sigmas
+    noise_sigma_factor: float = NOISE_SIGMA_FACTOR  # thresholds must exceed this many filtered-noise sigmas
     stop_decel_m_s2: float = 10.0
     retract_speed_m_s: float = 0.02
     timeout_factor: float = 2.0
@@ -72,7 +93,7 @@ def watchdog_rate_hz(cfg: DriverConfig, probe_speed_m_s: float) -> float:
 
 @dataclass
 class RunReport:
-    status: str                        # ok | fault | interrupted | rejected
+    status: RunStatus
     out_dir: str
     n_planned: int = 0
     n_ok: int = 0
@@ -134,34 +155,34 @@ class Driver(Recovery):
         try:
             return fn(*args)
         except RuntimeError as e:
-            raise ProbeFault("connection_lost", f"{getattr(fn, '__name__', fn)}: {e}") from None
+            raise ProbeFault(FaultKind.CONNECTION_LOST, f"{getattr(fn, '__name__', fn)}: {e}") from None
 
     def _require(self, ok, what: str) -> None:
         if ok is True:
             return
         for _ in range(10):     # why? The receive data may lag the control interface's by a period or two
             if self._call(self.r.isProtectiveStopped) is True:
-                raise ProbeFault("protective_stop", f"{what} refused: the controller is protective-stopped")
+                raise ProbeFault(FaultKind.PROTECTIVE_STOP, f"{what} refused: the controller is protective-stopped")
             self._call(self.c.waitPeriod, self._call(self.c.initPeriod))
-        raise ProbeFault("command_failed", f"{what} returned {ok!r}")
+        raise ProbeFault(FaultKind.COMMAND_FAILED, f"{what} returned {ok!r}")
 
     def _read(self, strict=True):
         r = self.r
         ts, pose, w, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.getActualTCPForce,
                                                     r.isProtectiveStopped))
         if ps is True:
-            raise ProbeFault("protective_stop", "the controller reports a protective stop")
+            raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the controller reports a protective stop")
         if not _vec6(pose):
-            raise ProbeFault("invalid_reading", f"getActualTCPPose returned {pose!r}")
+            raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPPose returned {pose!r}")
         if not isinstance(ts, (int, float)) or not math.isfinite(ts):
-            raise ProbeFault("invalid_reading", f"getTimestamp returned {ts!r}")
+            raise ProbeFault(FaultKind.INVALID_READING, f"getTimestamp returned {ts!r}")
         ok_w = _vec6(w)
         if strict and not ok_w:
-            raise ProbeFault("invalid_reading", f"getActualTCPForce returned {w!r}")
+            raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPForce returned {w!r}")
         self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
         if self.stale >= self.cfg.stale_periods:   # ur_rtde keeps returning the last values when the link drops
             lost = self._call(self.r.isConnected) is False
-            raise ProbeFault("connection_lost" if lost else "timeout",
+            raise ProbeFault(FaultKind.CONNECTION_LOST if lost else FaultKind.TIMEOUT,
                              f"controller data stopped updating at t={ts:.3f} s"
                              + (" (the receive interface reports no connection)" if lost else ""))
         self.last_ts = self.ts = float(ts)
@@ -183,7 +204,7 @@ class Driver(Recovery):
             self._call(self.c.waitPeriod, t0)
             if res is not None:
                 return res
-        raise ProbeFault("timeout", f"{what} did not finish within {max_s:.1f} s")
+        raise ProbeFault(FaultKind.TIMEOUT, f"{what} did not finish within {max_s:.1f} s")
 
     def _wait(self, seconds: float, collect=None):
         n = [0]
@@ -198,7 +219,7 @@ class Driver(Recovery):
     def _link_up(self, what: str) -> None:
         """No command while ur_rtde reports the link down (one sent then can block for good)."""
         if not self._connected(self.c):
-            raise ProbeFault("connection_lost", f"{what}: the control interface reports no connection")
+            raise ProbeFault(FaultKind.CONNECTION_LOST, f"{what}: the control interface reports no connection")
 
     def _ensure_program(self) -> None:
         """At rest, before any motion of set-up, a probe or a retract: the control program runs, with the plan's TCP,
@@ -210,7 +231,7 @@ class Driver(Recovery):
         c, cfg = self.c, self.cfg
         self._link_up("before configuring the control program")
         if self._call(self.r.isProtectiveStopped) is True:
-            raise ProbeFault("protective_stop", "the arm is protective-stopped: clear it on the pendant first")
+            raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the arm is protective-stopped: clear it on the pendant first")
         self.watchdog_on = False
         if self._call(c.isProgramRunning) is not True:
             self._require(self._call(c.reuploadScript), "reuploadScript")
@@ -249,7 +270,7 @@ class Driver(Recovery):
                     return res
             prog = self._call(self.c.getAsyncOperationProgress)
             if prog is None:
-                raise ProbeFault("invalid_reading", "getAsyncOperationProgress returned None")
+                raise ProbeFault(FaultKind.INVALID_READING, "getAsyncOperationProgress returned None")
             # < 0: no operation running; a negative value other than the one before the command marks the end
             # of this one (ur_rtde toggles -1/-2), so even a move too short to be seen running is detected
             state["started"] |= prog >= 0 or prog != before
@@ -258,8 +279,8 @@ class Driver(Recovery):
                     return "reached"
                 state["idle"] += 1
                 if state["idle"] > 25 and (state["started"] or state["idle"] > 100):
-                    raise ProbeFault("move_failed", f"{what} ended {math.dist(s['pose'][:3], pose[:3]) * 1e3:.2f}"
-                                                    f" mm short of its target")
+                    short_mm = math.dist(s['pose'][:3], pose[:3]) * 1e3
+                    raise ProbeFault(FaultKind.MOVE_FAILED, f"{what} ended {short_mm:.2f} mm short of its target")
             return None
         try:
             return self._loop(timeout, body, strict, what)
@@ -284,7 +305,7 @@ class Driver(Recovery):
         noise_f = float(np.std(vals[:, 1])) if len(vals) > 1 else 0.0
         noise_thr = self.cfg.noise_sigma_factor * noise_f
         if noise_thr >= 0.5 * self.lim.force_limit_n:
-            raise ProbeFault("sensor_noise", f"free-air force noise {noise_f:.3f} N (filtered) is too large "
+            raise ProbeFault(FaultKind.SENSOR_NOISE, f"free-air force noise {noise_f:.3f} N (filtered) is too large "
                                              f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
                                              f"enforced with this sensor")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
@@ -293,7 +314,7 @@ class Driver(Recovery):
         mo, lim = self.plan.motion, self.lim
         self.samples, self.phase = _Samples(), FREE
         t0 = self.ts
-        collision = lambda s: self._halt("collision") if s["filt"] > lim.force_limit_n else None  # noqa: E731
+        collision = lambda s: self._halt(FaultKind.COLLISION) if s["filt"] > lim.force_limit_n else None  # noqa: E731
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
                    collision, what=f"approach to probe {p.index}")
         self._zero()
@@ -309,7 +330,7 @@ class Driver(Recovery):
             slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
             if s["filt"] + max(slope, 0.0) * lead > lim.force_limit_n:   # where the force will be when stopped
                 self._stop()
-                return "force_limit"
+                return ProbeStatus.FORCE_LIMIT
             return None
         self.phase = DESCENT
         outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
@@ -326,7 +347,7 @@ class Driver(Recovery):
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
                    min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
-        status = "ok" if outcome == "reached" else "force_limit"
+        status = ProbeStatus.OK if outcome == "reached" else ProbeStatus.FORCE_LIMIT
         raw = self.samples.arrays()
         return summarise(p, raw, status, contact, t0, self.ts, self.contact_thr, self.noise_std,
                          lim.depth_limit_m), raw
@@ -342,7 +363,7 @@ class Driver(Recovery):
         done = done_indices(out_dir) if resume else set()
         pre = preflight(plan, done)
         problems, bad = check_plan(plan)
-        rep = RunReport("ok", str(out_dir), n_planned=len(plan.probes), problems=problems,
+        rep = RunReport(RunStatus.OK, str(out_dir), n_planned=len(plan.probes), problems=problems,
                         n_skipped=sum(1 for p in plan.probes if p.index in done))
         log = RunLog(out_dir)
         # No garbage-collector pauses in the control loop (a full collection of a big heap can take longer than
@@ -357,7 +378,7 @@ class Driver(Recovery):
                            "commands_sent": len(self.c.sent)})
         try:
             if problems or (bad and not cfg.skip_invalid):
-                rep.status = "rejected"
+                rep.status = RunStatus.REJECTED
                 rep.problems = problems + [f"probe {k}: {v}" for k, v in bad.items()]
                 return rep
             current = None
@@ -369,34 +390,36 @@ class Driver(Recovery):
                         continue
                     current = p
                     if p.index in bad:
-                        rep.records.append(log.write_probe({"index": p.index, "x_m": p.x_m, "status": "rejected",
-                                                            "reason": bad[p.index]}))
+                        rep.records.append(log.write_probe(ProbeRecord(index=p.index, x_m=p.x_m,
+                                                                       status=ProbeStatus.REJECTED,
+                                                                       reason=bad[p.index])))
                         rep.n_rejected += 1
                         continue
                     self._ensure_program()
                     rec, raw = self._probe(p)
                     rec = log.write_probe(rec, raw)
                     rep.records.append(rec)
-                    rep.n_ok += rec["status"] == "ok"
-                    rep.n_force_limit += rec["status"] == "force_limit"
-                    consecutive = consecutive + 1 if rec["status"] == "force_limit" else 0
+                    rep.n_ok += rec.status == ProbeStatus.OK
+                    rep.n_force_limit += rec.status == ProbeStatus.FORCE_LIMIT
+                    consecutive = consecutive + 1 if rec.status == ProbeStatus.FORCE_LIMIT else 0
                     if progress:
                         progress(rec, len(rep.records), pre["n_to_run"])
+                    current = None          # on disk: a fault raised from here on must not write it again
                     if consecutive >= cfg.max_consecutive_force_stops:
-                        raise ProbeFault("force_limit", f"{consecutive} consecutive probes stopped at the force "
-                                                        f"limit: check the plan and the tissue")
-                    current = None
+                        raise ProbeFault(FaultKind.FORCE_LIMIT, f"{consecutive} consecutive probes stopped at the "
+                                                                f"force limit: check the plan and the tissue")
             except (ProbeFault, SafetyViolation, KeyboardInterrupt) as e:
                 kind = e.kind if isinstance(e, ProbeFault) else (
-                    "interrupted" if isinstance(e, KeyboardInterrupt) else "safety_violation")
-                rep.status = "interrupted" if kind == "interrupted" else "fault"
+                    FaultKind.INTERRUPTED if isinstance(e, KeyboardInterrupt) else FaultKind.SAFETY_VIOLATION)
+                rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
                 rep.fault = {"kind": kind, "message": str(e) or "Ctrl-C", "probe_index": getattr(current, "index",
                              None), "controller_time_s": self.ts}
                 if current is not None:     # on disk first: a hang in safe_state() must not lose them
                     raw = self.samples.arrays()
-                    rec = summarise(current, raw, "interrupted" if kind == "interrupted" else "fault", {}, self.ts,
-                                    self.ts, self.contact_thr, self.noise_std, self.lim.depth_limit_m)
-                    rec["reason"] = rep.fault["message"]
+                    st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT
+                    rec = summarise(current, raw, st, {}, self.ts, self.ts, self.contact_thr, self.noise_std,
+                                    self.lim.depth_limit_m)
+                    rec.reason = rep.fault["message"]
                     rep.records.append(log.write_probe(rec, raw))
                 write_run()                 # the fault, before any command is sent
                 rep.fault.update(self.safe_state())

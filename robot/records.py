@@ -14,6 +14,7 @@ line (a crash mid-write) is ignored.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -22,11 +23,18 @@ from pathlib import Path
 
 import numpy as np
 
-DONE = ("ok",)
-FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
-BASELINE_CLEARANCE_M = 1e-3      # free-air baseline: descent samples at least this far above the surface
-MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relative to the sensor's zeroing)
-BASELINE_SETTLE_S = 0.05         # ... and not in the descent's first 50 ms (acceleration)
+from core.contracts import (
+    BASELINE_CLEARANCE_M,
+    BASELINE_SETTLE_S,
+    DESCENT,
+    DWELL,
+    MEASURED,
+    MIN_BASELINE_SAMPLES,
+    ProbeRecord,
+    ProbeStatus,
+)
+
+DONE = (ProbeStatus.OK,)
 
 
 def _fsync_dir(path: Path) -> None:
@@ -57,18 +65,18 @@ class RunLog:
             k += 1
         return p
 
-    def write_probe(self, record: dict, raw: dict | None = None) -> dict:
+    def write_probe(self, record: ProbeRecord, raw: dict | None = None) -> ProbeRecord:
         """Raw samples first (so a record never points at a missing file), then the summary line; both on disk
         (flush + fsync) when this returns."""
-        record = dict(record)
+        record = dataclasses.replace(record)
         if raw is not None:
-            path = self._raw_path(int(record["index"]))
+            path = self._raw_path(int(record.index))
             with open(path, "wb") as f:
                 np.savez(f, **{k: np.asarray(v) for k, v in raw.items()})
                 f.flush()
                 os.fsync(f.fileno())
-            record["raw_file"] = str(path.relative_to(self.out))
-        self._f.write(json.dumps(record, allow_nan=False, default=_jsonable) + "\n")
+            record.raw_file = str(path.relative_to(self.out))
+        self._f.write(json.dumps(record.to_dict(), allow_nan=False, default=_jsonable) + "\n")
         self._f.flush()
         os.fsync(self._f.fileno())
         return record
@@ -94,7 +102,7 @@ def _jsonable(v):
     raise TypeError(f"not JSON serialisable: {type(v).__name__}")
 
 
-def read_records(out_dir: str | Path) -> list[dict]:
+def read_records(out_dir: str | Path) -> list[ProbeRecord]:
     """Every complete line of probes.jsonl, in order (a torn final line is skipped)."""
     path = Path(out_dir) / "probes.jsonl"
     if not path.exists():
@@ -102,33 +110,33 @@ def read_records(out_dir: str | Path) -> list[dict]:
     out = []
     for line in path.read_text(encoding="utf-8").splitlines():
         try:
-            out.append(json.loads(line))
-        except json.JSONDecodeError:
+            out.append(ProbeRecord.from_dict(json.loads(line)))
+        except (json.JSONDecodeError, TypeError, ValueError):
             continue
     return out
 
 
-def latest_by_index(out_dir: str | Path) -> dict[int, dict]:
-    return {int(r["index"]): r for r in read_records(out_dir)}
+def latest_by_index(out_dir: str | Path) -> dict[int, ProbeRecord]:
+    return {int(r.index): r for r in read_records(out_dir)}
 
 
 def done_indices(out_dir: str | Path) -> set[int]:
-    return {i for i, r in latest_by_index(out_dir).items() if r.get("status") in DONE}
+    return {i for i, r in latest_by_index(out_dir).items() if r.status in DONE}
 
 
-def read_measurements(out_dir: str | Path, statuses=("ok", "force_limit")) -> list[dict]:
+def read_measurements(out_dir: str | Path, statuses=MEASURED) -> list[ProbeRecord]:
     """For the localizer: the latest record per probe index with a usable measurement, sorted by x_m."""
-    recs = [r for r in latest_by_index(out_dir).values() if r.get("status") in statuses]
-    return sorted(recs, key=lambda r: r["x_m"])
+    recs = [r for r in latest_by_index(out_dir).values() if r.status in statuses]
+    return sorted(recs, key=lambda r: r.x_m)
 
 
-def load_raw(out_dir: str | Path, record: dict) -> dict:
-    with np.load(Path(out_dir) / record["raw_file"]) as z:
+def load_raw(out_dir: str | Path, record: ProbeRecord) -> dict:
+    with np.load(Path(out_dir) / record.raw_file) as z:
         return {k: z[k] for k in z.files}
 
 
-def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, contact_thr: float,
-              noise_std: float, depth_limit_m: float) -> dict:
+def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: float, contact_thr: float,
+              noise_std: float, depth_limit_m: float) -> ProbeRecord:
     """The summary line of one probe (SI units in the key names) from its raw arrays."""
     ph, f = raw["phase"], raw["force_n"]
     sel = ph == DWELL
@@ -152,21 +160,21 @@ def summarise(p, raw: dict, status: str, contact: dict, t0: float, t1: float, co
 
     def num(v):
         return None if v is None or not math.isfinite(v) else float(v)
-    rec = {"index": p.index, "x_m": p.x_m, "depth_planned_m": p.depth_m,
-           "depth_target_m": min(p.depth_m, depth_limit_m),
-           "depth_reached_m": num(float(np.mean(raw["depth_m"][sel]))) if sel.any() else None,
-           "contact_x_m": num(float(np.mean(raw["x_m"][sel]))) if sel.any() else None,
-           "contact_depth_m": num(contact.get("depth")),
-           "force_mean_n": num(float(np.mean(f[fin]))) if fin.any() else None,
-           "force_std_n": num(float(np.std(f[fin]))) if fin.any() else None,
-           "force_peak_n": num(float(np.max(f[active]))) if active.any() else None,
-           "force_baseline_n": num(float(np.mean(f[base]))) if n_base >= MIN_BASELINE_SAMPLES else None,
-           "force_baseline_std_n": num(float(np.std(f[base]))) if n_base >= MIN_BASELINE_SAMPLES else None,
-           "n_samples_baseline": n_base,
-           "baseline_to_dwell_s": (num(float(np.mean(raw["time_s"][fin]) - np.mean(raw["time_s"][base])))
-                                   if n_base >= MIN_BASELINE_SAMPLES and fin.any() else None),
-           "force_predicted_prior_n": p.predicted_force_n, "n_samples": int(fin.sum()),
-           "n_samples_total": int(len(ph)), "contact_threshold_n": num(contact_thr),
-           "noise_std_n": num(noise_std), "status": status, "t_s": num(t0), "duration_s": num(t1 - t0),
-           "wall_time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    return rec
+    has_base = n_base >= MIN_BASELINE_SAMPLES
+    return ProbeRecord(
+        index=p.index, x_m=p.x_m, status=status, depth_planned_m=p.depth_m,
+        depth_target_m=min(p.depth_m, depth_limit_m),
+        depth_reached_m=num(float(np.mean(raw["depth_m"][sel]))) if sel.any() else None,
+        contact_x_m=num(float(np.mean(raw["x_m"][sel]))) if sel.any() else None,
+        contact_depth_m=num(contact.get("depth")),
+        force_mean_n=num(float(np.mean(f[fin]))) if fin.any() else None,
+        force_std_n=num(float(np.std(f[fin]))) if fin.any() else None,
+        force_peak_n=num(float(np.max(f[active]))) if active.any() else None,
+        force_baseline_n=num(float(np.mean(f[base]))) if has_base else None,
+        force_baseline_std_n=num(float(np.std(f[base]))) if has_base else None,
+        n_samples_baseline=n_base,
+        baseline_to_dwell_s=(num(float(np.mean(raw["time_s"][fin]) - np.mean(raw["time_s"][base])))
+                             if has_base and fin.any() else None),
+        force_predicted_prior_n=p.predicted_force_n, n_samples=int(fin.sum()), n_samples_total=int(len(ph)),
+        contact_threshold_n=num(contact_thr), noise_std_n=num(noise_std), t_s=num(t0), duration_s=num(t1 - t0),
+        wall_time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))

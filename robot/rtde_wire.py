@@ -126,12 +126,6 @@ def frame(msg_type: int, payload: bytes = b"") -> bytes:
     return HEADER.pack(HEADER.size + len(payload), msg_type) + payload
 
 
-def text_message(text: str, source: str = "simcontroller", level: int = 1) -> bytes:
-    """Protocol-2 text message: uint8 length + message, uint8 length + source, uint8 warning level."""
-    t, s = text.encode()[:250], source.encode()[:250]
-    return frame(TEXT_MESSAGE, bytes([len(t)]) + t + bytes([len(s)]) + s + bytes([level]))
-
-
 def recv_exact(sock: socket.socket, n: int) -> bytes:
     buf = bytearray()
     while len(buf) < n:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from robot import ur5e
+from core import ur5e
 
 HARD_FORCE_LIMIT_N = 10.0          # no plan can ask for more contact force than this
 HARD_DEPTH_LIMIT_M = 0.02

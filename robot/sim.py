@@ -20,7 +20,7 @@ from collections import deque
 
 import numpy as np
 
-from robot import ur5e
+from core import ur5e
 from robot.sensor import Sensor
 from robot.simforce import CachedForce
 
@@ -108,7 +108,7 @@ class ArmModel:
 
     def joints(self) -> np.ndarray:
         if self._q_stale:
-            q = ur5e.ik(ur5e.T_to_pose(self.T_tcp), self.q, self.tcp_offset, tol=1e-7, max_iter=20)
+            q = ur5e.ik(ur5e.T_to_pose(self.T_tcp), self.q, self.tcp_offset)
             if q is not None:
                 self.q = q
             self._q_stale = False

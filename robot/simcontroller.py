@@ -28,7 +28,8 @@ import numpy as np
 from robot import rtde_wire as W
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
-from robot.urscript_cmds import ArmPort, ControlScript, build_arm, split_programs
+from robot.simarm import build_truth_arm
+from robot.urscript_cmds import ArmPort, ControlScript, split_programs
 
 log = logging.getLogger("simcontroller")
 DASHBOARD_PORT, SCRIPT_PORT, RTDE_PORT = 29999, 30003, 30004
@@ -379,7 +380,7 @@ class SimController:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m robot.simcontroller", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scene", default="paper", help="TRUE scene: built-in name or TOML (default paper)")
+    ap.add_argument("--scene", help="TRUE scene: built-in name or TOML (needed with --force fem)")
     ap.add_argument("--sensor", default="nano17", help="sensor preset: nano17 | ur5e-builtin")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tissue-pose", type=lambda s: [float(v) for v in s.split(",")], default=None,
@@ -394,6 +395,8 @@ def main(argv=None) -> int:
     ap.add_argument("--log-level", default="INFO")
     ap.add_argument("--exit-on-stdin-eof", action="store_true", help="stop when the parent closes stdin")
     a = ap.parse_args(argv)
+    if a.force == "fem" and not a.scene:
+        ap.error("--scene: the TRUE scene is needed with --force fem (a built-in name or a TOML file)")
     logging.basicConfig(level=a.log_level.upper(), stream=sys.stderr,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
     try:
@@ -406,7 +409,8 @@ def main(argv=None) -> int:
         print(f"SIMCONTROLLER PORTS UNAVAILABLE: {e}", flush=True)
         return 3
     t0 = time.perf_counter()
-    ctl.arm = build_arm(a.scene, a.sensor, a.seed, a.tissue_pose, a.force, a.inject, a.q0, a.mesh_m)
+    ctl.arm = build_truth_arm(a.scene, force=a.force, sensor=a.sensor, seed=a.seed, tissue_pose=a.tissue_pose,
+                              q0=a.q0, mesh_m=a.mesh_m, inject=a.inject)
     ctl.port = ArmPort(ctl.arm)
     log.info("physics ready in %.1f s (scene %s, sensor %s)", time.perf_counter() - t0, a.scene, a.sensor)
     done = threading.Event()

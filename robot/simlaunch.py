@@ -70,12 +70,13 @@ class ControllerProcess:
         self.stop()
 
 
-def start_controller(scene="paper", sensor="nano17", seed=0, inject=(), force="fem", tissue_pose=None, q0=None,
+def start_controller(scene=None, sensor="nano17", seed=0, inject=(), force="fem", tissue_pose=None, q0=None,
                      mesh_m=None, host="127.0.0.1", log_path=None, ready_timeout_s=60.0) -> ControllerProcess:
     """Start a simulated controller on ``host`` (loopback) in a child process; return when its ports accept.
     ``host="auto"``: the first loopback address whose ports are free (see ``loopback_candidates``); connect the
     clients to ``.host`` of the result. Raises PortsUnavailable if the ports are taken (on every candidate)."""
-    args = ["--scene", str(scene), "--sensor", sensor, "--seed", str(seed), "--force", force]
+    args = (["--scene", str(scene)] if scene is not None else []) + ["--sensor", sensor, "--seed", str(seed),
+                                                                      "--force", force]
     for spec in inject:
         args += ["--inject", spec]
     if mesh_m:

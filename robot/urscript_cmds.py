@@ -9,7 +9,7 @@ URScript; we execute the same register protocol with the same command ids agains
 Command ids and semantics were read from ur_rtde 1.6.5's script (the installed client is the authority).
 
 Also here: the machine the program runs on -- ``ArmPort`` (what the program needs from robot.sim's ArmModel),
-``build_arm`` (the TRUE arm for a scene, with fem's force) and ``parse_inject`` (fault specifications).
+``parse_inject`` (fault specifications; robot.simarm builds the TRUE arm).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import re
 
 import numpy as np
 
-from robot import ur5e
+from core import ur5e
 
 log = logging.getLogger("simcontroller.script")
 
@@ -296,7 +296,7 @@ class ArmPort:
         self.arm.move_linear(pose, v, a)
 
     def move_linear_fk(self, q, v, a):
-        self.arm.move_linear(ur5e.fk(q, self.arm.tcp_offset), v, a)
+        self.arm.move_linear(ur5e.fk_pose(q, self.arm.tcp_offset), v, a)
 
     def inverse_kinematics(self, pose):
         q = ur5e.ik(pose, self.arm.joints(), self.arm.tcp_offset)
@@ -305,7 +305,7 @@ class ArmPort:
         return q
 
     def forward_kinematics(self, q=None):
-        return ur5e.fk(self.arm.joints() if q is None else q, self.arm.tcp_offset)
+        return ur5e.fk_pose(self.arm.joints() if q is None else q, self.arm.tcp_offset)
 
     def is_pose_reachable(self, pose):
         if float(np.linalg.norm(np.asarray(pose[:3]) - [0, 0, ur5e.D[0]])) >= 0.85:
@@ -330,35 +330,6 @@ class ArmPort:
     def request_protective_stop(self, reason):
         log.warning("protective stop: %s", reason)
         self.arm.trigger_protective_stop()
-
-
-def build_arm(scene="paper", sensor="nano17", seed=0, tissue_pose=None, force="fem", inject=(), q0=None,
-              mesh_m=None):
-    """The TRUE arm for a scene: fem's force for the scene with its stones (the controller holds the truth).
-    Without ``q0`` the arm starts parked with its flange 0.2 m above the middle of the tissue, tool pointing in."""
-    from robot.sim import ArmModel
-    from robot.simforce import standin_force_model
-    from planner.planfile import Frames
-    tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
-    if force == "fem":
-        from fem import contact, scene as fem_scene
-        sc = fem_scene.load(scene)
-        if mesh_m:
-            sc = sc.with_analysis(mesh_size_m=mesh_m)
-        model = contact.surface_model(sc)
-        width, height = sc.tissue.width_m, sc.tissue.height_m
-
-        def force_model(x, d):
-            return model.force_n(x, d) if 0.0 <= x <= width and 0.0 < d < height else 0.0
-    else:
-        width, force_model = 0.07, standin_force_model()
-    if q0 is None:
-        T = ur5e.pose_to_T(tissue_pose) @ ur5e.pose_to_T([0.5 * width, 0.0, 0.2, math.pi, 0.0, 0.0])
-        q0 = ur5e.ik(ur5e.T_to_pose(T), [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0])
-    arm = ArmModel(force_model, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed, q0=q0)
-    for spec in inject:
-        parse_inject(arm, spec)
-    return arm
 
 
 _FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",

@@ -5,8 +5,8 @@ import math
 
 import numpy as np
 
-from planner.planfile import Frames, Limits, Motion, Plan, Probe
-from robot import ur5e
+from core import ur5e
+from core.contracts import Frames, Limits, Motion, Plan, Probe
 from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
 from robot.simforce import standin_force_model
 
@@ -46,7 +46,7 @@ def make_plan(xs=(0.02, 0.035, 0.05), depth_m=0.003, predicted=0.1, tissue_pose=
 
 
 def start_q(tissue_pose=TISSUE_POSE, x_m=0.035, height_m=0.02):
-    return ur5e.ik(tissue_point_pose(tissue_pose, x_m, height_m), [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0], TCP)
+    return ur5e.ik(tissue_point_pose(tissue_pose, x_m, height_m), ur5e.IK_SEED, TCP)
 
 
 def make_sim(force_model=None, sensor="nano17", seed=0, tissue_pose=TISSUE_POSE, **kw):

@@ -109,7 +109,7 @@ def test_force_contrast_peaks_over_the_stone(paper, healthy):
     assert abs(xs[np.argmax(ratio)] - 0.035) <= spacing
     assert np.all(fp >= fh * (1 - 1e-9))         # a stiff inclusion never softens the response
     # at 100 waypoints (0.6 mm apart) the ratio's top is flat to ~1e-6: the sub-waypoint fit still finds the stone
-    from planner.commands.predict import _peak
+    from app.commands.predict import _peak
     xs = np.linspace(0.005, 0.065, 100)
     ratio = np.array([paper.force_n(x, 0.004) / healthy.force_n(x, 0.004) for x in xs])
     assert abs(_peak(xs, ratio)["x_m"] - 0.035) <= xs[1] - xs[0]

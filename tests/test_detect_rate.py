@@ -17,13 +17,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
 from accuracy_study import DEPTH_M, FastArm  # noqa: E402
 
+from core.contracts import Motion  # noqa: E402
+from core.contracts import sensor_spec as spec  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
 from planner.localize import Measurements, localize  # noqa: E402
-from planner.planfile import Motion  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402
 from planner.surrogate import load_surrogate, stone_model  # noqa: E402
-from robot.sensor import spec  # noqa: E402
 
 
 def test_predicted_detection_rate_matches_monte_carlo():

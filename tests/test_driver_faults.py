@@ -31,10 +31,10 @@ def check_safe_end(rep, arm, tmp_path, kind, n_done=1, retracted=True):
     assert rep.status == "fault" and rep.fault["kind"] == kind, rep.fault
     assert not arm.is_moving
     recs = read_records(tmp_path)
-    assert [x["index"] for x in recs if x["status"] == "ok"] == list(range(n_done))
+    assert [x.index for x in recs if x.status == "ok"] == list(range(n_done))
     last = recs[-1]
-    assert last["status"] == "fault" and last["index"] == n_done and kind in last["reason"]
-    assert len(load_raw(tmp_path, last)["time_s"]) == last["n_samples_total"] > 0    # its samples are kept
+    assert last.status == "fault" and last.index == n_done and kind in last.reason
+    assert len(load_raw(tmp_path, last)["time_s"]) == last.n_samples_total > 0    # its samples are kept
     run_json = json.loads((tmp_path / "run.json").read_text())
     assert run_json["status"] == "fault" and run_json["fault"]["kind"] == kind
     assert rep.fault["retracted"] is retracted
@@ -49,7 +49,7 @@ def resume_and_check(tmp_path, c, r, n_done_before):
     assert rep.n_skipped == n_done_before and rep.n_ok == len(XS) - n_done_before
     recs = read_records(tmp_path)
     for i in range(len(XS)):                              # finished probes were not repeated
-        assert sum(1 for x in recs if x["index"] == i and x["status"] == "ok") == 1
+        assert sum(1 for x in recs if x.index == i and x.status == "ok") == 1
     assert done_indices(tmp_path) == set(range(len(XS)))
 
 
@@ -146,7 +146,7 @@ def test_watchdog_stop_while_at_rest_restarts_the_program(tmp_path, monkeypatch)
     assert arm.watchdog_fired_s is not None              # it did fire ...
     assert rep.program_restarts == len(XS) - 1           # ... the program was uploaded before probes 2 and 3 ...
     assert len(calls) == 1 + len(XS)                     # ... and set-up and every probe set the TCP
-    assert max(rec["force_peak_n"] for rec in read_records(tmp_path)) < 2.0
+    assert max(rec.force_peak_n for rec in read_records(tmp_path)) < 2.0
 
 
 def test_transient_disconnect_reconnects_and_retracts(tmp_path):
@@ -212,8 +212,8 @@ def test_force_spike_stops_and_retracts_then_continues(tmp_path):
     arm.inject("force_spike", when=at_probe(1, DEPTH - 1e-6), magnitude_n=5.0, duration_s=0.05)
     rep = run(tmp_path, c, r)
     assert rep.status == "ok" and rep.n_ok == 2 and rep.n_force_limit == 1
-    rec = [x for x in rep.records if x["index"] == 1][0]
-    assert rec["status"] == "force_limit" and rec["force_peak_n"] > 2.0
+    rec = [x for x in rep.records if x.index == 1][0]
+    assert rec.status == "force_limit" and rec.force_peak_n > 2.0
     assert not arm.is_moving and arm.tip_in_tissue()[1] < 0
     assert arm.max_contact_force_n < 1.0                   # a sensor spike: the tissue itself was never overloaded
     rep2 = run(tmp_path, c, r)                             # resume re-probes only the force-limited one
@@ -277,7 +277,7 @@ def test_ctrl_c_stops_and_retracts(tmp_path):
     assert rep.fault["stopped"] and rep.fault["retracted"] and not arm.is_moving
     assert arm.tip_in_tissue()[1] < 0
     recs = read_records(tmp_path)
-    assert [x["status"] for x in recs] == ["ok", "interrupted"]
+    assert [x.status for x in recs] == ["ok", "interrupted"]
     resume_and_check(tmp_path, c, SimRTDEReceive(arm), 1)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fem import scene as S
-from fem.assembly import Material, body_force, element_dofs, elasticity_matrix, gradients, strain_matrices
+from fem.assembly import Material, body_force, elasticity_matrix, element_dofs, gradients, strain_matrices
 from fem.elements import shape
 from fem.mesh import mesh_section
 from fem.model import Model
@@ -289,6 +289,7 @@ def test_rigid_stone_matches_elastic_stone():
 
 def test_vtu_round_trip(tmp_path):
     import meshio
+
     from fem.export import write_result_vtu
     r = solve_uniform(S.load("paper").with_analysis(mesh_size_m=0.006), full_field=True)
     path = write_result_vtu(tmp_path / "paper.vtu", r)
@@ -303,7 +304,7 @@ def test_vtu_round_trip(tmp_path):
 
 
 def test_cli_simulate_json_and_plots(tmp_path, capsys):
-    from planner.cli import main
+    from app.cli import main
     out = tmp_path / "paper.json"
     rc = main(["simulate", "paper", "--load", "uniform", "--order", "1", "--mesh-size-m", "0.005",
                "--json", str(out), "--plots", str(tmp_path / "fig"), "--vtu", str(tmp_path / "p.vtu")])

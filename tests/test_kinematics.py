@@ -4,10 +4,12 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
+from core import ur5e
 from planner import kinematics as kin
 
 # --- independent model: product of exponentials (Lynch & Park, Modern Robotics, UR5 example) with UR5e lengths,
@@ -63,13 +65,13 @@ def poe_tcp(q, tcp_offset):
 
 joints = st.lists(st.floats(-2 * math.pi, 2 * math.pi, allow_nan=False), min_size=6, max_size=6)
 within_limits = st.tuples(*[st.floats(float(lo) + 1e-6, float(hi) - 1e-6, allow_nan=False)
-                            for lo, hi in zip(kin.JOINT_LOWER_RAD, kin.JOINT_UPPER_RAD)])
+                            for lo, hi in zip(ur5e.JOINT_LOWER_RAD, ur5e.JOINT_UPPER_RAD)])
 
 
 @settings(max_examples=40, deadline=None)
 @given(joints)
 def test_numpy_fk_matches_product_of_exponentials(q):
-    np.testing.assert_allclose(kin.fk_flange(q), poe_flange(q), atol=1e-12)
+    np.testing.assert_allclose(ur5e.fk_flange(q), poe_flange(q), atol=1e-12)
 
 
 def test_casadi_fk_function_matches_poe_with_tcp_offset():
@@ -79,41 +81,41 @@ def test_casadi_fk_function_matches_poe_with_tcp_offset():
     tcp = [0.01, -0.02, 0.12, 0.1, -0.2, 0.3]
     for _ in range(20):
         q = rng.uniform(-2 * math.pi, 2 * math.pi, 6)
-        T, pw = f(q, kin.pose_to_matrix(tcp))
+        T, pw = f(q, ur5e.pose_to_T(tcp))
         np.testing.assert_allclose(np.array(T), poe_tcp(q, tcp), atol=1e-12)
         F = poe_flange(q)
-        np.testing.assert_allclose(np.array(pw).ravel(), F[:3, 3] - kin.D6 * F[:3, 2], atol=1e-12)
+        np.testing.assert_allclose(np.array(pw).ravel(), F[:3, 3] - ur5e.D6 * F[:3, 2], atol=1e-12)
 
 
 def test_home_pose_is_tool_down_on_the_default_branch():
-    T = kin.fk(kin.HOME_RAD)
+    T = ur5e.fk(ur5e.Q_HOME)
     np.testing.assert_allclose(T[:3, 2], [0, 0, -1], atol=1e-12)
-    assert tuple(np.sign(kin.branch_indicators(kin.HOME_RAD))) == kin.DEFAULT_BRANCH
+    assert tuple(np.sign(ur5e.branch_indicators(ur5e.Q_HOME))) == ur5e.DEFAULT_BRANCH
 
 
 @settings(max_examples=40, deadline=None)
 @given(within_limits)
 def test_closed_form_ik_recovers_the_configuration(q):
     q = np.asarray(q)
-    ind = kin.branch_indicators(q)
+    ind = ur5e.branch_indicators(q)
     if np.min(np.abs(ind)) < 1e-3:
         return  # singular: q is not isolated
-    T = kin.fk_flange(q)
-    sols = kin.ik_flange(T)
+    T = ur5e.fk_flange(q)
+    sols = ur5e.ik_flange(T)
     assert 1 <= len(sols) <= 8
     for s in sols:
-        np.testing.assert_allclose(kin.fk_flange(s), T, atol=1e-9)
+        np.testing.assert_allclose(ur5e.fk_flange(s), T, atol=1e-9)
     wrapped = (sols - q + math.pi) % (2 * math.pi) - math.pi
     assert np.min(np.max(np.abs(wrapped), axis=1)) < 1e-7
     # the solution on q's own branch, unwrapped next to q, is q itself
-    qb = kin.ik_on_branch(T, np.sign(ind), q)
+    qb = ur5e.ik_on_branch(T, np.sign(ind), q)
     np.testing.assert_allclose(qb, q, atol=1e-7)
 
 
 def test_ik_out_of_reach_is_empty():
     T = np.eye(4)
     T[:3, 3] = [1.5, 0.0, 0.2]
-    assert len(kin.ik_flange(T)) == 0
+    assert len(ur5e.ik_flange(T)) == 0
 
 
 def test_pose_conversion_round_trip_near_pi_and_sign_continuity():
@@ -121,14 +123,14 @@ def test_pose_conversion_round_trip_near_pi_and_sign_continuity():
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = [0.4, 0.0, 0.1]
-    p = kin.matrix_to_pose(T)
-    np.testing.assert_allclose(kin.pose_to_matrix(p), T, atol=1e-12)
+    p = ur5e.T_to_pose(T)
+    np.testing.assert_allclose(ur5e.pose_to_T(p), T, atol=1e-12)
     ref = [0, 0, 0, -p[3], -p[4], -p[5]]
-    q = kin.matrix_to_pose(T, near=ref)     # the equivalent vector near the reference
+    q = ur5e.T_to_pose(T, near=ref)     # the equivalent vector near the reference
     assert np.linalg.norm(np.subtract(q[3:], ref[3:])) < np.linalg.norm(np.subtract(p[3:], ref[3:]))
-    np.testing.assert_allclose(kin.pose_to_matrix(q), T, atol=1e-9)
+    np.testing.assert_allclose(ur5e.pose_to_T(q), T, atol=1e-9)
 
 
 def test_unwrap_near_stays_within_limits():
-    q = kin.unwrap_near([3.0, 0, 0, 0, 0, 0], [-3.0, 0, 0, 0, 0, 0])
+    q = ur5e.unwrap_near([3.0, 0, 0, 0, 0, 0], [-3.0, 0, 0, 0, 0, 0])
     assert q[0] == pytest.approx(3.0 - 2 * math.pi)

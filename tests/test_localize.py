@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from core.contracts import ProbeRecord, ProbeStatus
 from fem.scene import Stone, load
 from planner.localize import LR_THRESHOLD, Measurements, localize, peak_estimate
 from planner.refine import adaptive, refine_positions
@@ -97,9 +98,9 @@ def test_adaptive_loop_narrows_uncertainty(prior):
     def execute(x, k):
         x = np.asarray(x)
         f = [m.force_n(float(a), 0.004) for a in x] + sur.contrast(x, 0.004, st.x_m, st.depth_m, st.diameter_m)
-        return [{"index": 100 * k + i, "x_m": float(a), "depth_reached_m": 0.004, "force_mean_n": float(v)
-                 + rng.normal(0, 1e-3), "force_std_n": 1e-3 * math.sqrt(50 * 250 / 300), "n_samples": 250,
-                 "status": "ok"} for i, (a, v) in enumerate(zip(x, f))]
+        return [ProbeRecord(index=100 * k + i, x_m=float(a), depth_reached_m=0.004,
+                            force_mean_n=float(v) + rng.normal(0, 1e-3), force_std_n=1e-3 * math.sqrt(50 * 250 / 300),
+                            n_samples=250, status=ProbeStatus.OK) for i, (a, v) in enumerate(zip(x, f))]
     res = adaptive(prior, execute, coarse_x_m=np.linspace(0.005, 0.065, 15), budget_probes=45, target_m=1e-9,
                    surrogate=sur)
     s0 = res.rounds[0].localization["estimate"]
@@ -116,3 +117,13 @@ def test_detectability_orders_stones_by_contrast(prior):
     assert r["usable"] and shallow["snr"] > deep["snr"] > 0 and shallow["detectable"]
     r2 = detectability(prior, sensor="ur5e-builtin", stones=[(12e-3, 10e-3)], surrogate=ToySurrogate())
     assert not r2["usable"] and not r2["rows"][0]["detectable"] and "refuses" in r2["reason"]
+
+
+def test_random_check_stones_fit_inside_a_thin_tissue():
+    """The surrogate's error check draws stones inside the tissue at hand (it once assumed a 50 mm tissue: a 20 mm
+    one got stones through its bottom)."""
+    from planner.surrogate import random_stones
+    bounds = {"diam_m": (4e-3, 8e-3), "s_m": (1.5e-3, 36e-3), "xs_m": (5e-3, 65e-3)}
+    stones = random_stones(bounds, 0.070, 0.020, 200, np.random.default_rng(1))
+    assert all(s + D <= 0.020 - 3e-3 + 1e-12 for _, s, D in stones)
+    assert max(s + D for _, s, D in stones) > 0.012          # and they still use the depth available

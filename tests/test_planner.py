@@ -6,15 +6,14 @@ import math
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from fem.scene import load
-from planner import kinematics as kin
-from planner.plan import Margins, plan_raster, replan
-from planner.planfile import Frames, Limits, Plan
-from planner.raster import (PlanningError, choose_depths, default_tissue_pose, depth_for_force, interval_positions,
-                            raster_positions)
-from planner.timing import trapezoid_time
 from test_kinematics import poe_tcp
+
+from core import ur5e
+from core.contracts import Frames, Limits, Plan, PlanError
+from fem.scene import load
+from planner.plan import Margins, plan_raster, replan
+from planner.raster import choose_depths, default_tissue_pose, depth_for_force, interval_positions, raster_positions
+from planner.timing import trapezoid_time
 
 W = 0.070
 
@@ -43,7 +42,7 @@ def test_every_joint_vector_maps_to_its_pose(plan):
             T = poe_tcp(q, plan.frames.tcp_offset)                     # independent FK
             assert np.linalg.norm(T[:3, 3] - pose[:3]) < 1e-6
             R = Rotation.from_rotvec(pose[3:]).as_matrix()
-            assert kin.rotation_angle(T[:3, :3], R) < 1e-6
+            assert ur5e.rotation_angle(T[:3, :3], R) < 1e-6
 
 
 def test_tip_reaches_the_surface_targets(plan):
@@ -58,7 +57,7 @@ def test_tip_reaches_the_surface_targets(plan):
 
 def test_tool_axis_along_inward_normal(plan):
     n_in = -_tissue_T(plan)[:3, 2]
-    tol = plan.notes["tilt_tol_rad"]
+    tol = plan.options.tilt_tol_rad
     for p in plan.probes:
         for q in (p.q_approach_rad, p.q_indent_rad):
             z = poe_tcp(q, plan.frames.tcp_offset)[:3, 2]
@@ -67,15 +66,15 @@ def test_tool_axis_along_inward_normal(plan):
 
 def test_joint_limits_hold(plan):
     Q = np.array([[p.q_approach_rad, p.q_indent_rad] for p in plan.probes])
-    assert np.all(Q >= kin.JOINT_LOWER_RAD) and np.all(Q <= kin.JOINT_UPPER_RAD)
+    assert np.all(Q >= ur5e.JOINT_LOWER_RAD) and np.all(Q <= ur5e.JOINT_UPPER_RAD)
 
 
 def test_force_and_depth_limits_hold(plan):
     lim = plan.limits
-    budget = plan.notes["force_fraction"] * lim.force_limit_n
+    budget = plan.options.force_fraction * lim.force_limit_n
     by = plan.notes["depth_limited_by"]
     for p, why in zip(plan.probes, by):
-        assert plan.notes["min_depth_m"] <= p.depth_m <= lim.depth_limit_m
+        assert plan.options.min_depth_m <= p.depth_m <= lim.depth_limit_m
         assert p.predicted_force_n == pytest.approx(stand_in_force(p.x_m, p.depth_m), rel=1e-12)
         assert p.predicted_force_n <= budget <= lim.force_limit_n
         if why == "force":   # as deep as the budget allows
@@ -87,7 +86,7 @@ def test_one_branch_no_flips_and_singularity_margins(plan):
     m = Margins()
     Q = np.array([[p.q_approach_rad, p.q_indent_rad] for p in plan.probes])
     for q in Q.reshape(-1, 6):
-        ind = kin.branch_indicators(q) * np.array(kin.DEFAULT_BRANCH)
+        ind = ur5e.branch_indicators(q) * np.array(ur5e.DEFAULT_BRANCH)
         assert np.all(ind >= m.as_array() - 1e-9)
     assert np.max(np.abs(np.diff(Q[:, 0], axis=0))) < 0.1      # neighbours: no 2 pi jumps, no flips
     assert np.max(np.abs(Q[:, 1] - Q[:, 0])) < 0.1
@@ -115,10 +114,10 @@ def test_timing_is_consistent_and_within_joint_limits(plan):
         travel = plan.motion.approach_height_m + p.depth_m
         assert tm["descend_s"][k] >= travel / plan.motion.probe_speed_m_s
         dq = np.max(np.abs(np.subtract(p.q_indent_rad, p.q_approach_rad)))
-        assert dq / tm["retract_s"][k] <= kin.MAX_JOINT_SPEED_RAD_S
+        assert dq / tm["retract_s"][k] <= ur5e.MAX_JOINT_SPEED_RAD_S
         if k:
             dq = np.max(np.abs(np.subtract(p.q_approach_rad, plan.probes[k - 1].q_approach_rad)))
-            assert dq / tm["move_in_s"][k] <= kin.MAX_JOINT_SPEED_RAD_S
+            assert dq / tm["move_in_s"][k] <= ur5e.MAX_JOINT_SPEED_RAD_S
 
 
 def test_trapezoid_time():
@@ -148,32 +147,32 @@ def test_raster_positions():
     assert raster_positions(W, n=5, margin_m=0.005) == pytest.approx([0.005, 0.02, 0.035, 0.05, 0.065])
     x = raster_positions(W, spacing_m=0.004, margin_m=0.005)
     assert np.allclose(np.diff(x), 0.004) and x[0] >= 0.005 and x[-1] <= 0.065
-    with pytest.raises(PlanningError, match="margin"):
+    with pytest.raises(PlanError, match="margin"):
         raster_positions(W, n=3, margin_m=0.04)
 
 
 def test_unreachable_scene_is_refused_with_a_clear_message():
     far = Frames(tissue_pose_base=[0.78, 0.55, 0.05, 0, 0, math.pi / 2])      # inside the workspace box, too far
     msg = r"out of reach of the UR5e \(too far.*move the tissue closer.*--tissue-pose"
-    with pytest.raises(PlanningError, match=msg):
+    with pytest.raises(PlanError, match=msg):
         plan_raster("paper", n_waypoints=5, force_n=stand_in_force, frames=far)
     near = Frames(tissue_pose_base=[0.05, -0.035, 0.05, 0, 0, math.pi / 2])   # on top of the base
-    with pytest.raises(PlanningError, match=r"too close to the base.*farther"):
+    with pytest.raises(PlanError, match=r"too close to the base.*farther"):
         plan_raster("paper", n_waypoints=5, force_n=stand_in_force, frames=near)
     outside = Frames(tissue_pose_base=[1.2, -0.035, 0.05, 0, 0, math.pi / 2])
-    with pytest.raises(PlanningError, match=r"workspace box"):
+    with pytest.raises(PlanError, match=r"workspace box"):
         plan_raster("paper", n_waypoints=5, force_n=stand_in_force, frames=outside)
 
 
 def test_force_limit_below_any_useful_depth_is_refused():
-    with pytest.raises(PlanningError, match=r"force limit 0\.1 N is too low.*--force-limit-n"):
+    with pytest.raises(PlanError, match=r"force limit 0\.1 N is too low.*--force-limit-n"):
         plan_raster("paper", n_waypoints=5, force_n=stand_in_force, limits=Limits(force_limit_n=0.1))
-    with pytest.raises(PlanningError, match="--depth-limit-m"):
+    with pytest.raises(PlanError, match="--depth-limit-m"):
         choose_depths(stand_in_force, [0.035], force_limit_n=2.0, depth_limit_m=0.0005)
 
 
 def test_cli_refuses_unreachable_before_building_fem(tmp_path, capsys):
-    from planner.cli import main
+    from app.cli import main
     rc = main(["plan", "paper", "--out", str(tmp_path / "p.json"), "--tissue-pose", "1.2", "-0.035", "0.05", "0", "0",
                "1.5708"])
     assert rc == 2
@@ -182,8 +181,8 @@ def test_cli_refuses_unreachable_before_building_fem(tmp_path, capsys):
 
 def test_cli_plan_on_the_real_fem_model(tmp_path):
     """`palpate plan` end to end with fem's surface model (a coarse healthy kidney to keep it quick)."""
+    from app.cli import main
     from fem.contact import surface_model
-    from planner.cli import main
     toml = tmp_path / "coarse.toml"
     toml.write_text('name = "coarse"\n[indenter]\nyoungs_pa = 60.0e6\n[analysis]\nmesh_size_m = 0.005\n'
                     '[[stone]]\nx_m = 0.035\ndepth_m = 0.025\ndiameter_m = 0.015\n')

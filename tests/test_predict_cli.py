@@ -1,11 +1,11 @@
-"""`palpate simulate --load indent` and `palpate predict`: they run, their JSON keeps DESIGN.md's keys, the figures
+"""`palpate simulate --load indent` and `palpate predict`: they run, their JSON keeps the keys of docs/architecture.md, the figures
 are written, and the physics shows (the force ratio peaks over the stone). Coarse meshes (h = 4 mm) keep it fast."""
 import json
 
 import numpy as np
 import pytest
 
-from planner.cli import main
+from app.cli import main
 
 COARSE = ["--mesh-size-m", "0.004"]
 

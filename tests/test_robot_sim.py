@@ -13,7 +13,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import TCP, make_plan, make_sim  # noqa: E402
 
-from robot import ur5e  # noqa: E402
+from core import ur5e  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
 from robot.records import load_raw, read_measurements, read_records  # noqa: E402
 from robot.sim import ArmModel  # noqa: E402
@@ -38,39 +38,39 @@ def test_full_plan_on_inmemory_arm_agrees_with_fem(tmp_path, fem_truth):
     rep = run_plan(plan, c, r, tmp_path)
     assert rep.status == "ok" and rep.n_ok == len(xs) and rep.fault is None
     recs = read_records(tmp_path)
-    assert [q["index"] for q in recs] == list(range(len(xs)))
+    assert [q.index for q in recs] == list(range(len(xs)))
     sigma = arm.sensor.spec.noise_std_n
     errs = []
     for rec in recs:
-        assert rec["status"] == "ok" and rec["n_samples"] >= 90
-        assert abs(rec["depth_reached_m"] - 0.004) < 2e-5 and abs(rec["contact_x_m"] - rec["x_m"]) < 1e-6
-        truth = fem_truth(rec["contact_x_m"], rec["depth_reached_m"])
-        err = rec["force_mean_n"] - truth
+        assert rec.status == "ok" and rec.n_samples >= 90
+        assert abs(rec.depth_reached_m - 0.004) < 2e-5 and abs(rec.contact_x_m - rec.x_m) < 1e-6
+        truth = fem_truth(rec.contact_x_m, rec.depth_reached_m)
+        err = rec.force_mean_n - truth
         errs.append(err)
         # the dwell mean is within the noise of the mean plus the drift since zeroing and half a quantum
-        tol = 4 * sigma / math.sqrt(rec["n_samples"]) + 3 * arm.sensor.spec.drift_n_per_s * rec["duration_s"] + 0.0016
-        assert abs(err) < tol, (rec["index"], err, tol)
-        assert abs(rec["force_std_n"] - sigma) < 0.5 * sigma           # the noise the sensor model promises
-        assert rec["contact_depth_m"] is not None and 0 < rec["contact_depth_m"] < 0.004
+        tol = 4 * sigma / math.sqrt(rec.n_samples) + 3 * arm.sensor.spec.drift_n_per_s * rec.duration_s + 0.0016
+        assert abs(err) < tol, (rec.index, err, tol)
+        assert abs(rec.force_std_n - sigma) < 0.5 * sigma           # the noise the sensor model promises
+        assert rec.contact_depth_m is not None and 0 < rec.contact_depth_m < 0.004
         raw = load_raw(tmp_path, rec)
-        assert raw["tcp_pose"].shape[1] == 6 and raw["wrench"].shape == (rec["n_samples_total"], 6)
+        assert raw["tcp_pose"].shape[1] == 6 and raw["wrench"].shape == (rec.n_samples_total, 6)
     print("force error vs fem (mN):", np.round(np.array(errs) * 1e3, 2))
     assert len(read_measurements(tmp_path)) == len(xs)
 
 
 def test_builtin_sensor_cannot_resolve_tissue_forces(tmp_path):
     """With the UR5e's own sensor (noise ~1.75 N) the 0.1-0.3 N of soft tissue is lost in noise and drift."""
-    from planner.planfile import Limits
+    from core.contracts import Limits
     plan = make_plan([0.03], depth_m=0.003, limits=Limits(force_limit_n=10.0))
     arm, c, r = make_sim(sensor="ur5e-builtin", seed=1)
     rep = run_plan(plan, c, r, tmp_path)
     assert rep.status == "ok"
     rec = rep.records[0]
-    assert rec["contact_depth_m"] is None                      # contact never detected above the noise
-    assert rec["contact_threshold_n"] > 1.0
+    assert rec.contact_depth_m is None                      # contact never detected above the noise
+    assert rec.contact_threshold_n > 1.0
     s = arm.sensor.spec
-    tol = 4 * s.noise_std_n / math.sqrt(rec["n_samples"]) + 3 * s.drift_n_per_s * rec["duration_s"]
-    assert abs(rec["force_mean_n"] - standin_force_model()(0.03, rec["depth_reached_m"])) < tol
+    tol = 4 * s.noise_std_n / math.sqrt(rec.n_samples) + 3 * s.drift_n_per_s * rec.duration_s
+    assert abs(rec.force_mean_n - standin_force_model()(0.03, rec.depth_reached_m)) < tol
 
 
 def test_cached_force_interpolation_error():
@@ -94,7 +94,7 @@ def test_cached_fem_interpolation_error(fem_truth):
 def test_arm_kinematics_and_trapezoid():
     arm, c, r = make_sim()
     q = np.array(r.getActualQ())
-    assert np.allclose(ur5e.fk(q, TCP)[:3], r.getActualTCPPose()[:3], atol=1e-6)
+    assert np.allclose(ur5e.fk_pose(q, TCP)[:3], r.getActualTCPPose()[:3], atol=1e-6)
     p0 = np.array(r.getActualTCPPose())
     target = list(p0[:3] + [0.05, 0.02, -0.01]) + list(p0[3:])
     t0 = arm.t_s
@@ -103,7 +103,7 @@ def test_arm_kinematics_and_trapezoid():
     assert abs((arm.t_s - t0) - (math.sqrt(dist) / 0.1 + 0.1 / 0.5)) < 0.01        # trapezoid duration
     assert np.allclose(r.getActualTCPPose()[:3], target[:3], atol=1e-9)
     q2 = np.array(r.getActualQ())
-    assert np.allclose(ur5e.fk(q2, TCP), target, atol=1e-5)
+    assert np.allclose(ur5e.fk_pose(q2, TCP), target, atol=1e-5)
     assert c.moveJ(list(q), 1.0, 2.0) is True
     assert np.allclose(r.getActualTCPPose(), p0, atol=1e-6)
     # asynchronous move: progress >= 0 while moving, then -1; stopL halts it
@@ -132,7 +132,7 @@ def test_cell_script_end_to_end_sim(tmp_path):
     plan = make_plan([0.02, 0.035, 0.05], depth_m=0.003, solve_q=True)
     plan.save(tmp_path / "plan.json")
     out = tmp_path / "run"
-    from robot import cell
+    from app import cell
     argv = ["--sim", "--plan", str(tmp_path / "plan.json"), "--out", str(out), "--truth", "paper",
             "--sim-mesh-m", str(FEM_MESH_M)]
     assert cell.main(argv) == 0
@@ -145,7 +145,7 @@ def test_cell_script_end_to_end_sim(tmp_path):
 
 def test_cell_module_help_and_driver_imports_no_fem():
     root = Path(__file__).resolve().parent.parent
-    out = subprocess.run([sys.executable, "-m", "robot.cell", "--help"], cwd=root, capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-m", "app.cell", "--help"], cwd=root, capture_output=True, text=True,
                          timeout=30)
     assert out.returncode == 0 and "--sim" in out.stdout and "--host" in out.stdout
     code = ("import sys, robot.driver, robot.safety, robot.records; "
@@ -169,7 +169,7 @@ def test_cell_script_against_simulated_controller(tmp_path, capsys):
     same driver. Skips only when the ports are taken on every loopback address tried (exit code 4)."""
     pytest.importorskip("rtde_control")
     pytest.importorskip("robot.simlaunch")
-    from robot import cell
+    from app import cell
     plan = make_plan([0.035], depth_m=0.003, solve_q=True)
     plan.save(tmp_path / "plan.json")
     rc = cell.main(["--sim", "controller", "--plan", str(tmp_path / "plan.json"), "--out", str(tmp_path / "run"),
@@ -179,17 +179,17 @@ def test_cell_script_against_simulated_controller(tmp_path, capsys):
         pytest.skip(f"controller ports taken on every loopback address tried: {err.strip()}")
     assert rc == 0, out + err
     rec = read_records(tmp_path / "run")[0]
-    assert rec["status"] == "ok"
-    assert abs(rec["force_mean_n"] - standin_force_model()(rec["contact_x_m"], rec["depth_reached_m"])) < 0.01
+    assert rec.status == "ok"
+    assert abs(rec.force_mean_n - standin_force_model()(rec.contact_x_m, rec.depth_reached_m)) < 0.01
 
 
 def test_free_air_baseline_removes_the_zeroing_error(tmp_path, fem_truth):
     """Each record carries the descent's free-air baseline (>= 1 mm above the surface); the force relative to it
     scatters about fem's with the noise of the two means only: sqrt(1/250 + 1/2250) sigma = 0.2 mN for the nano17,
     where the dwell mean relative to the sensor's 50-sample zeroing scatters with sqrt(1/250 + 1/50) sigma = 0.47 mN."""
+    from core.contracts import Motion
     from planner.detectability import baseline_samples, probe_sigma_n, probe_tau_s
     from planner.localize import Measurements
-    from planner.planfile import Motion
     xs = np.linspace(0.012, 0.058, 20)
     plan = make_plan(xs, depth_m=0.004, solve_q=True, motion=Motion())      # the planner's default motion
     arm, c, r = make_sim(fem_truth, sensor="nano17", seed=5)
@@ -198,11 +198,11 @@ def test_free_air_baseline_removes_the_zeroing_error(tmp_path, fem_truth):
     nb = baseline_samples(plan.motion)
     rel, zeroed = [], []
     for rec in recs:
-        assert abs(rec["n_samples_baseline"] - nb) <= 0.05 * nb      # less the 2 mm kept behind felt contact
-        assert rec["baseline_to_dwell_s"] == pytest.approx(float(probe_tau_s(plan.motion, 0.004)), rel=0.05)
-        truth = fem_truth(rec["contact_x_m"], rec["depth_reached_m"])
-        rel.append(rec["force_mean_n"] - rec["force_baseline_n"] - truth)
-        zeroed.append(rec["force_mean_n"] - truth)
+        assert abs(rec.n_samples_baseline - nb) <= 0.05 * nb      # less the 2 mm kept behind felt contact
+        assert rec.baseline_to_dwell_s == pytest.approx(float(probe_tau_s(plan.motion, 0.004)), rel=0.05)
+        truth = fem_truth(rec.contact_x_m, rec.depth_reached_m)
+        rel.append(rec.force_mean_n - rec.force_baseline_n - truth)
+        zeroed.append(rec.force_mean_n - truth)
     sd_rel, sd_zero = np.std(rel, ddof=1), np.std(zeroed, ddof=1)
     sig = probe_sigma_n(arm.sensor.spec, plan.motion)
     print(f"scatter about fem: {sd_rel * 1e3:.3f} mN (baseline), {sd_zero * 1e3:.3f} mN (zeroing); model {sig * 1e3:.3f}")
@@ -210,7 +210,28 @@ def test_free_air_baseline_removes_the_zeroing_error(tmp_path, fem_truth):
     assert sd_rel < 0.7 * sd_zero
     m = Measurements.from_records(recs, plan.motion)
     np.testing.assert_allclose(m.sigma_n, sig, rtol=0.3)
-    np.testing.assert_allclose(m.force_n, sorted_force := [rec["force_mean_n"] - rec["force_baseline_n"] for rec in
-                                                           sorted(recs, key=lambda q: q["contact_x_m"])], rtol=0,
+    np.testing.assert_allclose(m.force_n, sorted_force := [rec.force_mean_n - rec.force_baseline_n for rec in
+                                                           sorted(recs, key=lambda q: q.contact_x_m)], rtol=0,
                                atol=1e-12)
     assert len(sorted_force) == len(xs)
+
+
+def test_cell_needs_the_truth_for_a_plan_of_a_toml_scene(tmp_path, capsys):
+    """A plan made from a TOML scene holds only its prior: the simulated cell must be told the truth (it used to
+    guess it from the prior's name and fail on a TOML scene) and says so in one line, exit 2, before anything moves."""
+    from app import cell
+    from fem.scene import dump_toml, load
+    sc = load("paper")
+    toml = tmp_path / "kidney.toml"
+    toml.write_text(dump_toml(sc).replace('name = "paper"', 'name = "my-kidney"'))
+    plan = make_plan([0.035], depth_m=0.003, solve_q=True)
+    plan.scene = {**plan.scene, "name": "my-kidney-prior"}
+    plan.save(tmp_path / "plan.json")
+    argv = ["--sim", "--plan", str(tmp_path / "plan.json"), "--out", str(tmp_path / "run"),
+            "--sim-mesh-m", str(FEM_MESH_M)]
+    assert cell.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--truth" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "run" / "probes.jsonl").exists()
+    assert cell.main(argv + ["--truth", str(toml)]) == 0
+    assert len(read_records(tmp_path / "run")) == 1

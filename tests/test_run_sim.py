@@ -10,7 +10,7 @@ import re
 
 import pytest
 
-from planner.cli import main
+from app.cli import main
 
 ARGS = ["--sim", "--budget-probes", "25", "--refine-waypoints", "10", "--no-figure"]
 
@@ -89,14 +89,14 @@ def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
     assert res["detected"] is True
     assert abs(res["estimate"]["x_m"]["value"] - 0.035) < 0.002
     recs = [json.loads(line) for line in (tmp_path / "probes.jsonl").read_text().splitlines()]
-    assert [r["status"] for r in recs] == ["ok"] * 8
+    assert [r.status for r in recs] == ["ok"] * 8
     log = (tmp_path / "simcontroller.log").read_text()
     assert log                                              # the controller ran (and was stopped: no hang here)
     assert "RTDE watchdog on input_int_register_0 at 5 Hz" in log     # the driver armed it through ur_rtde
     fired = re.findall(r"RTDE watchdog: no update .* at t=([0-9.]+) s", log)
-    end_s = max(r["t_s"] + r["duration_s"] for r in recs)
-    ends = sorted(r["t_s"] + r["duration_s"] for r in recs)
-    starts = sorted(r["t_s"] for r in recs)
+    end_s = max(r.t_s + r.duration_s for r in recs)
+    ends = sorted(r.t_s + r.duration_s for r in recs)
+    starts = sorted(r.t_s for r in recs)
     for t in map(float, fired):   # kicked while probing: it fires only between rounds (planning) or once done
         assert not any(a <= t <= b for a, b in zip(starts, ends)), (t, list(zip(starts, ends)))
     # a round after such a stop starts by uploading the control script again

@@ -8,7 +8,6 @@ import pytest
 from fem import scene as S
 from fem.scene import Scene, SceneError, Stone, Tissue
 
-
 # ------------------------------------------------------------------------------------------------ built-ins
 
 def test_builtin_scenes_match_the_study():

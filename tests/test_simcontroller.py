@@ -22,10 +22,11 @@ import pytest
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
-from fem import contact, scene as fem_scene                       # noqa: E402
-from planner.planfile import Frames, Limits, Motion, Plan, Probe  # noqa: E402
-from robot import ur5e                                            # noqa: E402
-from robot.simlaunch import PortsUnavailable, start_controller     # noqa: E402
+from core import ur5e  # noqa: E402
+from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
+from fem import contact  # noqa: E402
+from fem import scene as fem_scene  # noqa: E402
+from robot.simlaunch import PortsUnavailable, start_controller  # noqa: E402
 
 TCP = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
 TISSUE = list(Frames().tissue_pose_base)         # the plan default; the controller is told the same
@@ -42,7 +43,7 @@ def _pose_at(x_m, height_m):
 
 NORMAL = ur5e.pose_to_T(TISSUE)[:3, 2]           # the tissue's outward normal in the base frame
 # the controller's arm starts with the tip 40 mm above the middle of the tissue
-Q0 = ur5e.ik(_pose_at(0.035, 0.04), [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0], TCP)
+Q0 = ur5e.ik(_pose_at(0.035, 0.04), ur5e.IK_SEED, TCP)
 assert Q0 is not None, "no joint solution for the start pose above the tissue"
 
 
@@ -77,7 +78,7 @@ def controller(scene_file, tmp_path, **kw):
 
 @contextlib.contextmanager
 def clients(host):
-    from robot.cell import connect
+    from robot.link import connect
     c, r = connect(host)
     try:
         yield c, r
@@ -191,7 +192,7 @@ def test_real_client_connect_move_receive(scene_file, tmp_path):
         assert c.moveL([_pose_at(0.035, 0.03) + [0.1, 1.0, 0.0], list(tip) + [0.1, 1.0, 0.0]]) is True
         _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], tip[:3], atol=1e-5))
         got = r.getActualTCPPose()                 # ur_rtde writes path poses with 6 significant digits
-        # 6 digits put the tool rotation ~5e-6 rad short of pi (robot.ur5e.matrix_to_rotvec is exact there, see
+        # 6 digits put the tool rotation ~5e-6 rad short of pi (core.ur5e.matrix_to_rotvec is exact there, see
         # tests/test_ur5e.py); the rotation itself is exact to ~1e-5
         assert ur5e.rotation_angle(ur5e.rotvec_to_matrix(got[3:]), ur5e.rotvec_to_matrix(tip[3:])) < 1e-4
         # into the (stand-in) tissue: the sensor sees the tissue push back along its outward normal
@@ -248,7 +249,7 @@ def _cell(host, plan, out, timeout_s=90):
     (``palpate-cell --host IP``: the very command for URSim or a real arm)."""
     plan_path = out.parent / f"{out.name}_plan.json"
     plan.save(plan_path)
-    cmd = [sys.executable, "-m", "robot.cell", "--host", host, "--plan", str(plan_path), "--out", str(out), "--yes",
+    cmd = [sys.executable, "-m", "app.cell", "--host", host, "--plan", str(plan_path), "--out", str(out), "--yes",
            "--fresh"]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
 
@@ -260,17 +261,17 @@ def test_cell_runs_plan_with_real_client_and_agrees_with_fem(scene_file, truth, 
     assert p.returncode == 0, p.stdout + p.stderr
     assert "run ok: 3 ok" in p.stdout
     recs = _records(out)
-    assert [rec["status"] for rec in recs] == ["ok"] * 3
+    assert [rec.status for rec in recs] == ["ok"] * 3
     for rec in recs:
-        assert abs(rec["depth_reached_m"] - 0.003) < 1e-4 and abs(rec["contact_x_m"] - rec["x_m"]) < 1e-4
-        pred = truth.force_n(rec["contact_x_m"], rec["depth_reached_m"])
+        assert abs(rec.depth_reached_m - 0.003) < 1e-4 and abs(rec.contact_x_m - rec.x_m) < 1e-4
+        pred = truth.force_n(rec.contact_x_m, rec.depth_reached_m)
         # within sensor noise (nano17: sigma ~3 mN per sample = the dwell std): 4 sigma of the dwell mean and of the
         # zero offset (an average of >= 10 samples), plus half the 3.125 mN resolution and 0.3 % for the
         # simulator's force grid
-        sigma, n = rec["force_std_n"], rec["n_samples"]
+        sigma, n = rec.force_std_n, rec.n_samples
         tol = 4 * sigma * math.sqrt(1 / n + 1 / 10) + 0.5 * 0.003125 + 0.003 * pred
-        assert abs(rec["force_mean_n"] - pred) < tol, (rec, pred, tol)
-    f = [rec["force_mean_n"] for rec in recs]
+        assert abs(rec.force_mean_n - pred) < tol, (rec, pred, tol)
+    f = [rec.force_mean_n for rec in recs]
     assert f[1] > f[0] + 0.01 and f[1] > f[2] + 0.01        # the stone under x = 35 mm stiffens the tissue
     run = json.loads((out / "run.json").read_text())
     assert run["status"] == "ok" and run["controller_time_s"] > 3.0  # simulated time advanced in real time
@@ -338,7 +339,7 @@ def test_dropped_connection_seen_by_ur_rtde(scene_file, tmp_path):
 
 def _check_kept(out, min_depth_m):
     recs = _records(out)
-    assert recs and recs[-1]["status"] == "fault" and recs[-1]["index"] == 0
+    assert recs and recs[-1].status == "fault" and recs[-1].index == 0
     raw_files = sorted((out / "raw").glob("probe_000*.npz"))
     assert raw_files, "no raw samples kept"
     raw = np.load(raw_files[-1])

@@ -215,8 +215,8 @@ def test_stiffness_and_compliance_are_symmetric():
 # ------------------------------------------------------------------------------------------------ the bench command
 
 def test_bench_command_finds_its_scripts(tmp_path, capsys):
-    from planner.cli import main
-    from planner.commands import bench
+    from app.cli import main
+    from app.commands import bench
     d = bench.bench_dir()
     assert (d / "bench_runtime_error.py").is_file() and (d / "sweep.py").is_file()
     sweep = bench.load_script(d / "sweep.py")

@@ -1,4 +1,4 @@
-"""robot.ur5e's pose helpers against scipy's Rotation: the rotation-vector conversions at every angle, in particular
+"""core.ur5e's pose helpers against scipy's Rotation: the rotation-vector conversions at every angle, in particular
 just short of pi (the tool-down orientation of every probe), where an acos-based angle loses ~1e-3 rad."""
 from __future__ import annotations
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from robot import ur5e
+from core import ur5e
 
 
 def _angle_between(Ra, Rb) -> float:
-    """Angle of Ra^T Rb by scipy (independent of robot.ur5e)."""
+    """Angle of Ra^T Rb by scipy (independent of core.ur5e)."""
     return float(Rotation.from_matrix(np.asarray(Ra).T @ np.asarray(Rb)).magnitude())
 
 

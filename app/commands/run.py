@@ -1,6 +1,6 @@
 """`palpate run [SCENE] [--plan plan.json] [--sim | --host IP] --out DIR`: plan, probe, localize, refine.
 
-Truth and belief (DESIGN.md): SCENE is the truth only for a simulated arm. This command builds two separate things:
+Truth and belief (docs/architecture.md): SCENE is the truth only for a simulated arm. This command builds two separate things:
 an *executor* (``sim_executor``: the simulated arm, created from the true scene inside a closure; or ``arm_executor``
 on a real arm, where there is no truth) that turns a plan into probe records, and the *belief side*
 (planner.refine.adaptive -> planner.localize.localize) that gets the prior scene (stones removed) and those records
@@ -9,12 +9,25 @@ and nothing else. The truth is written into result.json only after localization,
 from __future__ import annotations
 
 import contextlib
-
 import json
-import math
 import sys
 import time
 from pathlib import Path
+
+from app.cell import print_preflight
+from app.commands.output import write_json
+from core.contracts import Plan
+from fem.scene import from_dict, load
+from planner.detectability import detectability
+from planner.localize import Localization, localize
+from planner.plan import plan_raster, replan
+from planner.refine import adaptive, describe, renumber
+from planner.surrogate import load_surrogate
+from robot.driver import preflight, run_plan
+from robot.link import connect, disconnect
+from robot.sim import SimRTDEControl, SimRTDEReceive
+from robot.simarm import build_truth_arm
+from robot.simlaunch import start_controller
 
 
 def add_parser(sub) -> None:
@@ -56,8 +69,6 @@ class RunAborted(RuntimeError):
 
 def _runner(get_interfaces, out: Path, stats: dict):
     """execute(plan, round) over interfaces from ``get_interfaces(plan)``: renumbered probes, one probes.jsonl."""
-    from planner.refine import renumber
-    from robot.driver import run_plan
 
     def execute(plan, k):
         renumber(plan, stats["next_index"])
@@ -65,9 +76,9 @@ def _runner(get_interfaces, out: Path, stats: dict):
         c, r = get_interfaces(plan)
         rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
         stats["next_index"] += len(plan.probes)
-        stats["n_probes"] += sum(1 for rec in rep.records if rec.get("status") in ("ok", "force_limit"))
+        stats["n_probes"] += sum(1 for rec in rep.records if rec.status in ("ok", "force_limit"))
         stats["planned_s"] += plan.total_time_s
-        stats["controller_s"] += sum(rec.get("duration_s") or 0.0 for rec in rep.records)   # arm time probing
+        stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
         stats["reports"].append(rep.to_dict())
         if rep.status != "ok":
             raise RunAborted(rep)
@@ -77,23 +88,12 @@ def _runner(get_interfaces, out: Path, stats: dict):
 
 def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
     """The simulated arm holding the TRUE scene (in this closure only); created at the first plan."""
-    import numpy as np
-    from fem.contact import surface_model
-    from robot import ur5e
-    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
-    model = surface_model(truth)
-    W, H = truth.tissue.width_m, truth.tissue.height_m
-    force = (lambda x, d: model.force_n(x, d) if 0.0 <= x <= W and 0.0 < d < H else 0.0)
     arm = {}
 
     def interfaces(plan):
         if "c" not in arm:
-            tcp = plan.frames.tcp_offset
-            s = plan.probes[0].approach_pose
-            start = list(s[:2]) + [s[2] + 0.02] + list(s[3:])
-            q0 = ur5e.ik(start, [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0], tcp)
-            a = ArmModel(force, tissue_pose_base=plan.frames.tissue_pose_base, width_m=W, sensor=sensor,
-                         seed=seed, q0=None if q0 is None else np.asarray(q0), tcp_offset=tcp)
+            a = build_truth_arm(truth, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
+                                tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose)
             arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a))
         return arm["c"], arm["r"]
     return _runner(interfaces, out, stats)
@@ -101,7 +101,6 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
 
 def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStack):
     """A real UR controller at ``host``, over ur_rtde (no truth: only the prior scene exists)."""
-    from robot.cell import connect, disconnect
     link = {}
 
     def interfaces(plan):
@@ -116,8 +115,6 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
                         cleanup: contextlib.ExitStack):
     """The simulated UR controller (robot.simcontroller, a child process holding the TRUE scene), driven through the
     real ur_rtde client; started at the first plan, stopped when the run ends."""
-    from robot.cell import connect, disconnect
-    from robot.simlaunch import start_controller
     link = {}
 
     def interfaces(plan):
@@ -132,11 +129,6 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
 
 
 def run(args) -> int:
-    from fem.scene import from_dict, load
-    from planner.plan import plan_raster, replan
-    from planner.planfile import Plan
-    from planner.refine import adaptive, describe
-    from planner.surrogate import load_surrogate
 
     t_wall = time.perf_counter()
     out = Path(args.out)
@@ -158,7 +150,6 @@ def run(args) -> int:
     _say("loading the fem surrogate (first use on a scene: built with fem and cached, a few minutes)")
     sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
 
-    from planner.detectability import detectability
     det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
                         depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
                         surrogate=sur, motion=plan0.motion)
@@ -174,8 +165,6 @@ def run(args) -> int:
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
     if args.host:
         where = f"UR controller at {args.host}"
-        from robot.cell import print_preflight
-        from robot.driver import preflight
         print("WARNING: this moves a real arm into tissue. Check the tissue pose, TCP, force limit "
               f"{plan0.limits.force_limit_n} N and the emergency stop first.", file=sys.stderr)
         print_preflight(preflight(plan0, set()), where)
@@ -202,7 +191,6 @@ def run(args) -> int:
         return plan0 if rounds_planned["n"] == 1 else replan(plan0, x)
 
     status, fault = "ok", None
-    from planner.localize import Localization
     try:
         res = adaptive(prior, execute, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
                        budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
@@ -216,16 +204,15 @@ def run(args) -> int:
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
-        from planner.localize import localize
         # the final estimate once more, with the depth's profile-likelihood interval (prior + measurements only)
         loc = res.localization = localize(prior, res.measurements, sur, profile=True)
-        result.update(loc.summary())
+        result.update(loc.to_dict())
         result.update({"probes_used": res.probes_used, "stop_reason": res.stop_reason,
                        "rounds": [{"index": r.index, "n_probes": r.n_probes, "x_m": r.x_m, "depth_m": r.depth_m,
                                    "localization": r.localization, "elapsed_s": r.elapsed_s} for r in res.rounds]})
     else:
         loc = Localization(detected=False, lr=float("nan"), lr_threshold=float("nan"))
-        result.update(loc.summary())
+        result.update(loc.to_dict())
         result.update({"probes_used": stats["n_probes"], "fault": fault})
     result["time"] = {"wall_s": time.perf_counter() - t_wall, "robot_s": stats["controller_s"],
                       "planned_s": stats["planned_s"]}
@@ -240,7 +227,6 @@ def run(args) -> int:
             result["sim"]["error"] = {"x_m": loc.x_m - st[0]["x_m"], "depth_m": loc.depth_m - st[0]["depth_m"],
                                       "diameter_m": loc.diameter_m - st[0]["diameter_m"]}
     (out / "result.json").write_text(json.dumps(result, indent=1))
-    from planner.commands.output import write_json
     write_json(args.json, result)
     if res is not None and not args.no_figure:
         from planner.plots_run import plot_run

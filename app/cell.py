@@ -1,4 +1,4 @@
-"""The robot-cell script: ``palpate-cell --host IP --plan plan.json --out DIR`` (also ``python -m robot.cell``).
+"""The robot-cell script: ``palpate-cell --host IP --plan plan.json --out DIR`` (also ``python -m app.cell``).
 
 Prints a pre-flight summary (workspace box, force limit, probes, estimated time), then runs the plan with
 robot.driver, printing one line per probe; records go to DIR (probes.jsonl, raw/, run.json; see robot/records.py).
@@ -7,7 +7,7 @@ A second run with the same DIR resumes: probes already "ok" are skipped (``--fre
 ``--sim`` (= ``--sim inmemory``) runs against the in-memory simulated arm (robot/sim.py) instead of a real arm;
 ``--sim controller`` starts the simulated UR controller (robot/simcontroller.py) on a loopback address of its own
 (127.a.b.1, so parallel runs do not collide) and connects the real ur_rtde client to it. Both hold the TRUE scene
-(``--truth``, default: the plan's prior scene name without its "-prior" suffix) with fem's force; the driver only
+(``--truth``; without it, the built-in scene whose prior the plan holds, else exit 2) with fem's force; the driver only
 sees the plan. ``--inject`` faults use one syntax for both (robot.urscript_cmds.parse_inject).
 
 Exit codes: 0 ok, 1 fault, 2 usage / cannot connect, 3 plan rejected, 4 the simulated controller's ports are taken
@@ -17,13 +17,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
-from planner.planfile import Plan, PlanError
+from app.errors import UsageError, guarded
+from core.contracts import Plan
+from fem.scene import BUILTIN, from_dict, load
 from robot.driver import DriverConfig, preflight, run_plan
+from robot.link import connect, disconnect
 from robot.records import done_indices
+from robot.sim import SimRTDEControl, SimRTDEReceive
+from robot.simarm import build_truth_arm
+from robot.simlaunch import PortsUnavailable, start_controller
+from robot.urscript_cmds import normalize_inject
 
 EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_REJECTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 EXIT_PORTS_UNAVAILABLE = 4     # --sim controller: ur_rtde's fixed ports are taken on every loopback address tried
@@ -51,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "instead of refusing the plan")
     p.add_argument("--payload-kg", type=float, default=0.1)
     p.add_argument("--json", metavar="PATH", help="also write the run report here")
+    p.add_argument("--debug", action="store_true", help="show a traceback on errors")
     g = p.add_argument_group("simulation (--sim)")
     g.add_argument("--truth", help="TRUE scene for the simulator: built-in name or TOML")
     g.add_argument("--sensor", default="nano17", help="sensor preset: nano17 | ur5e-builtin (default nano17)")
@@ -68,66 +75,30 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _truth_name(plan: Plan, arg: str | None) -> str:
+def truth_scene(plan: Plan, arg: str | None) -> str:
+    """The TRUE scene for a simulated arm: ``--truth``, or the built-in scene whose prior the plan holds (a plan made
+    from a built-in scene names its prior "<name>-prior"). Anything else needs ``--truth``: the plan holds only the
+    prior, and the simulator must not guess the truth."""
     if arg:
         return arg
-    name = str(plan.scene.get("name", "")) if isinstance(plan.scene, dict) else ""
-    return name[:-len("-prior")] if name.endswith("-prior") else (name or "paper")
-
-
-def fem_force_model(truth: str, mesh_m: float | None = None):
-    """(force_model, width_m) from fem for the TRUE scene (imported here only: the driver never sees fem)."""
-    from fem import contact, scene as fem_scene
-    sc = fem_scene.load(truth)
-    if mesh_m:
-        sc = sc.with_analysis(mesh_size_m=mesh_m)
-    m = contact.surface_model(sc)
-    w, h = sc.tissue.width_m, sc.tissue.height_m
-    return (lambda x, d: m.force_n(x, d) if 0.0 <= x <= w and 0.0 < d < h else 0.0), w
+    name = str(plan.scene.get("name", ""))
+    base = name[:-len("-prior")] if name.endswith("-prior") else None
+    if base in BUILTIN:
+        prior = from_dict(plan.scene, default_name=name)
+        if load(base).prior().key() == prior.key():
+            return base
+    raise UsageError(f"--truth: needed with --sim for this plan (its prior scene {name!r} is not the prior of a "
+                     f"built-in scene); give the TRUE scene as a built-in name or a TOML file")
 
 
 def inmemory_arm(plan: Plan, args):
-    from robot import ur5e
-    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
-    from robot.simforce import standin_force_model
-    from robot.urscript_cmds import parse_inject
-    if args.force_model == "fem":
-        f, width = fem_force_model(_truth_name(plan, args.truth), args.sim_mesh_m)
-    else:
-        f, width = standin_force_model(), 0.07
-    tcp = plan.frames.tcp_offset
-    start = plan.probes[0].approach_pose if plan.probes else ur5e.fk(ur5e.Q_HOME, tcp)
-    start = list(start[:2]) + [start[2] + 0.02] + list(start[3:])   # 2 cm above the first approach pose
-    q0 = ur5e.ik(start, [math.pi, -1.4, 1.6, -1.77, -1.57, 0.0], tcp)
-    arm = ArmModel(f, tissue_pose_base=plan.frames.tissue_pose_base, width_m=width, sensor=args.sensor,
-                   seed=args.seed, q0=q0, tcp_offset=tcp)
-    for spec in args.inject:
-        parse_inject(arm, spec)           # validated in main()
+    """The in-memory simulated arm (robot.simarm) and its ur_rtde-like interfaces."""
+    truth = truth_scene(plan, args.truth) if args.force_model == "fem" else None
+    arm = build_truth_arm(truth, force=args.force_model, sensor=args.sensor, seed=args.seed,
+                          tissue_pose=plan.frames.tissue_pose_base, tcp_offset=plan.frames.tcp_offset,
+                          start_above_pose=plan.probes[0].approach_pose if plan.probes else None,
+                          mesh_m=args.sim_mesh_m, inject=args.inject)
     return arm, SimRTDEControl(arm), SimRTDEReceive(arm)
-
-
-def connect(host: str):
-    """The real ur_rtde interfaces (receive first: it does not upload a program)."""
-    import rtde_control
-    import rtde_receive
-    r = rtde_receive.RTDEReceiveInterface(host)
-    try:
-        c = rtde_control.RTDEControlInterface(host)
-    except RuntimeError:
-        r.disconnect()
-        raise
-    return c, r
-
-
-def disconnect(*interfaces) -> None:
-    """Close ur_rtde interfaces that are still connected (ur_rtde 1.6.5: a call after a failed reconnect may block,
-    so a lost link is left alone)."""
-    for iface in interfaces:
-        try:
-            if iface.isConnected():
-                iface.disconnect()
-        except RuntimeError:
-            pass
 
 
 def print_preflight(pre: dict, where: str) -> None:
@@ -144,27 +115,25 @@ def print_preflight(pre: dict, where: str) -> None:
 
 
 def _progress(rec, i, n):
-    f = rec.get("force_mean_n")
-    fs = "-" if f is None else f"{f:.3f} +- {rec.get('force_std_n') or 0:.3f} N"
-    d = rec.get("depth_reached_m")
-    ds = "-" if d is None else f"{d * 1e3:.2f} mm"
-    print(f"  probe {rec['index']:3d} ({i}/{n}) x={rec['x_m'] * 1e3:6.1f} mm  depth {ds}  F {fs}  {rec['status']}",
-          flush=True)
+    fs = "-" if rec.force_mean_n is None else f"{rec.force_mean_n:.3f} +- {rec.force_std_n or 0:.3f} N"
+    ds = "-" if rec.depth_reached_m is None else f"{rec.depth_reached_m * 1e3:.2f} mm"
+    print(f"  probe {rec.index:3d} ({i}/{n}) x={rec.x_m * 1e3:6.1f} mm  depth {ds}  F {fs}  {rec.status}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        plan = Plan.load(args.plan)
-    except PlanError as e:
-        print(f"palpate-cell: {e}", file=sys.stderr)
-        return EXIT_USAGE
+    return guarded("palpate-cell", lambda: _main(args), debug=args.debug)
+
+
+def _main(args) -> int:
+    plan = Plan.load(args.plan)
+    if args.sim and args.force_model == "fem":
+        truth_scene(plan, args.truth)          # before anything moves: the simulator needs its truth
     if args.inject and not args.sim:
         print("palpate-cell: --inject needs --sim", file=sys.stderr)
         return EXIT_USAGE
     try:
         if args.inject:
-            from robot.urscript_cmds import normalize_inject
             args.inject = [normalize_inject(s) for s in args.inject]
     except ValueError as e:
         print(f"palpate-cell: --inject: {e}", file=sys.stderr)
@@ -210,13 +179,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
     """Start the simulated controller (child process, a loopback address of its own), connect real ur_rtde, run."""
-    try:
-        from robot.simlaunch import PortsUnavailable, start_controller
-    except ImportError as e:
-        raise RuntimeError(f"the simulated controller is not available: {e}") from None
     out.mkdir(parents=True, exist_ok=True)
     try:
-        ctl = start_controller(scene=_truth_name(plan, args.truth), sensor=args.sensor, seed=args.seed,
+        truth = truth_scene(plan, args.truth) if args.force_model == "fem" else None
+        ctl = start_controller(scene=truth, sensor=args.sensor, seed=args.seed,
                                inject=args.inject, force=args.force_model, tissue_pose=plan.frames.tissue_pose_base,
                                mesh_m=args.sim_mesh_m, host="auto", log_path=out / "simcontroller.log")
     except PortsUnavailable as e:

@@ -7,8 +7,6 @@ stresses of all waypoints come from one batched back-substitution.
 """
 from __future__ import annotations
 
-from planner.commands.output import write_json
-
 import argparse
 import dataclasses
 import sys
@@ -16,6 +14,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from app.commands.output import write_json
+from fem import plots
+from fem import scene as S
+from fem.contact import surface_model
 
 DEFAULT_DEPTH_M = 0.004
 DEFAULT_MARGIN_M = 0.005
@@ -74,7 +77,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def _scenes(args):
-    from fem import scene as S
     sc = S.load(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}
@@ -103,7 +105,6 @@ def waypoints(width_m: float, n: int, margin_m: float) -> np.ndarray:
 
 def predict(scene, xs: np.ndarray, depth_m: float, *, stresses: bool = True, progress=None) -> dict:
     """Force and maximum von Mises at each x for one scene: {"x_m", "force_n", ..., "timings_s"} (lists)."""
-    from fem.contact import surface_model
     t0 = time.perf_counter()
     m = surface_model(scene)
     t1 = time.perf_counter()
@@ -201,7 +202,6 @@ def run(args) -> int:
 
 
 def _figure(d: Path, sc, ref, out) -> Path:
-    from fem import plots
     w = out["waypoints"]
     a = sc.analysis
     ref_w = out.get("reference") or w

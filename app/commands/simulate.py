@@ -6,13 +6,20 @@ condensed surface model: force, contact pressure, maximum von Mises under the ti
 """
 from __future__ import annotations
 
-from planner.commands.output import write_json
-
 import argparse
 import dataclasses
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
+
+from app.commands.output import write_json
+from fem import plots
+from fem import scene as S
+from fem.contact import surface_model
+from fem.stress import components, nodal_poisson, recovery_operator
+from fem.uniform import Profile, solve_uniform
 
 PAPER_FAMILY = ("paper", "paper-left", "paper-right", "paper-deep")
 COMPARE_DEFAULT = PAPER_FAMILY + ("healthy",)
@@ -87,10 +94,6 @@ def run(args) -> int:
 
 def _run_indent(args) -> int:
     """Load B: the probe tip pressed ``--depth-m`` into the top surface at ``--x0-m`` (fem.contact's fast path)."""
-    import numpy as np
-    from fem.contact import surface_model
-    from fem.stress import components, nodal_poisson, recovery_operator
-    from fem.uniform import Profile
     if args.x0_m is None or args.depth_m is None:
         print("palpate simulate: --load indent needs --x0-m X and --depth-m D (tip position along the top surface "
               "and indentation depth, m)", file=sys.stderr)
@@ -147,8 +150,6 @@ def _run_indent(args) -> int:
 
 def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
     """fig10_indent.png: von Mises over the deformed section and von Mises, sigma_xx, sigma_yy under the tip."""
-    import numpy as np
-    from fem import plots
     mesh = m.model.mesh
     dm = plots.deformed(mesh, u)
     U = np.asarray(u).reshape(-1, 2)
@@ -194,7 +195,6 @@ def _indent_summary(sc, r, out, stream) -> None:
 # ------------------------------------------------------------------------------------------------- load A
 
 def _scene(args):
-    from fem import scene as S
     sc = S.load(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane))
@@ -217,8 +217,6 @@ def _compare_names(args, sc) -> list[str]:
 
 
 def _run_uniform(args) -> int:
-    from fem import scene as S
-    from fem.uniform import solve_uniform
     t0 = time.perf_counter()
     sc = _scene(args)
     want_field = bool(args.plots or args.vtu)
@@ -262,7 +260,6 @@ def _run_uniform(args) -> int:
 
 
 def _figures(d: Path, sc, res, compare) -> dict[str, str]:
-    from fem import plots
     mesh, n = res.model.mesh, res.nodal
     outl = plots.outlines_of(sc)
     a = sc.analysis
@@ -287,7 +284,6 @@ def _figures(d: Path, sc, res, compare) -> dict[str, str]:
 
 def _summary(sc, res, out, stream) -> None:
     """The human summary (on stderr when the JSON goes to stdout)."""
-    import numpy as np
     xp, vp = res.surface.peak()
     vm = res.surface.fields["von_mises_pa"]
     a, m, t = sc.analysis, out["mesh"], out["timings_s"]

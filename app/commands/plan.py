@@ -1,13 +1,20 @@
 """`palpate plan SCENE --out plan.json [--plots DIR]`: the CasADi raster plan for a UR5e."""
 from __future__ import annotations
 
-from planner.commands.output import write_json
-
 import argparse
 import math
 import sys
 from pathlib import Path
-from planner.planfile import Limits
+
+import numpy as np
+
+from app.commands.output import write_json
+from core.contracts import Frames, Limits, Motion, PlanError, PlanOptions
+from fem.scene import load
+from planner.plan import plan_raster
+from planner.raster import default_tissue_pose, interval_positions
+
+LIM, MOT, OPT = Limits(), Motion(), PlanOptions()      # the defaults, defined once in core.contracts
 
 DESCRIPTION = """Plan a probing raster over the tissue's top surface for a UR5e and write a plan file.
 
@@ -48,12 +55,13 @@ def add_parser(subparsers) -> None:
     r.add_argument("--x-min-m", type=float, help="raster only [x-min, x-max] (adaptive refinement); overrides margins")
     r.add_argument("--x-max-m", type=float, help="see --x-min-m")
     d = p.add_argument_group("depth and force")
-    d.add_argument("--force-limit-n", type=float, default=2.0, help="never plan above this contact force (default 2.0)")
-    d.add_argument("--depth-limit-m", type=float, default=Limits().depth_limit_m,
+    d.add_argument("--force-limit-n", type=float, default=LIM.force_limit_n,
+                   help=f"never plan above this contact force (default {LIM.force_limit_n})")
+    d.add_argument("--depth-limit-m", type=float, default=LIM.depth_limit_m,
                    help=f"never deeper than this (default {Limits().depth_limit_m}; keep it below the tip radius)")
-    d.add_argument("--force-fraction", type=float, default=0.5,
+    d.add_argument("--force-fraction", type=float, default=OPT.force_fraction,
                    help="plan to at most this fraction of the force limit on the prior tissue (default 0.5)")
-    d.add_argument("--min-depth-m", type=float, default=0.001,
+    d.add_argument("--min-depth-m", type=float, default=OPT.min_depth_m,
                    help="shallowest useful probe; refused if even this exceeds the force budget (default 0.001)")
     d.add_argument("--depth-m", type=float, help="fixed depth for every probe instead of the force-based choice")
     a = p.add_argument_group("arm and motion")
@@ -61,21 +69,21 @@ def add_parser(subparsers) -> None:
                    help="tissue frame in the base frame (m, rotation vector rad)")
     a.add_argument("--tcp-offset", type=float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
                    help="probe tip in the flange frame, as for setTcp (default 0 0 0.10 0 0 0)")
-    a.add_argument("--approach-height-m", type=float, default=0.010, help="tip above the surface before descending")
-    a.add_argument("--approach-speed-m-s", type=float, default=0.10, help="tool speed between probes")
-    a.add_argument("--probe-speed-m-s", type=float, default=0.002, help="tool speed of the descent")
-    a.add_argument("--dwell-s", type=float, default=0.5, help="hold at depth while sampling")
-    a.add_argument("--tilt-tol-deg", type=float, default=0.5, help="tool axis within this of the normal (default 0.5)")
-    a.add_argument("--branch", default="1,1,-1", metavar="S,E,W",
+    a.add_argument("--approach-height-m", type=float, default=MOT.approach_height_m,
+                   help="tip above the surface before descending")
+    a.add_argument("--approach-speed-m-s", type=float, default=MOT.approach_speed_m_s,
+                   help="tool speed between probes")
+    a.add_argument("--probe-speed-m-s", type=float, default=MOT.probe_speed_m_s,
+                   help="tool speed of the descent")
+    a.add_argument("--dwell-s", type=float, default=MOT.dwell_s, help="hold at depth while sampling")
+    a.add_argument("--tilt-tol-deg", type=float, default=math.degrees(OPT.tilt_tol_rad),
+                   help="tool axis within this of the normal (default 0.5)")
+    a.add_argument("--branch", default=",".join(map(str, OPT.branch)), metavar="S,E,W",
                    help="IK branch signs (shoulder, elbow, wrist); default 1,1,-1 = elbow up, tool down")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from fem.scene import load
-    from planner.planfile import Frames, Limits, Motion
-    from planner.plan import plan_raster
-    from planner.raster import PlanningError, interval_positions
 
     scene = load(args.scene)
     limits = Limits(force_limit_n=args.force_limit_n, depth_limit_m=args.depth_limit_m)
@@ -83,7 +91,6 @@ def run(args) -> int:
                     probe_speed_m_s=args.probe_speed_m_s, dwell_s=args.dwell_s)
     frames = None
     if args.tissue_pose or args.tcp_offset:
-        from planner.raster import default_tissue_pose
         t = scene.tissue
         frames = Frames(tissue_pose_base=list(args.tissue_pose or default_tissue_pose(t.width_m, t.height_m)),
                         tcp_offset=list(args.tcp_offset or Frames().tcp_offset))
@@ -103,9 +110,9 @@ def run(args) -> int:
             x = interval_positions(lo, hi, n=None if args.spacing_m else n, spacing_m=args.spacing_m)
         plan = plan_raster(scene, n_waypoints=args.waypoints, spacing_m=args.spacing_m, margin_m=args.margin_m,
                            x_positions_m=x, depth_m=args.depth_m, limits=limits, motion=motion, frames=frames,
-                           tilt_tol_rad=math.radians(args.tilt_tol_deg), force_fraction=args.force_fraction,
-                           min_depth_m=args.min_depth_m, branch=branch)
-    except PlanningError as e:
+                           options=PlanOptions(branch=list(branch), tilt_tol_rad=math.radians(args.tilt_tol_deg),
+                                               force_fraction=args.force_fraction, min_depth_m=args.min_depth_m))
+    except PlanError as e:
         print(f"palpate plan: cannot plan: {e}", file=sys.stderr)
         return 2
     out = Path(args.out)
@@ -129,7 +136,6 @@ def run(args) -> int:
 
 
 def summary(plan, out, figs) -> dict:
-    import numpy as np
     d = np.array([p.depth_m for p in plan.probes])
     f = np.array([p.predicted_force_n for p in plan.probes], dtype=float)
     sv = plan.notes["solver"]

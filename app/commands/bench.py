@@ -8,8 +8,6 @@ on its own: ``python bench/<name>.py --help``.
 """
 from __future__ import annotations
 
-from planner.commands.output import write_json
-
 import argparse
 import importlib.util
 import os
@@ -17,6 +15,8 @@ import sys
 import time
 import traceback
 from pathlib import Path
+
+from app.commands.output import write_json
 
 # name -> (script, what it measures); run in this order
 PARTS = {

@@ -1,0 +1,38 @@
+"""How the command-line entry points fail: one line naming the field or option, its value and what is allowed, and
+exit 2; a traceback only with ``--debug``."""
+from __future__ import annotations
+
+import sys
+import traceback
+from typing import Callable
+
+from core.contracts import PlanError
+from fem.scene import SceneError
+
+EXIT_USAGE = 2
+
+
+class UsageError(ValueError):
+    """A bad option, value or file given by the user; the message names it and what is allowed."""
+
+
+# The project's own input errors, and what reading a user's file can raise.
+USER_ERRORS = (UsageError, SceneError, PlanError, OSError, UnicodeDecodeError)
+
+
+def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
+    """Run ``run``; a user error becomes ``prog: message`` on one line and exit 2, Ctrl-C exit 130. With ``debug`` the
+    traceback is printed too."""
+    try:
+        return int(run() or 0)
+    except USER_ERRORS as e:
+        if debug:
+            traceback.print_exc()
+        msg = " ".join(str(e).split()) or type(e).__name__
+        if isinstance(e, OSError) and e.filename is not None and str(e.filename) not in msg:
+            msg = f"{e.filename}: {msg}"
+        print(f"{prog}: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130

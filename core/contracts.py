@@ -1,0 +1,303 @@
+"""The plain data every package shares: the plan file, the probe record, run and fault states, the probe protocol's
+constants and the force sensors' datasheet figures. numpy-free and import-free of every other palpate package: fem,
+planner, robot and app all import this module, it imports none of them (docs/architecture.md).
+
+Plan file (``plan.json``, version 2)
+-----------------------------------
+What the planner hands the robot. Plain data, JSON, versioned; no CasADi, no meshes.
+
+* Base frame: the UR base. Poses are ur_rtde's ``[x, y, z, rx, ry, rz]`` (m, rotation vector in rad).
+* Tissue frame: origin at the top-left corner of the tissue section (section point x = 0, y = height), x along the
+  section's width, z the outward normal of the top surface (the section's +y), y = z cross x (out of the section's
+  plane). A section point (x_m, y_m) is the tissue-frame point (x_m, 0, y_m - height_m). A probe's indentation depth is
+  measured along -z from the undeformed surface. ``frames.tissue_pose_base`` is the tissue frame's pose in the base
+  frame.
+* TCP: the probe tip, set with ``setTcp(frames.tcp_offset)``; the tool z axis points along the inward normal (-z of
+  the tissue frame) at every probe pose.
+
+Each probe: ``approach_pose`` (tip ``motion.approach_height_m`` above the undeformed surface at x_m), then a slow
+straight descent along the tool axis to ``indent_pose`` (tip ``depth_m`` below the undeformed surface), dwell,
+retract to ``approach_pose``.
+
+Timing (planner/timing.py): every move is a moveL; the descent runs at ``motion.probe_speed_m_s`` over approach height
+plus depth, the retract at the approach speed; each move takes the larger of its tool-speed and joint-limit times.
+``options`` holds the planning options a re-plan must reuse (IK branch, tilt tolerance, force fraction, minimum
+depth); ``notes`` only the planner's diagnostics, which nothing reads back: ``solver`` (status, iterations, ``used``:
+"nlp" or "seed"), ``timing`` (per-move breakdown), ``times_s``, ``depth_limited_by`` (per probe: "force" or
+"depth"), ``target_force_n``. Version 1 files (options inside ``notes``) are read and converted.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+
+PLAN_VERSION = 2
+READABLE_PLAN_VERSIONS = (1, 2)
+
+
+class PlanError(ValueError):
+    """A plan that cannot be made or executed: an infeasible planning request or a bad plan file. The message names
+    the option or field to change."""
+
+
+@dataclass
+class Limits:
+    force_limit_n: float = 2.0           # no probe may be planned or driven above this contact force
+    depth_limit_m: float = 0.004         # no probe deeper than this below the undeformed surface (< tip radius)
+    workspace_min_m: list[float] = field(default_factory=lambda: [-0.8, -0.8, -0.1])  # base-frame box for the TCP
+    workspace_max_m: list[float] = field(default_factory=lambda: [0.8, 0.8, 0.8])
+    max_tool_speed_m_s: float = 0.25
+
+
+@dataclass
+class Motion:
+    approach_height_m: float = 0.010     # tip above the undeformed surface at the approach pose
+    approach_speed_m_s: float = 0.10     # moves between probes
+    approach_accel_m_s2: float = 0.5
+    probe_speed_m_s: float = 0.002       # slow descent into tissue
+    probe_accel_m_s2: float = 0.5
+    contact_threshold_n: float = 0.02    # force above which the tip is in contact
+    dwell_s: float = 0.5                 # hold at depth while sampling
+
+
+@dataclass
+class Frames:
+    tissue_pose_base: list[float] = field(default_factory=lambda: [0.40, -0.035, 0.05, 0.0, 0.0, math.pi / 2])
+    tcp_offset: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.10, 0.0, 0.0, 0.0])
+
+
+@dataclass
+class Probe:
+    index: int
+    x_m: float                           # tissue frame, from the left edge
+    depth_m: float                       # planned indentation below the undeformed surface
+    predicted_force_n: float             # fem's prediction for the *prior* (stone-free) tissue at this depth
+    approach_pose: list[float]           # base frame, ur_rtde pose
+    indent_pose: list[float]
+    q_approach_rad: list[float]          # UR5e joint targets (6)
+    q_indent_rad: list[float]
+    t_start_s: float = 0.0               # planned start time from the beginning of the run
+    duration_s: float = 0.0              # planned time for this probe (move in, descend, dwell, retract)
+
+
+@dataclass
+class PlanOptions:
+    """The planning choices a re-plan around a candidate stone must keep."""
+    branch: list[int] = field(default_factory=lambda: [1, 1, -1])   # IK branch: signs of shoulder, elbow, wrist
+    tilt_tol_rad: float = math.radians(0.5)   # tool axis within this of the inward surface normal
+    force_fraction: float = 0.5                # depths chosen so the prior force stays under this x force limit
+    min_depth_m: float = 0.001                 # shallowest useful indentation
+
+
+@dataclass
+class Plan:
+    scene: dict                          # the prior scene (Scene.to_dict() of scene.prior()): no stones
+    frames: Frames = field(default_factory=Frames)
+    limits: Limits = field(default_factory=Limits)
+    motion: Motion = field(default_factory=Motion)
+    options: PlanOptions = field(default_factory=PlanOptions)
+    probes: list[Probe] = field(default_factory=list)
+    total_time_s: float = 0.0
+    version: int = PLAN_VERSION
+    notes: dict = field(default_factory=dict)  # planner diagnostics (solver status, timings); never read back
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+
+    @staticmethod
+    def from_dict(d: dict) -> "Plan":
+        if not isinstance(d, dict):
+            raise PlanError("a plan must be a JSON object")
+        if d.get("version") not in READABLE_PLAN_VERSIONS:
+            raise PlanError(f"plan version {d.get('version')!r} is not supported (this palpate reads "
+                            f"{', '.join(map(str, READABLE_PLAN_VERSIONS))})")
+        if not isinstance(d.get("scene"), dict):
+            raise PlanError(f"plan field 'scene' must be a table of the prior scene, got {type(d.get('scene')).__name__}")
+        try:
+            notes = dict(d.get("notes", {}))
+            if d["version"] == 1:       # options lived in notes
+                opts = {k: notes[k] for k in ("branch", "tilt_tol_rad", "force_fraction", "min_depth_m") if k in notes}
+            else:
+                opts = d["options"]
+            plan = Plan(scene=d["scene"], frames=Frames(**d["frames"]), limits=Limits(**d["limits"]),
+                        motion=Motion(**d["motion"]), options=PlanOptions(**opts),
+                        probes=[Probe(**p) for p in d["probes"]], total_time_s=d.get("total_time_s", 0.0),
+                        version=PLAN_VERSION, notes=notes)
+        except (KeyError, TypeError) as e:
+            raise PlanError(f"malformed plan: {e}") from None
+        plan.check()
+        return plan
+
+    @staticmethod
+    def load(path: str | Path) -> "Plan":
+        try:
+            d = json.loads(Path(path).read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+            raise PlanError(f"cannot read plan {path}: {e}") from None
+        return Plan.from_dict(d)
+
+    def check(self) -> None:
+        """Structural checks (the driver makes its own safety checks before sending anything)."""
+        def finite(where, values, n=None):
+            values = list(values)
+            if n is not None and len(values) != n:
+                raise PlanError(f"{where} must have {n} entries, got {len(values)}")
+            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+                raise PlanError(f"{where} must be finite numbers, got {values}")
+        finite("frames.tissue_pose_base", self.frames.tissue_pose_base, 6)
+        finite("frames.tcp_offset", self.frames.tcp_offset, 6)
+        finite("limits.workspace_min_m", self.limits.workspace_min_m, 3)
+        finite("limits.workspace_max_m", self.limits.workspace_max_m, 3)
+        if any(lo >= hi for lo, hi in zip(self.limits.workspace_min_m, self.limits.workspace_max_m)):
+            raise PlanError("limits.workspace_min_m must be below limits.workspace_max_m on every axis")
+        for name in ("force_limit_n", "depth_limit_m", "max_tool_speed_m_s"):
+            v = getattr(self.limits, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise PlanError(f"limits.{name} must be positive, got {v!r}")
+        for p in self.probes:
+            w = f"probes[{p.index}]"
+            finite(f"{w}.approach_pose", p.approach_pose, 6)
+            finite(f"{w}.indent_pose", p.indent_pose, 6)
+            finite(f"{w}.q_approach_rad", p.q_approach_rad, 6)
+            finite(f"{w}.q_indent_rad", p.q_indent_rad, 6)
+            finite(f"{w}.x_m/depth_m", [p.x_m, p.depth_m, p.predicted_force_n])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The probe protocol: how the driver measures, what the planner and localizer assume of it
+
+PERIOD_S = 0.002                 # controller period (500 Hz on e-Series)
+FILTER_WINDOW = 5                # moving average for contact / force-limit decisions (periods)
+NOISE_SIGMA_FACTOR = 5.0         # force thresholds must exceed this many filtered-noise sigmas
+N_ZERO_AVERAGE = 50              # readings the sensor's zeroing averages (ur_rtde zeroFtSensor)
+FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
+BASELINE_CLEARANCE_M = 1e-3      # free-air baseline: descent samples at least this far above the surface
+MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relative to the sensor's zeroing)
+BASELINE_SETTLE_S = 0.05         # ... and not in the descent's first 50 ms (acceleration)
+
+
+class ProbeStatus(StrEnum):
+    """How one probe attempt ended (``status`` in probes.jsonl)."""
+    OK = "ok"                        # reached its depth, dwelt, retracted
+    FORCE_LIMIT = "force_limit"      # stopped at the force limit (e.g. over a stone): a usable, shallower probe
+    REJECTED = "rejected"            # failed the safety checks, never moved
+    FAULT = "fault"                  # ended early by a fault; its samples are kept
+    INTERRUPTED = "interrupted"      # ended early by Ctrl-C; its samples are kept
+
+
+MEASURED = (ProbeStatus.OK, ProbeStatus.FORCE_LIMIT)   # statuses whose force is a measurement
+
+
+class RunStatus(StrEnum):
+    """How a driver run ended (``status`` in run.json)."""
+    OK = "ok"
+    FAULT = "fault"
+    INTERRUPTED = "interrupted"
+    REJECTED = "rejected"            # the plan failed the safety checks: nothing was sent
+
+
+class FaultKind(StrEnum):
+    """Why a run stopped (``fault.kind`` in run.json)."""
+    CONNECTION_LOST = "connection_lost"
+    PROTECTIVE_STOP = "protective_stop"
+    COMMAND_FAILED = "command_failed"
+    MOVE_FAILED = "move_failed"
+    INVALID_READING = "invalid_reading"
+    TIMEOUT = "timeout"
+    SENSOR_NOISE = "sensor_noise"
+    FORCE_LIMIT = "force_limit"      # too many consecutive force-limit stops
+    COLLISION = "collision"          # force above the limit outside a descent
+    SAFETY_VIOLATION = "safety_violation"
+    INTERRUPTED = "interrupted"
+
+
+@dataclass
+class ProbeRecord:
+    """One probe attempt: a line of probes.jsonl (written by robot.records, read by planner.localize). SI units in
+    every name; None where a quantity was not measured (a rejected probe has only index, x_m, status, reason)."""
+    index: int
+    x_m: float                                   # planned tissue-frame position along the surface
+    status: ProbeStatus
+    depth_planned_m: float | None = None         # planned indentation
+    depth_target_m: float | None = None          # planned indentation capped at the depth limit
+    depth_reached_m: float | None = None         # mean indentation over the dwell (or the last descent samples)
+    contact_x_m: float | None = None             # tissue-frame x of the tip over the dwell
+    contact_depth_m: float | None = None         # indentation at which contact was first felt
+    force_mean_n: float | None = None            # mean contact force over the dwell
+    force_std_n: float | None = None
+    force_peak_n: float | None = None
+    force_baseline_n: float | None = None        # free-air mean of the same descent (None: too few samples)
+    force_baseline_std_n: float | None = None
+    n_samples_baseline: int = 0
+    baseline_to_dwell_s: float | None = None     # time from the baseline's middle to the dwell's middle
+    force_predicted_prior_n: float | None = None  # the planner's prediction for the stone-free prior
+    n_samples: int = 0
+    n_samples_total: int = 0
+    contact_threshold_n: float | None = None
+    noise_std_n: float | None = None             # free-air noise measured after zeroing
+    t_s: float | None = None                     # controller time at the probe's start
+    duration_s: float | None = None
+    wall_time_utc: str | None = None
+    reason: str | None = None                    # why a probe was rejected or ended early
+    raw_file: str | None = None                  # raw samples, relative to the run directory
+
+    def __post_init__(self):
+        self.status = ProbeStatus(self.status)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "ProbeRecord":
+        known = {f.name for f in dataclasses.fields(ProbeRecord)}
+        return ProbeRecord(**{k: v for k, v in d.items() if k in known})
+
+    @property
+    def measured(self) -> bool:
+        return self.status in MEASURED
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Force/torque sensors: datasheet figures a user knows before probing
+
+@dataclass(frozen=True)
+class SensorSpec:
+    name: str
+    noise_std_n: float          # white noise per force axis (N)
+    noise_std_nm: float         # white noise per torque axis (N m)
+    bias_n: float               # std of the random constant force bias per axis (N)
+    drift_n_per_s: float        # std of the random linear drift rate per axis (N/s)
+    resolution_n: float = 0.0   # quantisation step of the force reading (0: none)
+    range_n: float = float("inf")  # readings saturate here
+
+
+# ``ur5e-builtin``: the UR5e wrist sensor: precision ~3.5 N and accuracy ~5.5 N (docs/reference.md) read as a
+# 2-sigma band (noise std 1.75 N per axis), a bias of a few N and a temperature drift of ~0.05 N/s. Far coarser than
+# soft-tissue forces (0.1-1 N): with a 2 N force limit the driver refuses to probe with it.
+# ``nano17``: a precise external sensor (ATI Nano17 class): resolution ~3 mN, noise std 3 mN, tiny drift.
+SENSORS = {
+    "ur5e-builtin": SensorSpec("ur5e-builtin", noise_std_n=1.75, noise_std_nm=0.05, bias_n=3.0,
+                               drift_n_per_s=0.05, resolution_n=0.0, range_n=50.0),
+    "nano17": SensorSpec("nano17", noise_std_n=0.003, noise_std_nm=1.5e-5, bias_n=0.05,
+                         drift_n_per_s=1e-4, resolution_n=0.003125, range_n=35.0),
+    "ideal": SensorSpec("ideal", noise_std_n=0.0, noise_std_nm=0.0, bias_n=0.0, drift_n_per_s=0.0),
+}
+
+
+def sensor_spec(preset: "str | SensorSpec", **overrides) -> SensorSpec:
+    """A sensor by preset name (``SENSORS``), optionally with fields replaced."""
+    if isinstance(preset, SensorSpec):
+        s = preset
+    else:
+        try:
+            s = SENSORS[preset]
+        except (KeyError, TypeError):
+            raise ValueError(f"unknown sensor {preset!r}; known: {', '.join(SENSORS)}") from None
+    return dataclasses.replace(s, **overrides) if overrides else s

@@ -1,0 +1,68 @@
+"""The simulated TRUE arm: one builder for the in-memory arm of ``palpate run --sim`` and ``palpate-cell --sim`` and
+for the simulated controller's arm. It is the one robot part that asks fem for forces (the truth's, stones
+included); the driver never sees it.
+
+The truth is the simulator's secret: whoever builds the arm hands it the true scene, and only the arm's force model
+(inside this module's closures) reads it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from core import ur5e
+from core.contracts import Frames
+from fem.contact import surface_model
+from fem.scene import Scene, load
+from robot.sim import ArmModel
+from robot.simforce import standin_force_model
+from robot.urscript_cmds import parse_inject
+
+START_CLEARANCE_M = 0.02      # the arm starts this far above the first approach pose
+STANDIN_WIDTH_M = 0.07        # the stand-in force model's tissue width
+
+
+def truth_force(truth: Scene | str, mesh_m: float | None = None):
+    """(force_n(x_m, depth_m), width_m) of the TRUE scene from fem (zero outside the tissue's top surface)."""
+    sc = truth if isinstance(truth, Scene) else load(truth)
+    if mesh_m:
+        sc = sc.with_analysis(mesh_size_m=mesh_m)
+    model = surface_model(sc)
+    width, height = sc.tissue.width_m, sc.tissue.height_m
+
+    def force_n(x_m: float, depth_m: float) -> float:
+        return model.force_n(x_m, depth_m) if 0.0 <= x_m <= width and 0.0 < depth_m < height else 0.0
+    return force_n, width
+
+
+def start_configuration(tissue_pose, width_m: float, tcp_offset=None, above_pose=None) -> np.ndarray | None:
+    """Joint angles to start from: ``START_CLEARANCE_M`` above ``above_pose`` (a plan's first approach pose) or,
+    without one, the flange 0.2 m above the middle of the tissue, tool pointing in."""
+    if above_pose is not None:
+        start = list(above_pose[:2]) + [above_pose[2] + START_CLEARANCE_M] + list(above_pose[3:])
+        return ur5e.ik(start, ur5e.IK_SEED, tcp_offset or (0, 0, 0, 0, 0, 0))
+    T = ur5e.pose_to_T(tissue_pose) @ ur5e.pose_to_T([0.5 * width_m, 0.0, 0.2, math.pi, 0.0, 0.0])
+    return ur5e.ik(ur5e.T_to_pose(T), ur5e.IK_SEED)
+
+
+def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor: str = "nano17", seed: int = 0,
+                    tissue_pose=None, tcp_offset=None, start_above_pose=None, q0=None, mesh_m: float | None = None,
+                    inject=()) -> ArmModel:
+    """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
+    sensor model and any injected faults (robot.urscript_cmds.parse_inject syntax)."""
+    tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
+    if force == "fem":
+        f, width = truth_force(truth, mesh_m)
+    elif force == "standin":
+        f, width = standin_force_model(), STANDIN_WIDTH_M
+    else:
+        raise ValueError(f"force model {force!r}: fem or standin")
+    if q0 is None:
+        q0 = start_configuration(tissue_pose, width, tcp_offset, start_above_pose)
+    kw = {} if tcp_offset is None else {"tcp_offset": list(tcp_offset)}
+    arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
+                   q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
+    for spec in inject:
+        parse_inject(arm, spec)
+    return arm

@@ -1,0 +1,139 @@
+"""The import contract (docs/architecture.md): packages depend one way, and no module imports in a cycle.
+
+    core  <-  fem  <-  planner  <-  app
+              fem  <-  robot    <-  app
+
+core imports no other palpate package; fem imports core; planner imports fem and core; robot imports core and, for
+the simulated arm only, fem; app may import everything. planner and robot never import each other. Both top-level
+imports and imports inside functions count.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("core", "fem", "planner", "robot", "app")
+ALLOWED = {
+    "core": set(),
+    "fem": {"core"},
+    "planner": {"core", "fem"},
+    "robot": {"core", "fem"},
+    "app": {"core", "fem", "planner", "robot"},
+}
+# robot modules that may ask fem for forces: the simulated truth (the driver never does)
+ROBOT_FEM_USERS = {"robot.simarm"}
+# imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
+LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "fem.plots", "fem.export",
+           "planner.plots_plan", "planner.plots_run", "importlib.metadata")
+
+
+def modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            rel = f.relative_to(ROOT).with_suffix("")
+            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+            out[".".join(parts)] = f
+    return out
+
+
+def imports_of(name: str, path: Path) -> list[tuple[str, bool]]:
+    """(imported module, inside a function?) for every import statement of a module; ``from pkg import x`` also
+    counts as importing ``pkg.x`` (x may be a module)."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    base = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+    found = []
+
+    def walk(node, inside: bool):
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.Import):
+                found.extend((a.name, inside) for a in child.names)
+            elif isinstance(child, ast.ImportFrom):
+                mod = child.module or ""
+                if child.level:
+                    mod = ".".join(base[:len(base) - child.level + 1] + ([mod] if mod else []))
+                found.append((mod, inside))
+                found.extend((f"{mod}.{a.name}", inside) for a in child.names)
+            walk(child, inside or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+    walk(tree, False)
+    return found
+
+
+def build_graph():
+    mods = modules()
+    edges, nested = {}, {}
+    for name, path in mods.items():
+        imps = imports_of(name, path)
+        edges[name] = {m for m, _ in imps if m in mods and m != name}
+        nested[name] = [m for m, inside in imps if inside]
+    return mods, edges, nested
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return build_graph()
+
+
+def forbidden_edges(edges) -> list[str]:
+    bad = []
+    for src, targets in edges.items():
+        src_pkg = src.split(".")[0]
+        for t in targets:
+            t_pkg = t.split(".")[0]
+            if t_pkg == src_pkg:
+                continue
+            if t_pkg not in ALLOWED[src_pkg]:
+                bad.append(f"{src} -> {t}")
+            elif src_pkg == "robot" and t_pkg == "fem" and src not in ROBOT_FEM_USERS:
+                bad.append(f"{src} -> {t} (only {sorted(ROBOT_FEM_USERS)} may ask fem)")
+    return sorted(bad)
+
+
+def cycles_of(edges) -> list[list[str]]:
+    # a package's __init__ re-exporting its own modules is not a cycle of the modules themselves
+    deps = {m: {t for t in ts if not t.startswith(m + ".")} for m, ts in edges.items()}
+    state, stack, cycles = {}, [], []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for t in sorted(deps.get(m, ())):
+            if state.get(t) == 1:
+                cycles.append(stack[stack.index(t):] + [t])
+            elif t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+    for m in sorted(deps):
+        if m not in state:
+            visit(m)
+    return cycles
+
+
+def test_packages_depend_one_way(graph):
+    bad = forbidden_edges(graph[1])
+    assert not bad, "forbidden imports:\n  " + "\n  ".join(bad)
+
+
+def test_no_import_cycles(graph):
+    cycles = cycles_of(graph[1])
+    assert not cycles, "import cycles:\n  " + "\n  ".join(" -> ".join(c) for c in cycles)
+
+
+def test_imports_inside_functions_only_for_heavy_optional_modules(graph):
+    bad = [f"{m}: {t}" for m, ts in graph[2].items() for t in ts
+           if not any(t == h or t.startswith(h + ".") for h in LAZY_OK)]
+    assert not bad, "imports inside functions (move them to the top):\n  " + "\n  ".join(sorted(set(bad)))
+
+
+def test_the_checks_can_fail(graph):
+    """The checkers themselves: a planner module importing robot, and a two-module cycle, are caught."""
+    edges = {k: set(v) for k, v in graph[1].items()}
+    edges["planner.localize"].add("robot.driver")
+    assert "planner.localize -> robot.driver" in forbidden_edges(edges)
+    edges["fem.scene"].add("fem.contact")
+    edges["fem.contact"].add("fem.scene")
+    assert any("fem.scene" in c and "fem.contact" in c for c in cycles_of(edges))
