@@ -1,1 +1,48 @@
-"""fem: the 2D finite-element model of tissue, stones and probe contact. A pure library: no robot, no planner."""
+"""palpate's finite-element package: scenes, meshes, load A (uniform compression) and load B (tip contact).
+
+The names in ``__all__`` are the public API. Importing fem stays light: gmsh and meshio are imported only when a
+mesh is built or a file written, and matplotlib only by ``fem.plots`` (import it explicitly).
+
+Modules (each imports only modules listed before it; tests/test_fem_imports.py checks there is no cycle):
+  scene       Scene, Tissue, Stone, Indenter, Analysis, SceneError, load, from_dict (TOML scenes, built-ins)
+  elements    P1/P2 shape functions and quadrature
+  lcp         the contact LCP solver (solve_lcp)
+  diskcache   generic key -> arrays disk cache (imports nothing from fem)
+  mesh        Mesh (to_arrays/from_arrays) and gmsh meshing: mesh_section, mesh_scene, mesh_tip
+  scene_mesh  a scene's checked mesh from the disk cache or gmsh: mesh_for
+  assembly    vectorized stiffness assembly
+  model       Model, build_model (rigid stones), accuracy warnings
+  stress      nodal stress recovery: recovery_operator, nodal_poisson, components
+  results     Profile, UniformResult (load A results)
+  mixed       load A, locking-free Taylor-Hood u-p
+  uniform     load A: solve_uniform (dispatches to mixed)
+  tip         TipCompliance (an elastic tip), rigid_tip_bound
+  contact     load B: SurfaceModel, surface_model (memory + disk cache), indent_full, tip_profile, check_waypoint
+  export      VTU export (meshio): write_vtu, write_result_vtu
+  plots       figures (matplotlib), not imported here
+  cache       historical names of the disk-cache entry points (mesh_for, mesh_key, surface_key, stats, ...)
+"""
+from .contact import (
+    IndentResult,
+    SurfaceModel,
+    check_waypoint,
+    indent_full,
+    surface_model,
+    tip_profile,
+)
+from .export import write_result_vtu, write_vtu
+from .lcp import solve_lcp
+from .mesh import Mesh, mesh_scene, mesh_section
+from .model import Model, build_model
+from .results import Profile, UniformResult
+from .scene import Analysis, Indenter, Scene, SceneError, Stone, Tissue, from_dict, load
+from .scene_mesh import mesh_for
+from .stress import components, nodal_poisson, recovery_operator
+from .uniform import solve_uniform
+
+__all__ = [   # see the module docstring for where each name lives
+    "Analysis", "IndentResult", "Indenter", "Mesh", "Model", "Profile", "Scene", "SceneError", "Stone",
+    "SurfaceModel", "Tissue", "UniformResult", "build_model", "check_waypoint", "components", "from_dict",
+    "indent_full", "load", "mesh_for", "mesh_scene", "mesh_section", "nodal_poisson", "recovery_operator",
+    "solve_lcp", "solve_uniform", "surface_model", "tip_profile", "write_result_vtu", "write_vtu"
+]

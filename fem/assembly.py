@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .elements import quadrature, shape_grad
+from .elements import quadrature, shape, shape_grad
 from .mesh import Mesh
 
 
@@ -93,7 +93,6 @@ def stiffness(mesh: Mesh, D: np.ndarray, elements: np.ndarray | None = None) -> 
 
 def body_force(mesh: Mesh, f, degree: int = 6) -> np.ndarray:
     """Consistent nodal load of a body force f(x, y) -> (fx, fy) per unit volume (for verification)."""
-    from .elements import shape
     pts, w = quadrature(4)
     N = shape(mesh.order, pts)                             # (q, nen)
     _, det = gradients(mesh, pts)

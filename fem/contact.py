@@ -12,6 +12,13 @@ influence matrices give the stresses under the tip without another solve.
 
 ``indent_full`` is the plain path: a full finite-element solve with the contact nodes as Dirichlet conditions and
 its own active-set loop, refactorizing every iteration. The two must agree to round-off (tests check it).
+
+``surface_model`` keeps SurfaceModels in memory and on disk (fem.diskcache, keyed by the scene's content, the
+options and the code version). What is stored is the compliance C of the top surface (and an elastic tip's arc
+compliance), see ``SurfaceModel.to_arrays``. SuperLU's factors cannot be pickled and rebuilding a solver from
+stored L/U factors is slower in scipy than refactoring, so the factorization is *not* stored: a restored
+SurfaceModel answers force queries (the LCP needs only C) at once and factorizes K on the first request for fields
+(stresses, displacements). The restored C is bitwise the C a fresh build computes (tests check it).
 """
 from __future__ import annotations
 
@@ -20,10 +27,13 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse.linalg as spla
 
+from . import diskcache
 from .lcp import solve_lcp
 from .model import Model, build_model
 from .scene import SceneError
+from .scene_mesh import code_version, mesh_for
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TipCompliance, rigid_tip_bound
 
@@ -44,7 +54,7 @@ class IndentResult:
     rigid_tip: bool
     tip_note: str = ""
 
-    def to_json(self) -> dict:
+    def to_dict(self) -> dict:
         return {"x0_m": self.x0_m, "depth_m": self.depth_m, "force_n_per_m": self.force_n_per_m,
                 "force_n": self.force_n, "max_von_mises_pa": self.max_von_mises_pa,
                 "max_von_mises_at": {"x_m": self.max_von_mises_at_m[0], "depth_m": self.max_von_mises_at_m[1]},
@@ -77,12 +87,11 @@ class SchurFactor:
     solve. The interior keeps SuperLU's fill-reducing ordering (taken from a first factorization)."""
 
     def __init__(self, K, free: np.ndarray, contact: np.ndarray):
-        import scipy.sparse.linalg as spla
         Kff = K[free][:, free].tocsc()
         pos = np.full(K.shape[0], -1)
         pos[free] = np.arange(len(free))
         c = pos[contact]
-        opts = dict(diag_pivot_thresh=0.0, options={"SymmetricMode": True})   # SPD: no pivoting
+        opts = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}   # SPD: no pivoting
         order = np.argsort(spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", **opts).perm_c)
         is_c = np.zeros(len(free), bool)
         is_c[c] = True
@@ -110,13 +119,14 @@ class SurfaceModel:
     rigid_tip: "auto" treats an elastic tip as rigid when that changes the force by less than ``tip_tolerance``
     (relative, bound from fem.tip.rigid_tip_bound), True always rigid, False always elastic (if a modulus is given).
     stress_band_m: depth below the surface over which the maximum von Mises stress is searched (default 2 R).
+    compliance, tip: operators restored from disk (``from_arrays``); K is then factorized only when fields are
+    asked for.
     """
 
     def __init__(self, scene, model: Model | None = None, rigid_tip: str | bool = "auto",
                  tip_tolerance: float = 1e-3, stress_band_m: float | None = None,
-                 rigid_stones: str | bool = "auto", *, _compliance: np.ndarray | None = None,
-                 _tip: TipCompliance | None = None):
-        # _compliance, _tip: restored by fem.cache from disk (then K is factorized only when fields are asked for)
+                 rigid_stones: str | bool = "auto", *, compliance: np.ndarray | None = None,
+                 tip: TipCompliance | None = None):
         t0 = time.perf_counter()
         if scene.analysis.formulation != "displacement":
             raise SceneError("analysis.formulation = 'mixed' covers load A only; contact (load B) uses the "
@@ -135,12 +145,12 @@ class SurfaceModel:
                              f"surface (smaller mesh_size_m or larger surface_refine)")
         self.top_red = self.model.reduced_index(2 * self.top + 1)
         self._free, self._fac = free, None
-        if _compliance is None:
+        if compliance is None:
             self._fac = SchurFactor(self.model.K, free, self.top_red)
-            _compliance = self._fac.compliance
-        if not np.all(np.isfinite(_compliance)):
+            compliance = self._fac.compliance
+        if not np.all(np.isfinite(compliance)):
             raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
-        self.C = _compliance                  # top-node downward displacement per downward nodal force (m per N/m)
+        self.C = compliance                  # top-node downward displacement per downward nodal force (m per N/m)
         ind = scene.indenter
         self.tip_bound = rigid_tip_bound(scene)
         if ind.youngs_pa is None:
@@ -152,11 +162,31 @@ class SurfaceModel:
         else:
             self.rigid_tip = False
             self.tip_note = "elastic tip (condensed tip compliance added)"
-        self.tip = None if self.rigid_tip else (_tip if _tip is not None else TipCompliance(scene))
+        self.tip = None if self.rigid_tip else (tip if tip is not None else TipCompliance.build(scene))
         self.band_m = stress_band_m if stress_band_m is not None else 2 * ind.radius_m
         self._band = None
         self._top_op = None
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The condensed operators: the surface compliance ``C`` and an elastic tip's (``tip_C``, ``tip_s``)."""
+        arrays = {"C": self.C}
+        if self.tip is not None:
+            arrays.update({f"tip_{k}": v for k, v in self.tip.to_arrays().items()})
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, scene, arrays: dict[str, np.ndarray], model: Model, **options) -> SurfaceModel:
+        """The SurfaceModel of ``scene`` on ``model`` with the operators ``to_arrays`` wrote (no factorization);
+        ValueError if they do not fit the model."""
+        C = arrays["C"]
+        n_top = len(model.mesh.top)
+        if C.shape != (n_top, n_top) or not np.all(np.isfinite(C)):
+            raise ValueError(f"compliance of shape {C.shape}, expected ({n_top}, {n_top}) and finite")
+        tip = None
+        if "tip_C" in arrays:
+            tip = TipCompliance.from_arrays({"C": arrays["tip_C"], "s": arrays["tip_s"]})
+        return cls(scene, model=model, compliance=C, tip=tip, **options)
 
     @property
     def fac(self) -> SchurFactor:
@@ -193,7 +223,7 @@ class SurfaceModel:
 
     def contact_forces(self, x0_m: float, depth_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(window top-node indices, nodal forces per unit thickness (N/m), gaps (m)) for one waypoint."""
-        _check(self.scene, x0_m, depth_m)
+        check_waypoint(self.scene, x0_m, depth_m)
         idx = self._window(x0_m)
         q = tip_profile(self.scene.indenter, x0_m, depth_m, self.x[idx])
         if depth_m == 0.0 or not np.any(q < 0):
@@ -274,7 +304,9 @@ def _half_width(xs: np.ndarray, active: np.ndarray) -> float:
     return 0.5 * (right - left)
 
 
-def _check(scene, x0_m: float, depth_m: float) -> None:
+def check_waypoint(scene, x0_m: float, depth_m: float) -> None:
+    """ValueError unless (x0_m, depth_m) is a waypoint the contact model covers: x0 on the surface, depth in
+    [0, height), and for a cylinder below the tip radius."""
     if not (isinstance(x0_m, (int, float)) and math.isfinite(x0_m)) or not (0.0 <= x0_m <= scene.tissue.width_m):
         raise ValueError(f"x0_m={x0_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
     if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < scene.tissue.height_m):
@@ -285,15 +317,33 @@ def _check(scene, x0_m: float, depth_m: float) -> None:
                          f"tip's sides, which this contact model does not represent")
 
 
+def _surface_spec(scene, options: dict) -> dict:
+    return {"scene": scene.key(), "options": options, "code": code_version()}
+
+
+def surface_key(scene, options: dict) -> str:
+    """The disk-cache key of a scene's SurfaceModel: the scene's content (not its name), options, code version."""
+    return diskcache.digest(_surface_spec(scene, options))
+
+
+def load_or_build_surface(scene, options: dict, use: bool | None = None) -> SurfaceModel:
+    """A SurfaceModel restored from the disk cache (compliance, tip), else built and stored. use: None follows
+    $PALPATE_CACHE, False skips the disk cache."""
+    model = build_model(scene, mesh=mesh_for(scene, use=use), rigid_stones=options.get("rigid_stones", "auto"))
+    return diskcache.load_or_build(
+        "surface", _surface_spec(scene, options), build=lambda: SurfaceModel(scene, model=model, **options),
+        to_arrays=SurfaceModel.to_arrays,
+        from_arrays=lambda arrays: SurfaceModel.from_arrays(scene, arrays, model=model, **options), use=use)
+
+
 _CACHE: dict[tuple, SurfaceModel] = {}
 
 
 def surface_model(scene, cache: bool | None = None, **options) -> SurfaceModel:
     """The SurfaceModel of a scene, built once per scene content and options (in-memory cache), and kept on disk
-    keyed by the scene's content (fem.cache; cache=None follows $PALPATE_CACHE, False: memory only)."""
+    keyed by the scene's content (fem.diskcache; cache=None follows $PALPATE_CACHE, False: memory only)."""
     key = (scene.key(), tuple(sorted(options.items())))
     if key not in _CACHE:
-        from .cache import load_or_build_surface
         _CACHE[key] = load_or_build_surface(scene, options, use=cache)
     return _CACHE[key]
 
@@ -303,8 +353,7 @@ def indent_full(scene, x0_m: float, depth_m: float, model: Model | None = None, 
     refactorized at every iteration of its own primal-dual active-set loop (add penetrating nodes, release nodes
     pulled by tension). No condensation and no LCP solver; rigid tip only. Used to check the fast path and as the
     "full re-solve per waypoint" baseline of the benchmark."""
-    import scipy.sparse.linalg as spla
-    _check(scene, x0_m, depth_m)
+    check_waypoint(scene, x0_m, depth_m)
     model = model or build_model(scene)
     mesh = model.mesh
     x = mesh.nodes[mesh.top, 0]

@@ -19,7 +19,7 @@ def to_meshio(mesh: Mesh, u: np.ndarray | None = None, point_data: dict[str, np.
               cell_data: dict[str, np.ndarray] | None = None):
     """A meshio.Mesh of ``mesh`` with displacement ``u`` (interleaved ux, uy; written as point vector "u") and
     further per-node scalars ``point_data`` and per-element scalars ``cell_data`` (``region`` always added)."""
-    import meshio
+    import meshio  # lazy: a heavy import, only needed when a file is written (keeps `import fem` fast)
     n = mesh.n_nodes
     points = np.zeros((n, 3))
     points[:, :2] = mesh.nodes

@@ -42,6 +42,22 @@ class Mesh:
     def n_dofs(self) -> int:
         return 2 * len(self.nodes)
 
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """The mesh as named arrays (``from_arrays`` rebuilds it; top and bottom are recomputed)."""
+        return {"nodes": self.nodes, "tris": self.tris, "region": self.region, "order": np.int64(self.order),
+                "width_m": np.float64(self.width_m), "height_m": np.float64(self.height_m)}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> Mesh:
+        """The mesh ``to_arrays`` wrote; ValueError if the arrays do not make a mesh."""
+        mesh = cls(nodes=arrays["nodes"], tris=arrays["tris"], region=arrays["region"], order=int(arrays["order"]),
+                   width_m=float(arrays["width_m"]), height_m=float(arrays["height_m"]))
+        if (mesh.nodes.ndim != 2 or mesh.nodes.shape[1] != 2 or mesh.tris.shape[1:] != ((3,) if mesh.order == 1 else (6,))
+                or len(mesh.region) != len(mesh.tris) or mesh.tris.min() < 0 or mesh.tris.max() >= mesh.n_nodes
+                or not np.all(np.isfinite(mesh.nodes))):
+            raise ValueError("the arrays do not make a consistent mesh")
+        return mesh
+
 
 def _start(gmsh):
     gmsh.initialize(readConfigFiles=False, interruptible=False)
@@ -95,7 +111,7 @@ def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, floa
     """Mesh the rectangle [0, width] x [0, height] with circular stones given as (x_m, y_centre_m, radius_m).
     focus = (x_m, size_m, radius_m): element size size_m within radius_m of the top-surface point x_m, growing by
     half the distance beyond it (for verification against local closed forms such as Hertz contact)."""
-    import gmsh
+    import gmsh  # lazy: a heavy import, only needed on a cache miss (keeps `import fem` and CLI start-up fast)
     with _GMSH_LOCK:
         _start(gmsh)
         try:
@@ -160,7 +176,7 @@ def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, floa
 def mesh_tip(radius_m: float, size_m: float, order: int = 2) -> Mesh:
     """The lower half of a disk of radius R centred at (0, R): a cylindrical tip whose lowest point is the origin.
     Its flat top edge (y = R) is where the holder grips it. ``height_m`` = R, ``top`` = the gripped edge."""
-    import gmsh
+    import gmsh  # lazy: a heavy import, only needed on a cache miss (keeps `import fem` and CLI start-up fast)
     with _GMSH_LOCK:
         _start(gmsh)
         try:

@@ -25,6 +25,8 @@ import scipy.sparse.linalg as spla
 from .assembly import element_dofs, gradients, strain_matrices
 from .elements import quadrature, shape
 from .model import Model, build_model
+from .results import Profile, UniformResult
+from .stress import nodal_poisson, recovery_operator
 
 _M = np.array([1.0, 1.0, 0.0])
 _DEV = np.array([[2 / 3, -1 / 3, 0.0], [-1 / 3, 2 / 3, 0.0], [0.0, 0.0, 0.5]])   # times 2G
@@ -104,7 +106,7 @@ class MixedSystem:
         nb = max(np.linalg.norm(b), 1e-300)
         # Symmetric fill-reducing order without pivoting (3x less fill than COLAMD with pivoting), one step of
         # iterative refinement, and the pivoting factorization as a fallback if the residual says so.
-        for spec, opts in (("MMD_AT_PLUS_A", dict(diag_pivot_thresh=0.0, options={"SymmetricMode": True})),
+        for spec, opts in (("MMD_AT_PLUS_A", {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}),
                            ("COLAMD", {})):
             with np.errstate(all="ignore"):
                 lu = spla.splu(Kff, permc_spec=spec, **opts)
@@ -135,7 +137,6 @@ class MixedSystem:
 
     def stresses(self, u_full: np.ndarray, p: np.ndarray, nodes: np.ndarray) -> dict[str, np.ndarray]:
         """Nodal stresses at ``nodes``: sigma = 2G dev(eps) + p I, from the node's primary region."""
-        from .stress import nodal_poisson, recovery_operator
         model = self.model
         eps = (recovery_operator(model, nodes, strain=True) @ u_full).reshape(-1, 3)
         nu = nodal_poisson(model, nodes)
@@ -155,10 +156,9 @@ class MixedSystem:
 
 
 def solve_uniform_mixed(scene, model: Model | None = None, full_field: bool = True,
-                        rigid_stones: str | bool = "auto"):
-    """Load A with the mixed formulation; returns fem.uniform.UniformResult (surface profile from the mixed
+                        rigid_stones: str | bool = "auto") -> UniformResult:
+    """Load A with the mixed formulation; returns fem.results.UniformResult (surface profile from the mixed
     stresses; ``timings_s['residual']`` is the relative residual of the saddle-point solve)."""
-    from .uniform import Profile, UniformResult
     t0 = time.perf_counter()
     model = model or build_model(scene, rigid_stones=rigid_stones)
     sysm = MixedSystem(model)
@@ -176,7 +176,6 @@ def solve_uniform_mixed(scene, model: Model | None = None, full_field: bool = Tr
     surf.pop("nu")
     nodal = None
     if full_field:
-        from .stress import recovery_operator
         nodal = sysm.stresses(u, p, np.arange(mesh.n_nodes))
         nodal.pop("nu")
         eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)

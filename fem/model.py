@@ -7,6 +7,7 @@ system. The solution differs from the elastic stone's by O(E_t/E_s); tests and t
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,6 +16,7 @@ import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
 from .mesh import Mesh
+from .scene_mesh import mesh_for
 
 RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
 
@@ -81,7 +83,7 @@ class Model:
             raise ValueError("a requested DOF belongs to a rigid stone")
         return P.indices.copy()
 
-    def partition(self, fixed: np.ndarray) -> "Factored":
+    def partition(self, fixed: np.ndarray) -> Factored:
         """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
         return Factored(self, np.asarray(fixed, dtype=np.int64))
 
@@ -122,34 +124,32 @@ NU_WARN = 0.49   # tissue Poisson ratio above which the displacement formulation
 
 
 def warn_if_locking(scene) -> None:
-    """Volumetric locking: with nu -> 0.5 displacement elements over-stiffen (P1 badly, P2 in its stresses).
-    Errors measured on the paper scene, load A, against the mixed Taylor-Hood solve (bench/bench_runtime_error.py)."""
+    """Volumetric locking: with nu -> 0.5 displacement elements over-stiffen (P1 badly, P2 in its stresses). The
+    warning states only this scene's figures (its Poisson ratio and bulk-to-shear ratio); the error they cause
+    depends on the scene (bench/bench_runtime_error.py --locking measures it on the paper scene)."""
     nu = scene.tissue.poisson
     if nu > NU_WARN and getattr(scene.analysis, "formulation", "displacement") == "displacement":
-        import warnings
-        warnings.warn(f"tissue poisson = {nu} > {NU_WARN} with the displacement formulation: volumetric locking "
-                      f"makes stresses untrustworthy (paper scene, load A, peak von Mises vs the locking-free solve: "
-                      f"P2 off by {LOCKING_ERROR['P2']}, P1 by {LOCKING_ERROR['P1']} at nu = 0.4999); set "
-                      f"[analysis] formulation = \"mixed\" (Taylor-Hood P2/P1)", stacklevel=3)
+        bulk_to_shear = 2 * (1 + nu) / (3 * (1 - 2 * nu))
+        warnings.warn(f"scene {scene.name!r}: tissue poisson = {nu} > {NU_WARN} with the displacement formulation "
+                      f"(P{scene.analysis.order}): volumetric locking (bulk modulus {bulk_to_shear:.3g} times the "
+                      f"shear modulus) makes stresses untrustworthy; set [analysis] formulation = \"mixed\" "
+                      f"(Taylor-Hood P2/P1)", stacklevel=3)
 
 
-LOCKING_ERROR = {"P2": "+0.5 %", "P1": "+63 %"}   # measured (bench/bench_runtime_error.py --locking)
 ELASTIC_RATIO_WARN = 1.0e8   # an elastic (not rigid) stone stiffer than this loses accuracy to round-off
 
 
 def warn_if_ill_conditioned(scene, rigid: list[bool]) -> None:
-    """An elastic stone E_s/E_t > 1e8 times stiffer than tissue: the sparse solve loses digits (paper scene, 4 mm
-    mesh, vs the rigid stone: load A surface stress 4e-5 off at 1e10, 6e-3 at 1e12; contact force 1.4e-5 and
-    3e-3), while the rigid-body reduction is exact to O(E_t/E_s)."""
+    """An elastic stone E_s/E_t > 1e8 times stiffer than tissue: the sparse solve loses digits (how many depends on
+    the scene and mesh; bench/bench_runtime_error.py measures it), while the rigid-body reduction is exact to
+    O(E_t/E_s). The warning states only this scene's figures."""
     t = scene.tissue
     for i, (s, r) in enumerate(zip(scene.stones, rigid)):
         ratio = s.youngs_pa / t.youngs_pa
         if not r and ratio > ELASTIC_RATIO_WARN:
-            import warnings
-            warnings.warn(f"stone[{i}] is {ratio:.1e} times stiffer than tissue and meshed elastic: round-off "
-                          f"grows with the ratio (about 4e-5 relative at 1e10, 6e-3 at 1e12); use "
-                          f"rigid_stones='auto' (rigid body, exact to {t.youngs_pa / s.youngs_pa:.0e})",
-                          stacklevel=3)
+            warnings.warn(f"scene {scene.name!r}: stone[{i}] is {ratio:.1e} times stiffer than tissue and meshed "
+                          f"elastic: round-off in the solve grows with the ratio; use rigid_stones='auto' (rigid "
+                          f"body, exact to {t.youngs_pa / s.youngs_pa:.0e})", stacklevel=3)
 
 
 def materials_of(scene) -> list[Material]:
@@ -160,8 +160,7 @@ def materials_of(scene) -> list[Material]:
 def build_model(scene, mesh: Mesh | None = None, rigid_stones: str | bool = "auto") -> Model:
     """Discretize a scene. rigid_stones: "auto" (rigid when E_stone >= RIGID_RATIO * E_tissue), True, False."""
     if mesh is None:
-        from .cache import mesh_for      # the disk cache (fem.cache); meshes with gmsh on a miss
-        mesh = mesh_for(scene)
+        mesh = mesh_for(scene)           # from the disk cache; meshed with gmsh on a miss
     t = scene.tissue
     warn_if_locking(scene)
     if rigid_stones == "auto":

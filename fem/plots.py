@@ -6,19 +6,20 @@ particular load case, so the indentation figures can reuse them. Lengths are dra
 """
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
-import matplotlib
+import matplotlib  # heavy: fem.plots is imported explicitly, never by fem/__init__.py
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import matplotlib.tri as mtri  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.colors import TwoSlopeNorm  # noqa: E402
-from matplotlib.patches import Circle  # noqa: E402
+import matplotlib.pyplot as plt
+import matplotlib.tri as mtri
+import numpy as np
+from matplotlib.colors import TwoSlopeNorm
+from matplotlib.patches import Circle, Rectangle
 
-from .mesh import Mesh  # noqa: E402
+from .mesh import Mesh
 
 MM = 1e3
 # P2 triangle -> 4 linear sub-triangles (gmsh order: vertices 0 1 2, mid-edge 3 = 01, 4 = 12, 5 = 20)
@@ -170,15 +171,13 @@ def _save(fig, path) -> Path:
 
 def deformed(mesh: Mesh, u: np.ndarray, scale: float = 1.0) -> Mesh:
     """A copy of ``mesh`` with its nodes moved by ``scale`` times the interleaved displacement ``u`` (2N,)."""
-    import dataclasses
     return dataclasses.replace(mesh, nodes=mesh.nodes + scale * np.asarray(u, float).reshape(-1, 2))
 
 
 def draw_tip(ax, indenter, x0_m: float, bottom_y_m: float, **style) -> None:
     """The probe tip's outline (mm) with its lowest point at (x0_m, bottom_y_m): a circle of radius_m for a
     cylinder, a rectangle of half-width radius_m for a flat punch."""
-    from matplotlib.patches import Rectangle
-    kw = dict(facecolor="none", edgecolor="k", lw=1.2, ls="-", zorder=4)
+    kw = {"facecolor": "none", "edgecolor": "k", "lw": 1.2, "ls": "-", "zorder": 4}
     kw.update(style)
     R = indenter.radius_m
     if indenter.shape == "cylinder":

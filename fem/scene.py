@@ -73,14 +73,14 @@ class Scene:
         object.__setattr__(self, "stones", tuple(self.stones))
         validate(self)
 
-    def prior(self) -> "Scene":
+    def prior(self) -> Scene:
         """What a surgeon knows before probing: the tissue, no stones."""
         return dataclasses.replace(self, name=f"{self.name}-prior", stones=())
 
-    def with_analysis(self, **changes) -> "Scene":
+    def with_analysis(self, **changes) -> Scene:
         return dataclasses.replace(self, analysis=dataclasses.replace(self.analysis, **changes))
 
-    def with_stones(self, stones) -> "Scene":
+    def with_stones(self, stones) -> Scene:
         return dataclasses.replace(self, stones=tuple(stones))
 
     def to_dict(self) -> dict:

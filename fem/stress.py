@@ -62,7 +62,3 @@ def components(s3: np.ndarray, nu: np.ndarray, plane: str) -> dict[str, np.ndarr
     szz = nu * (sxx + syy) if plane == "strain" else np.zeros_like(sxx)
     vm = np.sqrt(0.5 * ((sxx - syy) ** 2 + (syy - szz) ** 2 + (szz - sxx) ** 2) + 3.0 * sxy ** 2)
     return {"sxx_pa": sxx, "syy_pa": syy, "sxy_pa": sxy, "szz_pa": szz, "von_mises_pa": vm}
-
-
-def von_mises(s3: np.ndarray, nu: np.ndarray | float, plane: str) -> np.ndarray:
-    return components(s3, nu, plane)["von_mises_pa"]

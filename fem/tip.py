@@ -12,7 +12,10 @@ tissue rho = 4.5e-5. The tests and the bench measure the actual change against t
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
+import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
 from .mesh import mesh_tip
@@ -27,9 +30,15 @@ def rigid_tip_bound(scene) -> float:
     return t.youngs_pa / ind.youngs_pa
 
 
+@dataclass
 class TipCompliance:
-    def __init__(self, scene):
-        import scipy.sparse.linalg as spla
+    """The condensed vertical compliance of an elastic tip's arc (``build``), or restored (``from_arrays``)."""
+    C: np.ndarray    # (n_arc, n_arc) upward displacement per upward force
+    s: np.ndarray    # (n_arc,) abscissa of the arc nodes (tip axis at 0), increasing
+
+    @classmethod
+    def build(cls, scene) -> TipCompliance:
+        """Mesh the scene's tip and condense its arc's compliance."""
         ind = scene.indenter
         if ind.shape != "cylinder":
             raise ValueError("an elastic tip is modelled for shape='cylinder' only; give no youngs_pa for a rigid "
@@ -52,8 +61,18 @@ class TipCompliance:
         unit[pos, np.arange(len(arc))] = 1.0                      # unit upward force on the tip at each arc node
         X = lu.solve(np.asfortranarray(unit))
         C = X[pos, :]
-        self.C = 0.5 * (C + C.T)                                  # upward displacement per upward force
-        self.s = mesh.nodes[arc, 0]                               # abscissa of the arc nodes (tip axis at 0)
+        return cls(C=0.5 * (C + C.T), s=mesh.nodes[arc, 0])
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"C": self.C, "s": self.s}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> TipCompliance:
+        """The tip ``to_arrays`` wrote; ValueError if the arrays do not fit together."""
+        C, s = arrays["C"], arrays["s"]
+        if s.ndim != 1 or len(s) < 2 or C.shape != (len(s), len(s)) or not np.all(np.isfinite(C)):
+            raise ValueError(f"tip compliance of shape {C.shape} for {s.shape} arc nodes")
+        return cls(C=C, s=s)
 
     def interpolation(self, s: np.ndarray) -> np.ndarray:
         """(len(s), n_arc) piecewise-linear interpolation from arc nodes to abscissae s."""

@@ -3,59 +3,23 @@ bottom edge u_y = 0, bottom-left corner u_x = 0, sides traction-free."""
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
 
+from .mixed import solve_uniform_mixed
 from .model import Model, build_model
+from .results import Profile, UniformResult
 from .stress import components, nodal_poisson, recovery_operator
 
+# Profile and UniformResult live in fem.results; imported here, they stay importable from fem.uniform too.
 
 RESIDUAL_WARN = 1e-6
-
-
-@dataclass
-class Profile:
-    """Stresses along the top surface (Pa), nodes sorted by x."""
-    x_m: np.ndarray
-    fields: dict[str, np.ndarray]
-
-    def peak(self, key: str = "von_mises_pa") -> tuple[float, float]:
-        """(x_m, value) of the maximum, refined by a parabola through the largest node and its neighbours."""
-        v = self.fields[key]
-        i = int(np.argmax(v))
-        if 0 < i < len(v) - 1:
-            x0, x1, x2 = self.x_m[i - 1:i + 2]
-            y0, y1, y2 = v[i - 1:i + 2]
-            A = np.array([[x0 ** 2, x0, 1], [x1 ** 2, x1, 1], [x2 ** 2, x2, 1]])
-            a, b, c = np.linalg.solve(A, [y0, y1, y2])
-            if a < 0:
-                xp = -b / (2 * a)
-                if x0 <= xp <= x2:
-                    return float(xp), float(c - b * b / (4 * a))
-        return float(self.x_m[i]), float(v[i])
-
-    def to_json(self) -> dict:
-        xp, vp = self.peak()
-        return {"surface": {"x_m": self.x_m.tolist(), **{k: v.tolist() for k, v in self.fields.items()}},
-                "peak": {"x_m": xp, "von_mises_pa": vp}}
-
-
-@dataclass
-class UniformResult:
-    model: Model
-    u: np.ndarray                      # full displacement (2N,)
-    surface: Profile
-    nodal: dict[str, np.ndarray] | None = None    # full-field stresses and strains at nodes (None: surface only)
-    timings_s: dict = field(default_factory=dict)
-    reaction_n_per_m: float = 0.0      # total vertical force on the top edge per unit thickness (compression > 0)
-    residual: float = 0.0              # relative residual of the free equations, ||(K u)_free|| / ||K_fp u_p||
 
 
 def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
                   rigid_stones: str | bool = "auto") -> UniformResult:
     if scene.analysis.formulation == "mixed":         # locking-free u-p (fem.mixed)
-        from .mixed import solve_uniform_mixed
         return solve_uniform_mixed(scene, model=model, full_field=full_field, rigid_stones=rigid_stones)
     t0 = time.perf_counter()
     model = model or build_model(scene, rigid_stones=rigid_stones)
@@ -78,7 +42,6 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
     Ku = model.K @ u_red
     residual = float(np.linalg.norm(Ku[fac.free]) / max(np.linalg.norm(fac.Kfp @ pres), 1e-300))
     if residual > RESIDUAL_WARN:
-        import warnings
         warnings.warn(f"load A on scene {scene.name!r}: relative residual {residual:.1e} > {RESIDUAL_WARN:g}: the "
                       f"solution has lost accuracy to round-off (an elastic stone far stiffer than tissue? use "
                       f"rigid_stones='auto')", stacklevel=2)

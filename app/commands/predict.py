@@ -153,8 +153,8 @@ def run(args) -> int:
     sc, ref = _scenes(args)
     try:
         xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)
-        from fem.contact import _check
-        _check(sc, float(xs[0]), args.depth_m)
+        from fem.contact import check_waypoint
+        check_waypoint(sc, float(xs[0]), args.depth_m)
         if not args.depth_m > 0:
             raise ValueError(f"--depth-m must be positive, got {args.depth_m}")
     except ValueError as e:

@@ -127,12 +127,12 @@ def _run_indent(args) -> int:
         eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
         nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
     t3 = time.perf_counter()
-    res = r.to_json()
+    res = r.to_dict()
     res["contact"]["nodal_force_n_per_m"] = r.nodal_force_n_per_m.tolist()
     out = {"scene": sc.name, "load": "indent", **res,
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
            "rigid_stones": [bool(x) for x in model.rigid],
-           **profile.to_json(),
+           **profile.to_dict(),
            "mesh": {"nodes": int(mesh.n_nodes), "elements": int(len(mesh.tris)), "order": int(mesh.order),
                     "dofs": int(model.n_dofs), "dofs_full": int(mesh.n_dofs), "contact_candidates": int(len(top))},
            "timings_s": {**m.timings_s, "model_s": t1 - t0, "indent_s": t2 - t1, "fields_s": t3 - t2},
@@ -224,7 +224,7 @@ def _run_uniform(args) -> int:
     mesh = res.model.mesh
     out = {"scene": sc.name, "load": "uniform", "analysis": dataclasses.asdict(sc.analysis),
            "rigid_stones": [bool(r) for r in res.model.rigid],
-           **res.surface.to_json(),
+           **res.surface.to_dict(),
            "reaction_n_per_m": res.reaction_n_per_m,
            "force_n": res.reaction_n_per_m * sc.indenter.thickness_m,
            "mesh": {"nodes": int(mesh.n_nodes), "elements": int(len(mesh.tris)), "order": int(mesh.order),
@@ -248,7 +248,7 @@ def _run_uniform(args) -> int:
                 other = dataclasses.replace(S.load(name), analysis=sc.analysis)
                 r = solve_uniform(other, full_field=False, rigid_stones=_rigid(args))
             compare.append((other, r.surface))
-        out["compare"] = [{"scene": o.name, "peak": prof.to_json()["peak"]} for o, prof in compare]
+        out["compare"] = [{"scene": o.name, "peak": prof.to_dict()["peak"]} for o, prof in compare]
 
     if args.plots:
         out["files"].update(_figures(Path(args.plots), sc, res, compare))

@@ -1,0 +1,46 @@
+"""Result types shared by the load A solvers (fem.uniform: displacement formulation, fem.mixed: u-p)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import Model
+
+
+@dataclass
+class Profile:
+    """Stresses along the top surface (Pa), nodes sorted by x."""
+    x_m: np.ndarray
+    fields: dict[str, np.ndarray]
+
+    def peak(self, key: str = "von_mises_pa") -> tuple[float, float]:
+        """(x_m, value) of the maximum, refined by a parabola through the largest node and its neighbours."""
+        v = self.fields[key]
+        i = int(np.argmax(v))
+        if 0 < i < len(v) - 1:
+            x0, x1, x2 = self.x_m[i - 1:i + 2]
+            y0, y1, y2 = v[i - 1:i + 2]
+            A = np.array([[x0 ** 2, x0, 1], [x1 ** 2, x1, 1], [x2 ** 2, x2, 1]])
+            a, b, c = np.linalg.solve(A, [y0, y1, y2])
+            if a < 0:
+                xp = -b / (2 * a)
+                if x0 <= xp <= x2:
+                    return float(xp), float(c - b * b / (4 * a))
+        return float(self.x_m[i]), float(v[i])
+
+    def to_dict(self) -> dict:
+        xp, vp = self.peak()
+        return {"surface": {"x_m": self.x_m.tolist(), **{k: v.tolist() for k, v in self.fields.items()}},
+                "peak": {"x_m": xp, "von_mises_pa": vp}}
+
+
+@dataclass
+class UniformResult:
+    model: Model
+    u: np.ndarray                      # full displacement (2N,)
+    surface: Profile
+    nodal: dict[str, np.ndarray] | None = None    # full-field stresses and strains at nodes (None: surface only)
+    timings_s: dict = field(default_factory=dict)
+    reaction_n_per_m: float = 0.0      # total vertical force on the top edge per unit thickness (compression > 0)
+    residual: float = 0.0              # relative residual of the free equations, ||(K u)_free|| / ||K_fp u_p||
