@@ -29,7 +29,6 @@ import argparse
 import hashlib
 import json
 import multiprocessing as mp
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -37,10 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fem.cache import mesh_for
+from fem import diskcache
 from fem.contact import SurfaceModel, surface_model
 from fem.model import build_model
 from fem.scene import Stone, from_dict, load
+from fem.scene_mesh import mesh_for
 
 FORMAT = 1
 
@@ -58,9 +58,8 @@ class Grid:
 
 
 def cache_path(prior, grid: Grid, root: Path | None = None) -> Path:
-    if root is None:
-        d = os.environ.get("PALPATE_CACHE_DIR")
-        root = Path(d) if d else Path.home() / ".cache" / "palpate"
+    """Where the table of ``prior`` lives in ``root`` (default: fem's disk cache directory)."""
+    root = diskcache.cache_dir() if root is None else root
     key = hashlib.sha256(json.dumps({"scene": prior.key(), "grid": grid.to_dict(), "format": FORMAT},
                                     sort_keys=True).encode()).hexdigest()[:16]
     return root / f"surrogate-{key}.npz"
@@ -222,6 +221,11 @@ _MEM: dict[str, Surrogate] = {}
 SHIPPED = Path(__file__).resolve().parent / "data"      # tables shipped with the source (checked like any other)
 
 
+def table_candidates(prior, grid: Grid) -> list[Path]:
+    """Where a table may be read from, in order: the disk cache (unless PALPATE_CACHE=0), then the shipped data."""
+    return ([cache_path(prior, grid)] if diskcache.enabled() else []) + [cache_path(prior, grid, SHIPPED)]
+
+
 def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int = 2, progress=None,
                    check: bool = True) -> Surrogate:
     """The surrogate of a prior scene (stone-free): from memory, the disk cache or the tables shipped in
@@ -234,14 +238,9 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
         return _MEM[str(path)]
     fp = None
     data = None
-    for cand in (path, cache_path(prior, grid, SHIPPED)):
-        if not cand.exists():
-            continue
-        try:
-            with np.load(cand) as z:
-                d = {k: z[k] for k in z.files}
-        except (OSError, ValueError) as e:
-            print(f"surrogate: ignoring unreadable table {cand}: {e}", file=sys.stderr)
+    for cand in table_candidates(prior, grid):
+        d = diskcache.read(cand)
+        if d is None:
             continue
         if check:
             fp = fingerprint(prior, grid) if fp is None else fp
@@ -257,10 +256,8 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
             raise FileNotFoundError(f"no valid surrogate table at {path}")
         data = build_table(prior, grid, workers=workers, progress=progress)
         data["fingerprint"] = fingerprint(prior, grid) if fp is None else fp
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f"{path.stem}.{os.getpid()}.tmp.npz")
-        np.savez_compressed(tmp, **data)
-        os.replace(tmp, path)
+        if diskcache.enabled():
+            diskcache.write(path, data)
     sur = Surrogate(data, prior)
     _MEM[str(path)] = sur
     return sur

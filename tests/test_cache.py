@@ -1,4 +1,4 @@
-"""The disk cache (fem.cache): restored surface models are bitwise the fresh ones, keys follow the scene's content,
+"""The disk cache (fem.diskcache, used by fem.scene_mesh and fem.contact): restored surface models are bitwise the fresh ones, keys follow the scene's content,
 damaged entries are ignored with a warning, PALPATE_CACHE=0 writes nothing."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fem import cache, contact
+from fem import contact, diskcache, scene_mesh
 from fem import scene as S
 
 
@@ -28,9 +28,9 @@ def test_restored_surface_model_is_bitwise_the_fresh_one(cdir):
     fresh = contact.surface_model(sc)
     assert sorted(p.name.split("-")[0] for p in cdir.glob("*.npz")) == ["mesh", "surface"]
     contact._CACHE.clear()
-    hits = cache.stats["surface_hit"]
+    hits = diskcache.stats["surface_hit"]
     restored = contact.surface_model(sc)
-    assert cache.stats["surface_hit"] == hits + 1 and restored is not fresh
+    assert diskcache.stats["surface_hit"] == hits + 1 and restored is not fresh
     assert restored._fac is None                       # force queries need no factorization
     assert np.array_equal(restored.C, fresh.C)
     assert np.array_equal(restored.model.mesh.nodes, fresh.model.mesh.nodes)
@@ -54,11 +54,11 @@ def test_keys_follow_content_not_name():
     a = _scene()
     b = dataclasses.replace(a, name="other")
     stiffer = a.with_stones([dataclasses.replace(a.stones[0], youngs_pa=1e10)])
-    assert cache.surface_key(a, {}) == cache.surface_key(b, {})
-    assert cache.surface_key(a, {}) != cache.surface_key(stiffer, {})
-    assert cache.surface_key(a, {}) != cache.surface_key(a, {"rigid_stones": False})
-    assert cache.mesh_key(a) == cache.mesh_key(stiffer)          # moduli do not change the mesh
-    assert cache.mesh_key(a) != cache.mesh_key(a.with_analysis(order=1))
+    assert contact.surface_key(a, {}) == contact.surface_key(b, {})
+    assert contact.surface_key(a, {}) != contact.surface_key(stiffer, {})
+    assert contact.surface_key(a, {}) != contact.surface_key(a, {"rigid_stones": False})
+    assert scene_mesh.mesh_key(a) == scene_mesh.mesh_key(stiffer)          # moduli do not change the mesh
+    assert scene_mesh.mesh_key(a) != scene_mesh.mesh_key(a.with_analysis(order=1))
 
 
 @pytest.mark.parametrize("damage", [b"", b"not an npz file", None])
@@ -80,10 +80,10 @@ def test_damaged_entries_are_ignored_with_a_warning(cdir, damage):
 
 def test_damaged_mesh_entry(cdir):
     sc = _scene("healthy")
-    m1 = cache.mesh_for(sc)
+    m1 = scene_mesh.mesh_for(sc)
     next(cdir.glob("mesh-*.npz")).write_bytes(b"\x00" * 100)
     with pytest.warns(UserWarning, match="ignoring"):
-        m2 = cache.mesh_for(sc)
+        m2 = scene_mesh.mesh_for(sc)
     assert np.array_equal(m1.nodes, m2.nodes) and np.array_equal(m1.tris, m2.tris)
 
 

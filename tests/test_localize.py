@@ -127,3 +127,16 @@ def test_random_check_stones_fit_inside_a_thin_tissue():
     stones = random_stones(bounds, 0.070, 0.020, 200, np.random.default_rng(1))
     assert all(s + D <= 0.020 - 3e-3 + 1e-12 for _, s, D in stones)
     assert max(s + D for _, s, D in stones) > 0.012          # and they still use the depth available
+
+
+def test_surrogate_tables_follow_the_disk_cache_switch(monkeypatch, tmp_path):
+    """PALPATE_CACHE=0 keeps the surrogate out of the user's disk cache (it used to be read and written anyway); the
+    shipped table is data, not cache, and stays a candidate."""
+    from planner.surrogate import SHIPPED, Grid, cache_path, table_candidates
+    prior = load("paper").prior()
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("PALPATE_CACHE", "1")
+    assert table_candidates(prior, Grid()) == [cache_path(prior, Grid()), cache_path(prior, Grid(), SHIPPED)]
+    assert cache_path(prior, Grid()).parent == tmp_path
+    monkeypatch.setenv("PALPATE_CACHE", "0")
+    assert table_candidates(prior, Grid()) == [cache_path(prior, Grid(), SHIPPED)]

@@ -16,9 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
-from fem import plots
 from fem import scene as S
-from fem.contact import surface_model
+from fem.contact import check_waypoint, surface_model
 
 DEFAULT_DEPTH_M = 0.004
 DEFAULT_MARGIN_M = 0.005
@@ -153,7 +152,6 @@ def run(args) -> int:
     sc, ref = _scenes(args)
     try:
         xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)
-        from fem.contact import check_waypoint
         check_waypoint(sc, float(xs[0]), args.depth_m)
         if not args.depth_m > 0:
             raise ValueError(f"--depth-m must be positive, got {args.depth_m}")
@@ -202,6 +200,7 @@ def run(args) -> int:
 
 
 def _figure(d: Path, sc, ref, out) -> Path:
+    from fem import plots  # matplotlib: loaded only when figures are asked for
     w = out["waypoints"]
     a = sc.analysis
     ref_w = out.get("reference") or w

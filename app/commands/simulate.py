@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
-from fem import plots
 from fem import scene as S
 from fem.contact import surface_model
 from fem.stress import components, nodal_poisson, recovery_operator
@@ -150,6 +149,7 @@ def _run_indent(args) -> int:
 
 def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
     """fig10_indent.png: von Mises over the deformed section and von Mises, sigma_xx, sigma_yy under the tip."""
+    from fem import plots  # matplotlib: loaded only when figures are asked for
     mesh = m.model.mesh
     dm = plots.deformed(mesh, u)
     U = np.asarray(u).reshape(-1, 2)
@@ -260,6 +260,7 @@ def _run_uniform(args) -> int:
 
 
 def _figures(d: Path, sc, res, compare) -> dict[str, str]:
+    from fem import plots  # matplotlib: loaded only when figures are asked for
     mesh, n = res.model.mesh, res.nodal
     outl = plots.outlines_of(sc)
     a = sc.analysis
