@@ -26,7 +26,7 @@ COMMANDS = {
 
 EPILOG = """examples:
   palpate simulate paper --load uniform --plots out/      stress under a 5 mm top displacement (load A)
-  palpate simulate paper --load indent --x0-m 0.035 --depth-m 0.004
+  palpate simulate paper --load indent --x-m 0.035 --depth-m 0.004
   palpate predict paper --waypoints 50 --depth-m 0.004    force and stress across the surface (load B)
   palpate plan paper --out plan.json --plots out/          CasADi raster plan for a UR5e
   palpate run paper --sim --out run/                       plan, probe with the simulated arm, locate the stone

@@ -40,7 +40,7 @@ from .tip import TipCompliance, rigid_tip_bound
 
 @dataclass
 class IndentResult:
-    x0_m: float
+    x_m: float
     depth_m: float
     force_n_per_m: float
     force_n: float
@@ -55,7 +55,7 @@ class IndentResult:
     tip_note: str = ""
 
     def to_dict(self) -> dict:
-        return {"x0_m": self.x0_m, "depth_m": self.depth_m, "force_n_per_m": self.force_n_per_m,
+        return {"x_m": self.x_m, "depth_m": self.depth_m, "force_n_per_m": self.force_n_per_m,
                 "force_n": self.force_n, "max_von_mises_pa": self.max_von_mises_pa,
                 "max_von_mises_at": {"x_m": self.max_von_mises_at_m[0], "depth_m": self.max_von_mises_at_m[1]},
                 "half_width_m": self.half_width_m, "rigid_tip": self.rigid_tip, "tip_note": self.tip_note,
@@ -63,9 +63,9 @@ class IndentResult:
                             "gap_m": self.gap_m.tolist()}}
 
 
-def tip_profile(indenter, x0_m: float, depth_m: float, x: np.ndarray) -> np.ndarray:
+def tip_profile(indenter, x_m: float, depth_m: float, x: np.ndarray) -> np.ndarray:
     """Height of the tip's lower surface above the undeformed top surface at x (inf where the tip is absent)."""
-    d = x - x0_m
+    d = x - x_m
     R = indenter.radius_m
     out = np.full(len(x), np.inf)
     inside = np.abs(d) <= R
@@ -217,35 +217,35 @@ class SurfaceModel:
         return self._top_op
 
     # -- one waypoint --------------------------------------------------------------------------------------------
-    def _window(self, x0_m: float) -> np.ndarray:
+    def _window(self, x_m: float) -> np.ndarray:
         R = self.scene.indenter.radius_m
-        return np.flatnonzero(np.abs(self.x - x0_m) <= R)
+        return np.flatnonzero(np.abs(self.x - x_m) <= R)
 
-    def contact_forces(self, x0_m: float, depth_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def contact_forces(self, x_m: float, depth_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(window top-node indices, nodal forces per unit thickness (N/m), gaps (m)) for one waypoint."""
-        check_waypoint(self.scene, x0_m, depth_m)
-        idx = self._window(x0_m)
-        q = tip_profile(self.scene.indenter, x0_m, depth_m, self.x[idx])
+        check_waypoint(self.scene, x_m, depth_m)
+        idx = self._window(x_m)
+        q = tip_profile(self.scene.indenter, x_m, depth_m, self.x[idx])
         if depth_m == 0.0 or not np.any(q < 0):
             return idx, np.zeros(len(idx)), q
         M = self.C[np.ix_(idx, idx)]
         if self.tip is not None:
-            M = M + self.tip.compliance(self.x[idx] - x0_m)
+            M = M + self.tip.compliance(self.x[idx] - x_m)
         r = solve_lcp(M, q, start=q < 0)
         return idx, r.z, r.w
 
-    def force_n_per_m(self, x0_m: float, depth_m: float) -> float:
-        return float(self.contact_forces(x0_m, depth_m)[1].sum())
+    def force_n_per_m(self, x_m: float, depth_m: float) -> float:
+        return float(self.contact_forces(x_m, depth_m)[1].sum())
 
-    def force_n(self, x0_m: float, depth_m: float) -> float:
-        return self.force_n_per_m(x0_m, depth_m) * self.scene.indenter.thickness_m
+    def force_n(self, x_m: float, depth_m: float) -> float:
+        return self.force_n_per_m(x_m, depth_m) * self.scene.indenter.thickness_m
 
-    def indent(self, x0_m: float, depth_m: float, stresses: bool = True) -> IndentResult:
-        return self.indent_many([x0_m], [depth_m], stresses=stresses)[0]
+    def indent(self, x_m: float, depth_m: float, stresses: bool = True) -> IndentResult:
+        return self.indent_many([x_m], [depth_m], stresses=stresses)[0]
 
-    def indent_many(self, x0_m, depth_m, stresses: bool = True) -> list[IndentResult]:
+    def indent_many(self, x_m, depth_m, stresses: bool = True) -> list[IndentResult]:
         """Several waypoints; their stress fields come from one batched back-substitution."""
-        x0s = np.atleast_1d(np.asarray(x0_m, float))
+        x0s = np.atleast_1d(np.asarray(x_m, float))
         depths = np.broadcast_to(np.asarray(depth_m, float), x0s.shape)
         sols = [self.contact_forces(float(x), float(d)) for x, d in zip(x0s, depths)]
         F = np.zeros((len(self.top), len(sols)))
@@ -269,26 +269,26 @@ class SurfaceModel:
                 at = (float(self.model.mesh.nodes[node, 0]), float(H - self.model.mesh.nodes[node, 1]))
                 pressure = np.where(active, np.maximum(-St[idx, 1, k], 0.0), 0.0)
             P = float(f.sum())
-            out.append(IndentResult(x0_m=float(x0), depth_m=float(d), force_n_per_m=P,
+            out.append(IndentResult(x_m=float(x0), depth_m=float(d), force_n_per_m=P,
                                     force_n=P * self.scene.indenter.thickness_m, max_von_mises_pa=vm_max,
                                     max_von_mises_at_m=at, half_width_m=_half_width(self.x[idx], active),
                                     contact_x_m=self.x[idx], pressure_pa=pressure, nodal_force_n_per_m=f,
                                     gap_m=gap, rigid_tip=self.rigid_tip, tip_note=self.tip_note))
         return out
 
-    def depth_for_force(self, x0_m: float, force_n: float, depth_max_m: float) -> float:
+    def depth_for_force(self, x_m: float, force_n: float, depth_max_m: float) -> float:
         """The depth at which the tip force reaches ``force_n`` (force is monotone in depth); depth_max_m if never."""
-        if self.force_n(x0_m, depth_max_m) <= force_n:
+        if self.force_n(x_m, depth_max_m) <= force_n:
             return depth_max_m
         lo, hi = 0.0, depth_max_m
         while hi - lo > 1e-9 * depth_max_m:
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if self.force_n(x0_m, mid) <= force_n else (lo, mid)
+            lo, hi = (mid, hi) if self.force_n(x_m, mid) <= force_n else (lo, mid)
         return lo
 
-    def full_field(self, x0_m: float, depth_m: float) -> np.ndarray:
+    def full_field(self, x_m: float, depth_m: float) -> np.ndarray:
         """Full displacement vector (2N,) for one waypoint: one more back-substitution."""
-        idx, f, _ = self.contact_forces(x0_m, depth_m)
+        idx, f, _ = self.contact_forces(x_m, depth_m)
         F = np.zeros((len(self.top), 1))
         F[idx, 0] = f
         return self.displacements(F)[:, 0]
@@ -304,11 +304,11 @@ def _half_width(xs: np.ndarray, active: np.ndarray) -> float:
     return 0.5 * (right - left)
 
 
-def check_waypoint(scene, x0_m: float, depth_m: float) -> None:
-    """ValueError unless (x0_m, depth_m) is a waypoint the contact model covers: x0 on the surface, depth in
+def check_waypoint(scene, x_m: float, depth_m: float) -> None:
+    """ValueError unless (x_m, depth_m) is a waypoint the contact model covers: x0 on the surface, depth in
     [0, height), and for a cylinder below the tip radius."""
-    if not (isinstance(x0_m, (int, float)) and math.isfinite(x0_m)) or not (0.0 <= x0_m <= scene.tissue.width_m):
-        raise ValueError(f"x0_m={x0_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
+    if not (isinstance(x_m, (int, float)) and math.isfinite(x_m)) or not (0.0 <= x_m <= scene.tissue.width_m):
+        raise ValueError(f"x_m={x_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
     if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < scene.tissue.height_m):
         raise ValueError(f"depth_m={depth_m!r} must lie in [0, {scene.tissue.height_m}) m")
     R = scene.indenter.radius_m
@@ -348,16 +348,16 @@ def surface_model(scene, cache: bool | None = None, **options) -> SurfaceModel:
     return _CACHE[key]
 
 
-def indent_full(scene, x0_m: float, depth_m: float, model: Model | None = None, max_iter: int = 50) -> dict:
+def indent_full(scene, x_m: float, depth_m: float, model: Model | None = None, max_iter: int = 50) -> dict:
     """The plain path: the full system solved with the contact nodes as Dirichlet conditions (u_y = tip profile),
     refactorized at every iteration of its own primal-dual active-set loop (add penetrating nodes, release nodes
     pulled by tension). No condensation and no LCP solver; rigid tip only. Used to check the fast path and as the
     "full re-solve per waypoint" baseline of the benchmark."""
-    check_waypoint(scene, x0_m, depth_m)
+    check_waypoint(scene, x_m, depth_m)
     model = model or build_model(scene)
     mesh = model.mesh
     x = mesh.nodes[mesh.top, 0]
-    q = tip_profile(scene.indenter, x0_m, depth_m, x)
+    q = tip_profile(scene.indenter, x_m, depth_m, x)
     top_red = model.reduced_index(2 * mesh.top + 1)
     base_fixed = _load_b_fixed(model)
     active = q < 0
@@ -380,5 +380,5 @@ def indent_full(scene, x0_m: float, depth_m: float, model: Model | None = None, 
     else:
         raise RuntimeError(f"full contact solve did not settle in {max_iter} iterations")
     P = float(force.sum())
-    return {"x0_m": x0_m, "depth_m": depth_m, "force_n_per_m": P, "force_n": P * scene.indenter.thickness_m,
+    return {"x_m": x_m, "depth_m": depth_m, "force_n_per_m": P, "force_n": P * scene.indenter.thickness_m,
             "nodal_force_n_per_m": force, "gap_m": gap, "active": active, "u": model.P @ u, "iterations": it}

@@ -174,19 +174,19 @@ def deformed(mesh: Mesh, u: np.ndarray, scale: float = 1.0) -> Mesh:
     return dataclasses.replace(mesh, nodes=mesh.nodes + scale * np.asarray(u, float).reshape(-1, 2))
 
 
-def draw_tip(ax, indenter, x0_m: float, bottom_y_m: float, **style) -> None:
-    """The probe tip's outline (mm) with its lowest point at (x0_m, bottom_y_m): a circle of radius_m for a
+def draw_tip(ax, indenter, x_m: float, bottom_y_m: float, **style) -> None:
+    """The probe tip's outline (mm) with its lowest point at (x_m, bottom_y_m): a circle of radius_m for a
     cylinder, a rectangle of half-width radius_m for a flat punch."""
     kw = {"facecolor": "none", "edgecolor": "k", "lw": 1.2, "ls": "-", "zorder": 4}
     kw.update(style)
     R = indenter.radius_m
     if indenter.shape == "cylinder":
-        ax.add_patch(Circle((x0_m * MM, (bottom_y_m + R) * MM), R * MM, **kw))
+        ax.add_patch(Circle((x_m * MM, (bottom_y_m + R) * MM), R * MM, **kw))
     else:
-        ax.add_patch(Rectangle(((x0_m - R) * MM, bottom_y_m * MM), 2 * R * MM, 1.5 * R * MM, **kw))
+        ax.add_patch(Rectangle(((x_m - R) * MM, bottom_y_m * MM), 2 * R * MM, 1.5 * R * MM, **kw))
 
 
-def indent_panels(path: str | Path, mesh: Mesh, fields: dict[str, np.ndarray], *, indenter, x0_m: float,
+def indent_panels(path: str | Path, mesh: Mesh, fields: dict[str, np.ndarray], *, indenter, x_m: float,
                   tip_bottom_y_m: float, outlines: Sequence[tuple[float, float, float]] = (),
                   zoom_m: tuple[float, float, float, float] | None = None, overview: str | None = "von_mises_pa",
                   mark_m: tuple[float, float] | None = None, suptitle: str = "") -> Path:
@@ -203,7 +203,7 @@ def indent_panels(path: str | Path, mesh: Mesh, fields: dict[str, np.ndarray], *
         lab = LABELS.get(key, key)
         contour(ax, mesh, fields[key], outlines=outlines, title=lab + (" (whole section)" if kind == "overview"
                                                                        else " (under the tip)"), label=lab)
-        draw_tip(ax, indenter, x0_m, tip_bottom_y_m)
+        draw_tip(ax, indenter, x_m, tip_bottom_y_m)
         if mark_m is not None and key == "von_mises_pa":
             ax.plot([mark_m[0] * MM], [mark_m[1] * MM], "wx", ms=7, mew=1.5, zorder=5)
         top = mesh.height_m * MM + 2 * indenter.radius_m * MM

@@ -5,6 +5,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.peak import parabola_peak
+
 from .model import Model
 
 
@@ -18,16 +20,7 @@ class Profile:
         """(x_m, value) of the maximum, refined by a parabola through the largest node and its neighbours."""
         v = self.fields[key]
         i = int(np.argmax(v))
-        if 0 < i < len(v) - 1:
-            x0, x1, x2 = self.x_m[i - 1:i + 2]
-            y0, y1, y2 = v[i - 1:i + 2]
-            A = np.array([[x0 ** 2, x0, 1], [x1 ** 2, x1, 1], [x2 ** 2, x2, 1]])
-            a, b, c = np.linalg.solve(A, [y0, y1, y2])
-            if a < 0:
-                xp = -b / (2 * a)
-                if x0 <= xp <= x2:
-                    return float(xp), float(c - b * b / (4 * a))
-        return float(self.x_m[i]), float(v[i])
+        return parabola_peak(self.x_m, v, max(i - 1, 0), min(i + 1, len(v) - 1))
 
     def to_dict(self) -> dict:
         xp, vp = self.peak()

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from core.contracts import N_ZERO_AVERAGE
+from core.peak import parabola_peak
 from fem.contact import surface_model
 from planner.surrogate import load_surrogate
 
@@ -142,14 +143,9 @@ def peak_estimate(x: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     xu, inv = np.unique(np.round(np.asarray(x, float), 7), return_inverse=True)
     cu = np.bincount(inv, weights=c) / np.bincount(inv)
     k = int(np.argmax(cu))
-    if k == 0 or k == len(xu) - 1 or len(xu) < 3:
+    if k == 0 or k == len(xu) - 1:
         return float(xu[k]), float(cu[k])
-    X, Y = xu[k - 1:k + 2], cu[k - 1:k + 2]
-    a, b, c0 = np.polyfit(X - X[1], Y, 2)
-    if a >= 0:
-        return float(xu[k]), float(cu[k])
-    u = float(np.clip(-b / (2 * a), X[0] - X[1], X[2] - X[1]))
-    return float(X[1] + u), float(c0 + b * u + a * u * u)
+    return parabola_peak(xu, cu, k - 1, k + 1)
 
 
 def _offset_fit(r: np.ndarray, tau: np.ndarray, w: np.ndarray) -> tuple[float, float]:

@@ -130,7 +130,7 @@ def test_max_stress_under_tip_and_falls_away_from_stone(paper):
     res = paper.indent_many(xs, 0.004)
     R = paper.scene.indenter.radius_m
     for r in res:
-        assert abs(r.max_von_mises_at_m[0] - r.x0_m) <= R          # the maximum sits under the tip
+        assert abs(r.max_von_mises_at_m[0] - r.x_m) <= R          # the maximum sits under the tip
         assert r.max_von_mises_at_m[1] <= R
     vm = [r.max_von_mises_pa for r in res]
     assert all(a > b for a, b in zip(vm, vm[1:]))                  # falls as the tip leaves the stone
@@ -169,5 +169,5 @@ def test_flat_punch_and_monotone_force():
 def test_bad_waypoints_are_refused(paper):
     for x0, d in [(-0.001, 0.002), (0.071, 0.002), (0.035, -1e-3), (0.035, float("nan")), (0.035, 0.06),
                   (0.035, 0.005)]:                     # at the tip radius: tissue would wrap the tip
-        with pytest.raises(ValueError, match="x0_m|depth_m"):
+        with pytest.raises(ValueError, match="x_m|depth_m"):
             paper.force_n(x0, d)

@@ -318,5 +318,5 @@ def test_cli_simulate_json_and_plots(tmp_path, capsys):
         assert (tmp_path / "fig" / f).stat().st_size > 10_000, f
     assert (tmp_path / "p.vtu").exists()
     assert "peak von Mises" in capsys.readouterr().out
-    assert main(["simulate", "paper", "--load", "indent"]) == 2      # needs --x0-m and --depth-m
-    assert "--x0-m" in capsys.readouterr().err
+    assert main(["simulate", "paper", "--load", "indent"]) == 2      # needs --x-m and --depth-m
+    assert "--x-m" in capsys.readouterr().err

@@ -19,13 +19,13 @@ def _no_disk_cache(monkeypatch, tmp_path):
 
 def test_simulate_indent_json_summary_and_figure(tmp_path, capsys):
     out = tmp_path / "indent.json"
-    rc = main(["simulate", "paper", "--load", "indent", "--x0-m", "0.035", "--depth-m", "0.003", *COARSE,
+    rc = main(["simulate", "paper", "--load", "indent", "--x-m", "0.035", "--depth-m", "0.003", *COARSE,
                "--json", str(out), "--plots", str(tmp_path / "fig"), "--vtu", str(tmp_path / "i.vtu")])
     assert rc == 0
     d = json.loads(out.read_text())
-    assert set(d) >= {"x0_m", "depth_m", "force_n_per_m", "force_n", "max_von_mises_pa", "contact"}
+    assert set(d) >= {"x_m", "depth_m", "force_n_per_m", "force_n", "max_von_mises_pa", "contact"}
     assert set(d["contact"]) >= {"x_m", "pressure_pa"}
-    assert d["x0_m"] == 0.035 and d["depth_m"] == 0.003 and d["load"] == "indent"
+    assert d["x_m"] == 0.035 and d["depth_m"] == 0.003 and d["load"] == "indent"
     assert d["force_n"] > 0 and d["max_von_mises_pa"] > 0
     assert d["force_n"] == pytest.approx(d["force_n_per_m"] * d["indenter"]["thickness_m"], rel=1e-12)
     p, x = np.array(d["contact"]["pressure_pa"]), np.array(d["contact"]["x_m"])
@@ -44,7 +44,7 @@ def test_simulate_indent_radius_override_and_bad_requests(tmp_path, capsys):
     forces = {}
     for r in ("0.0025", "0.005"):
         out = tmp_path / f"r{r}.json"
-        assert main(["simulate", "healthy", "--load", "indent", "--x0-m", "0.035", "--depth-m", "0.002", *COARSE,
+        assert main(["simulate", "healthy", "--load", "indent", "--x-m", "0.035", "--depth-m", "0.002", *COARSE,
                      "--indenter-radius-m", r, "--json", str(out)]) == 0
         d = json.loads(out.read_text())
         assert d["indenter"]["radius_m"] == float(r)
@@ -52,9 +52,9 @@ def test_simulate_indent_radius_override_and_bad_requests(tmp_path, capsys):
     assert forces["0.0025"] < forces["0.005"]                     # a blunter tip pushes back harder
     capsys.readouterr()
     assert main(["simulate", "paper", "--load", "indent", "--depth-m", "0.003", *COARSE]) == 2
-    assert "--x0-m" in capsys.readouterr().err
-    assert main(["simulate", "paper", "--load", "indent", "--x0-m", "0.09", "--depth-m", "0.003", *COARSE]) == 2
-    assert "x0_m" in capsys.readouterr().err
+    assert "--x-m" in capsys.readouterr().err
+    assert main(["simulate", "paper", "--load", "indent", "--x-m", "0.09", "--depth-m", "0.003", *COARSE]) == 2
+    assert "x_m" in capsys.readouterr().err
 
 
 def test_predict_ratio_peaks_over_the_stone(tmp_path, capsys):
@@ -93,7 +93,7 @@ def test_predict_agrees_with_simulate_and_follows_the_stone(tmp_path):
     # the same waypoint through `simulate --load indent` gives the same force
     i = 5
     s = tmp_path / "s.json"
-    assert main(["simulate", "paper-left", "--load", "indent", "--x0-m", repr(float(x[i])), "--depth-m", "0.004",
+    assert main(["simulate", "paper-left", "--load", "indent", "--x-m", repr(float(x[i])), "--depth-m", "0.004",
                  *COARSE, "--json", str(s)]) == 0
     assert json.loads(s.read_text())["force_n"] == pytest.approx(d["waypoints"]["force_n"][i], rel=1e-12)
 

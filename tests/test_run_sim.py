@@ -11,6 +11,7 @@ import re
 import pytest
 
 from app.cli import main
+from robot.records import read_records
 
 ARGS = ["--sim", "--budget-probes", "25", "--refine-waypoints", "10", "--no-figure"]
 
@@ -88,7 +89,7 @@ def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
     assert res["status"] == "ok" and res["probes_used"] == 8 and len(res["rounds"]) == 2
     assert res["detected"] is True
     assert abs(res["estimate"]["x_m"]["value"] - 0.035) < 0.002
-    recs = [json.loads(line) for line in (tmp_path / "probes.jsonl").read_text().splitlines()]
+    recs = read_records(tmp_path)
     assert [r.status for r in recs] == ["ok"] * 8
     log = (tmp_path / "simcontroller.log").read_text()
     assert log                                              # the controller ran (and was stopped: no hang here)

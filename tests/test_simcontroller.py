@@ -26,6 +26,7 @@ from core import ur5e  # noqa: E402
 from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
 from fem import contact  # noqa: E402
 from fem import scene as fem_scene  # noqa: E402
+from robot.records import read_records  # noqa: E402
 from robot.simlaunch import PortsUnavailable, start_controller  # noqa: E402
 
 TCP = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
@@ -241,7 +242,7 @@ def _wait_for(pred, timeout_s=2.0):
 
 
 def _records(out):
-    return [json.loads(ln) for ln in (out / "probes.jsonl").read_text().splitlines() if ln.strip()]
+    return read_records(out)
 
 
 def _cell(host, plan, out, timeout_s=90):

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
+from core.peak import parabola_peak
 from fem import scene as S
 from fem.contact import check_waypoint, surface_model
 
@@ -114,7 +115,7 @@ def predict(scene, xs: np.ndarray, depth_m: float, *, stresses: bool = True, pro
             progress(min(k + BATCH, len(xs)), len(xs))
     t2 = time.perf_counter()
     mesh = m.model.mesh
-    return {"x_m": [r.x0_m for r in rows], "force_n": [r.force_n for r in rows],
+    return {"x_m": [r.x_m for r in rows], "force_n": [r.force_n for r in rows],
             "force_n_per_m": [r.force_n_per_m for r in rows],
             "max_von_mises_pa": [r.max_von_mises_pa for r in rows] if stresses else None,
             "max_von_mises_at_x_m": [r.max_von_mises_at_m[0] for r in rows] if stresses else None,
@@ -138,12 +139,7 @@ def _peak(xs, ratio) -> dict:
         lo -= 1
     while hi < len(ratio) - 1 and ratio[hi + 1] >= cut:
         hi += 1
-    if hi - lo >= 2:
-        x, y = xs[lo:hi + 1], ratio[lo:hi + 1]
-        a, b, c = np.polyfit(x - xs[i], y, 2)
-        if a < 0 and xs[lo] <= xs[i] - b / (2 * a) <= xs[hi]:
-            out["x_m"] = float(xs[i] - b / (2 * a))
-            out["ratio"] = float(c - b * b / (4 * a))
+    out["x_m"], out["ratio"] = parabola_peak(xs, ratio, lo, hi)
     return out
 
 

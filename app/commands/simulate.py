@@ -1,7 +1,7 @@
 """`palpate simulate SCENE --load uniform|indent`: one FEM analysis of a scene, with JSON, figures and VTU.
 
 Load ``uniform`` is the study's load A (the whole top edge moved down by ``analysis.top_displacement_m``).
-Load ``indent`` (load B: a probe tip pressed ``--depth-m`` into the top surface at ``--x0-m``) uses fem.contact's
+Load ``indent`` (load B: a probe tip pressed ``--depth-m`` into the top surface at ``--x-m``) uses fem.contact's
 condensed surface model: force, contact pressure, maximum von Mises under the tip, Fig 10-like contours.
 """
 from __future__ import annotations
@@ -43,17 +43,17 @@ The compared scenes are solved with the same analysis options (order, mesh size,
   fig10_indent.png      --load indent: von Mises over the deformed section, and von Mises, sigma_xx, sigma_yy
                         under the tip, tip and stone outlines drawn (study Fig 10)
 
---load indent (load B): a probe tip pressed --depth-m into the top surface at --x0-m (frictionless contact,
+--load indent (load B): a probe tip pressed --depth-m into the top surface at --x-m (frictionless contact,
 bottom u_y = 0, one bottom corner u_x = 0). Reports the tip force (N, and N/m of section), the contact half-width
 and pressure, and the maximum von Mises stress within 2 R below the surface and where it lies. The JSON has
-x0_m, depth_m, force_n_per_m, force_n, max_von_mises_pa, contact {x_m, pressure_pa, gap_m, nodal_force_n_per_m}
+x_m, depth_m, force_n_per_m, force_n, max_von_mises_pa, contact {x_m, pressure_pa, gap_m, nodal_force_n_per_m}
 and the top-surface stress profile (surface, peak)."""
 
 EXAMPLES = """examples:
   palpate simulate paper --load uniform --plots out/ --json out/paper.json --vtu out/paper.vtu
   palpate simulate my_kidney.toml --order 1 --mesh-size-m 0.001 --compare paper paper-deep --plots out/
-  palpate simulate paper --load indent --x0-m 0.035 --depth-m 0.004 --plots out/ --json out/indent.json
-  palpate simulate healthy --load indent --x0-m 0.02 --depth-m 0.003 --indenter-radius-m 0.0025"""
+  palpate simulate paper --load indent --x-m 0.035 --depth-m 0.004 --plots out/ --json out/indent.json
+  palpate simulate healthy --load indent --x-m 0.02 --depth-m 0.003 --indenter-radius-m 0.0025"""
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -63,7 +63,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                                   "healthy) or a TOML file")
     p.add_argument("--load", choices=("uniform", "indent"), default="uniform",
                    help="uniform: the whole top edge moved down by analysis.top_displacement_m (default); "
-                        "indent: a probe tip pressed in at --x0-m")
+                        "indent: a probe tip pressed in at --x-m")
     p.add_argument("--json", metavar="PATH", help="write the machine-readable result here ('-': stdout)")
     p.add_argument("--plots", metavar="DIR", help="write the figures (listed above) into DIR")
     p.add_argument("--vtu", metavar="PATH", help="write displacement, stress and strain fields as VTU (ParaView)")
@@ -78,7 +78,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     g.add_argument("--stones", choices=("auto", "rigid", "elastic"), default="auto",
                    help="auto: stones >= 1e4 times stiffer than tissue are rigid bodies (default)")
     i = p.add_argument_group("indentation (--load indent)")
-    i.add_argument("--x0-m", type=float, help="tip position along the top surface, from the left edge (m)")
+    i.add_argument("--x-m", "--x0-m", dest="x_m", type=float,
+                   help="tip position along the top surface, from the left edge (m); --x0-m is its former name")
     i.add_argument("--depth-m", type=float, help="indentation depth below the undeformed surface (m)")
     i.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
@@ -92,9 +93,9 @@ def run(args) -> int:
 
 
 def _run_indent(args) -> int:
-    """Load B: the probe tip pressed ``--depth-m`` into the top surface at ``--x0-m`` (fem.contact's fast path)."""
-    if args.x0_m is None or args.depth_m is None:
-        print("palpate simulate: --load indent needs --x0-m X and --depth-m D (tip position along the top surface "
+    """Load B: the probe tip pressed ``--depth-m`` into the top surface at ``--x-m`` (fem.contact's fast path)."""
+    if args.x_m is None or args.depth_m is None:
+        print("palpate simulate: --load indent needs --x-m X and --depth-m D (tip position along the top surface "
               "and indentation depth, m)", file=sys.stderr)
         return 2
     if args.compare is not None:
@@ -108,13 +109,13 @@ def _run_indent(args) -> int:
     m = surface_model(sc, rigid_stones=_rigid(args))
     t1 = time.perf_counter()
     try:
-        r = m.indent(args.x0_m, args.depth_m)
+        r = m.indent(args.x_m, args.depth_m)
     except ValueError as e:
         print(f"palpate simulate: {e}", file=sys.stderr)
         return 2
     t2 = time.perf_counter()
     model, mesh = m.model, m.model.mesh
-    u = m.full_field(args.x0_m, args.depth_m)
+    u = m.full_field(args.x_m, args.depth_m)
     top = mesh.top
     surf = components((recovery_operator(model, top) @ u).reshape(-1, 3), nodal_poisson(model, top), model.plane)
     profile = Profile(mesh.nodes[top, 0], surf)
@@ -160,16 +161,16 @@ def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
         outl.append((x + dx, y + dy, rad))
     R, H, W = sc.indenter.radius_m, sc.tissue.height_m, sc.tissue.width_m
     half = max(3 * R, 2.5 * r.depth_m + 2 * R)
-    zoom = (max(0.0, r.x0_m - half), min(W, r.x0_m + half), max(0.0, H - 1.2 * half), H + 0.5 * R)
+    zoom = (max(0.0, r.x_m - half), min(W, r.x_m + half), max(0.0, H - 1.2 * half), H + 0.5 * R)
     # the maximum's node, where it moved to (max_von_mises_at_m is (x, depth below the undeformed surface))
     j = np.argmin(np.hypot(mesh.nodes[:, 0] - r.max_von_mises_at_m[0], mesh.nodes[:, 1] - (H - r.max_von_mises_at_m[1])))
     mark = tuple(dm.nodes[j])
     a = sc.analysis
-    tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at x0 = {r.x0_m * 1e3:g} mm, depth "
+    tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at x = {r.x_m * 1e3:g} mm, depth "
            f"{r.depth_m * 1e3:g} mm, F = {r.force_n:.4g} N; plane {a.plane}, P{a.order}, h = {a.mesh_size_m * 1e3:g} mm"
            " (deformed, true scale)")
     f = plots.indent_panels(d / "fig10_indent.png", dm, {k: nodal[k] for k in ("von_mises_pa", "sxx_pa", "syy_pa")},
-                            indenter=sc.indenter, x0_m=r.x0_m, tip_bottom_y_m=H - r.depth_m, outlines=outl,
+                            indenter=sc.indenter, x_m=r.x_m, tip_bottom_y_m=H - r.depth_m, outlines=outl,
                             zoom_m=zoom, mark_m=mark, suptitle=tag)
     return {"indent": str(f)}
 
@@ -178,7 +179,7 @@ def _indent_summary(sc, r, out, stream) -> None:
     a, mm, t = sc.analysis, out["mesh"], out["timings_s"]
     active = r.nodal_force_n_per_m > 0
     lines = [f"scene {sc.name}: load indent ({sc.indenter.shape} tip, R = {sc.indenter.radius_m * 1e3:g} mm, "
-             f"{sc.indenter.thickness_m * 1e3:g} mm thick) at x0 = {r.x0_m * 1e3:g} mm, depth {r.depth_m * 1e3:g} mm; "
+             f"{sc.indenter.thickness_m * 1e3:g} mm thick) at x = {r.x_m * 1e3:g} mm, depth {r.depth_m * 1e3:g} mm; "
              f"plane {a.plane}, P{a.order}, h = {a.mesh_size_m * 1e3:g} mm (top {a.mesh_size_m / a.surface_refine * 1e3:g} mm)",
              f"  mesh: {mm['nodes']} nodes, {mm['elements']} elements, {mm['dofs']} DOFs",
              f"  force: {r.force_n:.5g} N ({r.force_n_per_m:.5g} N/m)",
