@@ -22,7 +22,8 @@ from pathlib import Path
 
 from app.errors import UsageError, guarded
 from core.contracts import Plan
-from fem.scene import BUILTIN, from_dict, load
+from fem.scene import BUILTIN, load
+from planner.plan import plan_prior
 from robot.driver import DriverConfig, preflight, run_plan
 from robot.link import connect, disconnect
 from robot.records import done_indices
@@ -84,8 +85,7 @@ def truth_scene(plan: Plan, arg: str | None) -> str:
     name = str(plan.scene.get("name", ""))
     base = name[:-len("-prior")] if name.endswith("-prior") else None
     if base in BUILTIN:
-        prior = from_dict(plan.scene, default_name=name)
-        if load(base).prior().key() == prior.key():
+        if load(base).prior().key() == plan_prior(plan).key():
             return base
     raise UsageError(f"--truth: needed with --sim for this plan (its prior scene {name!r} is not the prior of a "
                      f"built-in scene); give the TRUE scene as a built-in name or a TOML file")

@@ -375,11 +375,16 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     return plan
 
 
+def plan_prior(plan: Plan):
+    """The prior scene a plan was made on (fem.scene.Scene), parsed from the plan's plain-data copy."""
+    return from_dict(plan.scene, default_name=plan.scene.get("name", "prior"))
+
+
 def replan(plan, x_positions_m, *, force_n=None, **overrides):
     """A new plan over ``x_positions_m`` (tissue-frame x; e.g. ``raster.interval_positions(lo, hi, n=11)`` around a
     suspected stone) with everything else taken from ``plan``: its prior scene, frames, limits, motion and options.
     ``overrides`` go to ``plan_raster``."""
-    prior = from_dict(plan.scene, default_name=plan.scene.get("name", "prior"))
+    prior = plan_prior(plan)
     kw = dict(frames=plan.frames, limits=plan.limits, motion=plan.motion, options=plan.options)
     kw.update(overrides)
     return plan_raster(prior, x_positions_m=x_positions_m, force_n=force_n, **kw)

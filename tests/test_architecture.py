@@ -137,3 +137,14 @@ def test_the_checks_can_fail(graph):
     edges["fem.scene"].add("fem.contact")
     edges["fem.contact"].add("fem.scene")
     assert any("fem.scene" in c and "fem.contact" in c for c in cycles_of(edges))
+
+
+def test_a_subcommand_that_fails_to_import_is_an_error_not_a_silent_omission(monkeypatch):
+    """The CLI once skipped a subcommand whose module failed to import: `palpate` then just lacked it."""
+    from app import cli
+    monkeypatch.setitem(cli.COMMANDS, "nosuch", "a subcommand whose module does not exist")
+    with pytest.raises(ModuleNotFoundError):
+        cli.build_parser("nosuch")
+    for name in cli.COMMANDS:
+        if name != "nosuch":
+            assert cli.build_parser(name)._subparsers is not None      # every real subcommand imports

@@ -17,10 +17,10 @@ from pathlib import Path
 from app.cell import print_preflight
 from app.commands.output import write_json
 from core.contracts import Plan
-from fem.scene import from_dict, load
+from fem.scene import load
 from planner.detectability import detectability
 from planner.localize import Localization, localize
-from planner.plan import plan_raster, replan
+from planner.plan import plan_prior, plan_raster, replan
 from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
 from robot.driver import preflight, run_plan
@@ -138,7 +138,7 @@ def run(args) -> int:
     scene = load(args.scene)
     if args.plan:
         plan0 = Plan.load(args.plan)
-        prior = from_dict(plan0.scene, default_name=plan0.scene.get("name", "prior"))
+        prior = plan_prior(plan0)
         if prior.stones:
             raise SystemExit("palpate run: the plan's scene has stones; a plan holds the prior scene only")
         if prior.key() != scene.prior().key():
