@@ -182,9 +182,11 @@ class Driver(Recovery):
         self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
         if self.stale >= self.cfg.stale_periods:   # ur_rtde keeps returning the last values when the link drops
             lost = self._call(self.r.isConnected) is False
-            raise ProbeFault(FaultKind.CONNECTION_LOST if lost else FaultKind.TIMEOUT,
+            raise ProbeFault(FaultKind.CONNECTION_LOST,
                              f"controller data stopped updating at t={ts:.3f} s"
-                             + (" (the receive interface reports no connection)" if lost else ""))
+                             + (" (the receive interface reports no connection)" if lost else
+                                " while the receive interface still reports a connection (a silent link: a network "
+                                "partition or a frozen controller)"))
         self.last_ts = self.ts = float(ts)
         x, depth = self.tf.x_depth(pose)
         f = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) if ok_w \
@@ -282,12 +284,7 @@ class Driver(Recovery):
                     short_mm = math.dist(s['pose'][:3], pose[:3]) * 1e3
                     raise ProbeFault(FaultKind.MOVE_FAILED, f"{what} ended {short_mm:.2f} mm short of its target")
             return None
-        try:
-            return self._loop(timeout, body, strict, what)
-        except ProbeFault as f:
-            if f.kind == "timeout":
-                self._stop()
-            raise
+        return self._loop(timeout, body, strict, what)    # a fault is recorded first, then safe_state() stops
 
     # ---- one probe ---------------------------------------------------------------------------------------
     def _zero(self) -> None:

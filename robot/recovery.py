@@ -69,6 +69,19 @@ class Recovery:
             return out
         bounded = ("the last command was a bounded moveL (target no deeper than the planned depth); the arm stops "
                    "there at the latest")
+        if self.stale >= self.cfg.stale_periods and self._connected(self.c) and self._connected(self.r):
+            # A silent link (controller data stale although ur_rtde reports a connection): a command now would wait
+            # up to ur_rtde's execution time-out (300 s) for an answer that never comes. Send nothing; the driver
+            # no longer kicks the RTDE watchdog, so the controller stops the program and the motion within 1/rate.
+            rate = getattr(self, "watchdog_hz", 0.0) if getattr(self, "watchdog_on", False) else 0.0
+            if rate > 0:
+                self._idle(2.0 / rate)
+                out["notes"].append(f"silent link: no command sent (it could block for ur_rtde's 300 s time-out); "
+                                    f"the controller's RTDE watchdog stops the program and the motion within "
+                                    f"{1.0 / rate:.2f} s of the last kick")
+            else:
+                out["notes"].append(f"silent link: no command sent; watchdog off: {bounded}")
+            return out
         if not self._connected(self.c) and not self._await_link(out):
             out["notes"].append(f"no connection: no command sent; {bounded}")
             return out
@@ -99,6 +112,12 @@ class Recovery:
         except (ProbeFault, SafetyViolation) as e:
             out["notes"].append(f"retract failed: {e}")
         return out
+
+    def _idle(self, seconds: float) -> None:
+        """Let ``seconds`` of controller periods pass without sending anything (initPeriod/waitPeriod are local to
+        the client: wall time on a real arm, simulated time on the simulator)."""
+        for _ in range(max(1, int(math.ceil(seconds / self.cfg.period_s)))):
+            self.c.waitPeriod(self.c.initPeriod())
 
     def _retract_from(self, pose, depth, x) -> bool:
         h = self.plan.motion.approach_height_m

@@ -251,11 +251,24 @@ class FrozenReceive(SimRTDEReceive):
         return t
 
 
-def test_stale_data_times_out(tmp_path):
+def test_silent_link_sends_no_command_and_the_watchdog_stops_the_arm(tmp_path):
+    """Controller data stale while ur_rtde still reports a connection (a partition or a frozen controller): the record
+    is written first, and no command follows (a stopL would wait for ur_rtde's 300 s time-out on a real link); the
+    controller's watchdog, no longer kicked, stops the motion."""
     arm, c, _ = make_sim()
+    calls = []
+    for name in ("stopL", "moveL", "reconnect", "zeroFtSensor"):
+        def spy(*a, _f=getattr(c, name), _n=name, **k):
+            calls.append((_n, arm.t_s))
+            return _f(*a, **k)
+        setattr(c, name, spy)
     rep = run(tmp_path, c, FrozenReceive(arm, 7.0))
-    assert rep.status == "fault" and rep.fault["kind"] == "timeout" and "stopped updating" in rep.fault["message"]
+    assert rep.status == "fault" and rep.fault["kind"] == "connection_lost", rep.fault
+    assert "stopped updating" in rep.fault["message"] and "silent link" in " ".join(rep.fault["notes"])
     assert not arm.is_moving and rep.n_ok == 1
+    assert not [cl for cl in calls if cl[1] > 7.0 + 0.2], calls     # nothing sent once the data went stale
+    recs = read_records(tmp_path)
+    assert recs[-1].status == "fault" and recs[-1].index == 1          # the interrupted probe is on disk
 
 
 class InterruptingReceive(SimRTDEReceive):
