@@ -25,7 +25,7 @@ from core.contracts import Plan
 from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, preflight, run_plan
-from robot.link import connect, disconnect
+from robot.link import connect, end_session
 from robot.records import done_indices
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -154,9 +154,9 @@ def _main(args) -> int:
         else:
             if args.sim:
                 _, c, r = inmemory_arm(plan, args)
+                rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
             else:
-                c, r = connect(args.host)
-            rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
+                rep = _run_linked(plan, args, out, cfg, *connect(args.host))
     except ControllerPortsUnavailable as e:
         print(f"palpate-cell: simulated controller not started: {e}", file=sys.stderr)
         return EXIT_PORTS_UNAVAILABLE
@@ -188,11 +188,18 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
     except PortsUnavailable as e:
         raise ControllerPortsUnavailable(str(e)) from None
     with ctl:
-        c, r = connect(ctl.host)
-        try:
-            return run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
-        finally:
-            disconnect(c, r)
+        return _run_linked(plan, args, out, cfg, *connect(ctl.host))
+
+
+def _run_linked(plan: Plan, args, out: Path, cfg: DriverConfig, c, r):
+    """Run over a real ur_rtde link; a clean end stops the control script, and the link is always closed."""
+    clean = False
+    try:
+        rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
+        clean = rep.status == "ok"
+        return rep
+    finally:
+        end_session(c, r, clean)
 
 
 if __name__ == "__main__":

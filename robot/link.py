@@ -24,3 +24,16 @@ def disconnect(*interfaces) -> None:
                 iface.disconnect()
         except RuntimeError:
             pass
+
+
+def end_session(c, r, clean: bool) -> None:
+    """End a session with the arm: after a clean run (the arm at rest, the link healthy) stop the control script, so
+    the program does not run on until its watchdog ends it; then disconnect both interfaces. After a fault only
+    disconnect: a command on a bad link can block."""
+    if clean:
+        try:
+            if c.isConnected():
+                c.stopScript()
+        except RuntimeError:
+            pass
+    disconnect(c, r)

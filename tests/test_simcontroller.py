@@ -261,6 +261,8 @@ def test_cell_runs_plan_with_real_client_and_agrees_with_fem(scene_file, truth, 
         p = _cell(ctl.host, make_plan(), out)
     assert p.returncode == 0, p.stdout + p.stderr
     assert "run ok: 3 ok" in p.stdout
+    # a clean end stops the control script (it used to run on until its watchdog ended it)
+    assert "received stop script" in (tmp_path / "controller.log").read_text()
     recs = _records(out)
     assert [rec.status for rec in recs] == ["ok"] * 3
     for rec in recs:

@@ -24,7 +24,7 @@ from planner.plan import plan_prior, plan_raster, replan
 from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
 from robot.driver import preflight, run_plan
-from robot.link import connect, disconnect
+from robot.link import connect, end_session
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -106,7 +106,7 @@ def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStac
     def interfaces(plan):
         if "c" not in link:
             link["c"], link["r"] = connect(host)
-            cleanup.callback(disconnect, link["c"], link["r"])
+            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=cleanup.clean_end))
         return link["c"], link["r"]
     return _runner(interfaces, out, stats)
 
@@ -123,7 +123,7 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
                 scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
                 host="auto", log_path=out / "simcontroller.log"))
             link["c"], link["r"] = connect(ctl.host)
-            cleanup.callback(disconnect, link["c"], link["r"])
+            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=cleanup.clean_end))
         return link["c"], link["r"]
     return _runner(interfaces, out, stats)
 
@@ -191,11 +191,13 @@ def run(args) -> int:
         return plan0 if rounds_planned["n"] == 1 else replan(plan0, x)
 
     status, fault = "ok", None
+    cleanup.clean_end = False          # set once the probing ended without a fault: the script is then stopped
     try:
         res = adaptive(prior, execute, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
                        budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                        target_m=args.target_uncertainty_m, surrogate=sur, progress=_say,
                        strategy=args.strategy)
+        cleanup.clean_end = True
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
         _say(str(e))
