@@ -283,18 +283,25 @@ def test_cell_runs_plan_with_real_client_and_agrees_with_fem(scene_file, truth, 
 def test_protective_stop_mid_probe(scene_file, tmp_path):
     from robot.driver import run_plan
     plan, out = make_plan(), tmp_path / "run"
-    with controller(scene_file, tmp_path, inject=["protective-stop-at-depth-m=0.0015"]) as ctl, \
-            clients(ctl.host) as (c, r):
-        rep = run_plan(plan, c, r, out)
-        assert r.isProtectiveStopped() is True
-        held = r.getActualTCPPose()
-        # ur_rtde's commands now return False at once
-        w0 = time.monotonic()
-        assert c.moveL(plan.probes[0].approach_pose, 0.05, 0.5) is False
-        assert c.zeroFtSensor() is False and c.setTcp(TCP) is False
-        assert time.monotonic() - w0 < 1.0
-        time.sleep(0.1)
-        assert np.allclose(r.getActualTCPPose(), held, atol=1e-12)      # the arm stays where it halted
+    with controller(scene_file, tmp_path, inject=["protective-stop-at-depth-m=0.0015"]) as ctl:
+        with clients(ctl.host) as (c, r):
+            rep = run_plan(plan, c, r, out)
+            assert r.isProtectiveStopped() is True
+            held = r.getActualTCPPose()
+            # ur_rtde's commands now return False at once
+            w0 = time.monotonic()
+            assert c.moveL(plan.probes[0].approach_pose, 0.05, 0.5) is False
+            assert c.zeroFtSensor() is False and c.setTcp(TCP) is False
+            assert time.monotonic() - w0 < 1.0
+            time.sleep(0.1)
+            assert np.allclose(r.getActualTCPPose(), held, atol=1e-12)      # the arm stays where it halted
+        # resuming while the stop is not cleared: the operator is told what to do (it used to be ur_rtde's generic
+        # "Failed to start control script"), exit 2, nothing sent, the records untouched
+        before = (out / "probes.jsonl").read_bytes()
+        p = _cell(ctl.host, plan, out)
+        assert p.returncode == 2, p.stdout + p.stderr
+        assert "protective-stopped" in p.stderr and "pendant" in p.stderr, p.stderr
+        assert (out / "probes.jsonl").read_bytes() == before
     assert rep.status == "fault" and rep.fault["kind"] == "protective_stop", rep.fault
     assert rep.fault["stopped"] and not rep.fault["retracted"]           # stopped; no motion while stopped
     _check_kept(out, min_depth_m=0.0015 - 2e-4)
