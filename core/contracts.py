@@ -183,6 +183,14 @@ MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relativ
 BASELINE_SETTLE_S = 0.05         # ... and not in the descent's first 50 ms (acceleration)
 
 
+# Plausibility of a probe's force (dwell mean minus its free-air baseline) against the prior's prediction at the
+# same indentation: the tissue's modulus is known to a factor of about 4 either way, and a stone under the tip adds
+# force but never makes tissue pull; beyond this band, by more than PLAUSIBLE_SIGMAS of the probe's own noise, the
+# reading is a sensor or setup problem (a wrong sign, an unseen offset, the wrong sensor), not tissue.
+PLAUSIBLE_FORCE_RATIO = (0.25, 10.0)
+PLAUSIBLE_SIGMAS = 5.0
+
+
 class ProbeStatus(StrEnum):
     """How one probe attempt ended (``status`` in probes.jsonl)."""
     OK = "ok"                        # reached its depth, dwelt, retracted
@@ -246,6 +254,7 @@ class ProbeRecord:
     duration_s: float | None = None
     wall_time_utc: str | None = None
     reason: str | None = None                    # why a probe was rejected or ended early
+    implausible: str | None = None               # why its force cannot be tissue (kept out of localization)
     raw_file: str | None = None                  # raw samples, relative to the run directory
 
     def __post_init__(self):
@@ -261,7 +270,8 @@ class ProbeRecord:
 
     @property
     def measured(self) -> bool:
-        return self.status in MEASURED
+        """A force measurement the localizer may use: ended ok or at the force limit, and plausible."""
+        return self.status in MEASURED and self.implausible is None
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -59,7 +59,7 @@ class Measurements:
         the dwell, and without it every probe gets the same time (the drift is a plain offset)."""
         rows = []
         for r in records:
-            if r.status not in statuses or r.force_mean_n is None or r.depth_reached_m is None:
+            if r.status not in statuses or r.force_mean_n is None or r.depth_reached_m is None or r.implausible:
                 continue
             x = r.contact_x_m if r.contact_x_m is not None else r.x_m
             d = float(r.depth_reached_m)

@@ -30,6 +30,8 @@ from core.contracts import (
     DWELL,
     MEASURED,
     MIN_BASELINE_SAMPLES,
+    PLAUSIBLE_FORCE_RATIO,
+    PLAUSIBLE_SIGMAS,
     ProbeRecord,
     ProbeStatus,
 )
@@ -125,8 +127,8 @@ def done_indices(out_dir: str | Path) -> set[int]:
 
 
 def read_measurements(out_dir: str | Path, statuses=MEASURED) -> list[ProbeRecord]:
-    """For the localizer: the latest record per probe index with a usable measurement, sorted by x_m."""
-    recs = [r for r in latest_by_index(out_dir).values() if r.status in statuses]
+    """For the localizer: the latest record per probe index with a usable, plausible measurement, sorted by x_m."""
+    recs = [r for r in latest_by_index(out_dir).values() if r.status in statuses and r.implausible is None]
     return sorted(recs, key=lambda r: r.x_m)
 
 
@@ -161,7 +163,7 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
     def num(v):
         return None if v is None or not math.isfinite(v) else float(v)
     has_base = n_base >= MIN_BASELINE_SAMPLES
-    return ProbeRecord(
+    rec = ProbeRecord(
         index=p.index, x_m=p.x_m, status=status, depth_planned_m=p.depth_m,
         depth_target_m=min(p.depth_m, depth_limit_m),
         depth_reached_m=num(float(np.mean(raw["depth_m"][sel]))) if sel.any() else None,
@@ -178,3 +180,31 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
         force_predicted_prior_n=p.predicted_force_n, n_samples=int(fin.sum()), n_samples_total=int(len(ph)),
         contact_threshold_n=num(contact_thr), noise_std_n=num(noise_std), t_s=num(t0), duration_s=num(t1 - t0),
         wall_time_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    rec.implausible = implausibility(rec)
+    return rec
+
+
+def implausibility(rec: ProbeRecord) -> str | None:
+    """Why a probe's force cannot be tissue pushing back (None: plausible). The force relative to the free-air
+    baseline (else to the zeroing) against the prior's prediction scaled to the indentation reached (Hertz-like,
+    d^1.5), outside PLAUSIBLE_FORCE_RATIO by more than PLAUSIBLE_SIGMAS of the probe's own noise."""
+    if rec.status not in (ProbeStatus.OK, ProbeStatus.FORCE_LIMIT) or rec.force_mean_n is None:
+        return None
+    pred, d, d_plan = rec.force_predicted_prior_n, rec.depth_reached_m, rec.depth_planned_m
+    if not pred or pred <= 0 or not d or d <= 0 or not d_plan or d_plan <= 0:
+        return None
+    f = rec.force_mean_n - (rec.force_baseline_n or 0.0)
+    std = rec.force_std_n or rec.noise_std_n or 0.0
+    var = std ** 2 / max(rec.n_samples, 1)
+    if rec.force_baseline_n is not None:
+        var += (rec.force_baseline_std_n or std) ** 2 / max(rec.n_samples_baseline, 1)
+    sigma = math.sqrt(var)
+    expect = pred * (d / d_plan) ** 1.5
+    lo, hi = PLAUSIBLE_FORCE_RATIO
+    if f < lo * expect - PLAUSIBLE_SIGMAS * sigma:
+        return (f"force {f:.4g} N at {d * 1e3:.2f} mm is below {lo:g} x the prior's {expect:.4g} N by more than "
+                f"{PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (sensor offset, sign or the wrong sensor?)")
+    if f > hi * expect + PLAUSIBLE_SIGMAS * sigma:
+        return (f"force {f:.4g} N at {d * 1e3:.2f} mm is above {hi:g} x the prior's {expect:.4g} N by more than "
+                f"{PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (collision, sensor spike?)")
+    return None

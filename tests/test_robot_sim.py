@@ -39,6 +39,7 @@ def test_full_plan_on_inmemory_arm_agrees_with_fem(tmp_path, fem_truth):
     assert rep.status == "ok" and rep.n_ok == len(xs) and rep.fault is None
     recs = read_records(tmp_path)
     assert [q.index for q in recs] == list(range(len(xs)))
+    assert all(q.implausible is None for q in recs)        # real tissue forces are never flagged
     sigma = arm.sensor.spec.noise_std_n
     errs = []
     for rec in recs:
@@ -235,3 +236,29 @@ def test_cell_needs_the_truth_for_a_plan_of_a_toml_scene(tmp_path, capsys):
     assert not (tmp_path / "run" / "probes.jsonl").exists()
     assert cell.main(argv + ["--truth", str(toml)]) == 0
     assert len(read_records(tmp_path / "run")) == 1
+
+
+def test_implausible_forces_are_flagged_and_kept_out_of_localization():
+    """A negative force deep in tissue, or one far beyond what any stiffness in the allowed range gives, is flagged in
+    the record with its reason (the built-in sensor once recorded -2.3 N at 4 mm as "ok" against +0.13 N expected)
+    and the localizer does not use it; ordinary readings within noise are not flagged."""
+    from core.contracts import ProbeRecord, ProbeStatus
+    from planner.localize import Measurements
+    from robot.records import implausibility
+
+    def rec(i, f, std=0.003, n=250, pred=0.13):
+        return ProbeRecord(index=i, x_m=0.01 * i, status=ProbeStatus.OK, depth_planned_m=0.004, depth_reached_m=0.004,
+                           force_mean_n=f, force_std_n=std, n_samples=n, force_baseline_n=0.0,
+                           force_baseline_std_n=std, n_samples_baseline=2000, baseline_to_dwell_s=5.0,
+                           force_predicted_prior_n=pred)
+    assert implausibility(rec(0, 0.131)) is None
+    assert implausibility(rec(1, 0.20)) is None                 # a stone under the tip: more force, plausible
+    assert implausibility(rec(2, 0.05)) is None                 # softer tissue within the allowed range
+    low = implausibility(rec(3, -2.34, std=1.75))
+    assert low and "below" in low and "not tissue" in low
+    assert implausibility(rec(4, 5.0)) and "above" in implausibility(rec(4, 5.0))
+    assert implausibility(rec(5, -0.02, std=1.75)) is None      # noisy but within 5 sigma of the band: not flagged
+    recs = [rec(i, 0.13) for i in range(5)]
+    recs[2].implausible = implausibility(rec(2, -2.34, std=1.75))
+    m = Measurements.from_records(recs)
+    assert len(m) == 4 and 2 not in m.index.tolist()
