@@ -680,7 +680,7 @@ def cases() -> list[Case]:
          True, cell()),
         ("pose-inf", _edit(_set("probes.1.approach_pose.2", float("inf"))), "Infinity in probes[1].approach_pose",
          "approach_pose", False, cell()),
-        ("pose-5", _edit(lambda d: d["probes"][0]["indent_pose"].pop()), "indent_pose with 5 entries",
+        ("pose-5", _edit(lambda d: d["probes"][0].__setitem__("indent_pose", d["probes"][0]["indent_pose"][:5])), "indent_pose with 5 entries",
          "indent_pose", False, cell()),
         ("pose-str", _edit(_set("probes.0.indent_pose.2", "0.05")), "a string in indent_pose", "indent_pose", False,
          cell()),
@@ -904,7 +904,7 @@ def nonfinite_in_json(obj, path="$") -> str | None:
     return None
 
 
-def scan_file(p: Path) -> str | None:
+def scan_file(p: Path, strip: str = "") -> str | None:
     """A description of the first non-finite number in ``p``, or None."""
     suf = p.suffix.lower()
     try:
@@ -922,7 +922,7 @@ def scan_file(p: Path) -> str | None:
                         return f"{p.name} line {i + 1}: {r}"
             return None
         if suf in (".txt", ".md", ".csv", ".toml", ".vtu", ".log"):
-            m = _WORD.search(p.read_text(errors="replace"))
+            m = _WORD.search(p.read_text(errors="replace").replace(strip or "\0", "{d}"))
             return f"{p.name}: '{m.group(0)}'" if m else None
     except (OSError, ValueError) as e:
         return None if suf != ".json" else f"{p.name}: unreadable JSON ({type(e).__name__})"
@@ -932,7 +932,7 @@ def scan_file(p: Path) -> str | None:
 def scan_outputs(d: Path, before: dict, stdout: str) -> str | None:
     for p in sorted(d.rglob("*")):
         if p.is_file() and (str(p) not in before or before[str(p)] != snapshot_one(p)):
-            r = scan_file(p)
+            r = scan_file(p, str(d))
             if r:
                 return r
     m = _WORD.search(stdout)
@@ -968,6 +968,17 @@ def one_line_message(stderr: str) -> bool:
             continue
         return False
     return True
+
+
+def _norm(s: str) -> str:
+    return s.lower().replace("-", "_")
+
+
+def names_field(mentions, outcome: str, message: str) -> bool | None:
+    """Does an error message name the case's field or option? ("--probe-speed-m-s" and "probe_speed_m_s" match.)"""
+    if not mentions or outcome not in ("clear-error", "unclear-error"):
+        return None
+    return any(_norm(m) in _norm(message) for m in mentions)
 
 
 def last_line(r: dict) -> str:
@@ -1132,7 +1143,7 @@ def run_case_id(cid: str, work: Path, cli: dict, shared: dict, cache_dir: Path, 
 
 def run_case(case: Case, work: Path, cli: dict, shared: dict, cache_dir: Path, keep: bool = False) -> dict:
     work.mkdir(parents=True, exist_ok=True)
-    d = Path(tempfile.mkdtemp(prefix=f"{case.id}-", dir=work))
+    d = Path(tempfile.mkdtemp(prefix="case-", dir=work))     # no case id in the path: ids contain "nan", "inf"
     env = child_env(cache_dir)
     res = {"id": case.id, "kind": case.kind, "description": case.desc, "expect": case.expect,
            "mentions": list(case.mentions)}
@@ -1149,16 +1160,14 @@ def run_case(case: Case, work: Path, cli: dict, shared: dict, cache_dir: Path, k
             return {**res, **{k: (v.replace(str(d), "{d}") if isinstance(v, str) else v) for k, v in r.items()}}
         before = snapshot(d)
         r = execute(argv, d, env, case.timeout)
-        nonfinite = scan_outputs(d, before, r["stdout"]) if (r["rc"] == 0 and not r["hang"]) else None
+        nonfinite = scan_outputs(d, before, r["stdout"].replace(str(d), "{d}")) if (r["rc"] == 0 and not r["hang"]) else None
         outcome = classify(r, case.expect, nonfinite)
         msg = last_line(r)
         if outcome == "nonfinite-output":
             msg = f"{nonfinite}"
         elif outcome in ("accepted", "silent-accept"):
             msg = (message_lines(r["stdout"]) or [""])[-1][:300]
-        names = None
-        if case.mentions and outcome in ("clear-error", "unclear-error"):
-            names = any(m.lower() in last_line(r).lower() for m in case.mentions)
+        names = names_field(case.mentions, outcome, last_line(r))
         return {**res, "rc": r["rc"], "hang": r["hang"], "elapsed_s": r["elapsed_s"],
                 "last_stderr": last_line(r).replace(str(d), "{d}"), "outcome": outcome,
                 "message": msg.replace(str(d), "{d}"), "names_field": names, "nonfinite": nonfinite,
@@ -1173,6 +1182,10 @@ def run_case(case: Case, work: Path, cli: dict, shared: dict, cache_dir: Path, k
 def write_report(out: Path, results: dict, table: list[Case], meta: dict) -> Counter:
     order = [c.id for c in table if c.id in results] + [k for k in results if k not in {c.id for c in table}]
     rows = [results[k] for k in order]
+    by_id = {c.id: c for c in table}
+    for r in rows:                 # recomputed, so a changed ``mentions`` needs no re-run
+        if r["id"] in by_id and "last_stderr" in r and r.get("kind") != "data-safety":
+            r["names_field"] = names_field(by_id[r["id"]].mentions, r["outcome"], r.get("last_stderr", ""))
     (out / "survey.json").write_text(json.dumps({"meta": meta, "cases": rows}, indent=1))
     counts = Counter(r["outcome"] for r in rows)
     lines = ["# Bad-input survey (issue 13)", "",
@@ -1196,9 +1209,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--out", default="bench-out/survey", help="output directory (default bench-out/survey)")
-    ap.add_argument("--fresh", action="store_true", help="run every case again (ignore survey.json)")
+    ap.add_argument("--fresh", action="store_true", help="run every case again (ignore survey.json); with --only, "
+                                                         "just the selected ones")
     ap.add_argument("--jobs", type=int, default=2, help="cases in parallel (default 2)")
     ap.add_argument("--only", nargs="+", metavar="PREFIX", help="run only case ids starting with these")
+    ap.add_argument("--redo", nargs="+", metavar="OUTCOME", default=[],
+                    help="run again the cases whose recorded outcome is one of these (e.g. hang setup-failed)")
     ap.add_argument("--list", action="store_true", help="list the cases and exit")
     ap.add_argument("--keep", action="store_true", help="keep each case's temp dir under OUT/work/")
     ap.add_argument("--cli-palpate", help="argv prefix for `palpate` (shlex-split), default: "
@@ -1223,8 +1239,11 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    if (out / "survey.json").is_file() and not a.fresh:
+    if (out / "survey.json").is_file() and not (a.fresh and not a.only):
         results = {r["id"]: r for r in json.loads((out / "survey.json").read_text())["cases"]}
+        if a.fresh:                # --fresh --only P: run the selected cases again, keep the others
+            results = {k: v for k, v in results.items() if not k.startswith(tuple(a.only))}
+    results = {k: v for k, v in results.items() if v.get("outcome") not in a.redo}
     todo = [c for c in table if c.id not in results and (not a.only or c.id.startswith(tuple(a.only)))]
     cache_dir = (out / "cache").resolve()
     work = (out / "work").resolve()
