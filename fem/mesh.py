@@ -5,6 +5,7 @@ A stone's boundary is a mesh curve shared by tissue and stone (glued = shared no
 """
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass, field
 
@@ -138,8 +139,8 @@ def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, floa
             fine = size_m / surface_refine
             fields = []
             f = gmsh.model.mesh.field
-            for curves, smin, dist in ((top_curves, fine, 0.35 * height_m),
-                                       (stone_curves, min(2 * fine, size_m), 0.15 * height_m)):
+            for curves, smin, dist in ((top_curves, fine, TOP_BAND * height_m),
+                                       (stone_curves, min(2 * fine, size_m), STONE_BAND * height_m)):
                 if not curves:
                     continue
                 d = f.add("Distance")
@@ -171,6 +172,42 @@ def mesh_section(width_m: float, height_m: float, stones: list[tuple[float, floa
             return _extract(gmsh, [tissue_surfs] + stone_surfs, order, width_m, height_m)
         finally:
             gmsh.finalize()
+
+
+# The sizing law of mesh_section, shared with its estimate below: the size grows linearly from the fine size at the
+# top surface (stone boundaries) to size_m at TOP_BAND (STONE_BAND) times the height from it.
+TOP_BAND = 0.35
+STONE_BAND = 0.15
+# vertices per unit of integral(1 / h^2 dA): 2 / sqrt(3) for equilateral triangles of side h, times the factor
+# calibrated on gmsh's meshes (tests/test_scene_validation.py checks the estimate within a factor 2)
+VERTEX_DENSITY = 2.0 / math.sqrt(3.0) * 1.0
+
+
+def estimate_nodes(width_m: float, height_m: float, stones: list[tuple[float, float, float]], size_m: float,
+                   surface_refine: float = 4.0, order: int = 2) -> dict:
+    """The node count mesh_section would produce, from its sizing law and without gmsh: integral of 1 / h(x, y)^2
+    over the section (numerically, on a grid graded towards the top), times VERTEX_DENSITY; a P2 mesh has about 4
+    nodes per vertex (vertices + edges). Returns {"vertices", "nodes", "dofs", "top_nodes"} (floats)."""
+    fine = size_m / surface_refine
+    # distances below the top: geometric near the surface (the size varies fastest there), linear below
+    dy = np.unique(np.concatenate([[0.0], np.geomspace(min(fine, height_m) * 1e-2, height_m, 400),
+                                   np.linspace(0.0, height_m, 401)]))
+    dx = np.linspace(0.0, width_m, 401)
+    X, D = np.meshgrid(dx, dy, indexing="ij")
+    Y = height_m - D
+    h = np.minimum(fine + (size_m - fine) * np.minimum(D / (TOP_BAND * height_m), 1.0), size_m)
+    smin = min(2 * fine, size_m)
+    for x, y, r in stones:
+        dist = np.abs(np.hypot(X - x, Y - y) - r)
+        h = np.minimum(h, smin + (size_m - smin) * np.minimum(dist / (STONE_BAND * height_m), 1.0))
+    inner = np.trapezoid(1.0 / h ** 2, dy, axis=1)
+    # boundary vertices: the area integral counts about half of them (half an element's area lies outside)
+    side = float(np.trapezoid(1.0 / h[0], dy))
+    boundary = width_m / fine + width_m / size_m + 2 * side + sum(2 * math.pi * r / smin for _, _, r in stones)
+    vertices = VERTEX_DENSITY * float(np.trapezoid(inner, dx)) + 0.5 * boundary
+    nodes = vertices if order == 1 else 4.0 * vertices
+    top = (width_m / fine + 1) * (1 if order == 1 else 2)
+    return {"vertices": vertices, "nodes": nodes, "dofs": 2.0 * nodes, "top_nodes": top}
 
 
 def mesh_tip(radius_m: float, size_m: float, order: int = 2) -> Mesh:

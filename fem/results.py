@@ -7,6 +7,7 @@ import numpy as np
 
 from core.peak import parabola_peak
 
+from .guards import check_finite
 from .model import Model
 
 
@@ -23,9 +24,10 @@ class Profile:
         return parabola_peak(self.x_m, v, max(i - 1, 0), min(i + 1, len(v) - 1))
 
     def to_dict(self) -> dict:
+        """The profile and its peak as JSON-ready values; NonFiniteResultError (fem.guards) if any is not finite."""
         xp, vp = self.peak()
-        return {"surface": {"x_m": self.x_m.tolist(), **{k: v.tolist() for k, v in self.fields.items()}},
-                "peak": {"x_m": xp, "von_mises_pa": vp}}
+        return check_finite({"surface": {"x_m": self.x_m.tolist(), **{k: v.tolist() for k, v in self.fields.items()}},
+                "peak": {"x_m": xp, "von_mises_pa": vp}}, "surface stress profile")
 
 
 @dataclass

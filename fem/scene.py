@@ -99,26 +99,77 @@ class Scene:
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
+# ---------------------------------------------------------------------------------------------------------------
+# Bounds (issue 13): what the linear small-strain model and double precision represent. Each is wider than every
+# built-in scene, test and bench scene; a value outside is refused with a message naming the field, its value and
+# the allowed range (never clamped, never a silent default).
+
+# Young's moduli. Physical materials span about 1e2 Pa (soft gels) to 1.2e12 Pa (diamond); the bounds leave six
+# decades either side (tests round-trip 1e-5 and 1.5e16) while keeping stiffness entries, compliances (1/E) and
+# stresses (E * strain) far inside double precision: 1e-300 Pa gave zero stresses everywhere, 1e300 Pa inf.
+MODULUS_MIN_PA = 1.0e-6
+MODULUS_MAX_PA = 1.0e18
+# Lengths (tissue width and height, stone diameter, tip radius and thickness): 10 um .. 10 m. Below, the geometry
+# is under gmsh's default tolerances (1e-8 relative); above, no tissue section (and no robot's reach); 1e300 m made
+# OpenCASCADE fail and an infinite gap.
+LENGTH_MIN_M = 1.0e-5
+LENGTH_MAX_M = 10.0
+# The finest element (mesh_size_m / surface_refine) must be at least 1 um: below, gmsh works at its tolerance and the
+# mesh of even a 1 mm section has millions of DOFs (the DOF cap in fem.scene_mesh refuses big meshes separately).
+ELEMENT_MIN_M = 1.0e-6
+# surface_refine: 1 (uniform mesh; below 1 the surface would be coarser than the bulk) .. 64 (the grading zone is a
+# third of the height: beyond 64 the mesh is all surface layer; tests and benches use 1 .. 16).
+SURFACE_REFINE_MIN = 1.0
+SURFACE_REFINE_MAX = 64.0
+# Compressive strain of the tissue (load A: top_displacement_m / height_m; an indentation: depth / height, and
+# depth / the tissue layer above a stone): the linear small-strain model is stated for strains up to 10 % (warned
+# above, fem.guards), and refused above 30 %, where elements begin to invert (a 5 mm tissue indented 4 mm: 13 of
+# 631 elements inverted) and the linear answer has no meaning.
+STRAIN_WARN = 0.10
+STRAIN_MAX = 0.30
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 def _check_positive(where: str, value) -> None:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or value <= 0:
+    if not _is_number(value) or not math.isfinite(value) or value <= 0:
         raise SceneError(f"{where} must be a positive finite number, got {value!r}")
 
 
+def _check_range(where: str, value, lo: float, hi: float, unit: str, why: str = "") -> None:
+    _check_positive(where, value)
+    if not lo <= value <= hi:
+        raise SceneError(f"{where} = {value!r} is outside the allowed range [{lo:g}, {hi:g}] {unit}{why}")
+
+
+def _check_modulus(where: str, value) -> None:
+    _check_range(where, value, MODULUS_MIN_PA, MODULUS_MAX_PA, "Pa",
+                 " (beyond it the stiffness and stresses leave double precision)")
+
+
+def _check_length(where: str, value) -> None:
+    _check_range(where, value, LENGTH_MIN_M, LENGTH_MAX_M, "m")
+
+
 def _check_poisson(where: str, value) -> None:
-    if not isinstance(value, (int, float)) or isinstance(value, bool) or not (-1.0 < value < 0.5):
+    if not _is_number(value) or not (-1.0 < value < 0.5):
         raise SceneError(f"{where} must lie in (-1, 0.5), got {value!r}")
 
 
 def validate(scene: Scene) -> None:
     t = scene.tissue
-    _check_positive("tissue.width_m", t.width_m)
-    _check_positive("tissue.height_m", t.height_m)
-    _check_positive("tissue.youngs_pa", t.youngs_pa)
+    _check_length("tissue.width_m", t.width_m)
+    _check_length("tissue.height_m", t.height_m)
+    _check_modulus("tissue.youngs_pa", t.youngs_pa)
     _check_poisson("tissue.poisson", t.poisson)
     for i, s in enumerate(scene.stones):
         w = f"stone[{i}]"
-        for name in ("x_m", "depth_m", "diameter_m", "youngs_pa"):
+        for name in ("x_m", "depth_m"):
             _check_positive(f"{w}.{name}", getattr(s, name))
+        _check_length(f"{w}.diameter_m", s.diameter_m)
+        _check_modulus(f"{w}.youngs_pa", s.youngs_pa)
         _check_poisson(f"{w}.poisson", s.poisson)
         r = s.radius_m
         if s.x_m - r <= 0 or s.x_m + r >= t.width_m:
@@ -134,10 +185,13 @@ def validate(scene: Scene) -> None:
     ind = scene.indenter
     if ind.shape not in ("cylinder", "flat"):
         raise SceneError(f"indenter.shape must be 'cylinder' or 'flat', got {ind.shape!r}")
-    _check_positive("indenter.radius_m", ind.radius_m)
-    _check_positive("indenter.thickness_m", ind.thickness_m)
+    _check_length("indenter.radius_m", ind.radius_m)
+    if ind.radius_m > t.width_m / 2:
+        raise SceneError(f"indenter.radius_m = {ind.radius_m!r} must be at most half the tissue width "
+                         f"({t.width_m / 2:g} m): a wider tip does not fit on the surface")
+    _check_length("indenter.thickness_m", ind.thickness_m)
     if ind.youngs_pa is not None:
-        _check_positive("indenter.youngs_pa", ind.youngs_pa)
+        _check_modulus("indenter.youngs_pa", ind.youngs_pa)
     _check_poisson("indenter.poisson", ind.poisson)
     a = scene.analysis
     if a.plane not in ("strain", "stress"):
@@ -150,11 +204,22 @@ def validate(scene: Scene) -> None:
         raise SceneError("analysis.formulation='mixed' (Taylor-Hood P2/P1) needs order = 2 and plane = 'strain' "
                          f"(got order = {a.order!r}, plane = {a.plane!r}); plane stress does not lock")
     _check_positive("analysis.mesh_size_m", a.mesh_size_m)
-    _check_positive("analysis.surface_refine", a.surface_refine)
+    _check_range("analysis.surface_refine", a.surface_refine, SURFACE_REFINE_MIN, SURFACE_REFINE_MAX, "",
+                 " (the surface element size is mesh_size_m / surface_refine)")
     if a.mesh_size_m > min(t.width_m, t.height_m) / 2:
         raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m} is larger than half the tissue")
-    if not isinstance(a.top_displacement_m, (int, float)) or not (0 <= a.top_displacement_m < t.height_m):
-        raise SceneError(f"analysis.top_displacement_m must lie in [0, height_m), got {a.top_displacement_m!r}")
+    if a.mesh_size_m / a.surface_refine < ELEMENT_MIN_M:
+        raise SceneError(f"analysis.mesh_size_m / surface_refine = {a.mesh_size_m:g} / {a.surface_refine:g} m = "
+                         f"{a.mesh_size_m / a.surface_refine:.3g} m: the finest element must be at least "
+                         f"{ELEMENT_MIN_M:g} m (1 um); increase mesh_size_m or lower surface_refine")
+    d = a.top_displacement_m
+    if not _is_number(d) or not (0 <= d < t.height_m):
+        raise SceneError(f"analysis.top_displacement_m must lie in [0, height_m), got {d!r}")
+    if d > STRAIN_MAX * t.height_m:
+        raise SceneError(f"analysis.top_displacement_m = {d!r} is {d / t.height_m:.0%} of the tissue height "
+                         f"({t.height_m:g} m): the linear model allows at most {STRAIN_MAX:.0%} "
+                         f"(top_displacement_m <= {STRAIN_MAX * t.height_m:.4g} m; it is stated for up to "
+                         f"{STRAIN_WARN:.0%})")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -169,7 +234,7 @@ def _build(cls, table, where: str):
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = sorted(set(table) - set(fields))
     if unknown:
-        raise SceneError(f"unknown key(s) in [{where}]: {', '.join(unknown)} (known: {', '.join(fields)})")
+        raise SceneError(f"unknown key(s) in [{where}]: {', '.join(map(str, unknown))} (known: {', '.join(fields)})")
     kwargs = {}
     for k, v in table.items():
         if k in ("shape", "plane", "formulation"):
@@ -181,7 +246,10 @@ def _build(cls, table, where: str):
         elif not isinstance(v, (int, float)) or isinstance(v, bool):
             raise SceneError(f"{where}.{k} must be a number, got {type(v).__name__} {v!r}")
         else:
-            v = float(v)
+            try:
+                v = float(v)
+            except OverflowError:     # an integer beyond double precision
+                raise SceneError(f"{where}.{k} = {v} is beyond double precision") from None
         kwargs[k] = v
     try:
         return cls(**kwargs)
@@ -189,10 +257,18 @@ def _build(cls, table, where: str):
         raise SceneError(f"[{where}]: {e}") from None
 
 
+REQUIRED_TISSUE = ("width_m", "height_m", "youngs_pa", "poisson")
+
+
 def from_dict(d: dict, default_name: str = "scene") -> Scene:
+    """A scene from a parsed TOML file or ``Scene.to_dict()``. The [tissue] table and its four fields are required
+    (a file without them would otherwise silently describe the default tissue); stones, [indenter] and [analysis]
+    may be left out (no stones, the default tip and analysis options)."""
+    if not isinstance(d, dict):
+        raise SceneError(f"a scene must be a table, got {type(d).__name__}")
     unknown = sorted(set(d) - {"name", *_SECTIONS})
     if unknown:
-        raise SceneError(f"unknown top-level key(s): {', '.join(unknown)} "
+        raise SceneError(f"unknown top-level key(s): {', '.join(map(str, unknown))} "
                          f"(known: name, tissue, stone, indenter, analysis)")
     name = d.get("name", default_name)
     if not isinstance(name, str):
@@ -202,11 +278,19 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
         stones = [stones]
     if not isinstance(stones, list):
         raise SceneError("stone must be an array of tables ([[stone]])")
-    return Scene(name=name,
-                 tissue=_build(Tissue, d.get("tissue", {}), "tissue"),
-                 stones=tuple(_build(Stone, s, f"stone[{i}]") for i, s in enumerate(stones)),
+    tissue_table = d.get("tissue", {})
+    tissue = _build(Tissue, tissue_table, "tissue")
+    built = dict(stones=tuple(_build(Stone, s, f"stone[{i}]") for i, s in enumerate(stones)),
                  indenter=_build(Indenter, d.get("indenter", {}), "indenter"),
                  analysis=_build(Analysis, d.get("analysis", {}), "analysis"))
+    if "tissue" not in d:
+        raise SceneError(f"the scene has no [tissue] table: give [tissue] with {', '.join(REQUIRED_TISSUE)} "
+                         f"(no default tissue is assumed)")
+    missing = [k for k in REQUIRED_TISSUE if k not in tissue_table]
+    if missing:
+        raise SceneError(f"[tissue] lacks {', '.join(missing)} (required: {', '.join(REQUIRED_TISSUE)}; no default "
+                         f"is assumed)")
+    return Scene(name=name, tissue=tissue, **built)
 
 
 def load_toml(path: str | Path) -> Scene:

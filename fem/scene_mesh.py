@@ -8,6 +8,7 @@ the mesher or the assembly invalidates old entries by itself.
 from __future__ import annotations
 
 import functools
+import os
 import warnings
 from importlib import metadata
 from pathlib import Path
@@ -16,7 +17,7 @@ import numpy as np
 
 from . import diskcache
 from .elements import nodes_ref, quadrature, shape_grad
-from .mesh import Mesh, mesh_scene
+from .mesh import Mesh, estimate_nodes, mesh_scene
 from .scene import Scene, SceneError
 
 FORMAT = 2
@@ -32,6 +33,64 @@ def code_version() -> str:
         gv = "?"
     here = Path(__file__).resolve().parent
     return diskcache.files_digest([here / name for name in _SOURCES], f"format {FORMAT}; gmsh {gv}")
+
+
+# Size caps, checked from the scene before gmsh runs (issue 13: a 1e-5 m mesh or a 1000 m tissue hung the machine).
+# 2 million DOFs: a P2 mesh of about 250k vertices; meshing, assembly and the sparse LU then take minutes and a few GB
+# (the study's finest runs have 40k DOFs). Override with $PALPATE_MAX_DOFS.
+MAX_DOFS = 2_000_000
+# The contact model keeps a dense compliance of the top nodes (8 n_top^2 bytes): 20000 top nodes are 3.2 GB.
+MAX_TOP_NODES = 20_000
+
+
+def max_dofs() -> int:
+    """The DOF cap: $PALPATE_MAX_DOFS if set (a positive integer), else MAX_DOFS."""
+    v = os.environ.get("PALPATE_MAX_DOFS", "").strip()
+    if not v:
+        return MAX_DOFS
+    try:
+        n = int(float(v))
+    except ValueError:
+        raise SceneError(f"PALPATE_MAX_DOFS={v!r} must be a positive integer") from None
+    if n <= 0:
+        raise SceneError(f"PALPATE_MAX_DOFS={v!r} must be a positive integer")
+    return n
+
+
+def estimate_size(scene: Scene) -> dict:
+    """The scene's mesh size without meshing (fem.mesh.estimate_nodes: within a factor 2 of gmsh's, tests check):
+    {"vertices", "nodes", "dofs", "top_nodes"}."""
+    t, a = scene.tissue, scene.analysis
+    stones = [(s.x_m, t.height_m - s.depth_m, s.radius_m) for s in scene.stones]
+    return estimate_nodes(t.width_m, t.height_m, stones, a.mesh_size_m, a.surface_refine, a.order)
+
+
+def _what_to_change(scene: Scene) -> str:
+    a = scene.analysis
+    return (f"increase analysis.mesh_size_m (now {a.mesh_size_m:g} m) or lower analysis.surface_refine (now "
+            f"{a.surface_refine:g}), or a smaller tissue (width_m {scene.tissue.width_m:g} m, height_m "
+            f"{scene.tissue.height_m:g} m)")
+
+
+def check_mesh_budget(scene: Scene) -> dict:
+    """SceneError if the scene's mesh would exceed the DOF cap (max_dofs()); else its estimate (estimate_size)."""
+    est = estimate_size(scene)
+    cap = max_dofs()
+    if est["dofs"] > cap:
+        raise SceneError(f"scene {scene.name!r}: the mesh would have about {est['dofs']:.3g} DOFs "
+                         f"(P{scene.analysis.order}), above the cap of {cap:.3g} ($PALPATE_MAX_DOFS): "
+                         f"{_what_to_change(scene)}")
+    return est
+
+
+def check_surface_budget(scene: Scene) -> None:
+    """SceneError if the contact model's dense top-surface compliance would exceed MAX_TOP_NODES."""
+    a = scene.analysis
+    n = (scene.tissue.width_m * a.surface_refine / a.mesh_size_m + 1) * a.order
+    if n > MAX_TOP_NODES:
+        raise SceneError(f"scene {scene.name!r}: the contact model would have about {n:.3g} top-surface nodes "
+                         f"(a dense {8 * n * n / 1e9:.3g} GB compliance), above the cap of {MAX_TOP_NODES}: "
+                         f"{_what_to_change(scene)}")
 
 
 def mesh_key(scene: Scene) -> str:
@@ -96,6 +155,8 @@ def _restored(arrays: dict[str, np.ndarray], scene: Scene) -> Mesh:
 
 def mesh_for(scene: Scene, use: bool | None = None) -> Mesh:
     """The scene's mesh (every element checked for a positive Jacobian): from the disk cache, else meshed with gmsh
-    (and stored). use: None follows $PALPATE_CACHE, False skips the disk cache."""
+    (and stored). use: None follows $PALPATE_CACHE, False skips the disk cache. A scene whose mesh would exceed the
+    DOF cap is refused first (check_mesh_budget)."""
+    check_mesh_budget(scene)
     return diskcache.load_or_build("mesh", _mesh_spec(scene), build=lambda: checked_mesh(mesh_scene(scene), scene),
                                    to_arrays=Mesh.to_arrays, from_arrays=lambda d: _restored(d, scene), use=use)

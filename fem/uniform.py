@@ -7,6 +7,7 @@ import warnings
 
 import numpy as np
 
+from .guards import check_uniform_result
 from .mixed import solve_uniform_mixed
 from .model import Model, build_model
 from .results import Profile, UniformResult
@@ -20,7 +21,8 @@ RESIDUAL_WARN = 1e-6
 def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
                   rigid_stones: str | bool = "auto") -> UniformResult:
     if scene.analysis.formulation == "mixed":         # locking-free u-p (fem.mixed)
-        return solve_uniform_mixed(scene, model=model, full_field=full_field, rigid_stones=rigid_stones)
+        return check_uniform_result(scene, solve_uniform_mixed(scene, model=model, full_field=full_field,
+                                                               rigid_stones=rigid_stones))
     t0 = time.perf_counter()
     model = model or build_model(scene, rigid_stones=rigid_stones)
     t1 = time.perf_counter()
@@ -57,6 +59,7 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
         eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
         nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
     t3 = time.perf_counter()
-    return UniformResult(model=model, u=u, surface=Profile(mesh.nodes[top, 0], surf), nodal=nodal,
-                         timings_s={"mesh_assemble_s": t1 - t0, "solve_s": t2 - t1, "recover_s": t3 - t2},
-                         reaction_n_per_m=float(reaction), residual=residual)
+    res = UniformResult(model=model, u=u, surface=Profile(mesh.nodes[top, 0], surf), nodal=nodal,
+                        timings_s={"mesh_assemble_s": t1 - t0, "solve_s": t2 - t1, "recover_s": t3 - t2},
+                        reaction_n_per_m=float(reaction), residual=residual)
+    return check_uniform_result(scene, res)

@@ -184,7 +184,8 @@ def test_cli_plan_on_the_real_fem_model(tmp_path):
     from app.cli import main
     from fem.contact import surface_model
     toml = tmp_path / "coarse.toml"
-    toml.write_text('name = "coarse"\n[indenter]\nyoungs_pa = 60.0e6\n[analysis]\nmesh_size_m = 0.005\n'
+    toml.write_text('name = "coarse"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                    '[indenter]\nyoungs_pa = 60.0e6\n[analysis]\nmesh_size_m = 0.005\n'
                     '[[stone]]\nx_m = 0.035\ndepth_m = 0.025\ndiameter_m = 0.015\n')
     out, js, figs = tmp_path / "plan.json", tmp_path / "summary.json", tmp_path / "figs"
     rc = main(["plan", str(toml), "--out", str(out), "--waypoints", "5", "--force-limit-n", "0.3",

@@ -62,7 +62,8 @@ def test_toml_round_trip_awkward_values(tmp_path):
 
 def test_toml_minimal_file_uses_defaults_and_file_stem(tmp_path):
     path = tmp_path / "tiny.toml"
-    path.write_text("[tissue]\nyoungs_pa = 3000\n")     # an integer is accepted as a number
+    # [tissue] and its four fields are required (issue 13: no default tissue); an integer is accepted as a number
+    path.write_text("[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 3000\npoisson = 0.4\n")
     sc = S.load_toml(path)
     assert sc.name == "tiny" and sc.tissue.youngs_pa == 3000.0 and isinstance(sc.tissue.youngs_pa, float)
     assert sc.stones == () and sc.analysis == S.Analysis()
