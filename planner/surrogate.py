@@ -100,7 +100,35 @@ def _one_stone(args):
 
 
 def _forces(model, levels, x0) -> np.ndarray:
-    return np.array([[model.force_n(float(x), float(d)) for x in x0] for d in levels])
+    """Force curves (levels x positions). Where fem refuses a waypoint (an indentation deeper than the linear model
+    allows over a shallow stone: fem.contact.check_waypoint) the force is continued from the deepest allowed levels
+    with their local power law (``_continue_in_depth``): such a stone stops a real probe at its force limit first."""
+    out = np.full((len(levels), len(x0)), np.nan)
+    for a, d in enumerate(levels):
+        for b, x in enumerate(x0):
+            try:
+                out[a, b] = model.force_n(float(x), float(d))
+            except ValueError:
+                pass
+    if np.isnan(out).any():
+        _continue_in_depth(out, np.asarray(levels, float))
+    return out
+
+
+def _continue_in_depth(f: np.ndarray, levels: np.ndarray) -> None:
+    """Fill NaN force entries (levels x positions) from the deepest computed levels at the same position: F ~ d^p
+    with p from the last two computed levels (1.5, Hertz, with fewer), in place; 0 where none was computed."""
+    for b in range(f.shape[1]):
+        ok = np.flatnonzero(~np.isnan(f[:, b]))
+        if len(ok) == 0:
+            f[:, b] = 0.0
+            continue
+        i1 = ok[-1]
+        p = 1.5
+        if len(ok) >= 2 and f[ok[-2], b] > 0 and f[i1, b] > 0:
+            p = float(np.log(f[i1, b] / f[ok[-2], b]) / np.log(levels[i1] / levels[ok[-2]]))
+        for a in np.flatnonzero(np.isnan(f[:, b])):
+            f[a, b] = f[i1, b] * (levels[a] / levels[i1]) ** p
 
 
 def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None) -> dict:

@@ -140,3 +140,21 @@ def test_surrogate_tables_follow_the_disk_cache_switch(monkeypatch, tmp_path):
     assert cache_path(prior, Grid()).parent == tmp_path
     monkeypatch.setenv("PALPATE_CACHE", "0")
     assert table_candidates(prior, Grid()) == [cache_path(prior, Grid(), SHIPPED)]
+
+
+def test_surrogate_continues_refused_deep_levels_over_shallow_stones():
+    """fem refuses indenting 4 mm over a stone 1.5 mm under the surface (the linear model would crush the layer); the
+    table's force curves there are continued with the local power law of the allowed levels instead of failing the
+    whole build."""
+    from fem.contact import surface_model
+    from planner.surrogate import _forces
+    sc = load("healthy").with_analysis(mesh_size_m=0.004).with_stones(
+        [Stone(x_m=0.035, depth_m=0.0015 + 0.004, diameter_m=0.008)])
+    m = surface_model(sc)
+    levels = [1e-3, 1.5e-3, 2e-3, 3e-3, 4e-3]
+    f = _forces(m, levels, [0.035, 0.010])
+    assert np.all(np.isfinite(f)) and np.all(f > 0)
+    with pytest.raises(ValueError):
+        m.force_n(0.035, 4e-3)                                      # refused by fem over the stone
+    assert abs(f[-1, 1] - m.force_n(0.010, 4e-3)) < 1e-12          # away from the stone: fem's own value
+    assert np.all(np.diff(f[:, 0]) > 0)                            # continued monotonically in depth
