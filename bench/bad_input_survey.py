@@ -2,7 +2,7 @@
 """Bad-input survey (issue 13): run the CLIs on ~200 kinds of bad input and classify what each one does.
 
     python bench/bad_input_survey.py --out bench-out/survey [--fresh] [--jobs 2] [--only ID_PREFIX ...] [--list]
-        [--cli-palpate "python3 -m planner.cli"] [--cli-cell "python3 -m robot.cell"] [--keep]
+        [--cli-palpate "python3 -m app.cli"] [--cli-cell "python3 -m app.cell"] [--keep]
 
 Every case is run as a subprocess of the CLI (never imported), in a temp dir of its own under OUT/work/, with
 stdin closed, a 6 GB address-space limit (so memory exhaustion shows as a MemoryError, not an OOM-killed machine)
@@ -12,7 +12,7 @@ The survey is resumable: case ids already in OUT/survey.json are skipped unless 
 its own temp dirs (OUT/work/<id>-*/, removed after each case unless --keep).
 
 CLI invocation (module paths will move): ``CLI`` below maps "palpate" / "palpate-cell" to an argv prefix. Default:
-``python3 -m planner.cli`` / ``python3 -m robot.cell`` with PYTHONPATH = this checkout (so the checkout's code is
+``python3 -m app.cli`` / ``python3 -m app.cell`` with PYTHONPATH = this checkout (so the checkout's code is
 what runs, never a console script from PATH that may point elsewhere). Override with --cli-palpate / --cli-cell
 (split with shlex) or the environment variables PALPATE_SURVEY_CLI_PALPATE / PALPATE_SURVEY_CLI_CELL (also read by
 tests/test_bad_input.py), e.g. ``--cli-palpate "python3 -m app.cli" --cli-cell "python3 -m app.cell"`` or
@@ -64,8 +64,8 @@ from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = {
-    "palpate": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_PALPATE", "")) or [sys.executable, "-m", "planner.cli"],
-    "palpate-cell": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_CELL", "")) or [sys.executable, "-m", "robot.cell"],
+    "palpate": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_PALPATE", "")) or [sys.executable, "-m", "app.cli"],
+    "palpate-cell": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_CELL", "")) or [sys.executable, "-m", "app.cell"],
 }
 MEM_LIMIT_BYTES = 6 * 1024 ** 3
 DIR = "<<mkdir>>"       # files: make a directory here
