@@ -119,7 +119,11 @@ class Plan:
         return dataclasses.asdict(self)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        """Write atomically (a temp file renamed over ``path``): a crash never leaves a torn plan."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        tmp.replace(path)
 
     @staticmethod
     def from_dict(d: dict) -> "Plan":
