@@ -265,11 +265,14 @@ def run(args) -> int:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)
     _say("loading the fem surrogate (first use on a scene: built with fem and cached, a few minutes)")
-    sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
-
-    det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
-                        depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
-                        surrogate=sur, motion=plan0.motion)
+    try:
+        sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
+        det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
+                            depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
+                            surrogate=sur, motion=plan0.motion)
+    except (RuntimeError, ArithmeticError, ValueError) as e:   # e.g. fem's contact solve on an implausible prior
+        where = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
+        raise UsageError(f"{where} cannot be modelled: {e} (check the tissue and indenter moduli and sizes)") from None
     smallest = {}
     for r in det["rows"]:
         if r["detectable"]:

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
+from app.errors import UsageError
+from app.options import check_output_dir, check_output_file, finite_float, positive_float, refuse_measured
 from fem import scene as S
 from fem.contact import surface_model
 from fem.stress import components, nodal_poisson, recovery_operator
@@ -72,21 +74,28 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         f"{' '.join(COMPARE_DEFAULT)}); needs --plots; put it after SCENE")
     g = p.add_argument_group("analysis overrides (default: the scene's [analysis] table)")
     g.add_argument("--order", type=int, choices=(1, 2), help="1: P1 triangles, 2: P2 triangles")
-    g.add_argument("--mesh-size-m", type=float, metavar="H", help="element size at depth (m)")
-    g.add_argument("--surface-refine", type=float, metavar="F", help="top-surface size = H / F")
+    g.add_argument("--mesh-size-m", type=positive_float, metavar="H", help="element size at depth (m)")
+    g.add_argument("--surface-refine", type=positive_float, metavar="F", help="top-surface size = H / F")
     g.add_argument("--plane", choices=("strain", "stress"), help="plane strain or plane stress")
     g.add_argument("--stones", choices=("auto", "rigid", "elastic"), default="auto",
                    help="auto: stones >= 1e4 times stiffer than tissue are rigid bodies (default)")
     i = p.add_argument_group("indentation (--load indent)")
-    i.add_argument("--x-m", "--x0-m", dest="x_m", type=float,
+    i.add_argument("--x-m", "--x0-m", dest="x_m", type=finite_float,
                    help="tip position along the top surface, from the left edge (m); --x0-m is its former name")
-    i.add_argument("--depth-m", type=float, help="indentation depth below the undeformed surface (m)")
-    i.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
+    i.add_argument("--depth-m", type=finite_float, help="indentation depth below the undeformed surface (m)")
+    i.add_argument("--indenter-radius-m", type=positive_float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    check_output_dir(args.plots, "--plots")
+    check_output_file(args.vtu, "--vtu")
+    refuse_measured(args.vtu, "--vtu")
+    if args.vtu and not args.vtu.lower().endswith(".vtu"):
+        raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     if args.load == "indent":
         return _run_indent(args)
     return _run_uniform(args)
