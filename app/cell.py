@@ -31,6 +31,7 @@ from app.options import (
     check_output_dir,
     check_output_file,
     float_range,
+    load_scene,
     positive_float,
     refuse_measured,
 )
@@ -186,7 +187,7 @@ def _main(args) -> int:
     except ValueError as e:
         raise UsageError(f"--inject: {e}") from None
     if args.sim and args.force_model == "fem":
-        truth = load(truth_scene(plan, args.truth))   # before anything moves: the simulator needs its truth
+        truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
         if args.sim_mesh_m is not None:
             truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
     done = set() if args.fresh else done_indices(out)

@@ -5,6 +5,8 @@ Numeric options: argparse ``type=`` functions (``finite_float``, ``positive_floa
 the message gives the value and what is allowed. Cross-option rules (a minimum below a limit, a budget above the
 waypoints) are checked by the commands with ``UsageError``.
 
+Scenes: ``load_scene`` (fem.scene.load with unreadable files named in one line).
+
 Output paths: ``check_output_file`` / ``check_output_dir`` refuse, before the computation, a file option pointing at
 a directory, a directory option pointing at a file, and a parent that cannot be created or written; they create
 nothing. ``refuse_measured`` refuses an output path that would overwrite a run's measured files.
@@ -17,6 +19,7 @@ import os
 from pathlib import Path
 
 from app.errors import UsageError
+from fem.scene import Scene, SceneError, load
 
 MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the planning NLP and fem cost explode
 MAX_TOTAL_PROBES = 10000    # a run's probe budget
@@ -142,3 +145,18 @@ def refuse_measured(path: str | None, option: str) -> None:
     if path and path != "-" and is_measured(path):
         raise UsageError(f"{option} {path}: would overwrite a run's measured data (probes.jsonl, raw/, run.json); "
                          f"choose another path")
+
+
+def load_scene(spec: str, option: str = "scene") -> Scene:
+    """fem.scene.load, with an unreadable file (binary, latin-1, a directory) named in a one-line error."""
+    try:
+        return load(spec)
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{option} {spec}: not a UTF-8 text (TOML) file ({e.reason} at byte {e.start})") from None
+    except IsADirectoryError:
+        raise UsageError(f"{option} {spec}: is a directory; give a scene TOML file or a built-in name") from None
+    except OSError as e:
+        raise UsageError(f"{option} {spec}: cannot read: {e.strerror or e}") from None
+    except SceneError as e:
+        msg = str(e)
+        raise SceneError(msg if option in msg else f"{option} {spec}: {msg}") from None

@@ -663,7 +663,8 @@ def cases() -> list[Case]:
         ("missing", None, "missing plan file", "plan", True, cell()),
         ("array", "[1, 2, 3]", "plan is a JSON array", "plan", True, cell()),
         ("string", '"plan"', "plan is a JSON string", "plan", False, cell()),
-        ("version-2", _edit(_set("version", 2)), "plan version 2", "version", True, cell()),
+        ("version-3", _edit(_set("version", 3)), "plan version 3 (newer than this palpate; 2 is current)", "version",
+         True, cell()),
         ("version-missing", _edit(_set("version", MISSING)), "plan without version", "version", False, cell()),
         ("version-str", _edit(_set("version", "1")), 'plan version "1" (string)', "version", False, cell()),
         ("scene-string", _edit(_set("scene", "paper")), "plan whose scene is a string", "scene", True, cell()),
@@ -806,7 +807,7 @@ FAST_SUBSET = (
     # output paths
     "out-sim-json-dir", "out-sim-json-proc", "out-plan-out-dir", "out-plan-out-proc", "out-pred-json-proc",
     # plan files
-    "plan-truncated", "plan-binary", "plan-array", "plan-version-2", "plan-scene-string", "plan-dir",
+    "plan-truncated", "plan-binary", "plan-array", "plan-version-3", "plan-scene-string", "plan-dir",
 )
 
 

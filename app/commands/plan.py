@@ -16,6 +16,7 @@ from app.options import (
     finite_float,
     float_range,
     int_range,
+    load_scene,
     positive_float,
     refuse_measured,
 )
@@ -30,7 +31,6 @@ from core.contracts import (
     PlanError,
     PlanOptions,
 )
-from fem.scene import load
 from planner.plan import plan_raster
 from planner.raster import default_tissue_pose, interval_positions
 
@@ -110,7 +110,7 @@ def run(args) -> int:
     check_output_dir(args.plots, "--plots")
     check_output_file(args.json, "--json")
     refuse_measured(args.json, "--json")
-    scene = load(args.scene)
+    scene = load_scene(args.scene)
     tip = scene.indenter.radius_m
     if not args.depth_limit_m < tip:
         raise UsageError(f"--depth-limit-m {args.depth_limit_m:g} must be below the tip radius {tip:g} m "

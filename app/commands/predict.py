@@ -23,11 +23,11 @@ from app.options import (
     check_output_file,
     finite_float,
     int_range,
+    load_scene,
     positive_float,
     refuse_measured,
 )
 from core.peak import parabola_peak
-from fem import scene as S
 from fem.contact import check_waypoint, surface_model
 
 DEFAULT_DEPTH_M = 0.004
@@ -88,7 +88,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def _scenes(args):
-    sc = S.load(args.scene)
+    sc = load_scene(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}
     if changes:
@@ -101,7 +101,7 @@ def _scenes(args):
     elif c.lower() == "prior":
         ref = sc.prior()
     else:   # another scene's tissue and stones, probed with SCENE's tip and analysed like SCENE
-        ref = dataclasses.replace(S.load(c), indenter=sc.indenter, analysis=sc.analysis)
+        ref = dataclasses.replace(load_scene(c, "--compare"), indenter=sc.indenter, analysis=sc.analysis)
     return sc, ref
 
 

@@ -32,11 +32,12 @@ from app.options import (
     check_output_dir,
     check_output_file,
     int_range,
+    load_scene,
     positive_float,
     refuse_measured,
 )
 from core.contracts import SENSORS, Plan
-from fem.scene import from_dict, load
+from fem.scene import from_dict
 from planner.detectability import detectability
 from planner.localize import Localization, localize
 from planner.plan import plan_raster, replan
@@ -237,7 +238,7 @@ def run(args) -> int:
         j = Path(args.json).absolute()
         if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):
             raise UsageError(f"--json {args.json}: would overwrite the run's own {j.name}; choose another path")
-    scene = load(args.scene)
+    scene = load_scene(args.scene)
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = from_dict(plan0.scene, default_name=plan0.scene.get("name", "prior"))

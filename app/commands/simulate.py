@@ -16,8 +16,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from app.options import check_output_dir, check_output_file, finite_float, positive_float, refuse_measured
-from fem import scene as S
+from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float, refuse_measured
 from fem.contact import surface_model
 from fem.stress import components, nodal_poisson, recovery_operator
 from fem.uniform import Profile, solve_uniform
@@ -120,7 +119,7 @@ def _run_indent(args) -> int:
     try:
         r = m.indent(args.x_m, args.depth_m)
     except ValueError as e:
-        print(f"palpate simulate: {e}", file=sys.stderr)
+        print(f"palpate simulate: --x-m (--x0-m) {args.x_m:g} / --depth-m {args.depth_m:g}: {e}", file=sys.stderr)
         return 2
     t2 = time.perf_counter()
     model, mesh = m.model, m.model.mesh
@@ -205,7 +204,7 @@ def _indent_summary(sc, r, out, stream) -> None:
 # ------------------------------------------------------------------------------------------------- load A
 
 def _scene(args):
-    sc = S.load(args.scene)
+    sc = load_scene(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane))
                if v is not None}
@@ -255,7 +254,7 @@ def _run_uniform(args) -> int:
             if name == args.scene:
                 other, r = sc, res
             else:
-                other = dataclasses.replace(S.load(name), analysis=sc.analysis)
+                other = dataclasses.replace(load_scene(name, "--compare"), analysis=sc.analysis)
                 r = solve_uniform(other, full_field=False, rigid_stones=_rigid(args))
             compare.append((other, r.surface))
         out["compare"] = [{"scene": o.name, "peak": prof.to_dict()["peak"]} for o, prof in compare]
