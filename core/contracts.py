@@ -209,6 +209,9 @@ class Plan:
             raise PlanError("plan field limits.workspace_min_m must be below limits.workspace_max_m on every axis")
         L, mo = self.limits, self.motion
         tip = self.tip_radius_m()
+        tis = self.scene.get("tissue", {})
+        width = tis.get("width_m", math.inf) if isinstance(tis, dict) else math.inf
+        width = float(width) if _is_num(width) and math.isfinite(width) and width > 0 else math.inf
         number("limits.force_limit_n", L.force_limit_n, hi=HARD_FORCE_LIMIT_N,
                allowed=f"(0, {HARD_FORCE_LIMIT_N:g}] N (the hard cap)")
         number("limits.depth_limit_m", L.depth_limit_m, hi=min(tip, HARD_DEPTH_LIMIT_M), hi_open=tip <= HARD_DEPTH_LIMIT_M,
@@ -241,7 +244,8 @@ class Plan:
                 raise PlanError(f"plan field probes[{k}].index = {p.index} is used twice (indices must be unique)")
             seen.add(p.index)
             w = f"probes[{k}]"
-            number(f"{w}.x_m", p.x_m, lo=-math.inf)
+            number(f"{w}.x_m", p.x_m, lo=0.0, lo_open=False, hi=width,
+                   allowed=f"[0, {width:g}] m (on the tissue's top surface, scene.tissue.width_m)")
             number(f"{w}.depth_m", p.depth_m, hi=L.depth_limit_m,
                    allowed=f"(0, limits.depth_limit_m = {L.depth_limit_m:g}] m, below the tip radius {tip:g} m")
             if p.depth_m >= tip:
