@@ -2,7 +2,7 @@
 
 Prints a pre-flight summary (workspace box, force limit, probes, estimated time), then runs the plan with
 robot.driver, printing one line per probe; records go to DIR (probes.jsonl, raw/, run.json; see robot/records.py).
-A second run with the same DIR resumes: probes already measured ("ok" or "force_limit") are skipped; ``--fresh``
+A second run with the same DIR resumes: probes already "ok" are skipped (a "force_limit" one is probed again); ``--fresh``
 moves the old files into DIR/previous-<UTC time>/ (never deletes) and probes everything again. Everything (options,
 plan, output paths) is checked before DIR is touched or anything moves.
 

@@ -9,8 +9,8 @@
                         ``depth_m`` (N), ``phase`` (N: 0 free air, 1 descent, 2 dwell, 3 retract).
 ``<out>/run.json``      the run's summary: status, fault report, counts (written atomically).
 
-Resume: the last record of each index wins; indices whose last status is "ok" or "force_limit" (a finished
-measurement) are not probed again. A torn last line (a crash mid-write) is ignored, and the next record starts on a
+Resume: the last record of each index wins; indices whose last status is "ok" are not probed again ("force_limit"
+ones are: the stop may have been a sensor spike). A torn last line (a crash mid-write) is ignored, and the next record starts on a
 line of its own.
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ from core.contracts import (
     ProbeStatus,
 )
 
-DONE = MEASURED     # finished measurements ("ok", "force_limit"): a resumed run never presses them again
+DONE = (ProbeStatus.OK,)   # a force_limit stop may be a sensor spike: a resumed run probes it again
 
 
 def _fsync_dir(path: Path) -> None:
