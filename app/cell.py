@@ -165,7 +165,10 @@ def _progress(rec, i, n):
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:           # argparse's usage errors (a bad option value): its message, exit 2
+        return e.code if isinstance(e.code, int) else EXIT_USAGE
     return guarded("palpate-cell", lambda: _main(args), debug=args.debug)
 
 
