@@ -2,7 +2,9 @@
 
 Prints a pre-flight summary (workspace box, force limit, probes, estimated time), then runs the plan with
 robot.driver, printing one line per probe; records go to DIR (probes.jsonl, raw/, run.json; see robot/records.py).
-A second run with the same DIR resumes: probes already "ok" are skipped (``--fresh`` ignores the log).
+A second run with the same DIR resumes: probes already "ok" are skipped (a "force_limit" one is probed again); ``--fresh``
+moves the old files into DIR/previous-<UTC time>/ (never deletes) and probes everything again. Everything (options,
+plan, output paths) is checked before DIR is touched or anything moves.
 
 ``--sim`` (= ``--sim inmemory``) runs against the in-memory simulated arm (robot/sim.py) instead of a real arm;
 ``--sim controller`` starts the simulated UR controller (robot/simcontroller.py) on a loopback address of its own
@@ -10,23 +12,36 @@ A second run with the same DIR resumes: probes already "ok" are skipped (``--fre
 (``--truth``; without it, the built-in scene whose prior the plan holds, else exit 2) with fem's force; the driver only
 sees the plan. ``--inject`` faults use one syntax for both (robot.urscript_cmds.parse_inject).
 
-Exit codes: 0 ok, 1 fault, 2 usage / cannot connect, 3 plan rejected, 4 the simulated controller's ports are taken
-on every loopback address tried, 130 interrupted.
+Exit codes: 0 ok, 1 fault, 2 usage / a plan file that fails ``Plan.check`` (core.contracts: types, limits, depth
+below the tip radius; nothing moves) / not confirmed / cannot connect, 3 plan rejected by the driver's own
+pre-flight safety checks (robot.safety: workspace, poses, speeds against the hard caps; nothing moves), 4 the
+simulated controller's ports are taken on every loopback address tried, 130 interrupted.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
+from app.commands.output import write_json
 from app.errors import UsageError, guarded
-from core.contracts import Plan
+from app.options import (
+    check_output_dir,
+    check_output_file,
+    float_range,
+    load_scene,
+    positive_float,
+    refuse_measured,
+)
+from core.contracts import SENSORS, Plan
 from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, preflight, run_plan
 from robot.link import connect, end_session
 from robot.records import done_indices
+from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import PortsUnavailable, start_controller
@@ -52,20 +67,23 @@ def build_parser() -> argparse.ArgumentParser:
                      help="simulated arm: inmemory (default) or controller (loopback UR controller + real ur_rtde)")
     p.add_argument("--plan", required=True, help="plan.json from `palpate plan`")
     p.add_argument("--out", required=True, help="output directory (resumes if it holds a run)")
-    p.add_argument("--fresh", action="store_true", help="do not resume: probe everything again")
+    p.add_argument("--fresh", action="store_true", help="do not resume: move the old files into "
+                   "OUT/previous-<UTC time>/ and probe everything again")
     p.add_argument("--yes", action="store_true", help="do not ask for confirmation before moving a real arm")
     p.add_argument("--skip-invalid", action="store_true", help="skip probes that fail the safety checks "
                    "instead of refusing the plan")
-    p.add_argument("--payload-kg", type=float, default=0.1)
+    p.add_argument("--payload-kg", type=float_range(0.0, MAX_PAYLOAD_KG, lo_open=False, unit="kg"), default=0.1,
+                   help=f"tool payload, 0..{MAX_PAYLOAD_KG:g} kg (default 0.1)")
     p.add_argument("--json", metavar="PATH", help="also write the run report here")
     p.add_argument("--debug", action="store_true", help="show a traceback on errors")
     g = p.add_argument_group("simulation (--sim)")
     g.add_argument("--truth", help="TRUE scene for the simulator: built-in name or TOML")
-    g.add_argument("--sensor", default="nano17", help="sensor preset: nano17 | ur5e-builtin (default nano17)")
+    g.add_argument("--sensor", default="nano17", choices=list(SENSORS), help="sensor preset (default nano17)")
     g.add_argument("--seed", type=int, default=0)
     g.add_argument("--force-model", choices=["fem", "standin"], default="fem",
                    help="tissue force: fem for the true scene (default) or a Hertz-like stand-in")
-    g.add_argument("--sim-mesh-m", type=float, default=None, help="coarser fem mesh for a faster simulator")
+    g.add_argument("--sim-mesh-m", type=positive_float, default=None,
+                   help="coarser fem mesh (element size, m) for a faster simulator")
     g.add_argument("--inject", action="append", default=[], metavar="SPEC",
                    help="fault (repeatable), same syntax for both simulators: KIND-at-s=T[:X] (at simulated time T "
                         "s) or KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface); the short "
@@ -114,6 +132,32 @@ def print_preflight(pre: dict, where: str) -> None:
         print(f"  UNSAFE probe {k}: {v}")
 
 
+def read_confirmation() -> bool:
+    """Ask before a real arm moves; a closed standard input (EOF) is a no."""
+    try:
+        return input("type 'yes' to move the arm: ").strip().lower() == "yes"
+    except EOFError:
+        return False
+
+
+def sim_range_report(arm) -> dict | None:
+    """What the simulated arm's force model extrapolated beyond its range (robot.simforce.CachedForce), or None."""
+    report = getattr(getattr(arm, "force_model", None), "range_report", None)
+    return report() if report is not None else None
+
+
+def move_aside(out: Path) -> Path | None:
+    """Move everything in ``out`` (but earlier previous-* folders) into out/previous-<UTC time>/; never delete."""
+    if not out.is_dir() or not any(p for p in out.iterdir() if not p.name.startswith("previous-")):
+        return None
+    dest = out / f"previous-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}"
+    dest.mkdir()
+    for p in sorted(out.iterdir()):
+        if p != dest and not p.name.startswith("previous-"):
+            p.rename(dest / p.name)
+    return dest
+
+
 def _progress(rec, i, n):
     fs = "-" if rec.force_mean_n is None else f"{rec.force_mean_n:.3f} +- {rec.force_std_n or 0:.3f} N"
     ds = "-" if rec.depth_reached_m is None else f"{rec.depth_reached_m * 1e3:.2f} mm"
@@ -121,39 +165,52 @@ def _progress(rec, i, n):
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:           # argparse's usage errors (a bad option value): its message, exit 2
+        return e.code if isinstance(e.code, int) else EXIT_USAGE
     return guarded("palpate-cell", lambda: _main(args), debug=args.debug)
 
 
 def _main(args) -> int:
+    # ---- everything checked before the output directory is touched or anything moves
+    check_output_dir(args.out, "--out")
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    out = Path(args.out)
+    if args.json and Path(args.json).absolute().parent == out.absolute() and Path(args.json).name in (
+            "probes.jsonl", "run.json"):
+        raise UsageError(f"--json {args.json}: would overwrite the run's own {Path(args.json).name}")
     plan = Plan.load(args.plan)
-    if args.sim and args.force_model == "fem":
-        truth_scene(plan, args.truth)          # before anything moves: the simulator needs its truth
     if args.inject and not args.sim:
-        print("palpate-cell: --inject needs --sim", file=sys.stderr)
-        return EXIT_USAGE
+        raise UsageError("--inject needs --sim")
     try:
         if args.inject:
             args.inject = [normalize_inject(s) for s in args.inject]
     except ValueError as e:
-        print(f"palpate-cell: --inject: {e}", file=sys.stderr)
-        return EXIT_USAGE
-    out = Path(args.out)
+        raise UsageError(f"--inject: {e}") from None
+    if args.sim and args.force_model == "fem":
+        truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
+        if args.sim_mesh_m is not None:
+            truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
     done = set() if args.fresh else done_indices(out)
     where = f"simulated arm ({args.sim})" if args.sim else f"UR controller at {args.host}"
     pre = preflight(plan, done)
     print_preflight(pre, where)
     cfg = DriverConfig(payload_kg=args.payload_kg, skip_invalid=args.skip_invalid)
-    if args.host and not args.yes:
-        if input("type 'yes' to move the arm: ").strip().lower() != "yes":
-            print("not confirmed; nothing sent")
-            return EXIT_USAGE
+    if args.host and not args.yes and not read_confirmation():
+        raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
+    if args.fresh:
+        moved = move_aside(out)
+        if moved is not None:
+            print(f"--fresh: the previous run's files are in {moved}")
+    arm = None
     try:
         if args.sim == "controller":
             rep = _run_controller(plan, args, out, cfg)
         else:
             if args.sim:
-                _, c, r = inmemory_arm(plan, args)
+                arm, c, r = inmemory_arm(plan, args)
                 rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
             else:
                 rep = _run_linked(plan, args, out, cfg, *connect(args.host))
@@ -172,8 +229,20 @@ def _main(args) -> int:
         print(f"  stopped={rep.fault['stopped']} retracted={rep.fault['retracted']}; "
               + "; ".join(rep.fault.get("notes", [])))
         print(f"  completed probes are in {out / 'probes.jsonl'}; run again with the same --out to resume")
+    report = rep.to_dict()
+    rr = sim_range_report(arm) if arm is not None else None
+    if rr is not None:         # the simulated force left the model's range: recorded in run.json, never silent
+        report["sim_force_beyond_model_range"] = rr
+        run_json = out / "run.json"
+        d = json.loads(run_json.read_text(encoding="utf-8"))
+        d["sim_force_beyond_model_range"] = rr
+        tmp = run_json.with_name("run.json.tmp")
+        tmp.write_text(json.dumps(d, indent=1))
+        tmp.replace(run_json)
+        print(f"WARNING: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
+              f"{rr['deepest_m'] * 1e3:.2f} mm)")
     if args.json:
-        Path(args.json).write_text(json.dumps(rep.to_dict(), indent=1))
+        write_json(args.json, report)
     return {"ok": EXIT_OK, "rejected": EXIT_REJECTED, "interrupted": EXIT_INTERRUPTED}.get(rep.status, EXIT_FAULT)
 
 

@@ -2,7 +2,7 @@
 """Bad-input survey (issue 13): run the CLIs on ~200 kinds of bad input and classify what each one does.
 
     python bench/bad_input_survey.py --out bench-out/survey [--fresh] [--jobs 2] [--only ID_PREFIX ...] [--list]
-        [--cli-palpate "python3 -m planner.cli"] [--cli-cell "python3 -m robot.cell"] [--keep]
+        [--cli-palpate "python3 -m app.cli"] [--cli-cell "python3 -m app.cell"] [--keep]
 
 Every case is run as a subprocess of the CLI (never imported), in a temp dir of its own under OUT/work/, with
 stdin closed, a 6 GB address-space limit (so memory exhaustion shows as a MemoryError, not an OOM-killed machine)
@@ -12,7 +12,7 @@ The survey is resumable: case ids already in OUT/survey.json are skipped unless 
 its own temp dirs (OUT/work/<id>-*/, removed after each case unless --keep).
 
 CLI invocation (module paths will move): ``CLI`` below maps "palpate" / "palpate-cell" to an argv prefix. Default:
-``python3 -m planner.cli`` / ``python3 -m robot.cell`` with PYTHONPATH = this checkout (so the checkout's code is
+``python3 -m app.cli`` / ``python3 -m app.cell`` with PYTHONPATH = this checkout (so the checkout's code is
 what runs, never a console script from PATH that may point elsewhere). Override with --cli-palpate / --cli-cell
 (split with shlex) or the environment variables PALPATE_SURVEY_CLI_PALPATE / PALPATE_SURVEY_CLI_CELL (also read by
 tests/test_bad_input.py), e.g. ``--cli-palpate "python3 -m app.cli" --cli-cell "python3 -m app.cell"`` or
@@ -58,14 +58,14 @@ import tempfile
 import time
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass, field, asdict
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = {
-    "palpate": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_PALPATE", "")) or [sys.executable, "-m", "planner.cli"],
-    "palpate-cell": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_CELL", "")) or [sys.executable, "-m", "robot.cell"],
+    "palpate": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_PALPATE", "")) or [sys.executable, "-m", "app.cli"],
+    "palpate-cell": shlex.split(os.environ.get("PALPATE_SURVEY_CLI_CELL", "")) or [sys.executable, "-m", "app.cell"],
 }
 MEM_LIMIT_BYTES = 6 * 1024 ** 3
 DIR = "<<mkdir>>"       # files: make a directory here
@@ -663,7 +663,8 @@ def cases() -> list[Case]:
         ("missing", None, "missing plan file", "plan", True, cell()),
         ("array", "[1, 2, 3]", "plan is a JSON array", "plan", True, cell()),
         ("string", '"plan"', "plan is a JSON string", "plan", False, cell()),
-        ("version-2", _edit(_set("version", 2)), "plan version 2", "version", True, cell()),
+        ("version-3", _edit(_set("version", 3)), "plan version 3 (newer than this palpate; 2 is current)", "version",
+         True, cell()),
         ("version-missing", _edit(_set("version", MISSING)), "plan without version", "version", False, cell()),
         ("version-str", _edit(_set("version", "1")), 'plan version "1" (string)', "version", False, cell()),
         ("scene-string", _edit(_set("scene", "paper")), "plan whose scene is a string", "scene", True, cell()),
@@ -806,7 +807,7 @@ FAST_SUBSET = (
     # output paths
     "out-sim-json-dir", "out-sim-json-proc", "out-plan-out-dir", "out-plan-out-proc", "out-pred-json-proc",
     # plan files
-    "plan-truncated", "plan-binary", "plan-array", "plan-version-2", "plan-scene-string", "plan-dir",
+    "plan-truncated", "plan-binary", "plan-array", "plan-version-3", "plan-scene-string", "plan-dir",
 )
 
 

@@ -38,6 +38,16 @@ from pathlib import Path
 PLAN_VERSION = 2
 READABLE_PLAN_VERSIONS = (1, 2)
 
+# Hard caps: no plan may ask for more, whatever its limits say; the planner's options, Plan.check and the driver's
+# guard (robot.safety) use these same constants.
+HARD_FORCE_LIMIT_N = 10.0          # contact force
+HARD_DEPTH_LIMIT_M = 0.02          # indentation below the undeformed surface (the tip radius is the other cap)
+HARD_TOOL_SPEED_M_S = 0.25         # tool speed in free air
+HARD_PROBE_SPEED_M_S = 0.01        # tool speed inside tissue
+HARD_ACCEL_M_S2 = 1.5
+MAX_DWELL_S = 10.0                 # hold at depth
+DEFAULT_TIP_RADIUS_M = 0.005       # fem.scene.Indenter's default, for a plan scene without [indenter]
+
 
 class PlanError(ValueError):
     """A plan that cannot be made or executed: an infeasible planning request or a bad plan file. The message names
@@ -109,7 +119,11 @@ class Plan:
         return dataclasses.asdict(self)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        """Write atomically (a temp file renamed over ``path``): a crash never leaves a torn plan."""
+        path = Path(path)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=1, allow_nan=False))
+        tmp.replace(path)
 
     @staticmethod
     def from_dict(d: dict) -> "Plan":
@@ -121,16 +135,27 @@ class Plan:
         if not isinstance(d.get("scene"), dict):
             raise PlanError(f"plan field 'scene' must be a table of the prior scene, got {type(d.get('scene')).__name__}")
         try:
-            notes = dict(d.get("notes", {}))
+            notes = d.get("notes", {})
+            notes = dict(notes) if isinstance(notes, dict) else {"ignored": notes}
             if d["version"] == 1:       # options lived in notes
                 opts = {k: notes[k] for k in ("branch", "tilt_tol_rad", "force_fraction", "min_depth_m") if k in notes}
             else:
                 opts = d["options"]
-            plan = Plan(scene=d["scene"], frames=Frames(**d["frames"]), limits=Limits(**d["limits"]),
-                        motion=Motion(**d["motion"]), options=PlanOptions(**opts),
+            parts = {}
+            for name, cls in (("frames", Frames), ("limits", Limits), ("motion", Motion)):
+                if not isinstance(d.get(name), dict):
+                    raise PlanError(f"plan field '{name}' must be a table, got {type(d.get(name)).__name__}")
+                parts[name] = cls(**d[name])
+            if not isinstance(opts, dict):
+                raise PlanError(f"plan field 'options' must be a table, got {type(opts).__name__}")
+            if not isinstance(d.get("probes"), list) or not all(isinstance(p, dict) for p in d["probes"]):
+                raise PlanError("plan field 'probes' must be a list of tables")
+            plan = Plan(scene=d["scene"], **parts, options=PlanOptions(**opts),
                         probes=[Probe(**p) for p in d["probes"]], total_time_s=d.get("total_time_s", 0.0),
                         version=PLAN_VERSION, notes=notes)
-        except (KeyError, TypeError) as e:
+        except (KeyError, TypeError, ValueError) as e:
+            if isinstance(e, PlanError):
+                raise
             raise PlanError(f"malformed plan: {e}") from None
         plan.check()
         return plan
@@ -143,31 +168,100 @@ class Plan:
             raise PlanError(f"cannot read plan {path}: {e}") from None
         return Plan.from_dict(d)
 
+    def tip_radius_m(self) -> float:
+        """The probe tip's radius from the plan's scene (``scene.indenter.radius_m``)."""
+        ind = self.scene.get("indenter", {}) if isinstance(self.scene, dict) else {}
+        r = ind.get("radius_m", DEFAULT_TIP_RADIUS_M) if isinstance(ind, dict) else None
+        if not _is_num(r) or not math.isfinite(r) or r <= 0:
+            raise PlanError(f"plan field scene.indenter.radius_m must be a positive finite number, got {r!r}")
+        return float(r)
+
     def check(self) -> None:
-        """Structural checks (the driver makes its own safety checks before sending anything)."""
+        """What every plan must satisfy, when it is made (the planner, before saving) and when it is read
+        (``from_dict``): exact types, finite values, positive limits under the hard caps, probes with unique
+        non-negative integer indices and depths in (0, min(tip radius, depth limit)]. The driver makes its own safety
+        checks (robot.safety) before sending anything."""
+        if not isinstance(self.scene, dict):
+            raise PlanError(f"plan field 'scene' must be a table of the prior scene, got {type(self.scene).__name__}")
+
         def finite(where, values, n=None):
+            if not isinstance(values, (list, tuple)):
+                raise PlanError(f"plan field {where} must be a list of numbers, got {values!r}")
             values = list(values)
             if n is not None and len(values) != n:
-                raise PlanError(f"{where} must have {n} entries, got {len(values)}")
-            if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-                raise PlanError(f"{where} must be finite numbers, got {values}")
+                raise PlanError(f"plan field {where} must have {n} entries, got {len(values)}")
+            if not all(_is_num(v) and math.isfinite(v) for v in values):
+                raise PlanError(f"plan field {where} must be finite numbers, got {values}")
+
+        def number(where, v, lo=0.0, hi=math.inf, lo_open=True, hi_open=False, allowed=None):
+            if not _is_num(v):
+                raise PlanError(f"plan field {where} must be a number, got {type(v).__name__} {v!r}")
+            ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+            if not ok:
+                rng = allowed or f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+                raise PlanError(f"plan field {where} = {v!r} must be a finite number in {rng}")
+
         finite("frames.tissue_pose_base", self.frames.tissue_pose_base, 6)
         finite("frames.tcp_offset", self.frames.tcp_offset, 6)
         finite("limits.workspace_min_m", self.limits.workspace_min_m, 3)
         finite("limits.workspace_max_m", self.limits.workspace_max_m, 3)
         if any(lo >= hi for lo, hi in zip(self.limits.workspace_min_m, self.limits.workspace_max_m)):
-            raise PlanError("limits.workspace_min_m must be below limits.workspace_max_m on every axis")
-        for name in ("force_limit_n", "depth_limit_m", "max_tool_speed_m_s"):
-            v = getattr(self.limits, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise PlanError(f"limits.{name} must be positive, got {v!r}")
-        for p in self.probes:
-            w = f"probes[{p.index}]"
+            raise PlanError("plan field limits.workspace_min_m must be below limits.workspace_max_m on every axis")
+        L, mo = self.limits, self.motion
+        tip = self.tip_radius_m()
+        tis = self.scene.get("tissue", {})
+        width = tis.get("width_m", math.inf) if isinstance(tis, dict) else math.inf
+        width = float(width) if _is_num(width) and math.isfinite(width) and width > 0 else math.inf
+        number("limits.force_limit_n", L.force_limit_n, hi=HARD_FORCE_LIMIT_N,
+               allowed=f"(0, {HARD_FORCE_LIMIT_N:g}] N (the hard cap)")
+        number("limits.depth_limit_m", L.depth_limit_m, hi=min(tip, HARD_DEPTH_LIMIT_M), hi_open=tip <= HARD_DEPTH_LIMIT_M,
+               allowed=f"(0, {min(tip, HARD_DEPTH_LIMIT_M):g}) m (below the tip radius {tip:g} m)")
+        number("limits.max_tool_speed_m_s", L.max_tool_speed_m_s, hi=HARD_TOOL_SPEED_M_S)
+        number("motion.approach_height_m", mo.approach_height_m, hi=1.0)
+        number("motion.approach_speed_m_s", mo.approach_speed_m_s, hi=HARD_TOOL_SPEED_M_S)
+        number("motion.approach_accel_m_s2", mo.approach_accel_m_s2, hi=HARD_ACCEL_M_S2)
+        number("motion.probe_speed_m_s", mo.probe_speed_m_s, hi=HARD_PROBE_SPEED_M_S)
+        number("motion.probe_accel_m_s2", mo.probe_accel_m_s2, hi=HARD_ACCEL_M_S2)
+        number("motion.contact_threshold_n", mo.contact_threshold_n, hi=L.force_limit_n, hi_open=True,
+               allowed=f"(0, limits.force_limit_n = {L.force_limit_n:g}) N")
+        number("motion.dwell_s", mo.dwell_s, hi=MAX_DWELL_S)
+        op = self.options
+        number("options.tilt_tol_rad", op.tilt_tol_rad, hi=math.pi / 2, hi_open=True)
+        number("options.force_fraction", op.force_fraction, hi=1.0)
+        number("options.min_depth_m", op.min_depth_m, hi=L.depth_limit_m,
+               allowed=f"(0, limits.depth_limit_m = {L.depth_limit_m:g}] m")
+        if not (isinstance(op.branch, (list, tuple)) and len(op.branch) == 3 and all(b in (-1, 1) and not isinstance(b, bool)
+                                                                             for b in op.branch)):
+            raise PlanError(f"plan field options.branch must be three signs like [1, 1, -1], got {op.branch!r}")
+        if not isinstance(self.probes, list) or not self.probes:
+            raise PlanError("plan field probes must be a non-empty list of probes")
+        number("total_time_s", self.total_time_s, lo_open=False)
+        seen = set()
+        for k, p in enumerate(self.probes):
+            if not (isinstance(p.index, int) and not isinstance(p.index, bool)) or p.index < 0:
+                raise PlanError(f"plan field probes[{k}].index must be a non-negative integer, got {p.index!r}")
+            if p.index in seen:
+                raise PlanError(f"plan field probes[{k}].index = {p.index} is used twice (indices must be unique)")
+            seen.add(p.index)
+            w = f"probes[{k}]"
+            number(f"{w}.x_m", p.x_m, lo=0.0, lo_open=False, hi=width,
+                   allowed=f"[0, {width:g}] m (on the tissue's top surface, scene.tissue.width_m)")
+            number(f"{w}.depth_m", p.depth_m, hi=L.depth_limit_m,
+                   allowed=f"(0, limits.depth_limit_m = {L.depth_limit_m:g}] m, below the tip radius {tip:g} m")
+            if p.depth_m >= tip:
+                raise PlanError(f"plan field {w}.depth_m = {p.depth_m!r} must be below the tip radius {tip:g} m")
+            number(f"{w}.predicted_force_n", p.predicted_force_n, lo=0.0, lo_open=False)
+            number(f"{w}.t_start_s", p.t_start_s, lo_open=False)
+            number(f"{w}.duration_s", p.duration_s, lo_open=False)
             finite(f"{w}.approach_pose", p.approach_pose, 6)
             finite(f"{w}.indent_pose", p.indent_pose, 6)
             finite(f"{w}.q_approach_rad", p.q_approach_rad, 6)
             finite(f"{w}.q_indent_rad", p.q_indent_rad, 6)
-            finite(f"{w}.x_m/depth_m", [p.x_m, p.depth_m, p.predicted_force_n])
+
+
+def _is_num(v) -> bool:
+    """A real number, not a bool (JSON true is not 1)."""
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -9,8 +9,9 @@
                         ``depth_m`` (N), ``phase`` (N: 0 free air, 1 descent, 2 dwell, 3 retract).
 ``<out>/run.json``      the run's summary: status, fault report, counts (written atomically).
 
-Resume: the last record of each index wins; indices whose last status is "ok" are not probed again. A torn last
-line (a crash mid-write) is ignored.
+Resume: the last record of each index wins; indices whose last status is "ok" are not probed again ("force_limit"
+ones are: the stop may have been a sensor spike). A torn last line (a crash mid-write) is ignored, and the next record starts on a
+line of its own.
 """
 from __future__ import annotations
 
@@ -36,7 +37,7 @@ from core.contracts import (
     ProbeStatus,
 )
 
-DONE = (ProbeStatus.OK,)
+DONE = (ProbeStatus.OK,)   # a force_limit stop may be a sensor spike: a resumed run probes it again
 
 
 def _fsync_dir(path: Path) -> None:
@@ -57,7 +58,15 @@ class RunLog:
         self.out = Path(out_dir)
         (self.out / "raw").mkdir(parents=True, exist_ok=True)
         self.jsonl = self.out / "probes.jsonl"
+        torn = False
+        if self.jsonl.exists() and self.jsonl.stat().st_size:
+            with open(self.jsonl, "rb") as f:
+                f.seek(-1, os.SEEK_END)
+                torn = f.read(1) != b"\n"       # killed mid-line: end it, so the next record is a line of its own
         self._f = open(self.jsonl, "a", encoding="utf-8")
+        if torn:
+            self._f.write("\n")
+            self._f.flush()
 
     def _raw_path(self, index: int) -> Path:
         p = self.out / "raw" / f"probe_{index:03d}.npz"

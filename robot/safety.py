@@ -7,7 +7,8 @@ ur_rtde (or the simulated arm) and raises ``SafetyViolation`` instead of sending
   stays in it, so checking targets checks whole paths (``moveJ``, ``speedL``, ``servoL``, ``forceMode`` and
   ``moveUntilContact`` -- which has no distance limit -- are refused);
 * every target is finite and its TCP position lies in the workspace box (the plan's box, clamped to a hard box);
-* a target below the undeformed tissue surface (inside its footprint) lies no deeper than the depth limit, is
+* a target below the undeformed tissue surface (inside its footprint) lies no deeper than the depth limit (itself
+  clamped below the tip radius: deeper, the contact model does not hold and the tissue wraps the tip), is
   approached at probe speed (<= ``HARD_PROBE_SPEED_M_S``) with the tool axis within 10 deg of the inward normal;
 * speeds and accelerations never exceed the plan's caps, themselves clamped to hard caps;
 * ``setTcp``/``setPayload`` arguments are plausible.
@@ -23,12 +24,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from core import ur5e
+from core.contracts import (  # noqa: F401  (re-exported: the driver's hard caps are core's)
+    DEFAULT_TIP_RADIUS_M,
+    HARD_ACCEL_M_S2,
+    HARD_DEPTH_LIMIT_M,
+    HARD_FORCE_LIMIT_N,
+    HARD_PROBE_SPEED_M_S,
+    HARD_TOOL_SPEED_M_S,
+)
 
-HARD_FORCE_LIMIT_N = 10.0          # no plan can ask for more contact force than this
-HARD_DEPTH_LIMIT_M = 0.02
-HARD_TOOL_SPEED_M_S = 0.25
-HARD_PROBE_SPEED_M_S = 0.01        # inside tissue
-HARD_ACCEL_M_S2 = 1.5
 HARD_BOX_MIN_M = (-0.85, -0.85, -0.2)
 HARD_BOX_MAX_M = (0.85, 0.85, 1.0)
 MAX_TCP_OFFSET_M = 0.3
@@ -52,6 +56,7 @@ class SafetyLimits:
     accel_m_s2: float
     tissue_pose_base: tuple
     width_m: float
+    tip_radius_m: float = DEFAULT_TIP_RADIUS_M
 
     @staticmethod
     def from_plan(plan) -> "SafetyLimits":
@@ -59,14 +64,24 @@ class SafetyLimits:
         lo = tuple(max(a, b) for a, b in zip(lim.workspace_min_m, HARD_BOX_MIN_M))
         hi = tuple(min(a, b) for a, b in zip(lim.workspace_max_m, HARD_BOX_MAX_M))
         width = float(plan.scene.get("tissue", {}).get("width_m", 0.07)) if isinstance(plan.scene, dict) else 0.07
+        tip = _tip_radius(plan)
         return SafetyLimits(
             box_min=lo, box_max=hi,
             force_limit_n=min(lim.force_limit_n, HARD_FORCE_LIMIT_N),
-            depth_limit_m=min(lim.depth_limit_m, HARD_DEPTH_LIMIT_M),
+            # strictly below the tip radius (a depth equal to it is refused too)
+            depth_limit_m=min(lim.depth_limit_m, HARD_DEPTH_LIMIT_M, tip * (1 - 1e-9)),
             tool_speed_m_s=min(lim.max_tool_speed_m_s, HARD_TOOL_SPEED_M_S),
             probe_speed_m_s=min(mo.probe_speed_m_s, lim.max_tool_speed_m_s, HARD_PROBE_SPEED_M_S),
             accel_m_s2=min(max(mo.approach_accel_m_s2, mo.probe_accel_m_s2), HARD_ACCEL_M_S2),
-            tissue_pose_base=tuple(plan.frames.tissue_pose_base), width_m=width)
+            tissue_pose_base=tuple(plan.frames.tissue_pose_base), width_m=width, tip_radius_m=tip)
+
+
+def _tip_radius(plan) -> float:
+    """The tip radius from the plan's scene; the smallest plausible value when it is missing or not a number."""
+    ind = plan.scene.get("indenter", {}) if isinstance(plan.scene, dict) else {}
+    r = ind.get("radius_m", DEFAULT_TIP_RADIUS_M) if isinstance(ind, dict) else None
+    ok = isinstance(r, (int, float)) and not isinstance(r, bool) and math.isfinite(r) and r > 0
+    return float(r) if ok else 0.0
 
 
 class TissueFrame:
@@ -129,6 +144,9 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
         problems.append(f"force_limit_n {L.force_limit_n} N exceeds the hard cap {HARD_FORCE_LIMIT_N} N")
     if L.depth_limit_m > HARD_DEPTH_LIMIT_M:
         problems.append(f"depth_limit_m {L.depth_limit_m} exceeds the hard cap {HARD_DEPTH_LIMIT_M} m")
+    if L.depth_limit_m >= lim.tip_radius_m:
+        problems.append(f"depth_limit_m {L.depth_limit_m} m is not below the tip radius {lim.tip_radius_m} m "
+                        f"(scene.indenter.radius_m)")
     if not (0 < mo.probe_speed_m_s <= lim.probe_speed_m_s):
         problems.append(f"motion.probe_speed_m_s {mo.probe_speed_m_s} outside (0, {lim.probe_speed_m_s}]")
     if not (0 < mo.approach_speed_m_s <= lim.tool_speed_m_s):
@@ -153,6 +171,8 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             why = "duplicate index"
         elif not (0 <= p.x_m <= lim.width_m):
             why = f"x_m {p.x_m} outside the tissue [0, {lim.width_m}]"
+        elif not (0 < p.depth_m < lim.tip_radius_m):
+            why = f"depth_m {p.depth_m} outside (0, tip radius {lim.tip_radius_m}) m"
         elif not (0 < p.depth_m <= lim.depth_limit_m):
             why = f"depth_m {p.depth_m} outside (0, depth limit {lim.depth_limit_m}]"
         elif not (0 <= p.predicted_force_n <= lim.force_limit_n):

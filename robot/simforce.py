@@ -19,6 +19,11 @@ class CachedForce:
         self.f, self.hx, self.hd = force_model, x_grid_m, depth_grid_m
         self.nodes: dict[tuple[int, int], float] = {}
         self.extrapolated = 0        # nodes the model refused (out of its range), linearly extrapolated
+        # calls whose depth lies at or beyond the first node the model refused at that x (not one grid step of
+        # extrapolation towards the range's edge, but a force the model cannot give): reported, never silent
+        self.beyond_range = 0
+        self.deepest_beyond_range_m = 0.0
+        self._refused_from: dict[int, int] = {}     # ix -> first depth node the model refused
 
     def _node(self, ix: int, idp: int) -> float:
         v = self.nodes.get((ix, idp))
@@ -26,6 +31,7 @@ class CachedForce:
             try:
                 v = 0.0 if idp <= 0 else float(self.f(ix * self.hx, idp * self.hd))
             except ValueError:   # beyond the model's range (fem: depth >= tip radius): continue linearly
+                self._refused_from[ix] = min(idp, self._refused_from.get(ix, idp))
                 v = 2 * self._node(ix, idp - 1) - self._node(ix, idp - 2) if idp >= 2 else 0.0
                 self.extrapolated += 1
             self.nodes[(ix, idp)] = v
@@ -38,7 +44,20 @@ class CachedForce:
         u = depth_m / self.hd
         i = int(math.floor(u))
         w = u - i
-        return (1 - w) * self._node(ix, i) + w * self._node(ix, i + 1)
+        f = (1 - w) * self._node(ix, i) + w * self._node(ix, i + 1)
+        if ix in self._refused_from and u >= self._refused_from[ix]:
+            self.beyond_range += 1
+            self.deepest_beyond_range_m = max(self.deepest_beyond_range_m, depth_m)
+        return f
+
+    def range_report(self) -> dict | None:
+        """None if every force came from the model's range; else what was extrapolated (for run.json)."""
+        if not self.beyond_range:
+            return None
+        return {"samples_beyond_model_range": self.beyond_range,
+                "deepest_m": self.deepest_beyond_range_m,
+                "note": "the simulated force was extrapolated linearly beyond the force model's range (fem: depth "
+                        ">= tip radius); those forces are not the model's"}
 
 
 def standin_force_model(width_m=0.07, k_n_per_m15=1500.0, stones=((0.035, 0.025, 0.015),), contrast=0.6):

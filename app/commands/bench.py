@@ -17,6 +17,7 @@ import traceback
 from pathlib import Path
 
 from app.commands.output import write_json
+from app.options import check_output_dir, check_output_file, refuse_measured
 
 # name -> (script, what it measures); run in this order
 PARTS = {
@@ -89,6 +90,10 @@ def run(args) -> int:
     except FileNotFoundError as e:
         print(f"palpate bench: {e}", file=sys.stderr)
         return 2
+    check_output_dir(args.out, "--out")
+    refuse_measured(args.out, "--out")
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     summary, failed = {"bench_dir": str(bdir), "out_dir": str(out), "quick": args.quick, "parts": {}}, False

@@ -3,14 +3,34 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from app.commands.output import write_json
-from core.contracts import Frames, Limits, Motion, PlanError, PlanOptions
-from fem.scene import load
+from app.errors import UsageError
+from app.options import (
+    MAX_WAYPOINTS,
+    check_output_dir,
+    check_output_file,
+    finite_float,
+    float_range,
+    int_range,
+    load_scene,
+    positive_float,
+    refuse_measured,
+)
+from core.contracts import (
+    HARD_FORCE_LIMIT_N,
+    HARD_PROBE_SPEED_M_S,
+    HARD_TOOL_SPEED_M_S,
+    MAX_DWELL_S,
+    Frames,
+    Limits,
+    Motion,
+    PlanError,
+    PlanOptions,
+)
 from planner.plan import plan_raster
 from planner.raster import default_tissue_pose, interval_positions
 
@@ -49,34 +69,35 @@ def add_parser(subparsers) -> None:
     p.add_argument("--json", metavar="PATH", help="machine-readable summary (timings, solver status, ranges)")
     r = p.add_argument_group("raster (tissue frame x, along the top surface)")
     g = r.add_mutually_exclusive_group()
-    g.add_argument("--waypoints", type=int, metavar="N", help="number of waypoints, ends included (default 15)")
-    g.add_argument("--spacing-m", type=float, metavar="S", help="waypoint spacing instead of a count")
-    r.add_argument("--margin-m", type=float, default=0.005, help="keep this far from the side edges (default 0.005)")
-    r.add_argument("--x-min-m", type=float, help="raster only [x-min, x-max] (adaptive refinement); overrides margins")
-    r.add_argument("--x-max-m", type=float, help="see --x-min-m")
+    g.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), metavar="N",
+                   help=f"number of waypoints, ends included, 2..{MAX_WAYPOINTS} (default 15)")
+    g.add_argument("--spacing-m", type=positive_float, metavar="S", help="waypoint spacing instead of a count")
+    r.add_argument("--margin-m", type=finite_float, default=0.005, help="keep this far from the side edges (default 0.005)")
+    r.add_argument("--x-min-m", type=finite_float, help="raster only [x-min, x-max] (adaptive refinement); overrides margins")
+    r.add_argument("--x-max-m", type=finite_float, help="see --x-min-m")
     d = p.add_argument_group("depth and force")
-    d.add_argument("--force-limit-n", type=float, default=LIM.force_limit_n,
+    d.add_argument("--force-limit-n", type=float_range(0, HARD_FORCE_LIMIT_N, unit="N (the hard cap)"), default=LIM.force_limit_n,
                    help=f"never plan above this contact force (default {LIM.force_limit_n})")
-    d.add_argument("--depth-limit-m", type=float, default=LIM.depth_limit_m,
+    d.add_argument("--depth-limit-m", type=positive_float, default=LIM.depth_limit_m,
                    help=f"never deeper than this (default {Limits().depth_limit_m}; keep it below the tip radius)")
-    d.add_argument("--force-fraction", type=float, default=OPT.force_fraction,
+    d.add_argument("--force-fraction", type=float_range(0, 1), default=OPT.force_fraction,
                    help="plan to at most this fraction of the force limit on the prior tissue (default 0.5)")
-    d.add_argument("--min-depth-m", type=float, default=OPT.min_depth_m,
+    d.add_argument("--min-depth-m", type=positive_float, default=OPT.min_depth_m,
                    help="shallowest useful probe; refused if even this exceeds the force budget (default 0.001)")
-    d.add_argument("--depth-m", type=float, help="fixed depth for every probe instead of the force-based choice")
+    d.add_argument("--depth-m", type=positive_float, help="fixed depth for every probe instead of the force-based choice")
     a = p.add_argument_group("arm and motion")
-    a.add_argument("--tissue-pose", type=float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+    a.add_argument("--tissue-pose", type=finite_float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
                    help="tissue frame in the base frame (m, rotation vector rad)")
-    a.add_argument("--tcp-offset", type=float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
+    a.add_argument("--tcp-offset", type=finite_float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
                    help="probe tip in the flange frame, as for setTcp (default 0 0 0.10 0 0 0)")
-    a.add_argument("--approach-height-m", type=float, default=MOT.approach_height_m,
+    a.add_argument("--approach-height-m", type=float_range(0, 0.05, unit="m"), default=MOT.approach_height_m,
                    help="tip above the surface before descending")
-    a.add_argument("--approach-speed-m-s", type=float, default=MOT.approach_speed_m_s,
+    a.add_argument("--approach-speed-m-s", type=float_range(0, HARD_TOOL_SPEED_M_S, unit="m/s"), default=MOT.approach_speed_m_s,
                    help="tool speed between probes")
-    a.add_argument("--probe-speed-m-s", type=float, default=MOT.probe_speed_m_s,
+    a.add_argument("--probe-speed-m-s", type=float_range(0, HARD_PROBE_SPEED_M_S, unit="m/s"), default=MOT.probe_speed_m_s,
                    help="tool speed of the descent")
-    a.add_argument("--dwell-s", type=float, default=MOT.dwell_s, help="hold at depth while sampling")
-    a.add_argument("--tilt-tol-deg", type=float, default=math.degrees(OPT.tilt_tol_rad),
+    a.add_argument("--dwell-s", type=float_range(0, MAX_DWELL_S, unit="s"), default=MOT.dwell_s, help="hold at depth while sampling")
+    a.add_argument("--tilt-tol-deg", type=float_range(0, 90, hi_open=True, unit="deg"), default=math.degrees(OPT.tilt_tol_rad),
                    help="tool axis within this of the normal (default 0.5)")
     a.add_argument("--branch", default=",".join(map(str, OPT.branch)), metavar="S,E,W",
                    help="IK branch signs (shoulder, elbow, wrist); default 1,1,-1 = elbow up, tool down")
@@ -84,8 +105,28 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-
-    scene = load(args.scene)
+    check_output_file(args.out, "--out")
+    refuse_measured(args.out, "--out")
+    check_output_dir(args.plots, "--plots")
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    scene = load_scene(args.scene)
+    tip = scene.indenter.radius_m
+    if not args.depth_limit_m < tip:
+        raise UsageError(f"--depth-limit-m {args.depth_limit_m:g} must be below the tip radius {tip:g} m "
+                         f"(scene indenter.radius_m)")
+    if args.depth_m is not None and not args.depth_m <= args.depth_limit_m:
+        raise UsageError(f"--depth-m {args.depth_m:g} must be at most --depth-limit-m {args.depth_limit_m:g} m")
+    if not args.min_depth_m <= args.depth_limit_m:
+        raise UsageError(f"--min-depth-m {args.min_depth_m:g} must be at most --depth-limit-m "
+                         f"{args.depth_limit_m:g} m")
+    if args.spacing_m is not None:
+        lo = args.x_min_m if args.x_min_m is not None else args.margin_m
+        hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - args.margin_m
+        n = int(math.floor((hi - lo) / args.spacing_m + 1e-9)) + 1 if hi > lo else 0
+        if not 2 <= n <= MAX_WAYPOINTS:
+            raise UsageError(f"--spacing-m {args.spacing_m:g} gives {n} waypoints over [{lo:g}, {hi:g}] m; "
+                             f"allowed: 2..{MAX_WAYPOINTS}")
     limits = Limits(force_limit_n=args.force_limit_n, depth_limit_m=args.depth_limit_m)
     motion = Motion(approach_height_m=args.approach_height_m, approach_speed_m_s=args.approach_speed_m_s,
                     probe_speed_m_s=args.probe_speed_m_s, dwell_s=args.dwell_s)
@@ -99,8 +140,7 @@ def run(args) -> int:
         if len(branch) != 3 or any(s not in (-1, 1) for s in branch):
             raise ValueError
     except ValueError:
-        print(f"palpate plan: --branch must be three signs like 1,1,-1, got {args.branch!r}", file=sys.stderr)
-        return 2
+        raise UsageError(f"--branch must be three signs like 1,1,-1, got {args.branch!r}") from None
     try:
         x = None
         if args.x_min_m is not None or args.x_max_m is not None:
@@ -112,9 +152,8 @@ def run(args) -> int:
                            x_positions_m=x, depth_m=args.depth_m, limits=limits, motion=motion, frames=frames,
                            options=PlanOptions(branch=list(branch), tilt_tol_rad=math.radians(args.tilt_tol_deg),
                                                force_fraction=args.force_fraction, min_depth_m=args.min_depth_m))
-    except PlanError as e:
-        print(f"palpate plan: cannot plan: {e}", file=sys.stderr)
-        return 2
+    except (PlanError, ValueError) as e:
+        raise UsageError(f"cannot plan: {e}") from None
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     plan.save(out)

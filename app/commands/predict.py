@@ -16,8 +16,18 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
+from app.errors import UsageError
+from app.options import (
+    MAX_WAYPOINTS,
+    check_output_dir,
+    check_output_file,
+    finite_float,
+    int_range,
+    load_scene,
+    positive_float,
+    refuse_measured,
+)
 from core.peak import parabola_peak
-from fem import scene as S
 from fem.contact import check_waypoint, surface_model
 
 DEFAULT_DEPTH_M = 0.004
@@ -55,10 +65,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
                                                   "healthy) or a TOML file")
-    p.add_argument("--waypoints", type=int, default=50, metavar="N", help="number of waypoints (default 50)")
-    p.add_argument("--depth-m", type=float, default=DEFAULT_DEPTH_M,
+    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), default=50, metavar="N",
+                   help=f"number of waypoints, 2..{MAX_WAYPOINTS} (default 50)")
+    p.add_argument("--depth-m", type=positive_float, default=DEFAULT_DEPTH_M,
                    help=f"indentation depth at every waypoint (default {DEFAULT_DEPTH_M})")
-    p.add_argument("--margin-m", type=float, default=DEFAULT_MARGIN_M,
+    p.add_argument("--margin-m", type=finite_float, default=DEFAULT_MARGIN_M,
                    help=f"keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
     p.add_argument("--compare", metavar="SCENE", default="prior",
                    help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML, or 'none'")
@@ -68,16 +79,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     g = p.add_argument_group("analysis overrides (default: the scene's [analysis] table)")
     g.add_argument("--order", type=int, choices=(1, 2), help="1: P1 triangles, 2: P2 triangles")
-    g.add_argument("--mesh-size-m", type=float, metavar="H", help="element size at depth (m)")
-    g.add_argument("--surface-refine", type=float, metavar="F", help="top-surface size = H / F")
+    g.add_argument("--mesh-size-m", type=positive_float, metavar="H", help="element size at depth (m)")
+    g.add_argument("--surface-refine", type=positive_float, metavar="F", help="top-surface size = H / F")
     g.add_argument("--plane", choices=("strain", "stress"), help="plane strain or plane stress")
-    g.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
+    g.add_argument("--indenter-radius-m", type=positive_float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
     return p
 
 
 def _scenes(args):
-    sc = S.load(args.scene)
+    sc = load_scene(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}
     if changes:
@@ -90,7 +101,7 @@ def _scenes(args):
     elif c.lower() == "prior":
         ref = sc.prior()
     else:   # another scene's tissue and stones, probed with SCENE's tip and analysed like SCENE
-        ref = dataclasses.replace(S.load(c), indenter=sc.indenter, analysis=sc.analysis)
+        ref = dataclasses.replace(load_scene(c, "--compare"), indenter=sc.indenter, analysis=sc.analysis)
     return sc, ref
 
 
@@ -145,6 +156,11 @@ def _peak(xs, ratio) -> dict:
 
 def run(args) -> int:
     t0 = time.perf_counter()
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    check_output_dir(args.plots, "--plots")
+    if args.plots and args.force_only:
+        raise UsageError("--plots needs the stresses (drop --force-only)")
     sc, ref = _scenes(args)
     try:
         xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)

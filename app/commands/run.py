@@ -5,19 +5,38 @@ an *executor* (``sim_executor``: the simulated arm, created from the true scene 
 on a real arm, where there is no truth) that turns a plan into probe records, and the *belief side*
 (planner.refine.adaptive -> planner.localize.localize) that gets the prior scene (stones removed) and those records
 and nothing else. The truth is written into result.json only after localization, for comparison (``sim`` key).
+
+Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
+no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
+seed, raster, budget, target, strategy). A re-run with the same --out and the same options RESUMES: each round's
+saved plan (OUT/plan_round<k>.json) is reused, probes already measured (ok/force_limit in probes.jsonl) are not
+pressed again, and the localization replays from the records. A re-run with other options is refused; ``--fresh``
+moves the old files into OUT/previous-<UTC time>/ first. ``--json`` may not point at a measured file.
 """
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import sys
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
-from app.cell import print_preflight
+from app.cell import print_preflight, read_confirmation, sim_range_report
 from app.commands.output import write_json
-from core.contracts import Plan
-from fem.scene import load
+from app.errors import UsageError
+from app.options import (
+    MAX_TOTAL_PROBES,
+    MAX_WAYPOINTS,
+    check_output_dir,
+    check_output_file,
+    int_range,
+    load_scene,
+    positive_float,
+    refuse_measured,
+)
+from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
 from planner.localize import Localization, localize
 from planner.plan import plan_prior, plan_raster, replan
@@ -25,6 +44,7 @@ from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session
+from robot.records import done_indices, latest_by_index
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -41,17 +61,23 @@ def add_parser(sub) -> None:
                      help="simulated arm (default): inmemory, or controller (the loopback UR controller)")
     src.add_argument("--host", help="a real UR controller's IP (ur_rtde)")
     p.add_argument("--yes", action="store_true", help="do not ask before moving a real arm")
-    p.add_argument("--sensor", default="nano17", help="simulated sensor: nano17 | ur5e-builtin (default nano17)")
+    p.add_argument("--sensor", default="nano17", choices=list(SENSORS),
+                   help="simulated sensor preset (default nano17)")
     p.add_argument("--seed", type=int, default=0, help="simulated sensor noise seed")
-    p.add_argument("--waypoints", type=int, default=15, help="coarse raster waypoints (default 15)")
-    p.add_argument("--refine-waypoints", type=int, default=10, help="waypoints per refinement round (default 10)")
-    p.add_argument("--budget-probes", type=int, default=45, help="probe budget over all rounds (default 45)")
-    p.add_argument("--target-uncertainty-m", type=float, default=5e-4,
+    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), default=15,
+                   help=f"coarse raster waypoints, 2..{MAX_WAYPOINTS} (default 15)")
+    p.add_argument("--refine-waypoints", type=int_range(1, MAX_WAYPOINTS), default=10,
+                   help="waypoints per refinement round (default 10)")
+    p.add_argument("--budget-probes", type=int_range(2, MAX_TOTAL_PROBES), default=45,
+                   help="probe budget over all rounds, at least the coarse raster's waypoints (default 45)")
+    p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4,
                    help="stop refining when the 1-sigma x and depth uncertainties are below this (default 0.5 mm)")
     p.add_argument("--strategy", choices=["design", "raster"], default="design",
                    help="refinement: design (probes where they shrink the x/depth variance most; default) or raster "
                         "(an even finer raster around the candidate)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", required=True, help="output directory (a re-run with the same options resumes)")
+    p.add_argument("--fresh", action="store_true",
+                   help="start afresh: move the files of a previous run in --out into OUT/previous-<UTC time>/")
     p.add_argument("--no-figure", action="store_true")
     p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
@@ -68,26 +94,37 @@ class RunAborted(RuntimeError):
 
 
 def _runner(get_interfaces, out: Path, stats: dict):
-    """execute(plan, round) over interfaces from ``get_interfaces(plan)``: renumbered probes, one probes.jsonl."""
+    """execute(plan, round) over interfaces from ``get_interfaces(plan)``: renumbered probes, one probes.jsonl. A
+    round's plan is saved once (OUT/plan_round<k>.json, reused on resume); its records are the last record of each of
+    its indices in probes.jsonl, the ones measured by an earlier (interrupted) run of the same options included."""
 
     def execute(plan, k):
         renumber(plan, stats["next_index"])
-        plan.save(out / f"plan_round{k}.json")
-        c, r = get_interfaces(plan)
-        rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
+        path = out / f"plan_round{k}.json"
+        if not path.exists():
+            plan.save(path)
         stats["next_index"] += len(plan.probes)
-        stats["n_probes"] += sum(1 for rec in rep.records if rec.status in ("ok", "force_limit"))
         stats["planned_s"] += plan.total_time_s
-        stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
-        stats["reports"].append(rep.to_dict())
-        if rep.status != "ok":
-            raise RunAborted(rep)
-        return rep.records
+        latest = latest_by_index(out)
+        if all(p.index in latest and latest[p.index].status in ("ok", "force_limit") for p in plan.probes):
+            recs = [latest[p.index] for p in plan.probes]      # measured before: replay, the arm is not needed
+        else:
+            c, r = get_interfaces(plan)
+            rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
+            stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
+            stats["reports"].append(rep.to_dict())
+            if rep.status != "ok":
+                raise RunAborted(rep)
+            latest = latest_by_index(out)
+            recs = [latest[p.index] for p in plan.probes if p.index in latest]
+        stats["n_probes"] += sum(1 for rec in recs if rec.status in ("ok", "force_limit"))
+        return recs
     return execute
 
 
-def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
-    """The simulated arm holding the TRUE scene (in this closure only); created at the first plan."""
+def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holder: dict | None = None):
+    """The simulated arm holding the TRUE scene (in this closure only); created at the first plan. ``holder["arm"]``
+    gets the arm (for its force-model range report, never its truth)."""
     arm = {}
 
     def interfaces(plan):
@@ -95,6 +132,8 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict):
             a = build_truth_arm(truth, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
                                 tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose)
             arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a))
+            if holder is not None:
+                holder["arm"] = a
         return arm["c"], arm["r"]
     return _runner(interfaces, out, stats)
 
@@ -128,31 +167,112 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
     return _runner(interfaces, out, stats)
 
 
+RUN_FILES = ("probes.jsonl", "raw", "run.json", "result.json", "run_options.json", "fig_run.png",
+             "simcontroller.log")
+
+
+def _holds_run(out: Path) -> bool:
+    return out.is_dir() and any((out / n).exists() for n in RUN_FILES) or any(out.glob("plan_round*.json"))
+
+
+def _run_options(args, scene) -> dict:
+    """What decides the rounds of a run: a re-run resumes only with all of these equal."""
+    plan_sha = hashlib.sha256(Path(args.plan).read_bytes()).hexdigest() if args.plan else None
+    return {"scene": args.scene, "scene_key": scene.key(), "plan_sha256": plan_sha,
+            "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
+            "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
+            "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
+            "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy}
+
+
+def _previous_options(out: Path) -> dict | None:
+    try:
+        d = json.loads((out / "run_options.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as e:
+        raise UsageError(f"--out {out}: cannot read run_options.json of the run there ({e}); use --fresh (moves the "
+                         f"old files aside) or another --out") from None
+    return d if isinstance(d, dict) else {}
+
+
+def _check_resume(out: Path, opts: dict, fresh: bool) -> bool:
+    """True if this run resumes the one in ``out``; raises UsageError if it may neither resume nor start."""
+    if fresh or not _holds_run(out):
+        return False
+    prev = _previous_options(out)
+    if prev is None:
+        raise UsageError(f"--out {out} holds a run without run_options.json (an older palpate?): it cannot be "
+                         f"resumed safely; use --fresh (moves the old files to {out}/previous-<time>/) or another --out")
+    diff = [f"{k} was {prev.get(k)!r}, now {v!r}" for k, v in opts.items() if prev.get(k) != v]
+    if diff:
+        raise UsageError(f"--out {out} holds a run with other options ({'; '.join(diff)}): re-run with the same "
+                         f"options to resume, or use --fresh (moves the old files to {out}/previous-<time>/) or "
+                         f"another --out")
+    return True
+
+
+def _move_aside(out: Path) -> Path | None:
+    """Move every file of a previous run in ``out`` into out/previous-<UTC time>/ (never delete)."""
+    if not _holds_run(out):
+        return None
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
+    dest = out / f"previous-{stamp}"
+    dest.mkdir()
+    for p in sorted(out.iterdir()):
+        if p != dest and not p.name.startswith("previous-"):
+            p.rename(dest / p.name)
+    return dest
+
+
 def run(args) -> int:
 
     t_wall = time.perf_counter()
+    # ---- everything checked before OUT is touched
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    if (out / "probes.jsonl").exists():
-        (out / "probes.jsonl").unlink()      # a run starts afresh (probe indices restart at 0)
-    scene = load(args.scene)
+    check_output_dir(args.out, "--out")
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    if args.json and args.json != "-":
+        j = Path(args.json).absolute()
+        if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):
+            raise UsageError(f"--json {args.json}: would overwrite the run's own {j.name}; choose another path")
+    scene = load_scene(args.scene)
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
         if prior.stones:
-            raise SystemExit("palpate run: the plan's scene has stones; a plan holds the prior scene only")
+            raise UsageError(f"--plan {args.plan}: the plan's scene has stones; a plan holds the prior scene only")
         if prior.key() != scene.prior().key():
             _say(f"warning: the plan's prior scene differs from {args.scene}'s prior")
     else:
         prior = scene.prior()
+        plan0 = None
+    n_coarse = len(plan0.probes) if plan0 is not None else args.waypoints
+    if args.budget_probes < n_coarse:
+        raise UsageError(f"--budget-probes {args.budget_probes} must be at least the coarse raster's {n_coarse} "
+                         f"waypoints")
+    opts = _run_options(args, scene)
+    resume = _check_resume(out, opts, args.fresh)
+    if resume and (out / "plan_round0.json").exists():
+        try:
+            saved = Plan.load(out / "plan_round0.json")
+        except (UsageError, ValueError) as e:
+            raise UsageError(f"--out {out}: cannot resume: {e}; use --fresh or another --out") from None
+        plan0 = saved
+        _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+    elif plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)
     _say("loading the fem surrogate (first use on a scene: built with fem and cached, a few minutes)")
-    sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
-
-    det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
-                        depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
-                        surrogate=sur, motion=plan0.motion)
+    try:
+        sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
+        det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
+                            depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
+                            surrogate=sur, motion=plan0.motion)
+    except (RuntimeError, ArithmeticError, ValueError) as e:   # e.g. fem's contact solve on an implausible prior
+        where = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
+        raise UsageError(f"{where} cannot be modelled: {e} (check the tissue and indenter moduli and sizes)") from None
     smallest = {}
     for r in det["rows"]:
         if r["detectable"]:
@@ -162,15 +282,15 @@ def run(args) -> int:
         ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
         else det["reason"]))
     stats = {"n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+    sim_arm: dict = {}
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
     if args.host:
         where = f"UR controller at {args.host}"
-        print("WARNING: this moves a real arm into tissue. Check the tissue pose, TCP, force limit "
-              f"{plan0.limits.force_limit_n} N and the emergency stop first.", file=sys.stderr)
-        print_preflight(preflight(plan0, set()), where)
-        if not args.yes and input("type 'yes' to move the arm: ").strip().lower() != "yes":
-            print("not confirmed; nothing sent", file=sys.stderr)
-            return 2
+        _say("WARNING: this moves a real arm into tissue. Check the tissue pose, TCP, force limit "
+             f"{plan0.limits.force_limit_n} N and the emergency stop first.")
+        print_preflight(preflight(plan0, done_indices(out) if resume else set()), where)
+        if not args.yes and not read_confirmation():
+            raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
         execute = arm_executor(args.host, out, stats, cleanup)
         truth = None
     elif args.sim == "controller":
@@ -181,14 +301,28 @@ def run(args) -> int:
     else:
         where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
         truth = scene
-        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats)
+        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm)
+    # ---- OUT: from here on files are written (never deleted: --fresh moves them aside)
+    if args.fresh:
+        moved = _move_aside(out)
+        if moved is not None:
+            _say(f"--fresh: the previous run's files are in {moved}")
+    out.mkdir(parents=True, exist_ok=True)
+    if not (out / "run_options.json").exists():
+        tmp = out / "run_options.json.tmp"
+        tmp.write_text(json.dumps(opts, indent=1))
+        tmp.replace(out / "run_options.json")
     _say(f"probing on the {where}")
 
     rounds_planned = {"n": 0}
 
     def plan_round(x):
+        k = rounds_planned["n"]
         rounds_planned["n"] += 1
-        return plan0 if rounds_planned["n"] == 1 else replan(plan0, x)
+        if k == 0:
+            return plan0
+        saved = out / f"plan_round{k}.json"
+        return Plan.load(saved) if saved.exists() else replan(plan0, x)   # resume: the same round as before
 
     status, fault = "ok", None
     cleanup.clean_end = False          # set once the probing ended without a fault: the script is then stopped
@@ -228,6 +362,12 @@ def run(args) -> int:
         if st and res is not None and loc.detected:
             result["sim"]["error"] = {"x_m": loc.x_m - st[0]["x_m"], "depth_m": loc.depth_m - st[0]["depth_m"],
                                       "diameter_m": loc.diameter_m - st[0]["diameter_m"]}
+    if sim_arm.get("arm") is not None:
+        rr = sim_range_report(sim_arm["arm"])
+        if rr is not None:
+            result.setdefault("sim", {})["force_beyond_model_range"] = rr
+            _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
+                 f"{rr['deepest_m'] * 1e3:.2f} mm)")
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and not args.no_figure:

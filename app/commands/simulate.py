@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from app.commands.output import write_json
-from fem import scene as S
+from app.errors import UsageError
+from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float, refuse_measured
 from fem.contact import surface_model
 from fem.stress import components, nodal_poisson, recovery_operator
 from fem.uniform import Profile, solve_uniform
@@ -72,21 +73,28 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         f"{' '.join(COMPARE_DEFAULT)}); needs --plots; put it after SCENE")
     g = p.add_argument_group("analysis overrides (default: the scene's [analysis] table)")
     g.add_argument("--order", type=int, choices=(1, 2), help="1: P1 triangles, 2: P2 triangles")
-    g.add_argument("--mesh-size-m", type=float, metavar="H", help="element size at depth (m)")
-    g.add_argument("--surface-refine", type=float, metavar="F", help="top-surface size = H / F")
+    g.add_argument("--mesh-size-m", type=positive_float, metavar="H", help="element size at depth (m)")
+    g.add_argument("--surface-refine", type=positive_float, metavar="F", help="top-surface size = H / F")
     g.add_argument("--plane", choices=("strain", "stress"), help="plane strain or plane stress")
     g.add_argument("--stones", choices=("auto", "rigid", "elastic"), default="auto",
                    help="auto: stones >= 1e4 times stiffer than tissue are rigid bodies (default)")
     i = p.add_argument_group("indentation (--load indent)")
-    i.add_argument("--x-m", "--x0-m", dest="x_m", type=float,
+    i.add_argument("--x-m", "--x0-m", dest="x_m", type=finite_float,
                    help="tip position along the top surface, from the left edge (m); --x0-m is its former name")
-    i.add_argument("--depth-m", type=float, help="indentation depth below the undeformed surface (m)")
-    i.add_argument("--indenter-radius-m", type=float, help="tip radius (m; default: the scene's [indenter])")
+    i.add_argument("--depth-m", type=finite_float, help="indentation depth below the undeformed surface (m)")
+    i.add_argument("--indenter-radius-m", type=positive_float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
     return p
 
 
 def run(args) -> int:
+    check_output_file(args.json, "--json")
+    refuse_measured(args.json, "--json")
+    check_output_dir(args.plots, "--plots")
+    check_output_file(args.vtu, "--vtu")
+    refuse_measured(args.vtu, "--vtu")
+    if args.vtu and not args.vtu.lower().endswith(".vtu"):
+        raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     if args.load == "indent":
         return _run_indent(args)
     return _run_uniform(args)
@@ -111,7 +119,7 @@ def _run_indent(args) -> int:
     try:
         r = m.indent(args.x_m, args.depth_m)
     except ValueError as e:
-        print(f"palpate simulate: {e}", file=sys.stderr)
+        print(f"palpate simulate: --x-m (--x0-m) {args.x_m:g} / --depth-m {args.depth_m:g}: {e}", file=sys.stderr)
         return 2
     t2 = time.perf_counter()
     model, mesh = m.model, m.model.mesh
@@ -196,7 +204,7 @@ def _indent_summary(sc, r, out, stream) -> None:
 # ------------------------------------------------------------------------------------------------- load A
 
 def _scene(args):
-    sc = S.load(args.scene)
+    sc = load_scene(args.scene)
     changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
                                  ("surface_refine", args.surface_refine), ("plane", args.plane))
                if v is not None}
@@ -246,7 +254,7 @@ def _run_uniform(args) -> int:
             if name == args.scene:
                 other, r = sc, res
             else:
-                other = dataclasses.replace(S.load(name), analysis=sc.analysis)
+                other = dataclasses.replace(load_scene(name, "--compare"), analysis=sc.analysis)
                 r = solve_uniform(other, full_field=False, rigid_stones=_rigid(args))
             compare.append((other, r.surface))
         out["compare"] = [{"scene": o.name, "peak": prof.to_dict()["peak"]} for o, prof in compare]

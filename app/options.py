@@ -1,0 +1,162 @@
+"""Option values and output paths, checked before any work (issue 13).
+
+Numeric options: argparse ``type=`` functions (``finite_float``, ``positive_float``, ``float_range(lo, hi)``,
+``int_range(lo, hi)``). A bad value ends in argparse's one-line ``prog: error: argument --opt: message`` and exit 2;
+the message gives the value and what is allowed. Cross-option rules (a minimum below a limit, a budget above the
+waypoints) are checked by the commands with ``UsageError``.
+
+Scenes: ``load_scene`` (fem.scene.load with unreadable files named in one line).
+
+Output paths: ``check_output_file`` / ``check_output_dir`` refuse, before the computation, a file option pointing at
+a directory, a directory option pointing at a file, and a parent that cannot be created or written; they create
+nothing. ``refuse_measured`` refuses an output path that would overwrite a run's measured files.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+from app.errors import UsageError
+from fem.scene import Scene, SceneError, load
+
+MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the planning NLP and fem cost explode
+MAX_TOTAL_PROBES = 10000    # a run's probe budget
+
+
+def _parse(s: str, kind=float):
+    try:
+        v = kind(s)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"invalid {kind.__name__} value: {s!r}") from None
+    return v
+
+
+def finite_float(s: str) -> float:
+    v = _parse(s)
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {s!r}")
+    return v
+
+
+def positive_float(s: str) -> float:
+    v = _parse(s)
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive finite number, got {s!r}")
+    return v
+
+
+def nonnegative_float(s: str) -> float:
+    v = _parse(s)
+    if not (math.isfinite(v) and v >= 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {s!r}")
+    return v
+
+
+def float_range(lo: float, hi: float, *, lo_open: bool = True, hi_open: bool = False, unit: str = ""):
+    """A finite float in (lo, hi] (the brackets as given)."""
+    rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}{' ' + unit if unit else ''}"
+
+    def parse(s: str) -> float:
+        v = _parse(s)
+        ok = math.isfinite(v) and (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+        if not ok:
+            raise argparse.ArgumentTypeError(f"must be a finite number in {rng}, got {s!r}")
+        return v
+    parse.__name__ = "float"
+    return parse
+
+
+def int_range(lo: int, hi: int | None = None):
+    """An integer in [lo, hi]."""
+    def parse(s: str) -> int:
+        v = _parse(s, int)
+        if v < lo or (hi is not None and v > hi):
+            raise argparse.ArgumentTypeError(f"must be an integer in [{lo}, {hi}], got {s!r}" if hi is not None
+                                             else f"must be an integer >= {lo}, got {s!r}")
+        return v
+    parse.__name__ = "int"
+    return parse
+
+
+# ---------------------------------------------------------------------------------------------- output paths
+
+def _writable_parent(path: Path, option: str, shown=None) -> None:
+    """The nearest existing ancestor of ``path`` must be a writable directory (so the rest can be created)."""
+    p, path = path.absolute(), shown if shown is not None else path
+    for anc in [p, *p.parents]:
+        if anc.exists():
+            if not anc.is_dir():
+                raise UsageError(f"{option} {path}: {anc} is a file, not a directory")
+            if not os.access(anc, os.W_OK | os.X_OK) or str(anc).startswith(("/proc", "/sys")):
+                raise UsageError(f"{option} {path}: cannot create or write under {anc} (not writable)")
+            return
+        try:
+            anc.lstat()          # a dangling symlink or an unreadable parent
+        except FileNotFoundError:
+            continue
+        except OSError as e:
+            raise UsageError(f"{option} {path}: {e.strerror}") from None
+
+
+def check_output_file(path: str | None, option: str) -> None:
+    """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory; its directory creatable/writable.
+    None, "" and "-" (standard output) pass."""
+    if not path or path == "-":
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{option} {path}: is a directory; give a file path")
+    if p.exists():
+        if not os.access(p, os.W_OK):
+            raise UsageError(f"{option} {path}: file is not writable")
+        return
+    _writable_parent(p.parent, option, path)
+
+
+def check_output_dir(path: str | None, option: str) -> None:
+    """A directory option (``--plots``, ``--out DIR``): not an existing file; creatable and writable."""
+    if not path:
+        return
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise UsageError(f"{option} {path}: is a file, not a directory")
+    _writable_parent(p, option)
+
+
+MEASURED_NAMES = ("probes.jsonl", "raw", "run.json")
+
+
+def is_measured(path: str | Path) -> bool:
+    """Is ``path`` a run's measured file (probes.jsonl, anything under raw/, a run.json next to a probes.jsonl) or a
+    directory holding one?"""
+    p = Path(path).absolute()
+    if p.is_dir() and ((p / "probes.jsonl").exists() or (p / "raw").is_dir()):
+        return True
+    if p.name == "probes.jsonl" or p.suffix == ".jsonl" and p.exists():
+        return True
+    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in p.parents):
+        return True
+    return p.name == "run.json" and (p.parent / "probes.jsonl").exists()
+
+
+def refuse_measured(path: str | None, option: str) -> None:
+    if path and path != "-" and is_measured(path):
+        raise UsageError(f"{option} {path}: would overwrite a run's measured data (probes.jsonl, raw/, run.json); "
+                         f"choose another path")
+
+
+def load_scene(spec: str, option: str = "scene") -> Scene:
+    """fem.scene.load, with an unreadable file (binary, latin-1, a directory) named in a one-line error."""
+    try:
+        return load(spec)
+    except UnicodeDecodeError as e:
+        raise UsageError(f"{option} {spec}: not a UTF-8 text (TOML) file ({e.reason} at byte {e.start})") from None
+    except IsADirectoryError:
+        raise UsageError(f"{option} {spec}: is a directory; give a scene TOML file or a built-in name") from None
+    except OSError as e:
+        raise UsageError(f"{option} {spec}: cannot read: {e.strerror or e}") from None
+    except SceneError as e:
+        msg = str(e)
+        raise SceneError(msg if option in msg else f"{option} {spec}: {msg}") from None
