@@ -286,6 +286,9 @@ def default_force_model(prior):
     return surface_model(prior).force_n
 
 
+MIN_NORMAL_UP = 0.5     # the tissue's outward normal within 60 deg of the base's +z: tissue lying on a table
+
+
 def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | None = None, margin_m: float = 0.005,
                 x_positions_m=None, depth_m=None, force_n=None, limits=None, motion=None, frames=None,
                 options: PlanOptions | None = None, margins: Margins | None = None, joint_limits=None):
@@ -309,6 +312,12 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     branch, tilt_tol_rad = tuple(options.branch), options.tilt_tol_rad
     force_fraction, min_depth_m = options.force_fraction, options.min_depth_m
     frames = frames or Frames(tissue_pose_base=default_tissue_pose(tis.width_m, tis.height_m))
+    normal = ur5e.pose_to_T(frames.tissue_pose_base)[:3, 2]
+    if normal[2] < MIN_NORMAL_UP:
+        raise PlanError(f"--tissue-pose {list(frames.tissue_pose_base)}: the tissue's surface normal points "
+                        f"{np.round(normal, 3).tolist()} in the base frame; it must face up (its base z component "
+                        f">= {MIN_NORMAL_UP:g}, i.e. tilted at most {np.degrees(np.arccos(MIN_NORMAL_UP)):.0f} deg): "
+                        f"check the rotation part of the pose")
     for name, v in (("approach_speed_m_s", motion.approach_speed_m_s), ("probe_speed_m_s", motion.probe_speed_m_s)):
         if not (0 < v <= limits.max_tool_speed_m_s):
             raise PlanError(f"motion.{name} = {v} m/s must lie in (0, limits.max_tool_speed_m_s = "

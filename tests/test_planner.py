@@ -201,3 +201,11 @@ def test_cli_plan_on_the_real_fem_model(tmp_path):
     s = json.loads(js.read_text())
     assert s["n_probes"] == 5 and s["solver"]["success"]
     assert (figs / "plan_raster.png").stat().st_size > 0 and (figs / "plan_joints.png").stat().st_size > 0
+
+
+def test_an_upside_down_tissue_pose_is_refused():
+    """A tissue pose whose surface faces down (a sign slip in the rotation) was planned silently."""
+    prior = load("paper").prior()
+    frames = Frames(tissue_pose_base=[0.40, -0.035, 0.05, math.pi, 0.0, 0.0])    # flipped about x
+    with pytest.raises(PlanError, match="face up"):
+        plan_raster(prior, n_waypoints=3, frames=frames)
