@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from datetime import datetime, timezone
 from pathlib import Path
 
 from app.commands.output import write_json
@@ -40,7 +39,7 @@ from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, preflight, run_plan
 from robot.link import connect, end_session
-from robot.records import done_indices
+from robot.records import done_indices, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -144,18 +143,6 @@ def sim_range_report(arm) -> dict | None:
     """What the simulated arm's force model extrapolated beyond its range (robot.simforce.CachedForce), or None."""
     report = getattr(getattr(arm, "force_model", None), "range_report", None)
     return report() if report is not None else None
-
-
-def move_aside(out: Path) -> Path | None:
-    """Move everything in ``out`` (but earlier previous-* folders) into out/previous-<UTC time>/; never delete."""
-    if not out.is_dir() or not any(p for p in out.iterdir() if not p.name.startswith("previous-")):
-        return None
-    dest = out / f"previous-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}"
-    dest.mkdir()
-    for p in sorted(out.iterdir()):
-        if p != dest and not p.name.startswith("previous-"):
-            p.rename(dest / p.name)
-    return dest
 
 
 def _progress(rec, i, n):

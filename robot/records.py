@@ -20,6 +20,7 @@ import json
 import math
 import os
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -217,3 +218,18 @@ def implausibility(rec: ProbeRecord) -> str | None:
         return (f"force {f:.4g} N at {d * 1e3:.2f} mm is above {hi:g} x the prior's {expect:.4g} N by more than "
                 f"{PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (collision, sensor spike?)")
     return None
+
+
+def move_aside(out_dir: str | Path) -> Path | None:
+    """Move everything in ``out_dir`` (except earlier previous-* folders) into ``out_dir/previous-<UTC time>/`` and
+    return that folder; None when there is nothing to move. Measured data are never deleted."""
+    out = Path(out_dir)
+    if not out.is_dir() or not any(not p.name.startswith("previous-") for p in out.iterdir()):
+        return None
+    dest = out / f"previous-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}"
+    dest.mkdir()
+    for p in sorted(out.iterdir()):
+        if p != dest and not p.name.startswith("previous-"):
+            p.rename(dest / p.name)
+    _fsync_dir(out)
+    return dest

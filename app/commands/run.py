@@ -20,7 +20,6 @@ import hashlib
 import json
 import sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 from app.cell import print_preflight, read_confirmation, sim_range_report
@@ -44,7 +43,7 @@ from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session
-from robot.records import done_indices, latest_by_index
+from robot.records import done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -212,19 +211,6 @@ def _check_resume(out: Path, opts: dict, fresh: bool) -> bool:
     return True
 
 
-def _move_aside(out: Path) -> Path | None:
-    """Move every file of a previous run in ``out`` into out/previous-<UTC time>/ (never delete)."""
-    if not _holds_run(out):
-        return None
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S.%fZ")
-    dest = out / f"previous-{stamp}"
-    dest.mkdir()
-    for p in sorted(out.iterdir()):
-        if p != dest and not p.name.startswith("previous-"):
-            p.rename(dest / p.name)
-    return dest
-
-
 def run(args) -> int:
 
     t_wall = time.perf_counter()
@@ -304,7 +290,7 @@ def run(args) -> int:
         execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm)
     # ---- OUT: from here on files are written (never deleted: --fresh moves them aside)
     if args.fresh:
-        moved = _move_aside(out)
+        moved = move_aside(out) if _holds_run(out) else None
         if moved is not None:
             _say(f"--fresh: the previous run's files are in {moved}")
     out.mkdir(parents=True, exist_ok=True)
