@@ -12,10 +12,10 @@ plan, output paths) is checked before DIR is touched or anything moves.
 (``--truth``; without it, the built-in scene whose prior the plan holds, else exit 2) with fem's force; the driver only
 sees the plan. ``--inject`` faults use one syntax for both (robot.urscript_cmds.parse_inject).
 
-Exit codes: 0 ok, 1 fault, 2 usage / a plan file that fails ``Plan.check`` (core.contracts: types, limits, depth
-below the tip radius; nothing moves) / not confirmed / cannot connect, 3 plan rejected by the driver's own
-pre-flight safety checks (robot.safety: workspace, poses, speeds against the hard caps; nothing moves), 4 the
-simulated controller's ports are taken on every loopback address tried, 130 interrupted.
+Exit codes: 0 ok, 1 fault, 2 bad input: usage, a plan file that fails ``Plan.check`` (core.contracts: types,
+limits, depth below the tip radius) or the driver's own pre-flight safety checks (robot.safety: workspace, poses,
+speeds against the hard caps; nothing moves), not confirmed, cannot connect; 4 the simulated controller's ports are
+taken on every loopback address tried, 130 interrupted.
 """
 from __future__ import annotations
 
@@ -46,7 +46,8 @@ from robot.simarm import build_truth_arm
 from robot.simlaunch import PortsUnavailable, start_controller
 from robot.urscript_cmds import normalize_inject
 
-EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_REJECTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_REJECTED = EXIT_USAGE     # a plan the driver's safety checks refuse is bad input too: nothing was sent
 EXIT_PORTS_UNAVAILABLE = 4     # --sim controller: ur_rtde's fixed ports are taken on every loopback address tried
 
 

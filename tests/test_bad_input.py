@@ -86,3 +86,57 @@ def test_scene_field_fuzz(fld, value, shared):
         if (d / "out.json").is_file():
             bad = survey.nonfinite_in_json(json.loads((d / "out.json").read_text()))
             assert bad is None, f"non-finite in out.json: {bad} ({where})"
+
+
+# Option values and plan edits, in-process (the CLIs' main(); an exception escaping main() is a traceback)
+OPTION_VALUES = ["nan", "inf", "-inf", "0", "-1", "1e300", "1e-300", "abc", "3"]
+PLAN_OPTIONS = ["--waypoints", "--force-limit-n", "--depth-limit-m", "--force-fraction", "--min-depth-m",
+                "--approach-height-m", "--approach-speed-m-s", "--probe-speed-m-s", "--dwell-s", "--tilt-tol-deg",
+                "--margin-m", "--spacing-m", "--x-min-m", "--depth-m"]
+
+
+def _main_exit(main, argv) -> int:
+    try:
+        return main(argv)
+    except SystemExit as e:              # argparse
+        return e.code
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(opt=st.sampled_from(PLAN_OPTIONS), value=st.sampled_from(OPTION_VALUES))
+def test_plan_option_fuzz(opt, value, tmp_path_factory):
+    """Any value of any `palpate plan` option: exit 0 or 2, never a traceback, never a non-finite number in the plan."""
+    from app.cli import main
+    d = tmp_path_factory.mktemp("optfuzz")
+    rc = _main_exit(main, ["plan", "paper", "--out", str(d / "plan.json"), "--waypoints", "4", opt, value])
+    assert rc in (0, 2), (opt, value, rc)
+    if (d / "plan.json").is_file():
+        assert survey.nonfinite_in_json(json.loads((d / "plan.json").read_text())) is None
+
+
+PLAN_FIELDS = [("limits", "force_limit_n"), ("limits", "depth_limit_m"), ("limits", "max_tool_speed_m_s"),
+               ("motion", "dwell_s"), ("motion", "probe_speed_m_s"), ("motion", "approach_height_m"),
+               ("motion", "contact_threshold_n"), ("options", "tilt_tol_rad"), ("probe", "depth_m"),
+               ("probe", "x_m"), ("probe", "index"), ("frames", "tcp_offset")]
+PLAN_VALUES = {"nan": float("nan"), "inf": float("inf"), "zero": 0.0, "negative": -1.0, "huge": 1e300,
+               "tiny": 1e-300, "string": "abc", "list": [1.0, 2.0], "null": None, "deep": 0.006}
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(fld=st.sampled_from(PLAN_FIELDS), value=st.sampled_from(sorted(PLAN_VALUES)))
+def test_plan_edit_fuzz(fld, value, shared, tmp_path_factory):
+    """One field of a valid plan edited to a bad value and run on the simulated cell: exit 0 or 2, no traceback,
+    and nothing recorded for a refused plan (it is checked before anything moves)."""
+    from app.cell import main
+    sh, _ = shared
+    plan = json.loads(sh["plan_text"])
+    section, key = fld
+    target = plan["probes"][0] if section == "probe" else plan[section]
+    target[key] = PLAN_VALUES[value]
+    d = tmp_path_factory.mktemp("planfuzz")
+    (d / "plan.json").write_text(json.dumps(plan))
+    rc = _main_exit(main, ["--sim", "--plan", str(d / "plan.json"), "--out", str(d / "run"), "--truth", "paper",
+                           "--force-model", "standin"])
+    assert rc in (0, 2), (fld, value, rc)
+    if rc == 2:
+        assert not (d / "run" / "probes.jsonl").exists() or not (d / "run" / "probes.jsonl").read_text().strip()
