@@ -298,7 +298,9 @@ def test_protective_stop_mid_probe(scene_file, tmp_path):
         # resuming while the stop is not cleared: the operator is told what to do (it used to be ur_rtde's generic
         # "Failed to start control script"), exit 2, nothing sent, the records untouched
         before = (out / "probes.jsonl").read_bytes()
-        p = _cell(ctl.host, plan, out)
+        plan.save(tmp_path / "plan.json")
+        p = subprocess.run([sys.executable, "-m", "app.cell", "--host", ctl.host, "--plan", str(tmp_path / "plan.json"),
+                            "--out", str(out), "--yes"], capture_output=True, text=True, timeout=90)
         assert p.returncode == 2, p.stdout + p.stderr
         assert "protective-stopped" in p.stderr and "pendant" in p.stderr, p.stderr
         assert (out / "probes.jsonl").read_bytes() == before
