@@ -32,7 +32,6 @@ from app.options import (
     float_range,
     load_scene,
     positive_float,
-    refuse_measured,
 )
 from core.contracts import SENSORS, Plan
 from fem.scene import BUILTIN, load
@@ -164,7 +163,6 @@ def _main(args) -> int:
     # ---- everything checked before the output directory is touched or anything moves
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json")
-    refuse_measured(args.json, "--json")
     out = Path(args.out)
     if args.json and Path(args.json).absolute().parent == out.absolute() and Path(args.json).name in (
             "probes.jsonl", "run.json"):

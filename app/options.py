@@ -9,7 +9,8 @@ Scenes: ``load_scene`` (fem.scene.load with unreadable files named in one line).
 
 Output paths: ``check_output_file`` / ``check_output_dir`` refuse, before the computation, a file option pointing at
 a directory, a directory option pointing at a file, and a parent that cannot be created or written; they create
-nothing. ``refuse_measured`` refuses an output path that would overwrite a run's measured files.
+nothing. ``refuse_measured`` (also part of ``check_output_file``) refuses an output path that would overwrite a
+run's measured files.
 """
 from __future__ import annotations
 
@@ -101,10 +102,11 @@ def _writable_parent(path: Path, option: str, shown=None) -> None:
 
 
 def check_output_file(path: str | None, option: str) -> None:
-    """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory; its directory creatable/writable.
-    None, "" and "-" (standard output) pass."""
+    """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data, its
+    directory creatable/writable. None, "" and "-" (standard output) pass."""
     if not path or path == "-":
         return
+    refuse_measured(path, option)
     p = Path(path)
     if p.is_dir():
         raise UsageError(f"{option} {path}: is a directory; give a file path")

@@ -63,7 +63,10 @@ class SafetyLimits:
         lim, mo = plan.limits, plan.motion
         lo = tuple(max(a, b) for a, b in zip(lim.workspace_min_m, HARD_BOX_MIN_M))
         hi = tuple(min(a, b) for a, b in zip(lim.workspace_max_m, HARD_BOX_MAX_M))
-        width = float(plan.scene.get("tissue", {}).get("width_m", 0.07)) if isinstance(plan.scene, dict) else 0.07
+        # Plan.check requires the width; a plan built in code without it gets the conservative reading: the depth
+        # limit then applies at every x, not only over a guessed tissue
+        tissue = plan.scene.get("tissue", {}) if isinstance(plan.scene, dict) else {}
+        width = float(tissue.get("width_m", math.inf)) if isinstance(tissue, dict) else math.inf
         tip = _tip_radius(plan)
         return SafetyLimits(
             box_min=lo, box_max=hi,

@@ -18,7 +18,6 @@ from app.options import (
     int_range,
     load_scene,
     positive_float,
-    refuse_measured,
 )
 from core.contracts import (
     HARD_FORCE_LIMIT_N,
@@ -106,10 +105,8 @@ def add_parser(subparsers) -> None:
 
 def run(args) -> int:
     check_output_file(args.out, "--out")
-    refuse_measured(args.out, "--out")
     check_output_dir(args.plots, "--plots")
     check_output_file(args.json, "--json")
-    refuse_measured(args.json, "--json")
     scene = load_scene(args.scene)
     tip = scene.indenter.radius_m
     if not args.depth_limit_m < tip:

@@ -25,7 +25,6 @@ from app.options import (
     int_range,
     load_scene,
     positive_float,
-    refuse_measured,
 )
 from core.peak import parabola_peak
 from fem.contact import check_waypoint, surface_model
@@ -157,7 +156,6 @@ def _peak(xs, ratio) -> dict:
 def run(args) -> int:
     t0 = time.perf_counter()
     check_output_file(args.json, "--json")
-    refuse_measured(args.json, "--json")
     check_output_dir(args.plots, "--plots")
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")

@@ -33,7 +33,6 @@ from app.options import (
     int_range,
     load_scene,
     positive_float,
-    refuse_measured,
 )
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
@@ -144,7 +143,7 @@ def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStac
     def interfaces(plan):
         if "c" not in link:
             link["c"], link["r"] = connect(host)
-            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=cleanup.clean_end))
+            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
         return link["c"], link["r"]
     return _runner(interfaces, out, stats)
 
@@ -161,7 +160,7 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
                 scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
                 host="auto", log_path=out / "simcontroller.log"))
             link["c"], link["r"] = connect(ctl.host)
-            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=cleanup.clean_end))
+            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
         return link["c"], link["r"]
     return _runner(interfaces, out, stats)
 
@@ -218,7 +217,6 @@ def run(args) -> int:
     out = Path(args.out)
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json")
-    refuse_measured(args.json, "--json")
     if args.json and args.json != "-":
         j = Path(args.json).absolute()
         if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):
@@ -267,7 +265,7 @@ def run(args) -> int:
     _say("detectable before probing (coarse raster, sensor " + args.sensor + "): " + (
         ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
         else det["reason"]))
-    stats = {"n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+    stats = {"clean_end": False, "n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
     if args.host:
@@ -311,13 +309,12 @@ def run(args) -> int:
         return Plan.load(saved) if saved.exists() else replan(plan0, x)   # resume: the same round as before
 
     status, fault = "ok", None
-    cleanup.clean_end = False          # set once the probing ended without a fault: the script is then stopped
     try:
         res = adaptive(prior, execute, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
                        budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                        target_m=args.target_uncertainty_m, surrogate=sur, progress=_say,
                        strategy=args.strategy)
-        cleanup.clean_end = True
+        stats["clean_end"] = True      # probing ended without a fault: the control script is stopped at the end
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
         _say(str(e))

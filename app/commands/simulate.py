@@ -16,7 +16,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float, refuse_measured
+from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
 from fem.contact import surface_model
 from fem.stress import components, nodal_poisson, recovery_operator
 from fem.uniform import Profile, solve_uniform
@@ -89,10 +89,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def run(args) -> int:
     check_output_file(args.json, "--json")
-    refuse_measured(args.json, "--json")
     check_output_dir(args.plots, "--plots")
     check_output_file(args.vtu, "--vtu")
-    refuse_measured(args.vtu, "--vtu")
     if args.vtu and not args.vtu.lower().endswith(".vtu"):
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     if args.load == "indent":
