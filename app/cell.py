@@ -10,7 +10,7 @@ plan, output paths) is checked before DIR is touched or anything moves.
 ``--sim controller`` starts the simulated UR controller (robot/simcontroller.py) on a loopback address of its own
 (127.a.b.1, so parallel runs do not collide) and connects the real ur_rtde client to it. Both hold the TRUE scene
 (``--truth``; without it, the built-in scene whose prior the plan holds, else exit 2) with fem's force; the driver only
-sees the plan. ``--inject`` faults use one syntax for both (robot.urscript_cmds.parse_inject).
+sees the plan. ``--inject`` faults use one syntax for both (robot.simfaults).
 
 Exit codes: 0 ok, 1 fault, 2 bad input: usage, a plan file that fails ``Plan.check`` (core.contracts: types,
 limits, depth below the tip radius) or the driver's own pre-flight safety checks (robot.safety: workspace, poses,
@@ -26,6 +26,7 @@ from pathlib import Path
 
 from app.commands.output import write_json
 from app.errors import UsageError, guarded
+from app.isolate import ChildDied, run_in_child
 from app.options import (
     check_output_dir,
     check_output_file,
@@ -33,17 +34,17 @@ from app.options import (
     load_scene,
     positive_float,
 )
-from core.contracts import SENSORS, Plan
+from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
-from robot.driver import DriverConfig, preflight, run_plan
-from robot.link import connect, end_session
+from robot.driver import DriverConfig, RunReport, preflight, run_plan
+from robot.link import LOCAL_CONTROL, connect, end_session, remote_control
 from robot.records import done_indices, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
+from robot.simfaults import parse as parse_fault
 from robot.simlaunch import PortsUnavailable, start_controller
-from robot.urscript_cmds import normalize_inject
 
 EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
 EXIT_REJECTED = EXIT_USAGE     # a plan the driver's safety checks refuse is bad input too: nothing was sent
@@ -85,11 +86,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="coarser fem mesh (element size, m) for a faster simulator")
     g.add_argument("--inject", action="append", default=[], metavar="SPEC",
                    help="fault (repeatable), same syntax for both simulators: KIND-at-s=T[:X] (at simulated time T "
-                        "s) or KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface); the short "
-                        "KIND:T[:X] means KIND-at-s=T[:X]. KIND: protective-stop | disconnect (link lost for good) | "
-                        "drop (link lost, reconnecting allowed) | force-spike (X N for 10 ms) | nan (readings NaN "
-                        "for X s, default 0.01) | stall (the motion freezes); '_' may replace '-' in KIND. "
-                        "Examples: protective_stop:12.5, force-spike-at-depth-m=0.002:5")
+                        "s), KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface) or "
+                        "KIND-after-probes=N[:X] (at rest after N probes); the short KIND:T[:X] means KIND-at-s=T[:X]. "
+                        "KIND: protective-stop | disconnect (link lost for good) | drop (link lost, reconnecting "
+                        "allowed) | force-spike (X N for 10 ms) | nan (readings NaN for X s, default 0.01) | stall "
+                        "(the motion freezes); with --sim controller also partition (no traffic for X s; none: for "
+                        "good) | freeze (controller process stopped) | program-stop | remote-off (local control; X=1 "
+                        "also stops the program); '_' may replace '-' in KIND. Examples: protective_stop:12.5, "
+                        "force-spike-at-depth-m=0.002:5, partition-at-depth-m=0.0015, remote-off-after-probes=1:1")
     return p
 
 
@@ -171,10 +175,13 @@ def _main(args) -> int:
     if args.inject and not args.sim:
         raise UsageError("--inject needs --sim")
     try:
-        if args.inject:
-            args.inject = [normalize_inject(s) for s in args.inject]
+        faults = [parse_fault(s) for s in args.inject]
     except ValueError as e:
         raise UsageError(f"--inject: {e}") from None
+    on_ctl = [f.text() for f in faults if f.on_controller]
+    if on_ctl and args.sim != "controller":
+        raise UsageError(f"--inject {on_ctl[0]}: a controller fault, only with --sim controller")
+    args.inject = [f.text() for f in faults]
     if args.sim and args.force_model == "fem":
         truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
         if args.sim_mesh_m is not None:
@@ -199,11 +206,11 @@ def _main(args) -> int:
                 arm, c, r = inmemory_arm(plan, args)
                 rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
             else:
-                rep = _run_linked(plan, args, out, cfg, *connect(args.host))
+                rep = _run_host(plan, args, out, cfg, args.host)
     except ControllerPortsUnavailable as e:
         print(f"palpate-cell: simulated controller not started: {e}", file=sys.stderr)
         return EXIT_PORTS_UNAVAILABLE
-    except RuntimeError as e:
+    except NotConnected as e:
         print(f"palpate-cell: cannot connect: {e}", file=sys.stderr)
         return EXIT_USAGE
     print(f"run {rep.status}: {rep.n_ok} ok, {rep.n_force_limit} at the force limit, {rep.n_rejected} rejected, "
@@ -243,18 +250,64 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
     except PortsUnavailable as e:
         raise ControllerPortsUnavailable(str(e)) from None
     with ctl:
-        return _run_linked(plan, args, out, cfg, *connect(ctl.host))
+        return _run_host(plan, args, out, cfg, ctl.host)
 
 
-def _run_linked(plan: Plan, args, out: Path, cfg: DriverConfig, c, r):
-    """Run over a real ur_rtde link; a clean end stops the control script, and the link is always closed."""
+class NotConnected(RuntimeError):
+    """The link could not be made, or the arm is not ready (the message says what the operator must do)."""
+
+
+def _run_host(plan: Plan, args, out: Path, cfg: DriverConfig, host: str) -> RunReport:
+    """Connect ur_rtde and run, in a child process (app.isolate): if the vendor client crashes, the records are on
+    disk and this process still reports the fault."""
+    try:
+        tag, value = run_in_child(_linked_session, plan, args, out, cfg, host)
+    except ChildDied as e:
+        return _crash_report(out, e)
+    if tag == "not_connected":
+        raise NotConnected(value)
+    return value
+
+
+def _linked_session(plan: Plan, args, out: Path, cfg: DriverConfig, host: str):
+    """(In the child.) Connect, run, and end the session: a clean end stops the control script; the link is always
+    closed, every call within its deadline."""
+    try:
+        c, r = connect(host)
+    except RuntimeError as e:
+        return "not_connected", str(e)
     clean = False
     try:
-        rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
+        rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress,
+                       diagnose=lambda: LOCAL_CONTROL if remote_control(host) is False else None)
         clean = rep.status == "ok"
-        return rep
+        return "report", rep
     finally:
         end_session(c, r, clean)
+
+
+def _crash_report(out: Path, err: ChildDied) -> RunReport:
+    """The run's report when the link's process died: what its driver wrote to run.json, with the crash as the
+    fault (the fault the driver was handling, if any, is kept beside it)."""
+    run_json = out / "run.json"
+    d = json.loads(run_json.read_text(encoding="utf-8")) if run_json.exists() else {}
+    earlier = d.get("fault")
+    fault = {"kind": FaultKind.CLIENT_CRASHED, "message": f"{err}: the ur_rtde client crashed",
+             "probe_index": (earlier or {}).get("probe_index"), "controller_time_s": d.get("controller_time_s"),
+             "stopped": False, "retracted": False,
+             "notes": ["no command could be sent after the crash; the last command was a bounded moveL (target no "
+                       "deeper than the planned depth) and the controller's RTDE watchdog, no longer kicked, stops "
+                       "the program and the motion; check the arm on the pendant before resuming"]
+             + ([f"the driver was handling: {earlier.get('kind')}: {earlier.get('message')}"] if earlier else [])}
+    d.update(status=RunStatus.FAULT, fault=fault, earlier_fault=earlier)
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = run_json.with_name("run.json.tmp")
+    tmp.write_text(json.dumps(d, indent=1))
+    tmp.replace(run_json)
+    keys = ("n_planned", "n_ok", "n_force_limit", "n_rejected", "n_skipped", "controller_time_s", "wall_s",
+            "program_restarts")
+    return RunReport(RunStatus.FAULT, str(out), fault=fault, problems=d.get("problems", []),
+                     **{k: d[k] for k in keys if d.get(k) is not None})
 
 
 if __name__ == "__main__":

@@ -318,6 +318,7 @@ class FaultKind(StrEnum):
     COLLISION = "collision"          # force above the limit outside a descent
     SAFETY_VIOLATION = "safety_violation"
     INTERRUPTED = "interrupted"
+    CLIENT_CRASHED = "client_crashed"  # the process holding the ur_rtde link died (app.isolate)
 
 
 @dataclass

@@ -43,6 +43,7 @@ from core.contracts import (
     ProbeStatus,
     RunStatus,
 )
+from robot.link import CallTimeout, call_within, deadline_for
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
 from robot.safety import (
@@ -67,7 +68,10 @@ class DriverConfig:
     retract_speed_m_s: float = 0.02
     timeout_factor: float = 2.0
     timeout_margin_s: float = 2.0
-    stale_periods: int = 50            # timestamp not advancing this many periods: data stale
+    stale_periods: int = 100           # timestamp not advancing this many periods (0.2 s): a silent link. A real
+                                       # controller sends every period; this margin keeps a host or simulator held
+                                       # up by a busy machine from being taken for one. The watchdog (<= 0.2 s)
+                                       # stops the arm on its own meanwhile.
     reconnect_after_s: float = 5.0     # link lost: wait this long (controller periods) for it to come back on its
                                        # own before calling reconnect() (ur_rtde reconnects in the background)
     payload_kg: float = 0.1
@@ -135,8 +139,9 @@ class _Samples:
 
 
 class Driver(Recovery):
-    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None):
+    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None, diagnose=None):
         self.plan, self.cfg = plan, config or DriverConfig()
+        self.diagnose = diagnose        # () -> an operator hint or None, asked after a fault (bounded in time)
         self.lim = SafetyLimits.from_plan(plan)
         self.tf = TissueFrame(plan.frames.tissue_pose_base)
         self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
@@ -149,25 +154,48 @@ class Driver(Recovery):
         self.watchdog_on = False
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
         self.program_restarts = 0
+        self.link_dead: str = ""        # why the link is taken for silent (a command got no answer)
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
+        """One ur_rtde call. Those that wait for the controller are bounded in time (robot.link.call_within): one
+        unanswered means a silent link, and nothing more is sent on it (a second would queue behind the first)."""
+        name = getattr(fn, "__name__", str(fn))
+        deadline = deadline_for(name)
+        if deadline is not None and self.link_dead:
+            raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name} not sent: {self.link_dead}")
         try:
-            return fn(*args)
+            return fn(*args) if deadline is None else call_within(fn, args, deadline)
+        except CallTimeout as e:
+            self.link_dead = f"{e} (a silent link: a network partition or a frozen controller)"
+            raise ProbeFault(FaultKind.CONNECTION_LOST, self.link_dead) from None
         except RuntimeError as e:
-            raise ProbeFault(FaultKind.CONNECTION_LOST, f"{getattr(fn, '__name__', fn)}: {e}") from None
+            raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name}: {e}") from None
 
     def _require(self, ok, what: str) -> None:
+        """A command's bool must be True. If not, say why: a protective stop (the receive data may lag the control
+        interface's by a period or two, so it is watched for a few periods), a link down or silent (ur_rtde's
+        control interface may notice a silent link first, and refuse), or else the command failed."""
         if ok is True:
             return
-        for _ in range(10):     # why? The receive data may lag the control interface's by a period or two
+        ts0 = self._call(self.r.getTimestamp)
+        for k in range(self.cfg.stale_periods):
             if self._call(self.r.isProtectiveStopped) is True:
                 raise ProbeFault(FaultKind.PROTECTIVE_STOP, f"{what} refused: the controller is protective-stopped")
+            if not (self._connected(self.c) and self._connected(self.r)):
+                raise ProbeFault(FaultKind.CONNECTION_LOST, f"{what} returned {ok!r}: ur_rtde reports no connection")
+            if k >= 10 and self._call(self.r.getTimestamp) != ts0:
+                raise ProbeFault(FaultKind.COMMAND_FAILED, f"{what} returned {ok!r}")
             self._call(self.c.waitPeriod, self._call(self.c.initPeriod))
-        raise ProbeFault(FaultKind.COMMAND_FAILED, f"{what} returned {ok!r}")
+        self.stale = self.cfg.stale_periods          # safe_state: a silent link, send nothing
+        raise ProbeFault(FaultKind.CONNECTION_LOST, f"{what} returned {ok!r}, and controller data stopped updating "
+                                                    f"(a silent link: a network partition or a frozen controller)")
 
     def _read(self, strict=True):
         r = self.r
+        if self._call(r.isConnected) is not True:    # ur_rtde reconnecting by itself: its getters are not safe now
+            raise ProbeFault(FaultKind.CONNECTION_LOST, "the receive interface reports no connection (the link "
+                                                        "dropped; ur_rtde may be reconnecting by itself)")
         ts, pose, w, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.getActualTCPForce,
                                                     r.isProtectiveStopped))
         if ps is True:
@@ -420,6 +448,9 @@ class Driver(Recovery):
                     rep.records.append(log.write_probe(rec, raw))
                 write_run()                 # the fault, before any command is sent
                 rep.fault.update(self.safe_state())
+                hint = self.diagnose() if self.diagnose is not None else None
+                if hint:                    # what the operator must do (e.g. the pendant left in local control)
+                    rep.fault["notes"].append(hint)
             return rep
         finally:
             write_run()
@@ -438,6 +469,7 @@ class Driver(Recovery):
 
 
 def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = None, resume=True,
-             progress=None) -> RunReport:
-    """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py)."""
-    return Driver(plan, rtde_c, rtde_r, config).run(out_dir, resume=resume, progress=progress)
+             progress=None, diagnose=None) -> RunReport:
+    """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py).
+    ``diagnose()``: after a fault, an operator hint to add to the report (or None)."""
+    return Driver(plan, rtde_c, rtde_r, config, diagnose).run(out_dir, resume=resume, progress=progress)

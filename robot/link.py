@@ -1,7 +1,49 @@
 """The real ur_rtde link: connect and disconnect (the driver takes whatever interfaces it is given)."""
 from __future__ import annotations
 
+import threading
+
 ROBOT_MODE_RUNNING = 7          # ur_rtde getRobotMode(): powered on, brakes released
+COMMAND_TIMEOUT_S = 2.0         # a command ur_rtde sends waits for the controller's answer (a few ms on a live link)
+SLOW_COMMAND_TIMEOUT_S = 10.0   # reuploadScript, reconnect, disconnect: ur_rtde's own waits are up to 5 s
+# ur_rtde calls that wait for the controller (each is bounded with call_within); the getters return the last values
+# received and initPeriod/waitPeriod are local, so those never block
+BLOCKING_CALLS = frozenset({"moveL", "moveJ", "stopL", "stopJ", "speedStop", "zeroFtSensor", "setTcp", "setPayload",
+                            "setWatchdog", "reuploadScript", "reconnect", "stopScript", "disconnect",
+                            "triggerProtectiveStop"})
+SLOW_CALLS = frozenset({"reuploadScript", "reconnect", "disconnect", "stopScript"})
+
+
+class CallTimeout(RuntimeError):
+    """A ur_rtde call got no answer within its deadline (a silent link); the call may still be pending."""
+
+
+def call_within(fn, args=(), timeout_s: float = COMMAND_TIMEOUT_S):
+    """``fn(*args)`` with a deadline: ur_rtde 1.6.5 waits up to its 300 s execution time-out for a controller that
+    does not answer (a partition, a frozen controller). The call runs in a daemon thread (ur_rtde releases the GIL
+    while it waits); past ``timeout_s`` CallTimeout is raised and the thread is abandoned. Exceptions pass through."""
+    box: dict = {}
+
+    def run():
+        try:
+            box["value"] = fn(*args)
+        except BaseException as e:        # noqa: BLE001 -- handed to the caller
+            box["error"] = e
+    t = threading.Thread(target=run, daemon=True, name=f"ur_rtde-{getattr(fn, '__name__', 'call')}")
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        raise CallTimeout(f"{getattr(fn, '__name__', fn)} got no answer within {timeout_s:g} s")
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+def deadline_for(name: str) -> float | None:
+    """The deadline for a ur_rtde call by name (None: it does not block)."""
+    if name not in BLOCKING_CALLS:
+        return None
+    return SLOW_COMMAND_TIMEOUT_S if name in SLOW_CALLS else COMMAND_TIMEOUT_S
 
 
 class ArmNotReady(RuntimeError):
@@ -24,14 +66,38 @@ def check_ready(r) -> None:
                           f"release the brakes on the pendant, then run the same command again")
 
 
+LOCAL_CONTROL = ("the arm is in local control: switch the pendant to remote control (the icon at its top right), "
+                 "then run the same command again to resume (finished probes are kept)")
+
+
+def remote_control(host: str) -> bool | None:
+    """Whether the arm is in remote control, from its dashboard server (ur_rtde's DashboardClient), within
+    COMMAND_TIMEOUT_S; None when that cannot be told (no answer, PolyScope < 5.6)."""
+    import dashboard_client  # the compiled client, loaded only when a link is made
+
+    def ask():
+        db = dashboard_client.DashboardClient(host)
+        db.connect(int(COMMAND_TIMEOUT_S * 1000))
+        try:
+            return bool(db.isInRemoteControl())
+        finally:
+            db.disconnect()
+    try:
+        return call_within(ask, (), 2 * COMMAND_TIMEOUT_S)
+    except RuntimeError:           # CallTimeout, a refused connection, an old PolyScope
+        return None
+
+
 def connect(host: str):
-    """The real ur_rtde interfaces (receive first: it does not upload a program; the arm's state is checked before
-    the control interface uploads one)."""
+    """The real ur_rtde interfaces (receive first: it does not upload a program; the arm's state -- e-stop,
+    protective stop, power, remote control -- is checked before the control interface uploads one)."""
     import rtde_control  # the compiled client, loaded only when a link is made
     import rtde_receive
     r = rtde_receive.RTDEReceiveInterface(host)
     try:
         check_ready(r)
+        if remote_control(host) is False:
+            raise ArmNotReady(LOCAL_CONTROL)
         c = rtde_control.RTDEControlInterface(host)
     except RuntimeError:
         r.disconnect()
@@ -40,13 +106,13 @@ def connect(host: str):
 
 
 def disconnect(*interfaces) -> None:
-    """Close ur_rtde interfaces that are still connected (ur_rtde 1.6.5: a call after a failed reconnect may block,
-    so a lost link is left alone)."""
+    """Close ur_rtde interfaces that are still connected, each within SLOW_COMMAND_TIMEOUT_S (ur_rtde 1.6.5: a call
+    after a failed reconnect may block, so a lost link is left alone)."""
     for iface in interfaces:
         try:
             if iface.isConnected():
-                iface.disconnect()
-        except RuntimeError:
+                call_within(iface.disconnect, (), SLOW_COMMAND_TIMEOUT_S)
+        except RuntimeError:        # CallTimeout included: the process ends anyway
             pass
 
 
@@ -57,7 +123,7 @@ def end_session(c, r, clean: bool) -> None:
     if clean:
         try:
             if c.isConnected():
-                c.stopScript()
+                call_within(c.stopScript, (), SLOW_COMMAND_TIMEOUT_S)
         except RuntimeError:
             pass
     disconnect(c, r)

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 
+from robot.link import SLOW_COMMAND_TIMEOUT_S, call_within
 from robot.safety import SafetyViolation
 
 
@@ -46,8 +47,8 @@ class Recovery:
         for iface in (self.c, self.r):
             if not self._connected(iface):
                 try:
-                    ok = ok and iface.reconnect() is True
-                except (RuntimeError, AttributeError, SafetyViolation):
+                    ok = ok and call_within(iface.reconnect, (), SLOW_COMMAND_TIMEOUT_S) is True
+                except (RuntimeError, AttributeError, SafetyViolation):     # CallTimeout too
                     ok = False
         out["notes"].append(f"no connection for {self.cfg.reconnect_after_s:g} s; reconnect() "
                             + ("succeeded" if ok else "failed"))
@@ -69,11 +70,15 @@ class Recovery:
             return out
         bounded = ("the last command was a bounded moveL (target no deeper than the planned depth); the arm stops "
                    "there at the latest")
-        if self.stale >= self.cfg.stale_periods and self._connected(self.c) and self._connected(self.r):
+        silent = self.link_dead or (self.stale >= self.cfg.stale_periods and self._connected(self.c)
+                                    and self._connected(self.r))
+        if silent:
             # A silent link (controller data stale although ur_rtde reports a connection): a command now would wait
             # up to ur_rtde's execution time-out (300 s) for an answer that never comes. Send nothing; the driver
             # no longer kicks the RTDE watchdog, so the controller stops the program and the motion within 1/rate.
             rate = getattr(self, "watchdog_hz", 0.0) if getattr(self, "watchdog_on", False) else 0.0
+            if self.link_dead:
+                out["notes"].append(f"a command got no answer: {self.link_dead}")
             if rate > 0:
                 self._idle(2.0 / rate)
                 out["notes"].append(f"silent link: no command sent (it could block for ur_rtde's 300 s time-out); "
@@ -85,6 +90,9 @@ class Recovery:
         if not self._connected(self.c) and not self._await_link(out):
             out["notes"].append(f"no connection: no command sent; {bounded}")
             return out
+        # (a link ur_rtde reconnected by itself: its control interface is back with a new program -- no watchdog,
+        # the flange as TCP -- while its receive interface may still be reconnecting: stop, wait, reconfigure,
+        # retract)
         for attempt in range(2):
             try:
                 self._stop()
@@ -98,8 +106,17 @@ class Recovery:
                 if not self._await_link(out):
                     out["notes"].append(f"reconnect failed: {bounded}")
                     return out
-        if not self._connected(self.r):
-            out["notes"].append("retract skipped: the receive interface reports no connection")
+        if not self._connected(self.r) and not self._await_link(out):
+            out["notes"].append("retract skipped: the receive interface did not come back")
+            return out
+        try:
+            s = self._read(strict=False)
+        except (ProbeFault, SafetyViolation) as e:
+            out["notes"].append(f"retract skipped: no reading of the arm's pose ({e})")
+            return out
+        if not self._needs_retract(s["depth"], s["x"]):
+            out["retracted"] = True
+            out["notes"].append("the tip is already clear of the tissue: no retract needed")
             return out
         try:       # the program may be a new one (reconnect, ur_rtde's own, the watchdog's stop): TCP first
             self._ensure_program()
@@ -119,10 +136,14 @@ class Recovery:
         for _ in range(max(1, int(math.ceil(seconds / self.cfg.period_s)))):
             self.c.waitPeriod(self.c.initPeriod())
 
+    def _needs_retract(self, depth, x) -> bool:
+        """The tip is over the tissue and below the approach height (within 1 mm)."""
+        inside = -1e-3 <= x <= self.lim.width_m + 1e-3
+        return inside and depth > -self.plan.motion.approach_height_m + 1e-3
+
     def _retract_from(self, pose, depth, x) -> bool:
         h = self.plan.motion.approach_height_m
-        inside = -1e-3 <= x <= self.lim.width_m + 1e-3
-        if not inside or depth <= -h + 1e-3:
+        if not self._needs_retract(depth, x):
             return True
         target = list(np.asarray(pose[:3]) + self.tf.normal * (depth + h)) + list(pose[3:])
         self._move(target, min(self.cfg.retract_speed_m_s, self.lim.tool_speed_m_s), min(0.5, self.lim.accel_m_s2),

@@ -126,7 +126,8 @@ def frame(msg_type: int, payload: bytes = b"") -> bytes:
     return HEADER.pack(HEADER.size + len(payload), msg_type) + payload
 
 
-def recv_exact(sock: socket.socket, n: int) -> bytes:
+def recv_exact(sock, n: int) -> bytes:
+    """``n`` bytes from anything with ``recv`` (a socket, a ``Conn``)."""
     buf = bytearray()
     while len(buf) < n:
         chunk = sock.recv(n - len(buf))
@@ -136,7 +137,7 @@ def recv_exact(sock: socket.socket, n: int) -> bytes:
     return bytes(buf)
 
 
-def read_message(sock: socket.socket) -> tuple[int, bytes]:
+def read_message(sock) -> tuple[int, bytes]:
     size, msg_type = HEADER.unpack(recv_exact(sock, HEADER.size))
     if size < HEADER.size:
         raise ConnectionError(f"bad RTDE header size {size}")
@@ -146,9 +147,34 @@ def read_message(sock: socket.socket) -> tuple[int, bytes]:
 class Conn:
     """A client socket; writes from several threads go through one lock."""
 
-    def __init__(self, sock, kind):
+    def __init__(self, sock, kind, gate: threading.Event | None = None):
         self.sock, self.kind, self.lock = sock, kind, threading.Lock()
         self.started, self.out_recipes, self.in_recipes, self.closed = False, [], {}, False
+        self.gate = gate            # cleared: nothing is read (a network partition); the bytes wait in the kernel
+
+    def recv(self, n: int) -> bytes:
+        """``sock.recv``, held while the gate is closed."""
+        self._hold()
+        data = self.sock.recv(n)
+        self._hold()                # what arrived during a partition passes only when it heals
+        return data
+
+    def _hold(self) -> None:
+        while self.gate is not None and not self.gate.wait(0.2):
+            if self.closed:
+                raise ConnectionError("closed")
+
+    def lines(self):
+        """Text lines from the client (the dashboard protocol), held while the gate is closed."""
+        buf = b""
+        while True:
+            data = self.recv(4096)
+            if not data:
+                return
+            buf += data
+            while b"\n" in buf:
+                line, buf = buf.split(b"\n", 1)
+                yield line.decode("utf-8", "replace")
 
     def send(self, data: bytes) -> bool:
         with self.lock:
@@ -180,7 +206,7 @@ def serve_rtde(c: "Conn", ctl) -> None:
     ``input_owner`` (which connection set up which input) and ``controller_version``. Data packages go out from
     the controller's cycle to every started connection's output recipes (``Recipe.decimation``)."""
     while True:
-        mtype, payload = read_message(c.sock)
+        mtype, payload = read_message(c)
         if mtype == DATA_PACKAGE:
             r = c.in_recipes.get(payload[0]) if payload else None
             if r is None:

@@ -16,8 +16,8 @@ from core.contracts import Frames
 from fem.contact import surface_model
 from fem.scene import Scene, load
 from robot.sim import ArmModel
+from robot.simfaults import inject_arm, parse
 from robot.simforce import standin_force_model
-from robot.urscript_cmds import parse_inject
 
 START_CLEARANCE_M = 0.02      # the arm starts this far above the first approach pose
 STANDIN_WIDTH_M = 0.07        # the stand-in force model's tissue width
@@ -50,7 +50,8 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
                     tissue_pose=None, tcp_offset=None, start_above_pose=None, q0=None, mesh_m: float | None = None,
                     inject=()) -> ArmModel:
     """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
-    sensor model and any injected faults (robot.urscript_cmds.parse_inject syntax)."""
+    sensor model and any injected faults (robot.simfaults syntax; controller faults are left to
+    the simulated controller)."""
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
     if force == "fem":
         f, width = truth_force(truth, mesh_m)
@@ -64,5 +65,7 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
                    q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
     for spec in inject:
-        parse_inject(arm, spec)
+        f = parse(spec)
+        if not f.on_controller:
+            inject_arm(arm, f)
     return arm

@@ -7,15 +7,19 @@ Serves the dashboard (29999), RTDE (30004, protocol 2, data at up to 500 Hz in r
 Start it from a shell: ``python -m robot.simcontroller --scene paper --sensor nano17`` (Ctrl-C stops it), or from
 Python: ``with robot.simlaunch.start_controller(scene="paper", host="auto") as ctl: ...`` then connect ur_rtde to
 ``ctl.host`` (a separate process: the ur_rtde binding holds the GIL while it connects, so a controller in the
-client's process would deadlock). Faults: ``--inject protective-stop-at-depth-m=0.002`` etc.
-(``robot.urscript_cmds.parse_inject``), or at run time through the dashboard commands ``simcontroller
-protective-stop`` / ``simcontroller drop-connection [refuse]`` (a real controller answers those with "could not
-understand").
+client's process would deadlock). Faults: ``--inject protective-stop-at-depth-m=0.002``,
+``--inject partition-after-probes=1`` etc. (``robot.simfaults``: arm faults and the controller's own -- a partition
+with the sockets open, a frozen process, a program stopped from the dashboard, local control), or at run time through
+the dashboard commands ``simcontroller protective-stop | drop-connection [refuse] | partition [S] | program-stop |
+remote off|on | state`` (a real controller answers those with "could not understand").
+
 """
 from __future__ import annotations
 
 import argparse
+import json
 import logging
+import os
 import signal
 import socket
 import struct
@@ -29,6 +33,7 @@ from robot import rtde_wire as W
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
 from robot.simarm import build_truth_arm
+from robot.simfaults import FaultSpec, parse, trigger
 from robot.urscript_cmds import ArmPort, ControlScript, split_programs
 
 log = logging.getLogger("simcontroller")
@@ -71,6 +76,10 @@ class SimController:
         self.threads: list[threading.Thread] = []
         self._prev, self._q, self._qd, self._n = None, None, np.zeros(6), 0
         self.watchdog_fired_s = None
+        self.remote = True             # the pendant in remote control (local control refuses network programs)
+        self.link = threading.Event()  # cleared during a partition: nothing passes either way, sockets stay open
+        self.link.set()
+        self.pending: list = []        # controller faults not yet fired: (FaultSpec, when(arm))
         self.overruns = 0              # times the process was held up > MAX_CATCH_UP_S (a very busy machine)
         self.failed = False
 
@@ -125,6 +134,55 @@ class SimController:
         with self.lock:
             self.port.request_protective_stop(reason)
 
+    def schedule(self, f: FaultSpec) -> None:
+        """A controller fault (robot.simfaults.CONTROLLER_FAULTS) to fire when its trigger holds."""
+        self.pending.append((f, trigger(f)))
+
+    def _fire_due(self) -> None:
+        for item in [it for it in self.pending if it[1](self.arm)]:
+            self.pending.remove(item)
+            f = item[0]
+            log.warning("injected fault %s at t=%.3f s", f.text(), self.arm.t_s)
+            if f.kind == "partition":
+                self.partition(f.x or 0.0)
+            elif f.kind == "program-stop":
+                self.stop_program()
+            elif f.kind == "remote-off":
+                self.set_remote(False, stop=bool(f.x))
+            elif f.kind == "freeze":
+                self.freeze()
+
+    def partition(self, seconds: float = 0.0) -> None:
+        """Nothing passes either way (no data out, nothing read in) with every socket left open; the link heals
+        after ``seconds`` (wall time; 0: never). The watchdog sees no inputs and stops the program."""
+        log.warning("network partition%s", f" for {seconds:g} s" if seconds > 0 else "")
+        self.link.clear()
+        if seconds > 0:
+            threading.Timer(seconds, self._heal).start()
+
+    def _heal(self) -> None:
+        log.warning("partition healed")
+        self.link.set()
+
+    def freeze(self) -> None:
+        """The controller process stops (SIGSTOP) until it is continued (SIGCONT) or killed."""
+        for h in logging.getLogger().handlers:
+            h.flush()
+        os.kill(os.getpid(), signal.SIGSTOP)
+
+    def stop_program(self) -> None:
+        """The program stopped from the dashboard or the pendant: motion stops (category 2), no pause to resume."""
+        if self.script is not None:
+            self.script.stop()
+        self.paused = False
+        self.arm.stop(PROGRAM_STOP_DECEL_M_S2)
+
+    def set_remote(self, on: bool, stop: bool = False) -> None:
+        self.remote = bool(on)
+        log.warning("pendant: %s control", "remote" if on else "local")
+        if stop:
+            self.stop_program()
+
     def drop_connections(self, refuse=False):
         """Close every client socket at once (a pulled cable / controller reboot); ``refuse``: keep refusing."""
         log.warning("dropping all connections%s", " and refusing new ones" if refuse else "")
@@ -157,14 +215,15 @@ class SimController:
             with self.lock:
                 for _ in range(steps):
                     self._cycle(check_watchdog=steps == 1)
-                if steps > 1 and self.script is not None:
+                if steps > 1 and self.script is not None and self.link.is_set():
                     # this process was held up: the client's inputs of that time are still unread in the socket,
-                    # so the watchdog's timing restarts (a real controller is never held up)
+                    # so the watchdog's timing restarts (a real controller is never held up). Not during a
+                    # partition: no input can be waiting then.
                     self.script.watchdog_since = self.arm.t_s
                 values = self._snapshot()
             t_next += steps * PERIOD_S
             n += 1
-            for c in list(self.conns):
+            for c in list(self.conns) if self.link.is_set() else ():
                 if c.kind == "rtde" and c.started:
                     for r in c.out_recipes:
                         if n % r.decimation == 0:
@@ -196,6 +255,12 @@ class SimController:
     def _cycle(self, check_watchdog: bool = True):
         arm = self.arm
         arm.step(PERIOD_S)
+        if self.pending:
+            self._fire_due()
+        for f in arm.faults:
+            if f["fired_s"] is not None and not f.get("logged"):
+                f["logged"] = True
+                log.warning("injected fault %s at t=%.3f s", f["kind"], f["fired_s"])
         if check_watchdog:
             self._watchdog()
         if not arm.connected:
@@ -258,7 +323,7 @@ class SimController:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDTIMEO, struct.pack("ll", 1, 0))  # a stuck reader
             sock.settimeout(None)                                                          # cannot stall us
-            c = Conn(sock, kind)
+            c = Conn(sock, kind, gate=self.link)
             self.conns.append(c)
             log.info("%s: client connected", kind)
             self._spawn(self._serve, handler, c)
@@ -281,7 +346,7 @@ class SimController:
     def _script_port(self, c: Conn):
         buf = ""
         while True:
-            data = c.sock.recv(65536)
+            data = c.recv(65536)
             if not data:
                 raise ConnectionError("script client closed")
             programs, buf = split_programs(buf + data.decode("utf-8", "replace"))
@@ -293,6 +358,9 @@ class SimController:
             if self.arm.protective_stopped:
                 log.error("script port: cannot start a program while protective-stopped")
                 return
+            if not self.remote:
+                log.error("script port: program refused, the robot is in local control")
+                return
             if self.script is not None and self.script.running:
                 log.info("script port: a new program replaces the running one")
                 self.script.stop()
@@ -301,8 +369,7 @@ class SimController:
 
     def _dashboard(self, c: Conn):
         c.send(b"Connected: Universal Robots Dashboard Server\n")
-        f = c.sock.makefile("r", encoding="utf-8", newline="\n")
-        for line in f:
+        for line in c.lines():
             cmd = line.strip()
             if cmd:
                 reply = self._dashboard_reply(cmd)
@@ -313,7 +380,7 @@ class SimController:
         raise ConnectionError("dashboard client closed")
 
     _DASHBOARD_FIXED = {
-        "polyscopeversion": POLYSCOPE_VERSION, "is in remote control": "true", "robotmode": "Robotmode: RUNNING",
+        "polyscopeversion": POLYSCOPE_VERSION, "robotmode": "Robotmode: RUNNING",
         "close popup": "closing popup", "close safety popup": "closing safety popup", "power on": "Powering on",
         "power off": "Powering off", "brake release": "Brake releasing", "get robot model": "UR5",
         "get serial number": "20205500000", "quit": "Disconnected", "get loaded program": "Loaded program: <unnamed>",
@@ -328,6 +395,10 @@ class SimController:
             running = self.script is not None and self.script.running
             if low in self._DASHBOARD_FIXED:
                 return self._DASHBOARD_FIXED[low]
+            if low == "is in remote control":
+                return str(self.remote).lower()
+            if low in ("play", "load", "power on", "brake release", "unlock protective stop") and not self.remote:
+                return f"Failed to execute: {low} (the robot is in local control)"
             if low in ("safetystatus", "safetymode"):
                 return f"Safety{low[6:]}: " + ("PROTECTIVE_STOP" if arm.protective_stopped else "NORMAL")
             if low == "programstate":
@@ -336,10 +407,7 @@ class SimController:
             if low == "running":
                 return f"Program running: {str(running).lower()}"
             if low == "stop":
-                if self.script is not None:
-                    self.script.stop()
-                self.paused = False
-                arm.stop(10.0)
+                self.stop_program()
                 return "Stopped"
             if low == "pause" and running:
                 self.script.stop()
@@ -373,6 +441,24 @@ class SimController:
             return "simcontroller: dropping connections"
         if words[:1] == ["time"]:
             return f"simcontroller: t={self.arm.t_s:.3f}"
+        if words[:1] == ["partition"]:
+            seconds = float(words[1]) if len(words) > 1 else 0.0
+            threading.Timer(0.05, self.partition, args=(seconds,)).start()    # after this reply has gone out
+            return "simcontroller: partition"
+        if words[:1] == ["program-stop"]:
+            self.stop_program()
+            return "simcontroller: program stopped"
+        if words[:1] == ["remote"] and words[1:2] in (["on"], ["off"]):
+            self.set_remote(words[1] == "on")
+            return f"simcontroller: remote {words[1]}"
+        if words[:1] == ["state"]:
+            arm, sc = self.arm, self.script
+            x, depth = arm.tip_in_tissue()
+            return "simcontroller: " + json.dumps({
+                "t_s": round(arm.t_s, 4), "moving": arm.is_moving, "program_running": bool(sc and sc.running),
+                "protective_stopped": arm.protective_stopped, "remote": self.remote, "tip_x_m": x,
+                "tip_depth_m": depth, "watchdog_fired_s": self.watchdog_fired_s,
+                "max_contact_force_n": arm.max_contact_force_n})
         return f"could not understand: 'simcontroller {' '.join(words)}'"
 
 
@@ -389,7 +475,9 @@ def main(argv=None) -> int:
                     help="start joint angles (rad, 6 comma-separated; default: parked above the tissue)")
     ap.add_argument("--mesh-m", type=float, default=None, help="fem mesh size (coarser: faster start)")
     ap.add_argument("--force", choices=["fem", "standin"], default="fem", help="tissue force: fem or a stand-in")
-    ap.add_argument("--inject", action="append", default=[], help="fault, e.g. protective-stop-at-depth-m=0.002")
+    ap.add_argument("--inject", action="append", default=[],
+                    help="fault (repeatable; robot.simfaults), e.g. protective-stop-at-depth-m=0.002, "
+                         "partition-after-probes=1, freeze-at-depth-m=0.0015")
     ap.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.x.x.x only)")
     ap.add_argument("--port-offset", type=int, default=0, help="add to every port (ur_rtde itself needs 0)")
     ap.add_argument("--log-level", default="INFO")
@@ -409,8 +497,15 @@ def main(argv=None) -> int:
         print(f"SIMCONTROLLER PORTS UNAVAILABLE: {e}", flush=True)
         return 3
     t0 = time.perf_counter()
+    try:
+        faults = [parse(spec) for spec in a.inject]
+    except ValueError as e:
+        ap.error(f"--inject: {e}")
     ctl.arm = build_truth_arm(a.scene, force=a.force, sensor=a.sensor, seed=a.seed, tissue_pose=a.tissue_pose,
                               q0=a.q0, mesh_m=a.mesh_m, inject=a.inject)
+    for f in faults:
+        if f.on_controller:
+            ctl.schedule(f)
     ctl.port = ArmPort(ctl.arm)
     log.info("physics ready in %.1f s (scene %s, sensor %s)", time.perf_counter() - t0, a.scene, a.sensor)
     done = threading.Event()

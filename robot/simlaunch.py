@@ -8,6 +8,7 @@ of its own (127.a.b.1, see ``rtde_wire.loopback_candidates``), since ur_rtde's p
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -52,6 +53,7 @@ class ControllerProcess:
 
     def stop(self, timeout_s=5.0) -> None:
         if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGCONT)      # a frozen controller (fault injection) takes SIGTERM then
             try:
                 self.proc.stdin.close()
             except OSError:

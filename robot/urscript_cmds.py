@@ -8,13 +8,12 @@ URScript; we execute the same register protocol with the same command ids agains
 
 Command ids and semantics were read from ur_rtde 1.6.5's script (the installed client is the authority).
 
-Also here: the machine the program runs on -- ``ArmPort`` (what the program needs from robot.sim's ArmModel),
-``parse_inject`` (fault specifications; robot.simarm builds the TRUE arm).
+Also here: the machine the program runs on -- ``ArmPort`` (what the program needs from robot.sim's ArmModel).
+Fault injection is robot.simfaults.
 """
 from __future__ import annotations
 
 import logging
-import math
 import re
 
 import numpy as np
@@ -330,51 +329,3 @@ class ArmPort:
     def request_protective_stop(self, reason):
         log.warning("protective stop: %s", reason)
         self.arm.trigger_protective_stop()
-
-
-_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",
-           "force-spike": "force_spike", "nan": "nan", "stall": "stall"}
-
-
-def normalize_inject(spec: str) -> str:
-    """A fault specification in the canonical ``KIND-at-s=T[:X]`` / ``KIND-at-depth-m=D[:X]`` form. Also accepts the
-    in-memory simulator's older ``KIND:T[:X]`` (= ``KIND-at-s=T[:X]``; KIND with ``_`` or ``-``, e.g.
-    ``protective_stop:12.5``). Raises ValueError for anything else."""
-    spec = given = spec.strip()
-    if "-at-" not in spec and "=" not in spec and ":" in spec:
-        kind, _, rest = spec.partition(":")
-        spec = f"{kind.replace('_', '-')}-at-s={rest}"
-    name, _, val = spec.partition("=")
-    kind, _, trigger = name.partition("-at-")
-    kind = kind.replace("_", "-")
-    spec = f"{kind}-at-{trigger}={val}"
-    v, _, x = val.partition(":")
-    try:
-        ok = kind in _FAULTS and trigger in ("s", "depth-m") and math.isfinite(float(v)) and \
-            (not x or math.isfinite(float(x)))
-    except ValueError:
-        ok = False
-    if not ok:
-        raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X] or KIND-at-depth-m=D[:X] (or KIND:T[:X]), KIND one "
-                         f"of {', '.join(_FAULTS)}; see robot.urscript_cmds.parse_inject")
-    return spec
-
-
-def parse_inject(arm, spec: str) -> None:
-    """``KIND-at-s=T[:X]`` (simulated time T) or ``KIND-at-depth-m=D[:X]`` (the first time the tip is D below the
-    tissue surface). KIND: protective-stop; disconnect (every socket closed, new connections refused); drop
-    (sockets closed, reconnecting allowed); force-spike (X newtons along the normal for 10 ms); nan (readings NaN
-    for X seconds, default 10 ms); stall (the current motion freezes). Example: protective-stop-at-depth-m=0.002.
-    ``KIND:T[:X]`` is accepted too (see ``normalize_inject``). Works on any robot.sim.ArmModel."""
-    name, _, val = normalize_inject(spec).partition("=")
-    kind, _, trigger = name.partition("-at-")
-    fault = _FAULTS[kind]
-    v, _, x = val.partition(":")
-    at = float(v)
-    kw = {"magnitude_n": float(x or 0.0), "duration_s": float(x or 0.01) if fault == "nan" else 0.01,
-          "reconnectable": kind == "drop"}
-    if trigger == "s":
-        arm.inject(fault, at_s=at, **kw)
-    else:
-        arm.inject(fault, when=lambda a: a.tip_in_tissue()[1] >= at and 0 <= a.tip_in_tissue()[0] <= a.width_m,
-                   **kw)

@@ -322,3 +322,44 @@ def test_false_returns_are_faults(tmp_path, method):
     rep = run(tmp_path, c, r)
     assert rep.status == "fault" and rep.fault["kind"] == "command_failed" and method in rep.fault["message"]
     assert not arm.is_moving
+
+
+def test_unanswered_command_is_bounded_and_nothing_follows(tmp_path, monkeypatch):
+    """A command that never gets its answer (the link went silent just as it was sent: ur_rtde would wait up to its
+    300 s execution time-out) is abandoned after its deadline; the interrupted probe is recorded, no further command
+    is sent on that link, and the controller's watchdog, no longer kicked, stops the motion."""
+    import threading
+    import time
+
+    from robot import link
+
+    monkeypatch.setattr(link, "COMMAND_TIMEOUT_S", 0.5)
+    arm, c, r = make_sim()
+    hang, sent = threading.Event(), []
+    real_move = c.moveL
+
+    def move(pose, *a):
+        sent.append(("moveL", arm.t_s))
+        if sum(s[0] == "moveL" for s in sent) == 4:     # probe 1's approach: no answer, ever (until the test ends)
+            hang.wait(30)
+        return real_move(pose, *a)
+    c.moveL = move
+    for name in ("stopL", "zeroFtSensor", "reconnect", "setTcp", "setWatchdog"):
+        def spy(*a, _f=getattr(c, name), _n=name):
+            sent.append((_n, arm.t_s))
+            return _f(*a)
+        setattr(c, name, spy)
+    w0 = time.monotonic()
+    try:
+        rep = run(tmp_path, c, r)
+    finally:
+        hang.set()
+    assert time.monotonic() - w0 < 10.0
+    assert rep.status == "fault" and rep.fault["kind"] == "connection_lost", rep.fault
+    assert "got no answer within 0.5 s" in rep.fault["message"]
+    assert not rep.fault["stopped"] and "a command got no answer" in " ".join(rep.fault["notes"])
+    n_at_hang = [i for i, s in enumerate(sent) if s[0] == "moveL"][3]
+    assert sent[n_at_hang + 1:] == [], sent[n_at_hang:]          # nothing sent after the unanswered moveL
+    assert not arm.is_moving and arm.watchdog_fired_s is not None  # the unkicked watchdog ended the program
+    recs = read_records(tmp_path)
+    assert [(x.index, x.status) for x in recs] == [(0, "ok"), (1, "fault")]

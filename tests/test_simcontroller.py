@@ -22,39 +22,22 @@ import pytest
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 
+from app.faultdrill import Q0, TCP, TISSUE, coarse_paper_scene, make_plan, pose_at, run_cell  # noqa: E402
 from core import ur5e  # noqa: E402
-from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
 from fem import contact  # noqa: E402
 from fem import scene as fem_scene  # noqa: E402
 from robot.records import read_records  # noqa: E402
 from robot.simlaunch import PortsUnavailable, start_controller  # noqa: E402
 
-TCP = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
-TISSUE = list(Frames().tissue_pose_base)         # the plan default; the controller is told the same
-
-
-def _pose_at(x_m, height_m):
-    """Base-frame TCP pose with the tip at tissue-frame point (x_m, 0, height_m), tool z along the inward normal."""
-    T = ur5e.pose_to_T(TISSUE)
-    Tt = np.eye(4)
-    Tt[:3, :3] = T[:3, :3] @ ur5e.rotvec_to_matrix([math.pi, 0.0, 0.0])
-    Tt[:3, 3] = T[:3, :3] @ [x_m, 0.0, height_m] + T[:3, 3]
-    return ur5e.T_to_pose(Tt)
-
-
 NORMAL = ur5e.pose_to_T(TISSUE)[:3, 2]           # the tissue's outward normal in the base frame
-# the controller's arm starts with the tip 40 mm above the middle of the tissue
-Q0 = ur5e.ik(_pose_at(0.035, 0.04), ur5e.IK_SEED, TCP)
+_pose_at = pose_at
 assert Q0 is not None, "no joint solution for the start pose above the tissue"
 
 
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory):
     """The paper scene (stone at x = 35 mm) on a coarse mesh: builds in ~1 s instead of ~15 s."""
-    sc = fem_scene.load("paper").with_analysis(mesh_size_m=0.005, surface_refine=2.5)
-    p = tmp_path_factory.mktemp("scene") / "paper_coarse.toml"
-    p.write_text(fem_scene.dump_toml(sc))
-    return p
+    return coarse_paper_scene(tmp_path_factory.mktemp("scene") / "paper_coarse.toml")
 
 
 @pytest.fixture(scope="module")
@@ -86,22 +69,6 @@ def clients(host):
     finally:
         c.disconnect()
         r.disconnect()
-
-
-def make_plan(xs=(0.015, 0.035, 0.055), depth_m=0.003):
-    mo = Motion(approach_height_m=0.003, approach_speed_m_s=0.1, probe_speed_m_s=0.005, dwell_s=0.3,
-                contact_threshold_n=0.01)
-    probes, q = [], Q0
-    for i, x in enumerate(xs):
-        a, d = _pose_at(x, mo.approach_height_m), _pose_at(x, -depth_m)
-        qa = ur5e.ik(a, q, TCP)
-        qi = ur5e.ik(d, qa, TCP)
-        probes.append(Probe(index=i, x_m=x, depth_m=depth_m, predicted_force_n=0.0, approach_pose=a,
-                            indent_pose=d, q_approach_rad=list(qa), q_indent_rad=list(qi)))
-        q = qa
-    prior = fem_scene.load("paper").prior()
-    return Plan(scene=prior.to_dict(), frames=Frames(tissue_pose_base=list(TISSUE), tcp_offset=list(TCP)),
-                limits=Limits(force_limit_n=1.0), motion=mo, probes=probes)
 
 
 def test_watchdog_stops_program_and_motion_when_inputs_stop(scene_file, tmp_path):
@@ -248,11 +215,7 @@ def _records(out):
 def _cell(host, plan, out, timeout_s=90):
     """The robot-cell script as an operator runs it against a controller at an address -- here our simulated one
     (``palpate-cell --host IP``: the very command for URSim or a real arm)."""
-    plan_path = out.parent / f"{out.name}_plan.json"
-    plan.save(plan_path)
-    cmd = [sys.executable, "-m", "app.cell", "--host", host, "--plan", str(plan_path), "--out", str(out), "--yes",
-           "--fresh"]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    return run_cell(host, plan, out, extra=("--fresh",), timeout_s=timeout_s)
 
 
 def test_cell_runs_plan_with_real_client_and_agrees_with_fem(scene_file, truth, tmp_path):

@@ -1,0 +1,123 @@
+"""Fault injection for the simulated arms: one syntax for the in-memory arm and the simulated UR controller.
+
+A fault is ``KIND-at-s=T[:X]`` (at simulated time T), ``KIND-at-depth-m=D[:X]`` (the first time the tip is D below
+the tissue surface, over the tissue) or ``KIND-after-probes=N[:X]`` (the first time the arm has been at rest for
+AT_REST_S after the tip left the tissue N times: between probes, while the driver zeroes the sensor above the
+next). The older ``KIND:T[:X]`` means ``KIND-at-s=T[:X]``; ``_`` may replace ``-`` in KIND.
+
+Arm faults (both simulators; robot.sim.ArmModel fires them):
+  protective-stop   the safety system halts the arm (cleared only from the pendant or the dashboard)
+  disconnect        every socket closed, new connections refused (a controller gone from the network)
+  drop              every socket closed, reconnecting allowed (a pulled cable put back; ur_rtde reconnects by itself)
+  force-spike       X newtons along the normal for 10 ms
+  nan               readings NaN for X seconds (default 0.01)
+  stall             the current motion freezes until stopped or replaced
+Controller faults (the simulated controller only, robot.simcontroller fires them):
+  partition         sockets stay open but nothing passes either way for X seconds (0 or none: for good)
+  freeze            the controller process stops (SIGSTOP) until it is continued or killed
+  program-stop      the program is stopped as from the dashboard or the pendant's stop button
+  remote-off        the pendant is switched to local control (programs from the network refused; X = 1: also
+                    stop the running program, as an operator taking over would)
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+ARM_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",
+              "force-spike": "force_spike", "nan": "nan", "stall": "stall"}
+CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
+TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
+OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
+IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
+AT_REST_S = 0.1                # "at rest": no motion for this long (the driver zeroes the sensor at rest for ~0.2 s)
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    kind: str                  # a key of ARM_FAULTS or one of CONTROLLER_FAULTS
+    trigger: str               # "s" | "depth-m" | "probes"
+    value: float               # the time (s), depth (m) or number of probes
+    x: float | None = None     # the kind's parameter (N, s, ...), if given
+
+    @property
+    def on_controller(self) -> bool:
+        return self.kind in CONTROLLER_FAULTS
+
+    def text(self) -> str:
+        name = next(k for k, v in TRIGGERS.items() if v == self.trigger)
+        val = f"{int(self.value)}" if self.trigger == "probes" else f"{self.value:g}"
+        return f"{self.kind}-{name}={val}" + ("" if self.x is None else f":{self.x:g}")
+
+
+def parse(spec: str) -> FaultSpec:
+    """A fault specification; ValueError (naming it and what is allowed) for anything else."""
+    given = str(spec).strip()
+    s = given
+    if not any(f"-{t}=" in s for t in TRIGGERS) and "=" not in s and ":" in s:
+        kind, _, rest = s.partition(":")
+        s = f"{kind}-at-s={rest}"
+    name, _, val = s.partition("=")
+    trig = next((t for t in TRIGGERS if name.endswith(f"-{t}")), None)
+    kind = name[: -len(trig) - 1].replace("_", "-") if trig else ""
+    v, _, x = val.partition(":")
+    try:
+        value, xv = float(v), (float(x) if x else None)
+        ok = (kind in ARM_FAULTS or kind in CONTROLLER_FAULTS) and trig is not None and math.isfinite(value) and \
+            (xv is None or math.isfinite(xv))
+        if ok and TRIGGERS[trig] == "probes":
+            ok = value >= 1 and value == int(value)
+    except ValueError:
+        ok = False
+    if not ok:
+        raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X] or KIND-after-probes=N[:X] "
+                         f"(N >= 1; or KIND:T[:X]), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS])}; "
+                         f"see robot.simfaults")
+    return FaultSpec(kind, TRIGGERS[trig], value, xv)
+
+
+def normalize(spec: str) -> str:
+    """The canonical text of a fault specification (ValueError if it is not one)."""
+    return parse(spec).text()
+
+
+def trigger(f: FaultSpec):
+    """``when(arm) -> bool`` for a depth or probe-count trigger (stateful: call it once per controller cycle)."""
+    if f.trigger == "depth-m":
+        def when(arm) -> bool:
+            x, depth = arm.tip_in_tissue()
+            return depth >= f.value and 0.0 <= x <= arm.width_m
+        return when
+    if f.trigger == "probes":
+        state = {"inside": False, "exits": 0, "still_since": None}
+
+        def when(arm) -> bool:
+            x, depth = arm.tip_in_tissue()
+            if 0.0 <= x <= arm.width_m and depth >= IN_TISSUE_M:
+                state["inside"] = True
+            elif state["inside"] and depth < OUT_OF_TISSUE_M:
+                state["inside"] = False
+                state["exits"] += 1
+            if arm.is_moving or state["exits"] < f.value:
+                state["still_since"] = None
+                return False
+            if state["still_since"] is None:
+                state["still_since"] = arm.t_s
+            return arm.t_s - state["still_since"] >= AT_REST_S
+        return when
+    at = f.value
+    return lambda arm: arm.t_s >= at
+
+
+def inject_arm(arm, f: FaultSpec) -> None:
+    """Schedule an arm fault on a robot.sim.ArmModel."""
+    if f.on_controller:
+        raise ValueError(f"fault {f.text()!r} needs the simulated controller (palpate-cell --sim controller)")
+    kind = ARM_FAULTS[f.kind]
+    x = f.x
+    kw = {"magnitude_n": float(x or 0.0), "duration_s": float(x or 0.01) if kind == "nan" else 0.01,
+          "reconnectable": f.kind == "drop"}
+    if f.trigger == "s":
+        arm.inject(kind, at_s=f.value, **kw)
+    else:
+        arm.inject(kind, when=trigger(f), **kw)
