@@ -17,6 +17,7 @@ import subprocess
 import sys
 import time
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
 
 import numpy as np
@@ -110,7 +111,8 @@ class DrillResult:
     statuses: dict                     # probe index -> statuses in probes.jsonl order
     raw_samples: int                   # samples kept for the interrupted probe
     fault_at_s: float | None           # controller time the fault was injected
-    detected_at_s: float | None        # controller time the driver saw it (fault.controller_time_s)
+    detected_at_s: float | None        # controller time of the driver's last reading (fault.controller_time_s)
+    reaction_s: float | None           # wall time from the injection (controller log) to the driver's fault
     watchdog_at_s: float | None        # controller time the RTDE watchdog stopped the program, if it did
     final_state: dict | None           # the controller's state after the cell ended (None: could not be asked)
     stdout: str = ""
@@ -147,8 +149,17 @@ def controller_state(host: str, timeout_s: float = 3.0) -> dict | None:
 
 
 def _log_time(log: str, pattern: str) -> float | None:
+    """The controller time (``at t=... s``) of the first log line matching ``pattern``."""
     m = re.search(pattern + r".*? at t=([0-9.]+) s", log)
     return float(m.group(1)) if m else None
+
+
+def _log_unix_time(log: str, pattern: str) -> float | None:
+    """The wall time (Unix s) the controller logged the first line matching ``pattern`` (same machine clock)."""
+    m = re.search(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d),(\d{3}) .*" + pattern, log, re.M)
+    if not m:
+        return None
+    return datetime.strptime(m.group(1), "%Y-%m-%d %H:%M:%S").timestamp() + int(m.group(2)) / 1e3
 
 
 def run_cell(host: str, plan: Plan, out: Path, extra=(), timeout_s: float = 120.0) -> subprocess.CompletedProcess:
@@ -191,7 +202,10 @@ def run_drill(name: str, workdir: Path, scene_path: Path | None = None) -> Drill
     raw = sorted((out / "raw").glob(f"probe_{drill.interrupted:03d}*.npz")) if (out / "raw").exists() else []
     n_raw = len(np.load(raw[-1])["time_s"]) if raw else 0
     fault = run.get("fault") or {}
+    t_inj = _log_unix_time(log, "injected fault")
     return DrillResult(name, p.returncode, wall, fault, statuses, n_raw,
                        fault_at_s=_log_time(log, "injected fault"), detected_at_s=fault.get("controller_time_s"),
+                       reaction_s=(fault["detected_unix_s"] - t_inj if fault.get("detected_unix_s") and
+                                   t_inj is not None else None),
                        watchdog_at_s=_log_time(log, "RTDE watchdog: no update"), final_state=state,
                        stdout=p.stdout, stderr=p.stderr)

@@ -24,14 +24,14 @@ def _row(name, results) -> str:
     d = DRILLS[name]
     kinds = sorted({r["fault"].get("kind", "none") for r in results})
     walls = [r["wall_s"] for r in results]
-    det = [r["detection_s"] for r in results if r["detection_s"] is not None]
+    det = [r["reaction_s"] for r in results if r.get("reaction_s") is not None]
     ok = all(r["returncode"] == 1 and r["fault"].get("kind") in d.kinds and r["wall_s"] <= DRILL_BOUND_S
              and all(len(v) == 1 for v in r["statuses"].values()) and r["raw_samples"] > 0 for r in results)
-    stopped = sorted({"host stopL" if r["fault"].get("stopped") else
-                      ("controller (protective stop)" if r["fault"].get("kind") == "protective_stop" else
-                       "controller watchdog") for r in results})
+    stopped = sorted({"host stopL" if r["fault"].get("stopped") and r["fault"].get("kind") != "protective_stop"
+                      else ("controller (protective stop)" if r["fault"].get("kind") == "protective_stop" else
+                            "controller watchdog") for r in results})
     retracted = sum(bool(r["fault"].get("retracted")) for r in results)
-    det_txt = f"{1e3 * max(det):.0f} ms" if det else "-"
+    det_txt = f"{1e3 * statistics.median(det):.0f} ms (max {1e3 * max(det):.0f})" if det else "-"
     return (f"| {d.what} | {', '.join(kinds)} | {max(walls):.1f} s (median {statistics.median(walls):.1f}) | "
             f"{det_txt} | {', '.join(stopped)} | {retracted}/{len(results)} | {'yes' if ok else 'NO'} |")
 
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
                   flush=True)
         everything[name] = results
         rows.append(_row(name, results))
-    md = ("| fault | reported as | cell process ends within | detected (controller time) | motion stopped by | "
+    md = ("| fault | reported as | cell process ends within | driver's fault after injection | motion stopped by | "
           "retracted | records kept, each index once, within 30 s |\n|---|---|---|---|---|---|---|\n"
           + "\n".join(rows) + "\n")
     (a.out / "fault_table.md").write_text(md)

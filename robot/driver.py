@@ -438,7 +438,7 @@ class Driver(Recovery):
                     FaultKind.INTERRUPTED if isinstance(e, KeyboardInterrupt) else FaultKind.SAFETY_VIOLATION)
                 rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
                 rep.fault = {"kind": kind, "message": str(e) or "Ctrl-C", "probe_index": getattr(current, "index",
-                             None), "controller_time_s": self.ts}
+                             None), "controller_time_s": self.ts, "detected_unix_s": time.time()}
                 if current is not None:     # on disk first: a hang in safe_state() must not lose them
                     raw = self.samples.arrays()
                     st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT

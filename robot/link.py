@@ -5,13 +5,13 @@ import threading
 
 ROBOT_MODE_RUNNING = 7          # ur_rtde getRobotMode(): powered on, brakes released
 COMMAND_TIMEOUT_S = 2.0         # a command ur_rtde sends waits for the controller's answer (a few ms on a live link)
-SLOW_COMMAND_TIMEOUT_S = 10.0   # reuploadScript, reconnect, disconnect: ur_rtde's own waits are up to 5 s
+SLOW_COMMAND_TIMEOUT_S = 10.0   # reuploadScript, reconnect, stopScript: ur_rtde's own waits are up to 5 s
 # ur_rtde calls that wait for the controller (each is bounded with call_within); the getters return the last values
 # received and initPeriod/waitPeriod are local, so those never block
 BLOCKING_CALLS = frozenset({"moveL", "moveJ", "stopL", "stopJ", "speedStop", "zeroFtSensor", "setTcp", "setPayload",
                             "setWatchdog", "reuploadScript", "reconnect", "stopScript", "disconnect",
                             "triggerProtectiveStop"})
-SLOW_CALLS = frozenset({"reuploadScript", "reconnect", "disconnect", "stopScript"})
+SLOW_CALLS = frozenset({"reuploadScript", "reconnect", "stopScript"})
 
 
 class CallTimeout(RuntimeError):
@@ -106,12 +106,12 @@ def connect(host: str):
 
 
 def disconnect(*interfaces) -> None:
-    """Close ur_rtde interfaces that are still connected, each within SLOW_COMMAND_TIMEOUT_S (ur_rtde 1.6.5: a call
-    after a failed reconnect may block, so a lost link is left alone)."""
+    """Close ur_rtde interfaces that are still connected, each within COMMAND_TIMEOUT_S (ur_rtde 1.6.5: a call
+    after a failed reconnect may block, so a lost link is left alone; the process's exit closes what is left)."""
     for iface in interfaces:
         try:
             if iface.isConnected():
-                call_within(iface.disconnect, (), SLOW_COMMAND_TIMEOUT_S)
+                call_within(iface.disconnect, (), COMMAND_TIMEOUT_S)
         except RuntimeError:        # CallTimeout included: the process ends anyway
             pass
 

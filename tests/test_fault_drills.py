@@ -57,6 +57,7 @@ def test_drill_ends_safe_with_records_kept(name, tmp_path, scene_path):
     # the fault was seen, and soon: the driver's fault carries the controller time of its last reading (for a silent
     # link that is the last packet before the fault, a period or two before it)
     assert res.fault_at_s is not None and res.detection_s is not None and -0.1 <= res.detection_s < 1.0, res
+    assert res.reaction_s is not None and 0 <= res.reaction_s < 2.0, res     # wall time, injection to the fault
     # the motion stopped: asked of the controller where it still answers; a partitioned one shows it in its log
     if res.final_state is not None:
         assert not res.final_state["moving"], res.final_state
