@@ -26,7 +26,7 @@ from pathlib import Path
 
 from app.commands.output import write_json
 from app.errors import UsageError, guarded
-from app.isolate import ChildDied, run_in_child
+from app.isolate import ChildDied, ChildTimeout, run_in_child
 from app.options import (
     check_output_dir,
     check_output_file,
@@ -38,7 +38,7 @@ from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
-from robot.link import LOCAL_CONTROL, connect, end_session, remote_control
+from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
 from robot.records import done_indices, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
@@ -246,11 +246,16 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
         truth = truth_scene(plan, args.truth) if args.force_model == "fem" else None
         ctl = start_controller(scene=truth, sensor=args.sensor, seed=args.seed,
                                inject=args.inject, force=args.force_model, tissue_pose=plan.frames.tissue_pose_base,
-                               mesh_m=args.sim_mesh_m, host="auto", log_path=out / "simcontroller.log")
+                               mesh_m=args.sim_mesh_m, tool=plan.frames.tcp_offset, host="auto",
+                               log_path=out / "simcontroller.log")
     except PortsUnavailable as e:
         raise ControllerPortsUnavailable(str(e)) from None
     with ctl:
         return _run_host(plan, args, out, cfg, ctl.host)
+
+
+CONNECT_TIMEOUT_S = 20.0        # ur_rtde connects in well under a second; its constructors wait for good on a
+                                # controller that accepts connections but never answers (frozen)
 
 
 class NotConnected(RuntimeError):
@@ -261,32 +266,43 @@ def _run_host(plan: Plan, args, out: Path, cfg: DriverConfig, host: str) -> RunR
     """Connect ur_rtde and run, in a child process (app.isolate): if the vendor client crashes, the records are on
     disk and this process still reports the fault."""
     try:
-        tag, value = run_in_child(_linked_session, plan, args, out, cfg, host)
+        tag, value = run_in_child(_linked_session, plan, args, out, cfg, host, start_timeout_s=CONNECT_TIMEOUT_S)
+    except ChildTimeout:
+        raise NotConnected(f"no answer from the controller at {host} within {CONNECT_TIMEOUT_S:g} s while "
+                           f"connecting (frozen, overloaded, or not a UR controller); nothing was sent") from None
     except ChildDied as e:
-        return _crash_report(out, e)
+        # the client is gone; what it left on the controller may be a program ur_rtde uploaded on its own (no
+        # watchdog): stop it through the dashboard (always safe)
+        stopped = dashboard_stop(host)
+        return _crash_report(out, e, program_stopped=stopped)
     if tag == "not_connected":
         raise NotConnected(value)
     return value
 
 
-def _linked_session(plan: Plan, args, out: Path, cfg: DriverConfig, host: str):
+def _linked_session(started, plan: Plan, args, out: Path, cfg: DriverConfig, host: str):
     """(In the child.) Connect, run, and end the session: a clean end stops the control script; the link is always
-    closed, every call within its deadline."""
+    closed, every call within its deadline. ``started()`` tells the parent the connection is made."""
     try:
         c, r = connect(host)
     except RuntimeError as e:
         return "not_connected", str(e)
+    started()
     clean = False
     try:
+        rep = None
         rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress,
                        diagnose=lambda: LOCAL_CONTROL if remote_control(host) is False else None)
         clean = rep.status == "ok"
         return "report", rep
     finally:
-        end_session(c, r, clean)
+        # after a silent link nothing more is sent, not even a disconnect (a call may still be pending on it):
+        # the child's exit closes the sockets
+        if not (rep is not None and rep.fault and rep.fault.get("silent_link")):
+            end_session(c, r, clean)
 
 
-def _crash_report(out: Path, err: ChildDied) -> RunReport:
+def _crash_report(out: Path, err: ChildDied, program_stopped: bool | None = None) -> RunReport:
     """The run's report when the link's process died: what its driver wrote to run.json, with the crash as the
     fault (the fault the driver was handling, if any, is kept beside it)."""
     run_json = out / "run.json"
@@ -294,11 +310,17 @@ def _crash_report(out: Path, err: ChildDied) -> RunReport:
     earlier = d.get("fault")
     fault = {"kind": FaultKind.CLIENT_CRASHED, "message": f"{err}: the ur_rtde client crashed",
              "probe_index": (earlier or {}).get("probe_index"), "controller_time_s": d.get("controller_time_s"),
+             "detected_unix_s": (earlier or {}).get("detected_unix_s"),
              "stopped": False, "retracted": False,
              "notes": ["no command could be sent after the crash; the last command was a bounded moveL (target no "
                        "deeper than the planned depth) and the controller's RTDE watchdog, no longer kicked, stops "
                        "the program and the motion; check the arm on the pendant before resuming"]
-             + ([f"the driver was handling: {earlier.get('kind')}: {earlier.get('message')}"] if earlier else [])}
+             + ([f"the driver was handling: {earlier.get('kind')}: {earlier.get('message')}"] if earlier else [])
+             + ({True: ["the control program was then stopped through the dashboard"],
+                 False: ["the dashboard did not answer: stop the program on the pendant"]}.get(program_stopped, []))}
+    fault["stopped"] = bool(program_stopped)
+    if program_stopped:
+        fault["stopped_by"] = "the dashboard's stop"
     d.update(status=RunStatus.FAULT, fault=fault, earlier_fault=earlier)
     out.mkdir(parents=True, exist_ok=True)
     tmp = run_json.with_name("run.json.tmp")

@@ -93,11 +93,11 @@ DRILLS = {
                            "protective stop during a descent"),
     "pstop-rest": Drill(("protective-stop-after-probes=1",), 1, frozenset({"protective_stop"}),
                         "protective stop at rest between probes"),
-    "program-stop-descent": Drill((f"program-stop-{_D}",), 0, frozenset({"command_failed"}),
+    "program-stop-descent": Drill((f"program-stop-{_D}",), 0, frozenset({"program_stopped"}),
                                   "program stopped from the dashboard during a descent"),
-    "program-stop-rest": Drill(("program-stop-after-probes=1",), 1, frozenset({"command_failed"}),
+    "program-stop-rest": Drill(("program-stop-after-probes=1",), 1, frozenset({"program_stopped"}),
                                "program stopped from the dashboard at rest"),
-    "remote-off-rest": Drill(("remote-off-after-probes=1:1",), 1, frozenset({"command_failed"}),
+    "remote-off-rest": Drill(("remote-off-after-probes=1:1",), 1, frozenset({"program_stopped"}),
                              "pendant switched to local control (program stopped) at rest"),
 }
 
@@ -179,7 +179,7 @@ def run_drill(name: str, workdir: Path, scene_path: Path | None = None) -> Drill
     scene_path = scene_path or coarse_paper_scene(workdir / "paper_coarse.toml")
     log_path = workdir / "controller.log"
     out = workdir / "run"
-    ctl = start_controller(scene=str(scene_path), q0=Q0, tissue_pose=TISSUE, host="auto", log_path=log_path,
+    ctl = start_controller(scene=str(scene_path), q0=Q0, tissue_pose=TISSUE, tool=TCP, host="auto", log_path=log_path,
                            inject=list(drill.inject))
     try:
         w0 = time.monotonic()

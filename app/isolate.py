@@ -7,9 +7,13 @@ reports what happened, from those files, and exits with a fault instead of a cra
 """
 from __future__ import annotations
 
+import ctypes
 import multiprocessing as mp
+import os
 import signal
 import traceback
+
+PR_SET_PDEATHSIG = 1
 
 
 class ChildDied(RuntimeError):
@@ -36,10 +40,26 @@ class ChildError(RuntimeError):
         self.type_name, self.trace = type_name, trace
 
 
+class ChildTimeout(RuntimeError):
+    """The child did not report its start within the deadline; it was killed."""
+
+
+def _die_with_parent() -> None:
+    """Linux: SIGINT to this process when its parent dies (the driver then records, stops and ends), so a run is
+    never left going with nobody to report it."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGINT)
+    except (OSError, AttributeError):
+        pass
+
+
 def _child(conn, fn, args):
     signal.signal(signal.SIGINT, signal.default_int_handler)   # Ctrl-C reaches the driver (it records, stops)
+    signal.signal(signal.SIGTERM, signal.default_int_handler)  # so does a supervisor's SIGTERM
+    _die_with_parent()
     try:
-        conn.send(("ok", fn(*args)))
+        conn.send(("ok", fn(lambda: conn.send(("started", None)), *args)))
     except BaseException as e:            # noqa: BLE001 -- every outcome goes back to the parent
         conn.send(("error", (type(e).__name__, str(e), traceback.format_exc())))
     finally:
@@ -47,24 +67,37 @@ def _child(conn, fn, args):
     # multiprocessing ends a forked child with os._exit: threads ur_rtde leaves behind cannot hold up the exit
 
 
-def run_in_child(fn, *args):
-    """``fn(*args)`` in a forked child; its return value (picklable), or ChildError for an exception it raised, or
-    ChildDied if it died. Ctrl-C is left to the child (the parent ignores it while waiting)."""
+def run_in_child(fn, *args, start_timeout_s: float | None = None):
+    """``fn(started, *args)`` in a forked child; its return value (picklable), or ChildError for an exception it
+    raised, or ChildDied if it died. ``fn`` calls ``started()`` once its unbounded start is over (ur_rtde's
+    constructors have no time-out of their own against a controller that accepts but never answers); without that
+    within ``start_timeout_s`` the child is killed and ChildTimeout raised. Ctrl-C is left to the child (the parent
+    ignores it while waiting)."""
     ctx = mp.get_context("fork")
     parent_end, child_end = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(child_end, fn, args), daemon=False)
     old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    old_term = signal.getsignal(signal.SIGTERM)
     try:
         proc.start()
+        # a supervisor's SIGTERM to this process reaches the child as Ctrl-C: it records and stops
+        signal.signal(signal.SIGTERM, lambda *_: proc.is_alive() and os.kill(proc.pid, signal.SIGINT))
         child_end.close()
+        if start_timeout_s is not None and not parent_end.poll(start_timeout_s):
+            proc.kill()
+            proc.join()
+            raise ChildTimeout(f"no start within {start_timeout_s:g} s")
         try:
             kind, value = parent_end.recv()
+            while kind == "started":
+                kind, value = parent_end.recv()
         except EOFError:
             proc.join()
             raise ChildDied(proc.exitcode) from None
         proc.join()
     finally:
         signal.signal(signal.SIGINT, old)
+        signal.signal(signal.SIGTERM, old_term)
     if kind == "error":
         raise ChildError(*value)
     return value

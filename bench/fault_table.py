@@ -27,9 +27,10 @@ def _row(name, results) -> str:
     det = [r["reaction_s"] for r in results if r.get("reaction_s") is not None]
     ok = all(r["returncode"] == 1 and r["fault"].get("kind") in d.kinds and r["wall_s"] <= DRILL_BOUND_S
              and all(len(v) == 1 for v in r["statuses"].values()) and r["raw_samples"] > 0 for r in results)
-    stopped = sorted({"host stopL" if r["fault"].get("stopped") and r["fault"].get("kind") != "protective_stop"
-                      else ("controller (protective stop)" if r["fault"].get("kind") == "protective_stop" else
-                            "controller watchdog") for r in results})
+    stopped = sorted({"controller (protective stop)" if r["fault"].get("kind") == "protective_stop" else
+                      "host stopL" if r["fault"].get("stopped_by") == "stopL" else
+                      "controller (program ended)" if r["fault"].get("stopped") else "controller watchdog"
+                      for r in results})
     retracted = sum(bool(r["fault"].get("retracted")) for r in results)
     det_txt = f"{1e3 * statistics.median(det):.0f} ms (max {1e3 * max(det):.0f})" if det else "-"
     return (f"| {d.what} | {', '.join(kinds)} | {max(walls):.1f} s (median {statistics.median(walls):.1f}) | "

@@ -319,6 +319,7 @@ class FaultKind(StrEnum):
     SAFETY_VIOLATION = "safety_violation"
     INTERRUPTED = "interrupted"
     CLIENT_CRASHED = "client_crashed"  # the process holding the ur_rtde link died (app.isolate)
+    PROGRAM_STOPPED = "program_stopped"  # an operator stopped the control program (pendant, dashboard, local mode)
 
 
 @dataclass

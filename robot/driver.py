@@ -43,7 +43,7 @@ from core.contracts import (
     ProbeStatus,
     RunStatus,
 )
-from robot.link import CallTimeout, call_within, deadline_for
+from robot.link import CallTimeout, CallWorker, deadline_for
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
 from robot.safety import (
@@ -84,6 +84,11 @@ class DriverConfig:
                                        # and the motion. Kicked every period. This is the lowest rate; 0: off.
     max_unsupervised_travel_m: float = 4e-4   # ... and the rate is raised so that a probe moving at its speed
                                        # travels at most this far before that stop (see watchdog_rate_hz)
+
+
+PROGRAM_STOPPED_BY_OPERATOR = ("the control program was stopped from the pendant or the dashboard (or the pendant "
+                               "was switched to local control), not by its watchdog: the driver does not restart "
+                               "what an operator stopped")
 
 
 def watchdog_rate_hz(cfg: DriverConfig, probe_speed_m_s: float) -> float:
@@ -155,6 +160,8 @@ class Driver(Recovery):
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
         self.program_restarts = 0
         self.link_dead: str = ""        # why the link is taken for silent (a command got no answer)
+        self.worker = CallWorker()      # every waiting ur_rtde call, one at a time, each with a deadline
+        self.last_kick_ts = None        # controller time of the last accepted watchdog kick
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -165,14 +172,14 @@ class Driver(Recovery):
         if deadline is not None and self.link_dead:
             raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name} not sent: {self.link_dead}")
         try:
-            return fn(*args) if deadline is None else call_within(fn, args, deadline)
+            return fn(*args) if deadline is None else self.worker.call(fn, args, deadline)
         except CallTimeout as e:
             self.link_dead = f"{e} (a silent link: a network partition or a frozen controller)"
             raise ProbeFault(FaultKind.CONNECTION_LOST, self.link_dead) from None
         except RuntimeError as e:
             raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name}: {e}") from None
 
-    def _require(self, ok, what: str) -> None:
+    def _require(self, ok, what: str, program: bool = False) -> None:
         """A command's bool must be True. If not, say why: a protective stop (the receive data may lag the control
         interface's by a period or two, so it is watched for a few periods), a link down or silent (ur_rtde's
         control interface may notice a silent link first, and refuse), or else the command failed."""
@@ -185,6 +192,8 @@ class Driver(Recovery):
             if not (self._connected(self.c) and self._connected(self.r)):
                 raise ProbeFault(FaultKind.CONNECTION_LOST, f"{what} returned {ok!r}: ur_rtde reports no connection")
             if k >= 10 and self._call(self.r.getTimestamp) != ts0:
+                if program and self._call(self.c.isProgramRunning) is False and not self._watchdog_may_have_fired():
+                    raise ProbeFault(FaultKind.PROGRAM_STOPPED, PROGRAM_STOPPED_BY_OPERATOR)
                 raise ProbeFault(FaultKind.COMMAND_FAILED, f"{what} returned {ok!r}")
             self._call(self.c.waitPeriod, self._call(self.c.initPeriod))
         self.stale = self.cfg.stale_periods          # safe_state: a silent link, send nothing
@@ -264,6 +273,8 @@ class Driver(Recovery):
             raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the arm is protective-stopped: clear it on the pendant first")
         self.watchdog_on = False
         if self._call(c.isProgramRunning) is not True:
+            if not self._watchdog_may_have_fired():
+                raise ProbeFault(FaultKind.PROGRAM_STOPPED, PROGRAM_STOPPED_BY_OPERATOR)
             self._require(self._call(c.reuploadScript), "reuploadScript")
             self._loop(5.0, lambda s: True if self._call(c.isProgramRunning) is True else None, strict=False,
                        what="restart of the control script")
@@ -277,8 +288,23 @@ class Driver(Recovery):
     def _kick(self) -> None:
         """Feed the watchdog. Not while the link is down -- that is the point: the controller then stops the
         motion within 1/watchdog_hz, whatever the driver can or cannot send."""
-        if self.watchdog_on and self._connected(self.c):
-            self._require(self._call(self.c.kickWatchdog), "kickWatchdog (the control program has stopped)")
+        # only while the data are fresh (a kick on a dead link waits for ur_rtde's ready time-out, seconds); the
+        # margin of 25 periods keeps a host or simulator held up for a moment from skipping kicks
+        if self.watchdog_on and self._connected(self.c) and self.stale < self.cfg.stale_periods // 4:
+            ok = self._call(self.c.kickWatchdog)
+            if ok is True:
+                self.last_kick_ts = self.ts
+                return
+            self._require(ok, "kickWatchdog (the control program has stopped)", program=True)
+
+    def _watchdog_may_have_fired(self) -> bool:
+        """Could the program have been ended by its RTDE watchdog (no accepted kick for 1/rate of controller
+        time), rather than by an operator (the pendant's or the dashboard's stop, local control)? Only then may the
+        driver upload it again."""
+        if self.last_kick_ts is None or self.watchdog_hz <= 0:
+            return True
+        now = self._call(self.r.getTimestamp)
+        return not isinstance(now, (int, float)) or now - self.last_kick_ts >= 1.0 / self.watchdog_hz - 0.01
 
     def _stop(self) -> None:
         self._call(self.c.stopL, self.cfg.stop_decel_m_s2)
@@ -414,6 +440,7 @@ class Driver(Recovery):
                     if p.index in done:
                         continue
                     current = p
+                    self.samples = _Samples()       # a fault before the probe starts keeps none of the last one's
                     if p.index in bad:
                         rep.records.append(log.write_probe(ProbeRecord(index=p.index, x_m=p.x_m,
                                                                        status=ProbeStatus.REJECTED,
@@ -423,13 +450,13 @@ class Driver(Recovery):
                     self._ensure_program()
                     rec, raw = self._probe(p)
                     rec = log.write_probe(rec, raw)
+                    current = None          # on disk: a fault raised from here on must not write it again
                     rep.records.append(rec)
                     rep.n_ok += rec.status == ProbeStatus.OK
                     rep.n_force_limit += rec.status == ProbeStatus.FORCE_LIMIT
                     consecutive = consecutive + 1 if rec.status == ProbeStatus.FORCE_LIMIT else 0
                     if progress:
                         progress(rec, len(rep.records), pre["n_to_run"])
-                    current = None          # on disk: a fault raised from here on must not write it again
                     if consecutive >= cfg.max_consecutive_force_stops:
                         raise ProbeFault(FaultKind.FORCE_LIMIT, f"{consecutive} consecutive probes stopped at the "
                                                                 f"force limit: check the plan and the tissue")

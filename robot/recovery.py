@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from robot.link import SLOW_COMMAND_TIMEOUT_S, call_within
+from robot.link import SLOW_COMMAND_TIMEOUT_S
 from robot.safety import SafetyViolation
 
 
@@ -47,7 +47,7 @@ class Recovery:
         for iface in (self.c, self.r):
             if not self._connected(iface):
                 try:
-                    ok = ok and call_within(iface.reconnect, (), SLOW_COMMAND_TIMEOUT_S) is True
+                    ok = ok and self.worker.call(iface.reconnect, (), SLOW_COMMAND_TIMEOUT_S) is True
                 except (RuntimeError, AttributeError, SafetyViolation):     # CallTimeout too
                     ok = False
         out["notes"].append(f"no connection for {self.cfg.reconnect_after_s:g} s; reconnect() "
@@ -73,6 +73,7 @@ class Recovery:
         silent = self.link_dead or (self.stale >= self.cfg.stale_periods and self._connected(self.c)
                                     and self._connected(self.r))
         if silent:
+            out["silent_link"] = True       # the session's end sends nothing either (no disconnect)
             # A silent link (controller data stale although ur_rtde reports a connection): a command now would wait
             # up to ur_rtde's execution time-out (300 s) for an answer that never comes. Send nothing; the driver
             # no longer kicks the RTDE watchdog, so the controller stops the program and the motion within 1/rate.
@@ -95,8 +96,10 @@ class Recovery:
         # retract)
         for attempt in range(2):
             try:
-                self._stop()
+                running = self._call(self.c.isProgramRunning) is True
+                self._stop()              # ur_rtde's stopL returns nothing; a lost link raises
                 out["stopped"] = True
+                out["stopped_by"] = "stopL" if running else "the controller (its program had already ended)"
                 break
             except ProbeFault as f:
                 out["notes"].append(f"stopL failed: {f.message}")
@@ -109,22 +112,19 @@ class Recovery:
         if not self._connected(self.r) and not self._await_link(out):
             out["notes"].append("retract skipped: the receive interface did not come back")
             return out
+        # The program may be a new one (ur_rtde's own reconnect, an upload after the watchdog's stop) with the
+        # flange as TCP: the pose means the tip only once the TCP is set again, so configure first, then read.
         try:
-            s = self._read(strict=False)
-        except (ProbeFault, SafetyViolation) as e:
-            out["notes"].append(f"retract skipped: no reading of the arm's pose ({e})")
-            return out
-        if not self._needs_retract(s["depth"], s["x"]):
-            out["retracted"] = True
-            out["notes"].append("the tip is already clear of the tissue: no retract needed")
-            return out
-        try:       # the program may be a new one (reconnect, ur_rtde's own, the watchdog's stop): TCP first
             self._ensure_program()
         except (ProbeFault, SafetyViolation) as e:
-            out["notes"].append(f"retract skipped: the control program could not be configured ({e})")
+            out["notes"].append(f"retract skipped: the control program could not be configured ({e}); the reported "
+                                f"pose is not the tip's: check on the pendant whether the tip is still in the tissue "
+                                f"before moving the arm")
             return out
         try:
             s = self._read(strict=False)
+            if not self._needs_retract(s["depth"], s["x"]):
+                out["notes"].append("the tip is already clear of the tissue: no retract needed")
             out["retracted"] = self._retract_from(s["pose"], s["depth"], s["x"])
         except (ProbeFault, SafetyViolation) as e:
             out["notes"].append(f"retract failed: {e}")

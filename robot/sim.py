@@ -63,7 +63,7 @@ class ArmModel:
 
     def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
                  sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
-                 latency_s=0.002, safety_force_n=30.0, cache=True):
+                 latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None):
         f = force_model or (lambda x, d: 0.0)
         self.force_model = CachedForce(f) if cache else f
         self.T_tissue = ur5e.pose_to_T(tissue_pose_base)
@@ -73,7 +73,10 @@ class ArmModel:
         self.period_s, self.safety_force_n = period_s, safety_force_n
         self.t_s = 0.0
         self.q = np.array(ur5e.Q_HOME if q0 is None else q0, dtype=float)
-        self.tcp_offset = list(tcp_offset)
+        self.tcp_offset = list(tcp_offset)          # the TCP the program set (what poses are reported for)
+        # the probe's tip as mounted on the flange: the physics (contact) is at the tip whatever TCP is set
+        self.tool_offset = list(tcp_offset if tool_offset is None else tool_offset)
+        self._T_tool = ur5e.pose_to_T(self.tool_offset)
         self.T_tcp = ur5e.fk_flange(self.q) @ ur5e.pose_to_T(self.tcp_offset)
         self._q_stale = False
         self.motion: _Motion | None = None
@@ -115,8 +118,12 @@ class ArmModel:
         return self.q.copy()
 
     def tip_in_tissue(self) -> tuple[float, float]:
-        """(x_m, depth_m) of the tip in the tissue frame; depth > 0 below the undeformed surface."""
-        p = self.T_tissue[:3, :3].T @ (self.T_tcp[:3, 3] - self.T_tissue[:3, 3])
+        """(x_m, depth_m) of the probe's physical tip (``tool_offset``) in the tissue frame; depth > 0 below the
+        undeformed surface."""
+        T_tip = self.T_tcp
+        if self.tool_offset != self.tcp_offset:
+            T_tip = self.T_tcp @ np.linalg.inv(ur5e.pose_to_T(self.tcp_offset)) @ self._T_tool
+        p = self.T_tissue[:3, :3].T @ (T_tip[:3, 3] - self.T_tissue[:3, 3])
         return float(p[0]), float(-p[2])
 
     def contact_force_n(self) -> float:

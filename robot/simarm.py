@@ -48,7 +48,7 @@ def start_configuration(tissue_pose, width_m: float, tcp_offset=None, above_pose
 
 def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor: str = "nano17", seed: int = 0,
                     tissue_pose=None, tcp_offset=None, start_above_pose=None, q0=None, mesh_m: float | None = None,
-                    inject=()) -> ArmModel:
+                    inject=(), tool_offset=None) -> ArmModel:
     """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
     sensor model and any injected faults (robot.simfaults syntax; controller faults are left to
     the simulated controller)."""
@@ -62,6 +62,8 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     if q0 is None:
         q0 = start_configuration(tissue_pose, width, tcp_offset, start_above_pose)
     kw = {} if tcp_offset is None else {"tcp_offset": list(tcp_offset)}
+    if tool_offset is not None:            # the probe as mounted (default: the TCP the arm starts with)
+        kw["tool_offset"] = list(tool_offset)
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
                    q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
     for spec in inject:

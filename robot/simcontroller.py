@@ -29,6 +29,7 @@ import time
 
 import numpy as np
 
+from core.contracts import Frames
 from robot import rtde_wire as W
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
@@ -46,6 +47,7 @@ POLYSCOPE_VERSION = "URSoftware 5.11.0.108249 (Jul 13 2021)"
 ROBOT_MODE_RUNNING, SAFETY_NORMAL, SAFETY_PROTECTIVE_STOP = 7, 1, 3
 RUNTIME_STOPPED, RUNTIME_PLAYING, RUNTIME_PAUSED = 1, 2, 4
 READY_LINE = "SIMCONTROLLER READY"
+INSTALLATION_TCP = [0.0] * 6     # the installation's TCP: the flange (ur_rtde's setTcp changes it per program)
 
 
 class PortsUnavailable(RuntimeError):
@@ -365,6 +367,7 @@ class SimController:
                 log.info("script port: a new program replaces the running one")
                 self.script.stop()
             self.paused = False
+            self.arm.set_tcp(INSTALLATION_TCP)   # a new program starts with the installation's TCP (the flange)
             self.script = ControlScript(self.port, text, self.outputs)
 
     def _dashboard(self, c: Conn):
@@ -471,6 +474,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tissue-pose", type=lambda s: [float(v) for v in s.split(",")], default=None,
                     help="tissue frame in the base frame x,y,z,rx,ry,rz (default: the plan default)")
+    ap.add_argument("--tool", type=lambda s: [float(v) for v in s.split(",")], default=Frames().tcp_offset,
+                    help="the probe's tip on the flange x,y,z,rx,ry,rz (m, rad; default the plan default "
+                         "0,0,0.1,0,0,0): contact happens there whatever TCP a program sets")
     ap.add_argument("--q0", type=lambda s: [float(v) for v in s.split(",")], default=None,
                     help="start joint angles (rad, 6 comma-separated; default: parked above the tissue)")
     ap.add_argument("--mesh-m", type=float, default=None, help="fem mesh size (coarser: faster start)")
@@ -502,7 +508,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         ap.error(f"--inject: {e}")
     ctl.arm = build_truth_arm(a.scene, force=a.force, sensor=a.sensor, seed=a.seed, tissue_pose=a.tissue_pose,
-                              q0=a.q0, mesh_m=a.mesh_m, inject=a.inject)
+                              q0=a.q0, mesh_m=a.mesh_m, inject=a.inject, tool_offset=a.tool)
     for f in faults:
         if f.on_controller:
             ctl.schedule(f)

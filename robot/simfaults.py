@@ -1,9 +1,9 @@
 """Fault injection for the simulated arms: one syntax for the in-memory arm and the simulated UR controller.
 
 A fault is ``KIND-at-s=T[:X]`` (at simulated time T), ``KIND-at-depth-m=D[:X]`` (the first time the tip is D below
-the tissue surface, over the tissue) or ``KIND-after-probes=N[:X]`` (the first time the arm has been at rest for
-AT_REST_S after the tip left the tissue N times: between probes, while the driver zeroes the sensor above the
-next). The older ``KIND:T[:X]`` means ``KIND-at-s=T[:X]``; ``_`` may replace ``-`` in KIND.
+the tissue surface, over the tissue) or ``KIND-after-probes=N[:X]`` (between probes: AT_REST_S after the arm, having
+left the tissue N times, came to rest above the next probe, where the driver zeroes the sensor). The older
+``KIND:T[:X]`` means ``KIND-at-s=T[:X]``; ``_`` may replace ``-`` in KIND.
 
 Arm faults (both simulators; robot.sim.ArmModel fires them):
   protective-stop   the safety system halts the arm (cleared only from the pendant or the dashboard)
@@ -30,7 +30,7 @@ CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
 TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
-AT_REST_S = 0.1                # "at rest": no motion for this long (the driver zeroes the sensor at rest for ~0.2 s)
+AT_REST_S = 0.05               # into a rest (the driver zeroes the sensor at rest above a probe for ~0.2 s)
 
 
 @dataclass(frozen=True)
@@ -89,21 +89,27 @@ def trigger(f: FaultSpec):
             return depth >= f.value and 0.0 <= x <= arm.width_m
         return when
     if f.trigger == "probes":
-        state = {"inside": False, "exits": 0, "still_since": None}
+        # at rest above the next probe: after the N-th exit the arm stops (end of the retract), moves (the approach
+        # to the next probe) and stops again; AT_REST_S into that second rest (the driver zeroes the sensor there),
+        # whatever the host's timing
+        state = {"inside": False, "exits": 0, "rests": 0, "still_since": None}
 
         def when(arm) -> bool:
             x, depth = arm.tip_in_tissue()
             if 0.0 <= x <= arm.width_m and depth >= IN_TISSUE_M:
                 state["inside"] = True
             elif state["inside"] and depth < OUT_OF_TISSUE_M:
-                state["inside"] = False
+                state["inside"], state["rests"] = False, 0
                 state["exits"] += 1
-            if arm.is_moving or state["exits"] < f.value:
+            if state["exits"] < f.value:
+                return False
+            if arm.is_moving:
                 state["still_since"] = None
                 return False
             if state["still_since"] is None:
                 state["still_since"] = arm.t_s
-            return arm.t_s - state["still_since"] >= AT_REST_S
+                state["rests"] += 1
+            return state["rests"] >= 2 and arm.t_s - state["still_since"] >= AT_REST_S
         return when
     at = f.value
     return lambda arm: arm.t_s >= at

@@ -156,13 +156,20 @@ def test_real_client_connect_move_receive(scene_file, tmp_path):
         # moveJ: joint-space move to the start configuration
         assert c.moveJ(list(Q0), 1.0, 2.0) is True
         _wait_for(lambda: np.allclose(r.getActualQ(), Q0, atol=1e-6))
-        # a path: ur_rtde stops its program, re-uploads it with the path injected, then runs it
-        assert c.moveL([_pose_at(0.035, 0.03) + [0.1, 1.0, 0.0], list(tip) + [0.1, 1.0, 0.0]]) is True
-        _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], tip[:3], atol=1e-5))
+        # a path: ur_rtde stops its program, re-uploads it with the path injected, then runs it. The new program
+        # starts with the installation's TCP (the flange), so the path is given for the flange: the tip's poses
+        # moved 0.1 m back along the tool axis
+        def flange_of(pose):
+            return list(np.asarray(pose[:3]) + 0.10 * NORMAL) + list(pose[3:])
+        fl_tip = flange_of(tip)
+        assert c.moveL([flange_of(_pose_at(0.035, 0.03)) + [0.1, 1.0, 0.0], fl_tip + [0.1, 1.0, 0.0]]) is True
+        _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], fl_tip[:3], atol=1e-5))
         got = r.getActualTCPPose()                 # ur_rtde writes path poses with 6 significant digits
         # 6 digits put the tool rotation ~5e-6 rad short of pi (core.ur5e.matrix_to_rotvec is exact there, see
         # tests/test_ur5e.py); the rotation itself is exact to ~1e-5
         assert ur5e.rotation_angle(ur5e.rotvec_to_matrix(got[3:]), ur5e.rotvec_to_matrix(tip[3:])) < 1e-4
+        assert c.setTcp(TCP) is True                                     # the tip again, as the driver does
+        _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], tip[:3], atol=1e-5))
         # into the (stand-in) tissue: the sensor sees the tissue push back along its outward normal
         assert c.moveL(_pose_at(0.035, -0.003), 0.05, 0.5) is True
         _wait_for(lambda: np.asarray(r.getActualTCPForce()[:3]) @ NORMAL > 0.05)
@@ -186,8 +193,12 @@ def test_real_client_connect_move_receive(scene_file, tmp_path):
             assert c.teachMode() is False and not c.isProgramRunning()
             assert c.moveL(tip, 0.05, 0.5) is False
             assert ask("programState").startswith("STOPPED")
+            held = np.array(r.getActualTCPPose()[:3])
             assert c.reuploadScript() is True                       # what an operator does: start it again
             _wait_for(c.isProgramRunning)
+            # a new program starts with the installation's TCP (the flange): set the tip again before moving
+            _wait_for(lambda: np.allclose(r.getActualTCPPose()[:3], held + 0.10 * NORMAL, atol=1e-6))
+            assert c.setTcp(TCP) is True
             assert c.moveL(tip, 0.05, 0.5) is True
             # protective stop through the test hook: ur_rtde sees it, commands fail at once, unlock needs 5 s
             assert ask("simcontroller protective-stop").startswith("simcontroller")

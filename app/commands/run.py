@@ -158,7 +158,7 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
         if "c" not in link:
             ctl = cleanup.enter_context(start_controller(
                 scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
-                host="auto", log_path=out / "simcontroller.log"))
+                tool=plan.frames.tcp_offset, host="auto", log_path=out / "simcontroller.log"))
             link["c"], link["r"] = connect(ctl.host)
             cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
         return link["c"], link["r"]
