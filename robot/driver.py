@@ -86,6 +86,7 @@ class DriverConfig:
                                        # travels at most this far before that stop (see watchdog_rate_hz)
 
 
+NEEDS_PROGRAM = frozenset({"moveL", "zeroFtSensor", "setTcp", "setPayload", "setWatchdog"})
 PROGRAM_STOPPED_BY_OPERATOR = ("the control program was stopped from the pendant or the dashboard (or the pendant "
                                "was switched to local control), not by its watchdog: the driver does not restart "
                                "what an operator stopped")
@@ -171,6 +172,9 @@ class Driver(Recovery):
         deadline = deadline_for(name)
         if deadline is not None and self.link_dead:
             raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name} not sent: {self.link_dead}")
+        if name in NEEDS_PROGRAM and self.c.isProgramRunning() is False:
+            # ur_rtde would wait its ready time-out (seconds) and return False: say why now instead
+            self._require(False, f"{name} (not sent: the control program is not running)", program=True)
         try:
             return fn(*args) if deadline is None else self.worker.call(fn, args, deadline)
         except CallTimeout as e:
