@@ -2,8 +2,9 @@
 for the simulated controller's arm. It is the one robot part that asks fem for forces (the truth's, stones
 included); the driver never sees it.
 
-The truth is the simulator's secret: whoever builds the arm hands it the true scene, and only the arm's force model
-(inside this module's closures) reads it.
+The truth is the simulator's secret: whoever builds the arm hands it the true scene and its conditions
+(robot.truth.TruthConditions: registration error, relaxation, sensor bias and drift), and only the arm's force
+model (inside this module's closures) reads them.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from fem.contact import surface_model
 from fem.scene import Scene, load
 from robot.sim import ArmModel
 from robot.simforce import standin_force_model
+from robot.truth import Relaxation, TruthConditions, conditions_of
 from robot.urscript_cmds import parse_inject
 
 START_CLEARANCE_M = 0.02      # the arm starts this far above the first approach pose
@@ -48,9 +50,11 @@ def start_configuration(tissue_pose, width_m: float, tcp_offset=None, above_pose
 
 def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor: str = "nano17", seed: int = 0,
                     tissue_pose=None, tcp_offset=None, start_above_pose=None, q0=None, mesh_m: float | None = None,
-                    inject=()) -> ArmModel:
+                    inject=(), conditions: TruthConditions | None = None) -> ArmModel:
     """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
-    sensor model and any injected faults (robot.urscript_cmds.parse_inject syntax)."""
+    sensor model and any injected faults (robot.urscript_cmds.parse_inject syntax). ``conditions``: what the world
+    adds to the scene (robot.truth); None: the ``[truth]`` table of a TOML ``truth`` (ideal for anything else)."""
+    cond = conditions_of(truth) if conditions is None else conditions
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
     if force == "fem":
         f, width = truth_force(truth, mesh_m)
@@ -61,8 +65,14 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     if q0 is None:
         q0 = start_configuration(tissue_pose, width, tcp_offset, start_above_pose)
     kw = {} if tcp_offset is None else {"tcp_offset": list(tcp_offset)}
+    if cond.surface_offset_m or cond.surface_tilt_rad:
+        kw["surface_height_m"] = lambda x_m: cond.surface_height_m(x_m, width)
+    if cond.relaxation_fraction > 0:
+        kw["relaxation"] = Relaxation(cond.relaxation_fraction, cond.relaxation_tau_s)
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
                    q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
+    arm.sensor.bias[:3] += cond.sensor_bias_n * arm.n_base          # along the tissue normal, on top of the preset's
+    arm.sensor.drift[:3] += cond.sensor_drift_n_per_s * arm.n_base
     for spec in inject:
         parse_inject(arm, spec)
     return arm
