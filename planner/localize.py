@@ -179,7 +179,7 @@ NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -0.25])
 NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 0.25])
 ONSET_SIGMA_M = 6e-5        # scatter of a probe's contact onset about the model's (measured: 0.042 mm, paper, nano17)
 ONSET_BIAS_M = -8e-5        # mean onset minus the model's: the first noisy threshold crossing comes early (measured)
-THICKNESS_SIGMA = 0.10      # prior uncertainty of the tissue's thickness (relative, 1 sigma)
+THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 sigma: a uniform +-10 % has 0.058)
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 

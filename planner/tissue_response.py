@@ -86,14 +86,15 @@ class PriorResponse:
         return np.exp(out)
 
 
-def prior_and_thickness_slope(prior, x_m, depth_m: float) -> tuple[np.ndarray, np.ndarray]:
-    """The prior's force at ``x_m`` (one indentation) and its derivative with respect to the relative thickness
+def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarray]:
+    """The prior's force at ``x_m`` (indentation ``depth_m``: one, or one per position) and its derivative with respect to the relative thickness
     change (central difference over the ``THICKNESS_STEP`` nodes): the nuisance columns of a design's Fisher
     information (planner.refine)."""
     W = prior.tissue.width_m
     x = np.clip(np.asarray(x_m, float), 0.0, W)
+    d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
     F = {}
     for k in (-1, 0, 1):
         m = surface_model(_scene_with_height(prior, 1.0 + k * THICKNESS_STEP))
-        F[k] = np.array([m.force_n(float(xi), float(depth_m)) for xi in x])
+        F[k] = np.array([m.force_n(float(xi), float(di)) for xi, di in zip(x, d)])
     return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)

@@ -29,10 +29,13 @@ def surrogate():
                     f"`python -m planner.surrogate paper --ship` (~10 min) and commit planner/data/")
 
 
-@pytest.mark.parametrize("scene, x_tol, depth_tol", [("paper", 1e-3, 2e-3), ("paper-left", 1e-3, 2e-3),
-                                                     ("paper-right", 1e-3, 2e-3), ("paper-deep", 3e-3, None)])
+@pytest.mark.parametrize("scene, x_tol, depth_tol", [("paper", 1e-3, 3), ("paper-left", 1e-3, 3),
+                                                     ("paper-right", 1e-3, 3), ("paper-deep", 3e-3, None)])
 def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
-    """paper-deep (10 mm at 40 mm): found and placed laterally, but its depth is nearly degenerate with its size
+    """The localizer fits the tissue's stiffness scale and thickness with the stone (issue 14): a central stone's
+    depth is then partly degenerate with a thicker tissue (sigma_depth about 2 mm for the paper stone at 25 probes),
+    so the depth is asked to lie within ``depth_tol`` of its own stated sigma and inside the 95 % profile interval.
+    paper-deep (10 mm at 40 mm): found and placed laterally, but its depth is nearly degenerate with its size
     (sigma_depth several mm, see README): the test asks the run to say so (wide 95 % profile interval) and the interval to
     hold the truth (to 1 mm: the profile is sampled on a grid)."""
     from fem.scene import load
@@ -43,7 +46,9 @@ def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
     assert r["detected"] is True, r["evidence"]
     assert abs(est["x_m"]["value"] - truth.x_m) < x_tol, est
     if depth_tol is not None:
-        assert abs(est["depth_m"]["value"] - truth.depth_m) < depth_tol, est
+        assert abs(est["depth_m"]["value"] - truth.depth_m) < depth_tol * est["depth_m"]["sigma"], est
+        lo, hi = est["depth_interval_m"]["95"]
+        assert lo - 5e-4 <= truth.depth_m <= hi + 5e-4, est
     else:
         assert est["depth_m"]["sigma"] > 2e-3, est
         lo, hi = est["depth_interval_m"]["95"]
@@ -76,7 +81,8 @@ def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):
     for prior, meas in seen:
         assert prior.stones == () and prior.name.endswith("-prior")
         assert type(meas) is Measurements
-        assert set(vars(meas)) == {"x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index"}
+        assert set(vars(meas)) == {"x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index", "onset_m",
+                                   "onset_threshold_n", "dwell_start_n", "dwell_end_n"}
 
 
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
