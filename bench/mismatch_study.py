@@ -45,7 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from app.cli import main as palpate  # noqa: E402
-from core.contracts import Limits, Motion, Plan, sensor_spec  # noqa: E402
+from core.contracts import Limits, Motion, sensor_spec  # noqa: E402
 from fem import contact  # noqa: E402
 from fem.scene import Stone, dump_toml, load  # noqa: E402
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402

@@ -6,10 +6,10 @@ import math
 
 import numpy as np
 import pytest
+from robot_fixtures import make_sim
 
 from app.cli import main
 from robot.truth import Relaxation, TruthConditions, TruthError, conditions_of
-from robot_fixtures import make_sim
 
 
 def test_conditions_are_checked_and_read_from_the_truth_table(tmp_path):
