@@ -242,12 +242,21 @@ def _stone(p):
 
 
 def _fit_no_stone(fw: _Forward, sig, v0=None):
+    """The best no-stone model (nuisance only): from ``v0`` (or the prior's tissue) and from thicker and thinner
+    starts, so that a local minimum cannot make "no stone" look worse than it is (that would inflate the LR)."""
     def resid(v):
         nu = fw.full(v)
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
-    v0 = np.zeros(int(fw.free.sum())) if v0 is None else v0
-    return least_squares(resid, v0, bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]), x_scale=NUIS_X_SCALE[fw.free],
-                         diff_step=1e-5, max_nfev=200)
+    starts = [np.zeros(len(NUISANCE))] + ([fw.full(v0)] if v0 is not None else [])
+    if fw.free[4]:
+        starts += [np.array([0, 0, 0, 0, e]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
+    best = None
+    for nu in starts:
+        sol = least_squares(resid, nu[fw.free], bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
+                            x_scale=NUIS_X_SCALE[fw.free], diff_step=1e-5, max_nfev=200)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    return best
 
 
 def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25) -> dict:
@@ -343,37 +352,42 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
         nu = fw.full(q[3:])
         return np.concatenate([(meas.force_n - fw.forces(_stone(q[:3]), nu)) / sig, fw.extra(nu)])
 
-    # starts: the table's (s, D) nodes around the peak; scale and drift profiled out (linear), the rest at H0's
-    d0 = fw.depth(nu0)
-    P0 = fw.resp.force_n(d0, nu0[4])
-    cands = []
-    for ls in np.log(surrogate.s * 1e3):
-        for D in surrogate.diam * 1e3:
-            if math.exp(ls) + D > H - 2.0:
-                continue
-            for dx in (-3.0, 0.0, 3.0):
-                p = np.array([np.clip(px * 1e3 + dx, lo[0], hi[0]), ls, D])
-                A = np.c_[P0 + fw.contrast(_stone(p), d0, nu0[4]), meas.tau_s]
-                coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
-                chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
-                cands.append((chi2, p, coef))
-    cands.sort(key=lambda t: t[0])
+    # starts: the table's (s, D) nodes around the peak; scale and drift profiled out (linear), the surface as H0
+    # fitted it (the onsets pin it), the thickness at H0's value and at the prior's (a big stone drives H0's
+    # thickness and scale far off: starting only there, the stone fit can stay in that valley)
+    nu_prior = nu0.copy()
+    nu_prior[4] = 0.0
     best = None
-    seen = []
-    for chi2, p, coef in cands:
-        if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= 4:
-            continue
-        seen.append(p)
-        nu = nu0.copy()
-        nu[0] = coef[1] * 1e3
-        if fw.free[1] and coef[0] > 0:
-            nu[1] = float(np.clip(math.log(coef[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
-        q0 = np.concatenate([p, nu[fw.free]])
-        sol = least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
-                            x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
-                            max_nfev=300)
-        if best is None or sol.cost < best.cost:
-            best = sol
+    for nu_s in (nu0, nu_prior) if nu0[4] != 0.0 else (nu0,):
+        d0 = fw.depth(nu_s)
+        P0 = fw.resp.force_n(d0, nu_s[4])
+        cands = []
+        for ls in np.log(surrogate.s * 1e3):
+            for D in surrogate.diam * 1e3:
+                if math.exp(ls) + D > H - 2.0:
+                    continue
+                for dx in (-3.0, 0.0, 3.0):
+                    p = np.array([np.clip(px * 1e3 + dx, lo[0], hi[0]), ls, D])
+                    A = np.c_[P0 + fw.contrast(_stone(p), d0, nu_s[4]), meas.tau_s]
+                    coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
+                    chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
+                    cands.append((chi2, p, coef))
+        cands.sort(key=lambda t: t[0])
+        seen = []
+        for chi2, p, coef in cands:
+            if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= (4 if nu_s is nu0 else 2):
+                continue
+            seen.append(p)
+            nu = nu_s.copy()
+            nu[0] = coef[1] * 1e3
+            if fw.free[1] and coef[0] > 0:
+                nu[1] = float(np.clip(math.log(coef[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
+            q0 = np.concatenate([p, nu[fw.free]])
+            sol = least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
+                                x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
+                                max_nfev=300)
+            if best is None or sol.cost < best.cost:
+                best = sol
     q = best.x
     chi2_1 = 2.0 * best.cost
     lr = max(chi2_0 - chi2_1, 0.0)      # "no stone" is the limit of the stone family: LR >= 0 (the optimizer's
