@@ -357,8 +357,12 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     # thickness and scale far off: starting only there, the stone fit can stay in that valley)
     nu_prior = nu0.copy()
     nu_prior[4] = 0.0
+    starts = [(nu0, 4)]
+    for nu_s in (nu_prior, np.zeros(len(NUISANCE))):    # and the prior's tissue on the nominal surface
+        if not any(np.allclose(nu_s, a) for a, _ in starts):
+            starts.append((nu_s, 2))
     best = None
-    for nu_s in (nu0, nu_prior) if nu0[4] != 0.0 else (nu0,):
+    for nu_s, n_starts in starts:
         d0 = fw.depth(nu_s)
         P0 = fw.resp.force_n(d0, nu_s[4])
         cands = []
@@ -375,7 +379,7 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
         cands.sort(key=lambda t: t[0])
         seen = []
         for chi2, p, coef in cands:
-            if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= (4 if nu_s is nu0 else 2):
+            if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= n_starts:
                 continue
             seen.append(p)
             nu = nu_s.copy()
