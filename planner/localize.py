@@ -180,6 +180,8 @@ NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 0.25])
 ONSET_SIGMA_M = 6e-5        # scatter of a probe's contact onset about the model's (measured: 0.042 mm, paper, nano17)
 ONSET_BIAS_M = -8e-5        # mean onset minus the model's: the first noisy threshold crossing comes early (measured)
 THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 sigma: a uniform +-10 % has 0.058)
+DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
+#                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 
@@ -220,8 +222,10 @@ class _Forward:
         return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
 
     def extra(self, nu) -> np.ndarray:
-        """Residuals of the contact onsets (the surface height and the scale) and of the thickness prior."""
-        r = [np.array([nu[4] / THICKNESS_SIGMA])] if self.free[4] else []
+        """Residuals of the contact onsets (the surface height and the scale) and of the drift and thickness priors."""
+        r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
+        if self.free[4]:
+            r.append(np.array([nu[4] / THICKNESS_SIGMA]))
         if self.free[2]:
             on = self.on
             thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
@@ -329,7 +333,15 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     sig_a = np.sqrt(meas.sigma_n ** 2 + MODEL_ABS_ERR_N ** 2)
     h0 = _fit_no_stone(fw, sig_a)
     nu0 = fw.full(h0.x)
-    contrast = meas.force_n - fw.forces(None, nu0)
+    # the contrast for the peak and the model-error allowance: against the prior's thickness on the fitted surface,
+    # with only a scale and the drift fitted (linear): a no-stone fit's thickness can take a central stone's bump
+    # and move the contrast's peak to an end
+    nu_pk = nu0.copy()
+    nu_pk[4] = 0.0
+    A = fw.resp.force_n(fw.depth(nu_pk), 0.0)[:, None]
+    wa = 1.0 / sig_a
+    coef = np.linalg.lstsq(A * wa[:, None], meas.force_n * wa, rcond=None)[0]
+    contrast = meas.force_n - A @ coef       # (no drift offset here: with the scale it mimics a central bump)
     # peak on the probes of the most common depth (the contrast grows with depth)
     dq = np.round(meas.depth_m, 4)
     vals, cnt = np.unique(dq, return_counts=True)
