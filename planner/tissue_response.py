@@ -78,11 +78,10 @@ class PriorResponse:
         if idx is not None:
             rows = rows[idx]
         lf = np.log(np.maximum(np.asarray(force_n, float), 1e-12))
-        out = np.empty(len(lf))
-        for j, (row, v) in enumerate(zip(rows, lf)):
-            k = int(np.clip(np.searchsorted(row, v) - 1, 0, N_NODES - 2))
-            t = (v - row[k]) / (row[k + 1] - row[k])
-            out[j] = self.logd[k] + t * self.step
+        k = np.clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, N_NODES - 2)     # rows rise with depth
+        n = np.arange(len(lf))
+        t = (lf - rows[n, k]) / (rows[n, k + 1] - rows[n, k])
+        out = self.logd[k] + t * self.step
         return np.exp(out)
 
 

@@ -2,12 +2,12 @@
 
 planner.detectability predicts P(LR >= threshold) from the expected contrast and the localizer's weights (noncentral
 chi2 with 3 dof), with the part of the contrast the tissue's unknowns (stiffness scale, thickness) can explain
-projected out, as the localizer fits them (issue 14). Here 150 simulated 15-probe rasters over a 6 mm stone 20 mm
-deep in the middle of the section (predicted 0.59: the most sensitive case) are localized and counted: measured
-0.36 +- 0.04. The prediction is optimistic at the margin by about 0.2 with the tissue's unknowns fitted (it was 0.1
+projected out, as the localizer fits them (issue 14). Here 60 simulated 15-probe rasters over a 6 mm stone 20 mm
+deep in the middle of the section (predicted 0.59: the most sensitive case) are localized and counted (150 of them
+measured 0.36 +- 0.04; 60 keep CI short). The prediction is optimistic at the margin by about 0.2 with the tissue's unknowns fitted (it was 0.1
 before, a 4 mm stone 30 mm deep: 0.43 against 0.52): the fit maximises over the stone's position, and a weak stone's
 fit starts from a no-stone fit whose thickness has taken part of its contrast. The tolerance below is 3 standard
-errors plus 0.25, no more. Probe records come from the accuracy study's measurement model
+errors plus 0.2 (with 60 runs: 0.39), no more: a prediction that ignored the tissue's unknowns (1.00) fails. Probe records come from the accuracy study's measurement model
 (bench/accuracy_study.py FastArm, itself checked against the simulated arm in test_robot_sim)."""
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ def test_predicted_detection_rate_matches_monte_carlo():
     pred = p_detect(prior, (st.x_m, st.depth_m, st.diameter_m), x_m=x, depth_m=np.full(len(x), DEPTH_M),
                     sigma_n=probe_sigma_n(spec("nano17")), surrogate=sur,
                     tau_s=np.full(len(x), float(probe_tau_s(Motion(), DEPTH_M))))
-    n = 150
+    n = 60
     hits = 0
     for k in range(n):
         arm = FastArm(truth.force_n, "nano17", np.random.default_rng(1000 + k))
@@ -47,4 +47,4 @@ def test_predicted_detection_rate_matches_monte_carlo():
     se = math.sqrt(pred * (1 - pred) / n)
     print(f"predicted {pred:.2f}, Monte Carlo {rate:.2f} (+- {se:.2f})")
     assert 0.2 < pred < 0.8                          # a marginal stone: the check has teeth
-    assert abs(rate - pred) < 3 * se + 0.25
+    assert abs(rate - pred) < 3 * se + 0.2
