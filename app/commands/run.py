@@ -5,6 +5,9 @@ an *executor* (``sim_executor``: the simulated arm, created from the true scene 
 on a real arm, where there is no truth) that turns a plan into probe records, and the *belief side*
 (planner.refine.adaptive -> planner.localize.localize) that gets the prior scene (stones removed) and those records
 and nothing else. The truth is written into result.json only after localization, for comparison (``sim`` key).
+The truth may differ from the belief beyond its stones (issue 14): ``--prior PRIOR`` plans and localizes on another
+scene's prior (a ``--plan`` carries its own), and the truth scene file's ``[truth]`` table or the ``--truth-*``
+options (robot/truth.py: registration error, relaxation, sensor bias and drift) reach only the simulated arm.
 
 Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
 no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
