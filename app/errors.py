@@ -8,6 +8,7 @@ from typing import Callable
 
 from core.contracts import PlanError
 from fem.scene import SceneError
+from robot.truth import TruthError
 
 EXIT_USAGE = 2
 
@@ -17,7 +18,7 @@ class UsageError(ValueError):
 
 
 # The project's own input errors, and what reading a user's file can raise.
-USER_ERRORS = (UsageError, SceneError, PlanError, OSError, UnicodeDecodeError)
+USER_ERRORS = (UsageError, SceneError, PlanError, TruthError, OSError, UnicodeDecodeError)
 
 
 def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:

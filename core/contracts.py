@@ -337,6 +337,8 @@ class ProbeRecord:
     force_mean_n: float | None = None            # mean contact force over the dwell
     force_std_n: float | None = None
     force_peak_n: float | None = None
+    force_dwell_start_n: float | None = None     # mean over the first fifth of the dwell (relaxation: vs the last)
+    force_dwell_end_n: float | None = None       # mean over the last fifth of the dwell
     force_baseline_n: float | None = None        # free-air mean of the same descent (None: too few samples)
     force_baseline_std_n: float | None = None
     n_samples_baseline: int = 0

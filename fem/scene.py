@@ -266,10 +266,10 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
     may be left out (no stones, the default tip and analysis options)."""
     if not isinstance(d, dict):
         raise SceneError(f"a scene must be a table, got {type(d).__name__}")
-    unknown = sorted(set(d) - {"name", *_SECTIONS})
+    unknown = sorted(set(d) - {"name", "truth", *_SECTIONS})    # [truth]: the simulator's (robot.truth), skipped
     if unknown:
         raise SceneError(f"unknown top-level key(s): {', '.join(map(str, unknown))} "
-                         f"(known: name, tissue, stone, indenter, analysis)")
+                         f"(known: name, tissue, stone, indenter, analysis, truth)")
     name = d.get("name", default_name)
     if not isinstance(name, str):
         raise SceneError(f"name must be a string, got {type(name).__name__}")

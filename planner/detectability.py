@@ -8,7 +8,11 @@ The expected likelihood ratio of "stone" over "no stone" is then the noncentrali
     lambda = sum (c_i / sigma_i)^2 - (sum c_i tau_i / sigma_i^2)^2 / sum (tau_i / sigma_i)^2
 
 and the detection probability P(LR >= threshold) with LR ~ noncentral chi2(3 dof, lambda) (three fitted stone
-parameters). A stone counts as detectable when that probability is at least 0.9. The same threshold as the localizer
+parameters). The localizer also fits the tissue's unknowns (planner.localize: stiffness scale, thickness, surface);
+with ``nuisance`` (default) the part of the contrast they can explain is projected out too: the columns are the
+drift offset (tau_i), the scale (the prior's force F_i) and the thickness change (dF_i/d eta, with the localizer's
+prior 1/THICKNESS_SIGMA^2 on it); the surface height is pinned by the contact onsets and left out. This is the
+"widening" of detectability: a broad, deep stone looks like a thicker or stiffer tissue. A stone counts as detectable when that probability is at least 0.9. The same threshold as the localizer
 (planner.localize.LR_THRESHOLD) is used, so the prediction and the accuracy study speak of the same decision.
 
 The sensor must also pass the driver's own check: its filtered free-air noise, times 5, below half the force limit
@@ -36,9 +40,10 @@ from core.contracts import (
 )
 from fem.contact import surface_model
 from fem.scene import load
-from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR
+from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR, THICKNESS_SIGMA
 from planner.raster import choose_depths, raster_positions
 from planner.surrogate import load_surrogate
+from planner.tissue_response import prior_and_thickness_slope
 
 P_DETECT = 0.9
 
@@ -71,6 +76,18 @@ def probe_tau_s(motion, depth_m):
     return 0.5 * base_s + (BASELINE_CLEARANCE_M + np.asarray(depth_m)) / motion.probe_speed_m_s + 0.5 * motion.dwell_s
 
 
+def noncentrality(c, w, cols, prior_precision=None) -> float:
+    """Expected LR of a stone whose contrast is ``c``: the weighted norm of the part of ``c`` that the nuisance
+    ``cols`` (n x k) cannot explain (Gaussian priors of precision ``prior_precision`` (k) on their coefficients)."""
+    c, w = np.asarray(c, float), np.asarray(w, float)
+    N = np.asarray(cols, float).reshape(len(c), -1)
+    A = N.T @ (w[:, None] * N)
+    if prior_precision is not None:
+        A = A + np.diag(prior_precision)
+    b = N.T @ (w * c)
+    return float(np.sum(w * c * c) - b @ np.linalg.solve(A + 1e-30 * np.eye(len(b)), b))
+
+
 def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
     thr = NOISE_SIGMA_FACTOR * sensor_spec.noise_std_n / math.sqrt(FILTER_WINDOW)
     if thr >= 0.5 * force_limit_n:
@@ -81,7 +98,7 @@ def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
 
 def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_limit_m: float = 0.004,
                   x_positions_m=None, n_waypoints: int = 15, margin_m: float = 0.005, stones=None, xs_m=None,
-                  surrogate=None, lr_threshold: float = LR_THRESHOLD, motion=None) -> dict:
+                  surrogate=None, lr_threshold: float = LR_THRESHOLD, motion=None, nuisance: bool = True) -> dict:
     """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) by a raster.
 
     Returns {"sensor", "usable", "reason", "sigma_n", "depths_m", "rows": [{diameter_m, depth_m, peak_contrast_n,
@@ -104,6 +121,11 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
         stones = [(D, dep) for D in (4e-3, 6e-3, 8e-3, 10e-3, 12e-3, 15e-3)
                   for dep in (5e-3, 10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3, 40e-3)]
     xs = 0.5 * W if xs_m is None else float(xs_m)
+    cols, prec = [tau], [0.0]
+    if nuisance:
+        P, dP = prior_and_thickness_slope(prior, x, d)
+        cols, prec = [tau, P, dP], [0.0, 0.0, 1.0 / THICKNESS_SIGMA ** 2]
+    cols = np.array(cols).T
     rows = []
     for D, dep in stones:
         s = dep - D / 2
@@ -114,22 +136,27 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
             continue
         c = sur.contrast(x, d, xs, dep, D)
         w = fit_weights(sig, c)
-        lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
+        lam = noncentrality(c, w, cols, np.array(prec))
         p = float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12))) if usable else 0.0
         rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": float(np.max(c)), "snr": math.sqrt(max(lam, 0)),
                      "p_detect": p, "detectable": bool(usable and p >= P_DETECT)})
     return {"sensor": sp.name, "usable": usable, "reason": reason, "sigma_n": sig, "force_limit_n": force_limit_n,
             "depths_m": [float(v) for v in d], "x_m": [float(v) for v in x], "xs_m": xs, "lr_threshold": lr_threshold,
-            "rows": rows}
+            "nuisance": nuisance, "rows": rows}
 
 
 def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: float = LR_THRESHOLD,
-             tau_s=None) -> float:
-    """Predicted detection probability of one stone (x_m, depth_m, diameter_m) by probes at x_m/depth_m."""
+             tau_s=None, nuisance: bool = True) -> float:
+    """Predicted detection probability of one stone (x_m, depth_m, diameter_m) by probes at x_m/depth_m
+    (``nuisance``: with the tissue's stiffness scale and thickness unknown, as the localizer fits them)."""
     c = surrogate.contrast(np.asarray(x_m), np.asarray(depth_m), *stone)
     tau = np.ones(len(c)) if tau_s is None else np.asarray(tau_s)
     w = fit_weights(sigma_n, c)
-    lam = float(np.sum(w * c * c) - np.sum(w * c * tau) ** 2 / np.sum(w * tau * tau))
+    cols, prec = [tau], [0.0]
+    if nuisance:
+        P, dP = prior_and_thickness_slope(prior, x_m, depth_m)
+        cols, prec = [tau, P, dP], [0.0, 0.0, 1.0 / THICKNESS_SIGMA ** 2]
+    lam = noncentrality(c, w, np.array(cols).T, np.array(prec))
     return float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12)))
 
 
@@ -161,9 +188,11 @@ def main(argv=None) -> int:
     p.add_argument("--force-limit-n", type=float, default=2.0)
     p.add_argument("--waypoints", type=int, default=15)
     p.add_argument("--json", metavar="PATH")
+    p.add_argument("--known-tissue", action="store_true",
+                   help="as if the tissue's stiffness and thickness were known (no nuisance projected out)")
     a = p.parse_args(argv)
     r = detectability(load(a.scene).prior(), sensor=a.sensor, force_limit_n=a.force_limit_n,
-                      n_waypoints=a.waypoints)
+                      n_waypoints=a.waypoints, nuisance=not a.known_tissue)
     print(f"{a.waypoints}-probe raster, sensor {r['sensor']} (probe sigma {r['sigma_n'] * 1e3:.2f} mN), force limit "
           f"{a.force_limit_n:g} N, probe depth {min(r['depths_m']) * 1e3:.2f}-{max(r['depths_m']) * 1e3:.2f} mm; "
           f"P(detect) at LR >= {r['lr_threshold']:g} (peak contrast):")

@@ -30,6 +30,7 @@ from core.contracts import N_ZERO_AVERAGE
 from core.peak import parabola_peak
 from fem.contact import surface_model
 from planner.surrogate import load_surrogate
+from planner.tissue_response import PriorResponse
 
 LR_THRESHOLD = 20.0          # detection threshold on chi2_0 - chi2_1 (see module doc)
 MODEL_REL_ERR = 0.01         # surrogate interpolation error, relative to the contrast (measured: max 1.4 %, RMS 0.12 %)
@@ -40,12 +41,24 @@ MODEL_ABS_ERR_N = 2e-4       # and an absolute floor (N)
 class Measurements:
     """Probe measurements: one entry per probe (SI)."""
     x_m: np.ndarray              # tip position along the surface at the dwell
-    depth_m: np.ndarray          # depth reached
+    depth_m: np.ndarray          # depth reached (below the NOMINAL surface: the tissue pose the plan was made in)
     force_n: np.ndarray          # mean contact force over the dwell
     sigma_n: np.ndarray          # standard error of force_n (sensor noise of the mean and of the zeroing)
     tau_s: np.ndarray            # time from the force's reference (free-air baseline, else the sensor's zeroing)
     #                              to the middle of the dwell (the drift grows with it)
     index: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    onset_m: np.ndarray | None = None         # depth (below the nominal surface) where contact was first felt; NaN
+    onset_threshold_n: np.ndarray | None = None   # the force threshold that contact was felt at; NaN
+    dwell_start_n: np.ndarray | None = None   # force over the first / last fifth of the dwell (relaxation); NaN
+    dwell_end_n: np.ndarray | None = None
+
+    OPTIONAL = ("onset_m", "onset_threshold_n", "dwell_start_n", "dwell_end_n")
+    FIELDS = ("x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index") + OPTIONAL
+
+    def __post_init__(self):
+        for k in self.OPTIONAL:
+            if getattr(self, k) is None:
+                setattr(self, k, np.full(len(self.x_m), np.nan))
 
     def __len__(self):
         return len(self.x_m)
@@ -56,7 +69,8 @@ class Measurements:
         the descent's readings >= 1 mm above the surface) gives dwell mean - baseline, whose noise is that of the two
         means (the zeroing's error cancels), and the time between them. Without one: the dwell mean relative to the
         sensor's zeroing, with its 50-sample error; ``motion`` (planfile.Motion) then gives the time from zeroing to
-        the dwell, and without it every probe gets the same time (the drift is a plain offset)."""
+        the dwell, and without it every probe gets the same time (the drift is a plain offset). The contact onset
+        and the dwell's first and last fifth are kept when recorded (NaN otherwise)."""
         rows = []
         for r in records:
             if r.status not in statuses or r.force_mean_n is None or r.depth_reached_m is None or r.implausible:
@@ -66,9 +80,10 @@ class Measurements:
             std = r.force_std_n or r.noise_std_n or 0.0
             n = max(int(r.n_samples or 1), 1)
             f = float(r.force_mean_n)
+            base = 0.0
             if r.force_baseline_n is not None and r.baseline_to_dwell_s is not None:
                 # relative to the free-air baseline of the same descent: the zeroing's error cancels
-                f -= float(r.force_baseline_n)
+                base = float(r.force_baseline_n)
                 std_b = r.force_baseline_std_n or std
                 sig = math.sqrt(std ** 2 / n + std_b ** 2 / max(int(r.n_samples_baseline), 1))
                 tau = float(r.baseline_to_dwell_s)
@@ -76,14 +91,19 @@ class Measurements:
                 sig = math.sqrt(std ** 2 * (1.0 / n + 1.0 / N_ZERO_AVERAGE))
                 tau = 1.0 if motion is None else ((motion.approach_height_m + d) / motion.probe_speed_m_s
                                                   + 0.5 * motion.dwell_s)
-            rows.append((float(x), d, f, sig, tau, int(r.index)))
-        rows.sort()
-        a = np.array(rows, dtype=float).reshape(-1, 6)
-        return Measurements(a[:, 0], a[:, 1], a[:, 2], np.maximum(a[:, 3], 1e-5), a[:, 4], a[:, 5].astype(int))
+
+            def opt(v, minus=0.0):
+                return float("nan") if v is None else float(v) - minus
+            rows.append((float(x), d, f - base, sig, tau, int(r.index), opt(r.contact_depth_m),
+                         opt(r.contact_threshold_n), opt(getattr(r, "force_dwell_start_n", None), base),
+                         opt(getattr(r, "force_dwell_end_n", None), base)))
+        rows.sort(key=lambda t: t[:6])
+        a = np.array(rows, dtype=float).reshape(-1, 10)
+        return Measurements(a[:, 0], a[:, 1], a[:, 2], np.maximum(a[:, 3], 1e-5), a[:, 4], a[:, 5].astype(int),
+                            a[:, 6], a[:, 7], a[:, 8], a[:, 9])
 
     def concat(self, other: "Measurements") -> "Measurements":
-        parts = [np.concatenate([getattr(self, k), getattr(other, k)]) for k in
-                 ("x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index")]
+        parts = [np.concatenate([getattr(self, k), getattr(other, k)]) for k in self.FIELDS]
         order = np.argsort(parts[0], kind="stable")
         return Measurements(*[p[order] for p in parts])
 
@@ -112,6 +132,7 @@ class Localization:
     prior_n: np.ndarray | None = None          # per probe: prior prediction
     fit_contrast_n: np.ndarray | None = None   # per probe: the fitted stone's contrast
     depth_interval_m: dict = field(default_factory=dict)   # profile likelihood: {"68": [lo, hi], "95": [lo, hi]}
+    nuisance: dict = field(default_factory=dict)   # the tissue and sensor unknowns fitted with the stone (NUISANCE)
 
     def to_dict(self) -> dict:
         def f(v):
@@ -127,6 +148,8 @@ class Localization:
                              "peak_x_m": f(self.peak_x_m), "peak_contrast_n": f(self.peak_contrast_n),
                              "fit_at_bound": list(self.at_bound),
                              "offset_drift_n_per_s": f(self.offset_drift_n_per_s)},
+                "nuisance": {k: ({"value": f(v[0]), "sigma": f(v[1])} if isinstance(v, tuple) else v)
+                             for k, v in self.nuisance.items()},
                 "n_probes": self.n_probes}
 
 
@@ -148,14 +171,100 @@ def peak_estimate(x: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     return parabola_peak(xu, cu, k - 1, k + 1)
 
 
-def _offset_fit(r: np.ndarray, tau: np.ndarray, w: np.ndarray) -> tuple[float, float]:
-    """Weighted LS of r ~ beta * tau; returns (beta, chi2)."""
-    beta = float(np.sum(w * tau * r) / np.sum(w * tau * tau))
-    return beta, float(np.sum(w * (r - beta * tau) ** 2))
+# ---- the forward model: prior response x stiffness scale + stone contrast + drift, at the true indentation -------
+# nuisance parameters, after the stone's (xs [mm], log clearance [log mm], diameter [mm]):
+NUISANCE = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_mrad", "thickness_change")
+NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 0.03])
+NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -0.25])
+NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 0.25])
+ONSET_SIGMA_M = 6e-5        # scatter of a probe's contact onset about the model's (measured: 0.042 mm, paper, nano17)
+ONSET_BIAS_M = -8e-5        # mean onset minus the model's: the first noisy threshold crossing comes early (measured)
+THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 sigma: a uniform +-10 % has 0.058)
+DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
+#                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
+MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 
-def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, n: int = 25) -> dict:
-    """Profile likelihood of the depth: chi2 minimised over (x, diameter, offset) with the depth held at each of
+class _Forward:
+    """Forces (and onset and prior residuals) of the prior + nuisance (+ stone) model at the measured probes."""
+
+    def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool):
+        self.meas, self.sur = meas, surrogate
+        self.resp = PriorResponse(prior, meas.x_m)
+        self.xc_m = meas.x_m - 0.5 * prior.tissue.width_m
+        self.on = np.flatnonzero(np.isfinite(meas.onset_m) & np.isfinite(meas.onset_threshold_n)
+                                 & (meas.onset_threshold_n > 0))
+        free = [True, nuisance, nuisance and len(self.on) >= MIN_ONSETS,
+                nuisance and len(self.on) >= MIN_ONSETS and np.ptp(meas.x_m[self.on]) > 0.01, nuisance]
+        self.free = np.array(free)
+        self.levels = getattr(surrogate, "levels", None)
+
+    def depth(self, nu) -> np.ndarray:
+        return self.meas.depth_m + 1e-3 * (nu[2] + nu[3] * self.xc_m)
+
+    def contrast(self, stone, d, eta) -> np.ndarray:
+        xs, dep, D = stone
+        if self.levels is None:
+            return self.sur.contrast(self.meas.x_m, d, xs, dep, D)
+        dc = np.clip(d, self.levels[0], self.levels[-1])     # beyond the table: the contrast scales like the force
+        C = self.sur.contrast(self.meas.x_m, dc, xs, dep, D)
+        out = dc != d
+        if out.any():
+            C = C.copy()
+            C[out] *= self.resp.force_n(d, eta)[out] / np.maximum(self.resp.force_n(dc, eta)[out], 1e-12)
+        return C
+
+    def forces(self, stone, nu) -> np.ndarray:
+        d = self.depth(nu)
+        F = self.resp.force_n(d, nu[4])
+        if stone is not None:
+            F = F + self.contrast(stone, d, nu[4])
+        return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
+
+    def extra(self, nu) -> np.ndarray:
+        """Residuals of the contact onsets (the surface height and the scale) and of the drift and thickness priors."""
+        r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
+        if self.free[4]:
+            r.append(np.array([nu[4] / THICKNESS_SIGMA]))
+        if self.free[2]:
+            on = self.on
+            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
+            d_thr = self.resp.depth_at_force_m(thr, nu[4], on)
+            pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on]) + ONSET_BIAS_M
+            r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
+        return np.concatenate(r) if r else np.zeros(0)
+
+    def full(self, v) -> np.ndarray:
+        nu = np.zeros(len(NUISANCE))
+        nu[self.free] = v
+        return nu
+
+
+def _stone(p):
+    xs, s, D = p[0] * 1e-3, math.exp(p[1]) * 1e-3, p[2] * 1e-3
+    return xs, s + 0.5 * D, D
+
+
+def _fit_no_stone(fw: _Forward, sig, v0=None):
+    """The best no-stone model (nuisance only): from ``v0`` (or the prior's tissue) and from thicker and thinner
+    starts, so that a local minimum cannot make "no stone" look worse than it is (that would inflate the LR)."""
+    def resid(v):
+        nu = fw.full(v)
+        return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
+    starts = [np.zeros(len(NUISANCE))] + ([fw.full(v0)] if v0 is not None else [])
+    if fw.free[4]:
+        starts += [np.array([0, 0, 0, 0, e]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
+    best = None
+    for nu in starts:
+        sol = least_squares(resid, nu[fw.free], bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
+                            x_scale=NUIS_X_SCALE[fw.free], diff_step=1e-5, max_nfev=200)
+        if best is None or sol.cost < best.cost:
+            best = sol
+    return best
+
+
+def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25) -> dict:
+    """Profile likelihood of the depth: chi2 minimised over (x, diameter, nuisance) with the depth held at each of
     ``n`` values; the 68 % / 95 % intervals are where chi2 - chi2_min <= 1 / 4 (times the chi2/dof inflation)."""
     d_hat = dep * 1e3
     w = min(max(4 * sd * 1e3, 2.0), 20.0)
@@ -163,16 +272,17 @@ def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, n: int = 25
     grid = np.unique(np.append(grid, d_hat))
     prof = []
     for d in grid:
-        def r(p):       # p = (xs_mm, D_mm, beta): s = d - D/2
+        def r(p):       # p = (xs_mm, D_mm, *nuisance): s = d - D/2
             s = max(d - 0.5 * p[1], 1e-3)
-            return resid(np.array([p[0], math.log(s), p[1], p[2]]))
+            return resid(np.concatenate([[p[0], math.log(s), p[1]], p[2:]]))
         D0 = float(np.clip(q[2], lo[2], hi[2]))
         dlo, dhi = max(lo[2], 2 * (d - math.exp(hi[1]))), min(hi[2], 2 * (d - math.exp(lo[1])))
         if dhi <= dlo:
             prof.append(np.inf)
             continue
-        sol = least_squares(r, [q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6)), q[3]],
-                            bounds=([lo[0], dlo, -np.inf], [hi[0], dhi, np.inf]), diff_step=1e-4, max_nfev=200)
+        sol = least_squares(r, np.concatenate([[q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6))], q[3:]]),
+                            bounds=(np.concatenate([[lo[0], dlo], nlo]), np.concatenate([[hi[0], dhi], nhi])),
+                            diff_step=1e-4, max_nfev=200)
         prof.append(2 * sol.cost)
     prof = np.array(prof)
     base = min(chi2_min, prof.min())
@@ -194,22 +304,44 @@ def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, n: int = 25
     return out
 
 
+def dwell_relaxation(meas: Measurements) -> tuple[float, float, int]:
+    """The fraction the force falls from the dwell's first fifth to its last (value, standard error, probes used),
+    over the probes whose dwell force is well above the noise; (nan, nan, 0) without dwell histories."""
+    a, b = meas.dwell_start_n, meas.dwell_end_n
+    ok = np.isfinite(a) & np.isfinite(b) & (a > 20 * meas.sigma_n)
+    if ok.sum() < 2:
+        return float("nan"), float("nan"), int(ok.sum())
+    r = 1.0 - b[ok] / a[ok]
+    return float(np.mean(r)), float(np.std(r, ddof=1) / math.sqrt(ok.sum())), int(ok.sum())
+
+
 def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float = LR_THRESHOLD,
-             model_rel_err: float = MODEL_REL_ERR, profile: bool = False) -> Localization:
+             model_rel_err: float = MODEL_REL_ERR, profile: bool = False, nuisance: bool = True) -> Localization:
     """Detect and locate a stone from ``meas`` given only the ``prior`` (stone-free) scene. ``profile``: also the
     profile-likelihood interval of the depth (``depth_interval_m``), honest where the Jacobian's is not (a deep
-    stone's depth is strongly non-Gaussian: deeper-and-bigger is hard to rule out)."""
+    stone's depth is strongly non-Gaussian: deeper-and-bigger is hard to rule out). ``nuisance``: fit the tissue's
+    stiffness scale, thickness and true surface (offset and tilt, from the contact onsets) jointly with the stone
+    (default); False: the prior's tissue and the nominal surface are taken as true (only the drift is fitted)."""
     if prior.stones:
         raise ValueError("localize() takes the prior scene (no stones): the localizer must not see the truth")
     if len(meas) < 4:
         raise ValueError(f"need at least 4 probe measurements, got {len(meas)}")
     if surrogate is None:
         surrogate = load_surrogate(prior)
-    F0 = prior_force(prior, meas)
-    r0 = meas.force_n - F0
-    w0 = 1.0 / meas.sigma_n ** 2
-    beta0, chi2_0 = _offset_fit(r0, meas.tau_s, w0)
-    contrast = r0 - beta0 * meas.tau_s
+    fw = _Forward(prior, meas, surrogate, nuisance)
+    nf = int(fw.free.sum())
+    sig_a = np.sqrt(meas.sigma_n ** 2 + MODEL_ABS_ERR_N ** 2)
+    h0 = _fit_no_stone(fw, sig_a)
+    nu0 = fw.full(h0.x)
+    # the contrast for the peak and the model-error allowance: against the prior's thickness on the fitted surface,
+    # with only a scale and the drift fitted (linear): a no-stone fit's thickness can take a central stone's bump
+    # and move the contrast's peak to an end
+    nu_pk = nu0.copy()
+    nu_pk[4] = 0.0
+    A = fw.resp.force_n(fw.depth(nu_pk), 0.0)[:, None]
+    wa = 1.0 / sig_a
+    coef = np.linalg.lstsq(A * wa[:, None], meas.force_n * wa, rcond=None)[0]
+    contrast = meas.force_n - A @ coef       # (no drift offset here: with the scale it mimics a central bump)
     # peak on the probes of the most common depth (the contrast grows with depth)
     dq = np.round(meas.depth_m, 4)
     vals, cnt = np.unique(dq, return_counts=True)
@@ -219,67 +351,96 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     # noise + model error (relative to the contrast seen, so fixed during the fit)
     sig = np.sqrt(meas.sigma_n ** 2 + (model_rel_err * np.maximum(contrast, 0.0)) ** 2 + MODEL_ABS_ERR_N ** 2)
     w = 1.0 / sig ** 2
+    h0 = _fit_no_stone(fw, sig, h0.x)
+    chi2_0 = 2.0 * h0.cost
+    nu0 = fw.full(h0.x)
     b = surrogate.bounds
     lo = np.array([b["xs_m"][0] * 1e3, math.log(b["s_m"][0] * 1e3), b["diam_m"][0] * 1e3])
     hi = np.array([b["xs_m"][1] * 1e3, math.log(b["s_m"][1] * 1e3), b["diam_m"][1] * 1e3])
+    nlo, nhi = NUIS_LO[fw.free], NUIS_HI[fw.free]
     H = prior.tissue.height_m * 1e3
 
-    def stone(p):
-        xs, s, D = p[0] * 1e-3, math.exp(p[1]) * 1e-3, p[2] * 1e-3
-        return xs, s + 0.5 * D, D
+    def resid(q):     # q = (xs_mm, log s_mm, D_mm, *free nuisance)
+        nu = fw.full(q[3:])
+        return np.concatenate([(meas.force_n - fw.forces(_stone(q[:3]), nu)) / sig, fw.extra(nu)])
 
-    def model(p):
-        xs, dep, D = stone(p)
-        return surrogate.contrast(meas.x_m, meas.depth_m, xs, dep, D)
-
-    def resid(q):     # q = (xs_mm, log s_mm, D_mm, beta [mN/s])
-        return (r0 - model(q[:3]) - q[3] * 1e-3 * meas.tau_s) / sig
-
-    # starts: the table's (s, D) nodes around the peak, offset profiled out
-    cands = []
-    for ls in np.log(surrogate.s * 1e3):
-        for D in surrogate.diam * 1e3:
-            if math.exp(ls) + D > H - 2.0:
-                continue
-            for dx in (-3.0, 0.0, 3.0):
-                p = np.array([np.clip(px * 1e3 + dx, lo[0], hi[0]), ls, D])
-                r = r0 - model(p)
-                beta, chi2 = _offset_fit(r, meas.tau_s, w)
-                cands.append((chi2, p, beta))
-    cands.sort(key=lambda t: t[0])
+    # starts: the table's (s, D) nodes around the peak; scale and drift profiled out (linear), the surface as H0
+    # fitted it (the onsets pin it), the thickness at H0's value and at the prior's (a big stone drives H0's
+    # thickness and scale far off: starting only there, the stone fit can stay in that valley)
+    nu_prior = nu0.copy()
+    nu_prior[4] = 0.0
+    starts = [(nu0, 4)]
+    for nu_s in (nu_prior, np.zeros(len(NUISANCE))):    # and the prior's tissue on the nominal surface
+        if not any(np.allclose(nu_s, a) for a, _ in starts):
+            starts.append((nu_s, 2))
     best = None
-    seen = []
-    for chi2, p, beta in cands:
-        if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= 4:
-            continue
-        seen.append(p)
-        q0 = np.concatenate([p, [beta * 1e3]])
-        sol = least_squares(resid, q0, bounds=(np.append(lo, -np.inf), np.append(hi, np.inf)),
-                            x_scale=np.array([1.0, 0.1, 1.0, 0.1]), diff_step=1e-4, max_nfev=300)
-        if best is None or sol.cost < best.cost:
-            best = sol
+    for nu_s, n_starts in starts:
+        d0 = fw.depth(nu_s)
+        P0 = fw.resp.force_n(d0, nu_s[4])
+        cands = []
+        for ls in np.log(surrogate.s * 1e3):
+            for D in surrogate.diam * 1e3:
+                if math.exp(ls) + D > H - 2.0:
+                    continue
+                for dx in (-3.0, 0.0, 3.0):
+                    p = np.array([np.clip(px * 1e3 + dx, lo[0], hi[0]), ls, D])
+                    A = np.c_[P0 + fw.contrast(_stone(p), d0, nu_s[4]), meas.tau_s]
+                    coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
+                    chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
+                    cands.append((chi2, p, coef))
+        cands.sort(key=lambda t: t[0])
+        seen = []
+        for chi2, p, coef in cands:
+            if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= n_starts:
+                continue
+            seen.append(p)
+            nu = nu_s.copy()
+            nu[0] = coef[1] * 1e3
+            if fw.free[1] and coef[0] > 0:
+                nu[1] = float(np.clip(math.log(coef[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
+            q0 = np.concatenate([p, nu[fw.free]])
+            sol = least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
+                                x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
+                                max_nfev=300)
+            if best is None or sol.cost < best.cost:
+                best = sol
     q = best.x
     chi2_1 = 2.0 * best.cost
-    # the no-stone chi2 with the same (model-inflated) sigmas, so LR compares like with like
-    _, chi2_0w = _offset_fit(r0, meas.tau_s, w)
-    lr = max(chi2_0w - chi2_1, 0.0)      # "no stone" is the limit of the stone family: LR >= 0 (the optimizer's
-    #                                      miss of that limit, a fraction of a unit, is not evidence either way)
-    dof = max(len(meas) - 4, 1)
+    lr = max(chi2_0 - chi2_1, 0.0)      # "no stone" is the limit of the stone family: LR >= 0 (the optimizer's
+    #                                    miss of that limit, a fraction of a unit, is not evidence either way)
+    n_res = len(best.fun)
+    dof = max(n_res - 3 - nf, 1)
     J = best.jac
-    cov_q = np.linalg.pinv(J.T @ J) * max(1.0, chi2_1 / dof)
-    xs, dep, D = stone(q[:3])
+    infl = max(1.0, chi2_1 / dof)
+    cov_q = np.linalg.pinv(J.T @ J) * infl
+    xs, dep, D = _stone(q[:3])
     s = math.exp(q[1]) * 1e-3
-    G = np.array([[1e-3, 0, 0, 0], [0, s, 0.5e-3, 0], [0, 0, 1e-3, 0]])   # d(x, depth, D) / d q
+    G = np.zeros((3, len(q)))
+    G[0, 0], G[1, 1], G[1, 2], G[2, 2] = 1e-3, s, 0.5e-3, 1e-3       # d(x, depth, D) / d q
     cov = G @ cov_q @ G.T
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
     corr = float(cov[1, 2] / (sd[1] * sd[2])) if sd[1] > 0 and sd[2] > 0 else float("nan")
     names = ("x", "clearance", "diameter")
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
-    fit_c = model(q[:3])
-    interval = _depth_profile(resid, q, lo, hi, dep, sd[1], chi2_1, max(1.0, chi2_1 / dof), H) if profile else {}
-    return Localization(depth_interval_m=interval,detected=bool(lr >= lr_threshold), lr=float(lr), lr_threshold=lr_threshold,
-                        x_m=xs, depth_m=dep, diameter_m=D, sigma_x_m=float(sd[0]), sigma_depth_m=float(sd[1]),
-                        sigma_diameter_m=float(sd[2]), corr_depth_diameter=corr, chi2_0=float(chi2_0w),
-                        chi2_1=float(chi2_1), dof_1=dof, offset_drift_n_per_s=float(q[3] * 1e-3), peak_x_m=px,
-                        peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas),
-                        contrast_n=r0 - q[3] * 1e-3 * meas.tau_s, prior_n=F0, fit_contrast_n=fit_c)
+    nu = fw.full(q[3:])
+    sd_nu = np.zeros(len(NUISANCE))
+    sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))
+    fit_c = math.exp(nu[1]) * fw.contrast((xs, dep, D), fw.depth(nu), nu[4])
+    interval = (_depth_profile(resid, q, lo, hi, dep, sd[1], chi2_1, infl, H, nlo, nhi) if profile else {})
+    rel, rel_sd, rel_n = dwell_relaxation(meas)
+    k = math.exp(nu[1])
+    fixed = [n for n, f in zip(NUISANCE, fw.free) if not f]
+    nuis = {"stiffness_scale": (k, k * sd_nu[1]), "thickness_scale": (1.0 + nu[4], sd_nu[4]),
+            "surface_offset_m": (nu[2] * 1e-3, sd_nu[2] * 1e-3), "surface_tilt_rad": (nu[3] * 1e-3, sd_nu[3] * 1e-3),
+            "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
+            "dwell_relaxation_fraction": (rel, rel_sd), "probes_with_dwell_history": rel_n,
+            "contact_onsets_used": int(len(fw.on)) if fw.free[2] else 0,
+            "fixed": ["stiffness_scale" if f == "log_stiffness_scale" else f for f in fixed]}
+    return Localization(depth_interval_m=interval, detected=bool(lr >= lr_threshold), lr=float(lr),
+                        lr_threshold=lr_threshold, x_m=xs, depth_m=dep, diameter_m=D, sigma_x_m=float(sd[0]),
+                        sigma_depth_m=float(sd[1]), sigma_diameter_m=float(sd[2]), corr_depth_diameter=corr,
+                        chi2_0=float(chi2_0), chi2_1=float(chi2_1), dof_1=dof,
+                        offset_drift_n_per_s=float(nu[0] * 1e-3), peak_x_m=px, peak_contrast_n=pc,
+                        at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
+                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.resp.force_n(fw.depth(nu), nu[4]),
+                        prior_n=k * fw.resp.force_n(fw.depth(nu), nu[4]), fit_contrast_n=fit_c)

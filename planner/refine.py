@@ -32,6 +32,7 @@ import numpy as np
 
 from planner.localize import Localization, Measurements, localize
 from planner.surrogate import load_surrogate
+from planner.tissue_response import prior_and_thickness_slope
 
 WEAK_LR = 12.0
 
@@ -76,19 +77,25 @@ def refine_positions(loc: Localization, n: int, width_m: float, margin_m: float,
 
 
 def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, width_m: float, margin_m: float,
-                     depth_m: float | None = None, step_m: float = 5e-4) -> np.ndarray:
+                     depth_m: float | None = None, step_m: float = 5e-4, prior=None) -> np.ndarray:
     """``n`` waypoints chosen one by one to shrink var(x) + var(depth) of the current estimate most (greedy A-optimal
     sequential design over a 0.5 mm grid; Fisher information of (x, depth, diameter, offset) from the surrogate's
-    derivatives at the estimate plus the probes already made). Repeated positions are allowed (they are re-measured).
+    derivatives at the estimate plus the probes already made; with ``prior`` and a localization that fitted the
+    tissue's stiffness scale, also the scale and the thickness change, whose columns are the prior's force (plus the
+    contrast) and its thickness derivative). Repeated positions are allowed (they are re-measured).
     Falls back to ``refine_positions`` without a detected, finite estimate."""
     if not (loc.detected and math.isfinite(loc.x_m) and math.isfinite(loc.depth_m)):
         return refine_positions(loc, n, width_m, margin_m, meas.x_m)
     d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.depth_m, loc.diameter_m])
+    tissue = prior is not None and "stiffness_scale" not in loc.nuisance.get("fixed", ["stiffness_scale"])
 
     def jac(x, dd):
         cols = []
+        if tissue:        # the prior's force and thickness slope at this depth (the design's one depth)
+            P, dP = prior_and_thickness_slope(prior, x, d)
+            cols += [P + surrogate.contrast(x, dd, *th), dP]
         for i in range(3):
             h = np.zeros(3)
             h[i] = 2e-5
@@ -96,14 +103,14 @@ def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, w
         cols.append(np.ones(len(x)) * 1e-3)       # offset in mN
         return np.array(cols).T
     Je = jac(meas.x_m, meas.depth_m) / meas.sigma_n[:, None]
-    F = Je.T @ Je + 1e-12 * np.eye(4)
+    F = Je.T @ Je + 1e-12 * np.eye(Je.shape[1])
     cand = np.arange(margin_m, width_m - margin_m + 1e-12, step_m)
     Jc = jac(cand, np.full(len(cand), d)) / sig
     Fi = np.linalg.inv(F)
     out = []
     for _ in range(n):
         G = Jc @ Fi                               # (ncand, 4)
-        gain = (G[:, 0] ** 2 + G[:, 1] ** 2) / (1.0 + np.sum(G * Jc, axis=1))
+        gain = (G[:, -4] ** 2 + G[:, -3] ** 2) / (1.0 + np.sum(G * Jc, axis=1))     # x and depth
         k = int(np.argmax(gain))
         out.append(cand[k])
         g = Fi @ Jc[k]
@@ -154,7 +161,7 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
             break
         prev_x = x
         if strategy == "design":
-            x = design_positions(loc, meas, n, surrogate or load_surrogate(prior), W, margin_m)
+            x = design_positions(loc, meas, n, surrogate or load_surrogate(prior), W, margin_m, prior=prior)
         else:
             x = refine_positions(loc, n, W, margin_m, prev_x)
         k += 1

@@ -173,6 +173,8 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
     def num(v):
         return None if v is None or not math.isfinite(v) else float(v)
     has_base = n_base >= MIN_BASELINE_SAMPLES
+    dwell = np.flatnonzero((ph == DWELL) & np.isfinite(f))
+    fifth = len(dwell) // 5
     rec = ProbeRecord(
         index=p.index, x_m=p.x_m, status=status, depth_planned_m=p.depth_m,
         depth_target_m=min(p.depth_m, depth_limit_m),
@@ -182,6 +184,8 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
         force_mean_n=num(float(np.mean(f[fin]))) if fin.any() else None,
         force_std_n=num(float(np.std(f[fin]))) if fin.any() else None,
         force_peak_n=num(float(np.max(f[active]))) if active.any() else None,
+        force_dwell_start_n=num(float(np.mean(f[dwell[:fifth]]))) if fifth >= 10 else None,
+        force_dwell_end_n=num(float(np.mean(f[dwell[-fifth:]]))) if fifth >= 10 else None,
         force_baseline_n=num(float(np.mean(f[base]))) if has_base else None,
         force_baseline_std_n=num(float(np.std(f[base]))) if has_base else None,
         n_samples_baseline=n_base,

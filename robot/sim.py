@@ -58,13 +58,18 @@ class ArmModel:
 
     Parameters: ``force_model`` (x_m, depth_m) -> N for the TRUE scene; ``tissue_pose_base`` and ``width_m`` place
     the tissue; ``sensor`` a preset name or Sensor; ``q0`` start joints; ``latency_s`` delay of readings;
-    ``safety_force_n`` contact force that triggers a protective stop (the controller's own limit).
+    ``safety_force_n`` contact force that triggers a protective stop (the controller's own limit);
+    ``surface_height_m(x_m)`` how far the TRUE surface lies above the nominal one (robot.truth: registration error;
+    None: on it); ``relaxation`` a robot.truth.Relaxation (None: elastic tissue).
     """
 
     def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
                  sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
-                 latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None):
+                 latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None, surface_height_m=None,
+                 relaxation=None):
         f = force_model or (lambda x, d: 0.0)
+        self.surface_height_m = surface_height_m
+        self.relaxation = relaxation
         self.force_model = CachedForce(f) if cache else f
         self.T_tissue = ur5e.pose_to_T(tissue_pose_base)
         self.n_base = self.T_tissue[:3, 2].copy()
@@ -126,11 +131,18 @@ class ArmModel:
         p = self.T_tissue[:3, :3].T @ (T_tip[:3, 3] - self.T_tissue[:3, 3])
         return float(p[0]), float(-p[2])
 
-    def contact_force_n(self) -> float:
+    def elastic_force_n(self) -> float:
+        """The tissue's elastic force at the tip now (the indentation below the TRUE surface)."""
         x, d = self.tip_in_tissue()
+        if self.surface_height_m is not None:
+            d += self.surface_height_m(x)
         if d <= 0 or not (-1e-6 <= x <= self.width_m + 1e-6):   # 1 um: round-off at the edges is not a jump
             return 0.0
         return float(self.force_model(min(max(x, 0.0), self.width_m), d))
+
+    def contact_force_n(self) -> float:
+        fe = self.elastic_force_n()
+        return fe if self.relaxation is None else self.relaxation.force(fe)
 
     def true_wrench(self) -> np.ndarray:
         w = np.zeros(6)
@@ -243,6 +255,8 @@ class ArmModel:
             if done:
                 self.motion = None
                 self.motions_ended += 1
+        if self.relaxation is not None:
+            self.relaxation.step(self.elastic_force_n(), dt)
         for f in self.faults:
             if f["fired_s"] is None and ((f["at_s"] is not None and self.t_s >= f["at_s"])
                                          or (f["when"] is not None and f["when"](self))):

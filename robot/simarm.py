@@ -2,8 +2,9 @@
 for the simulated controller's arm. It is the one robot part that asks fem for forces (the truth's, stones
 included); the driver never sees it.
 
-The truth is the simulator's secret: whoever builds the arm hands it the true scene, and only the arm's force model
-(inside this module's closures) reads it.
+The truth is the simulator's secret: whoever builds the arm hands it the true scene and its conditions
+(robot.truth.TruthConditions: registration error, relaxation, sensor bias and drift), and only the arm's force
+model (inside this module's closures) reads them.
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from fem.scene import Scene, load
 from robot.sim import ArmModel
 from robot.simfaults import inject_arm, parse
 from robot.simforce import standin_force_model
+from robot.truth import Relaxation, TruthConditions, conditions_of
 
 START_CLEARANCE_M = 0.02      # the arm starts this far above the first approach pose
 STANDIN_WIDTH_M = 0.07        # the stand-in force model's tissue width
@@ -48,10 +50,12 @@ def start_configuration(tissue_pose, width_m: float, tcp_offset=None, above_pose
 
 def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor: str = "nano17", seed: int = 0,
                     tissue_pose=None, tcp_offset=None, start_above_pose=None, q0=None, mesh_m: float | None = None,
-                    inject=(), tool_offset=None) -> ArmModel:
+                    inject=(), tool_offset=None, conditions: TruthConditions | None = None) -> ArmModel:
     """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
-    sensor model and any injected faults (robot.simfaults syntax; controller faults are left to
-    the simulated controller)."""
+    sensor model and any injected faults (robot.simfaults syntax; controller faults are left to the simulated
+    controller). ``conditions``: what the world adds to the scene (robot.truth); None: the ``[truth]`` table of a
+    TOML ``truth`` (ideal for anything else)."""
+    cond = conditions_of(truth) if conditions is None else conditions
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
     if force == "fem":
         f, width = truth_force(truth, mesh_m)
@@ -64,8 +68,14 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     kw = {} if tcp_offset is None else {"tcp_offset": list(tcp_offset)}
     if tool_offset is not None:            # the probe as mounted (default: the TCP the arm starts with)
         kw["tool_offset"] = list(tool_offset)
+    if cond.surface_offset_m or cond.surface_tilt_rad:
+        kw["surface_height_m"] = lambda x_m: cond.surface_height_m(x_m, width)
+    if cond.relaxation_fraction > 0:
+        kw["relaxation"] = Relaxation(cond.relaxation_fraction, cond.relaxation_tau_s)
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
                    q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
+    arm.sensor.bias[:3] += cond.sensor_bias_n * arm.n_base          # along the tissue normal, on top of the preset's
+    arm.sensor.drift[:3] += cond.sensor_drift_n_per_s * arm.n_base
     for spec in inject:
         f = parse(spec)
         if not f.on_controller:

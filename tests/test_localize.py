@@ -50,16 +50,24 @@ def test_peak_estimate_between_waypoints():
     assert peak_estimate(x, -(x - 0.0) ** 2)[0] == 0.0                              # at the end: the end
 
 
-def test_fit_recovers_stone_and_reports_uncertainty(prior):
+@pytest.mark.parametrize("nuisance", [False, True])
+def test_fit_recovers_stone_and_reports_uncertainty(prior, nuisance):
+    """With the tissue's unknowns fitted too (stiffness scale, thickness; no onsets here: the surface is nominal)
+    the stone is still found and the uncertainties widen."""
     st = Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012)
     x = np.linspace(0.005, 0.065, 31)
-    loc = localize(prior, synth(prior, st, x, offset=0.002), ToySurrogate())
+    loc = localize(prior, synth(prior, st, x, offset=0.002), ToySurrogate(), nuisance=nuisance)
     assert loc.detected and loc.lr > LR_THRESHOLD
     assert abs(loc.x_m - st.x_m) < 4 * loc.sigma_x_m + 1e-4
     assert abs(loc.depth_m - st.depth_m) < 4 * loc.sigma_depth_m + 1e-4
     assert loc.sigma_x_m < 1e-3 and loc.sigma_depth_m < 6e-3
-    assert loc.offset_drift_n_per_s * 7.25 == pytest.approx(0.002, abs=1e-3)     # the drift offset is fitted
+    sd_drift = loc.nuisance["sensor_drift_n_per_s"][1] * 7.25
+    assert loc.offset_drift_n_per_s * 7.25 == pytest.approx(0.002, abs=max(1e-3, 3 * sd_drift))  # fitted offset
     assert -1 <= loc.corr_depth_diameter <= 1
+    assert ("stiffness_scale" in loc.nuisance["fixed"]) is not nuisance
+    if nuisance:
+        k, sd_k = loc.nuisance["stiffness_scale"]
+        assert abs(k - 1.0) < 3 * sd_k + 0.02
 
 
 def test_no_stone_in_noise_and_offset(prior):

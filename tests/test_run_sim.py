@@ -29,25 +29,31 @@ def surrogate():
                     f"`python -m planner.surrogate paper --ship` (~10 min) and commit planner/data/")
 
 
-@pytest.mark.parametrize("scene, x_tol, depth_tol", [("paper", 1e-3, 2e-3), ("paper-left", 1e-3, 2e-3),
-                                                     ("paper-right", 1e-3, 2e-3), ("paper-deep", 3e-3, None)])
+@pytest.mark.parametrize("scene, x_tol, depth_tol", [("paper", 1e-3, 3), ("paper-left", 1e-3, 3),
+                                                     ("paper-right", 1e-3, 3), ("paper-deep", 3e-3, None)])
 def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
-    """paper-deep (10 mm at 40 mm): found and placed laterally, but its depth is nearly degenerate with its size
-    (sigma_depth several mm, see README): the test asks the run to say so (wide 95 % profile interval) and the interval to
-    hold the truth (to 1 mm: the profile is sampled on a grid)."""
+    """The localizer fits the tissue's stiffness scale and thickness with the stone (issue 14): a central stone's
+    depth is then partly degenerate with a thicker tissue (sigma_depth about 2 mm for the paper stone at 25 probes),
+    so the depth is asked to lie within ``depth_tol`` of its own stated sigma and inside the 95 % profile interval.
+    paper-deep (10 mm at 40 mm, in the middle): with the tissue known it was found (its depth nearly degenerate with
+    its size); with the tissue's thickness and stiffness unknown it lies outside the detectability envelope (README:
+    nothing of 10 mm at 40 mm is detectable in the middle), and the run must say "no stone" as predicted, not
+    guess."""
     from fem.scene import load
     assert main(["run", scene, *ARGS, "--out", str(tmp_path)]) == 0
     r = json.loads((tmp_path / "result.json").read_text())
     truth = load(scene).stones[0]
     est = r["estimate"]
+    if depth_tol is None:
+        smallest = r["detectability"]["smallest_detectable_diameter_m_by_depth_mm"]
+        assert smallest.get("40", 1.0) > truth.diameter_m                  # predicted undetectable...
+        assert r["detected"] is False, r["evidence"]                       # ...and not detected
+        return
     assert r["detected"] is True, r["evidence"]
     assert abs(est["x_m"]["value"] - truth.x_m) < x_tol, est
-    if depth_tol is not None:
-        assert abs(est["depth_m"]["value"] - truth.depth_m) < depth_tol, est
-    else:
-        assert est["depth_m"]["sigma"] > 2e-3, est
-        lo, hi = est["depth_interval_m"]["95"]
-        assert hi - lo > 5e-3 and lo - 1e-3 <= truth.depth_m <= hi + 1e-3, est
+    assert abs(est["depth_m"]["value"] - truth.depth_m) < depth_tol * est["depth_m"]["sigma"], est
+    lo, hi = est["depth_interval_m"]["95"]
+    assert lo - 5e-4 <= truth.depth_m <= hi + 5e-4, est
     assert est["x_m"]["sigma"] > 0 and est["depth_m"]["sigma"] > 0 and est["diameter_m"]["sigma"] > 0
     assert 15 < r["probes_used"] <= 25 and (tmp_path / "probes.jsonl").exists()
     assert (tmp_path / "plan_round0.json").exists() and (tmp_path / "plan_round1.json").exists()
@@ -76,7 +82,8 @@ def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):
     for prior, meas in seen:
         assert prior.stones == () and prior.name.endswith("-prior")
         assert type(meas) is Measurements
-        assert set(vars(meas)) == {"x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index"}
+        assert set(vars(meas)) == {"x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index", "onset_m",
+                                   "onset_threshold_n", "dwell_start_n", "dwell_end_n"}
 
 
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):

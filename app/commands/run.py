@@ -5,6 +5,9 @@ an *executor* (``sim_executor``: the simulated arm, created from the true scene 
 on a real arm, where there is no truth) that turns a plan into probe records, and the *belief side*
 (planner.refine.adaptive -> planner.localize.localize) that gets the prior scene (stones removed) and those records
 and nothing else. The truth is written into result.json only after localization, for comparison (``sim`` key).
+The truth may differ from the belief beyond its stones (issue 14): ``--prior PRIOR`` plans and localizes on another
+scene's prior (a ``--plan`` carries its own), and the truth scene file's ``[truth]`` table or the ``--truth-*``
+options (robot/truth.py: registration error, relaxation, sensor bias and drift) reach only the simulated arm.
 
 Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
 no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
@@ -30,6 +33,7 @@ from app.options import (
     MAX_WAYPOINTS,
     check_output_dir,
     check_output_file,
+    finite_float,
     int_range,
     load_scene,
     positive_float,
@@ -46,6 +50,7 @@ from robot.records import done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
+from robot.truth import DEFAULT_RELAXATION, TruthConditions, TruthError, conditions_of
 
 
 def add_parser(sub) -> None:
@@ -54,6 +59,24 @@ def add_parser(sub) -> None:
     p.add_argument("scene", nargs="?", default="paper",
                    help="scene: built-in name or TOML (the TRUTH for --sim; only its prior is used for planning)")
     p.add_argument("--plan", help="use this plan.json as the coarse raster (default: plan one)")
+    p.add_argument("--prior", metavar="PRIOR",
+                   help="the belief: plan and localize on this scene's prior (built-in name or TOML) instead of "
+                        "SCENE's; SCENE stays the simulated truth (default: SCENE's prior, or the --plan's)")
+    tr = p.add_argument_group("simulated truth beyond its scene (--sim only; override the scene file's [truth] "
+                              "table; see robot/truth.py)")
+    tr.add_argument("--truth-surface-offset-m", type=finite_float, metavar="M",
+                    help="true surface this far above the nominal tissue pose (registration error), |M| <= 0.005")
+    tr.add_argument("--truth-surface-tilt-rad", type=finite_float, metavar="RAD",
+                    help="true surface tilted about the tissue's y axis through its middle, |RAD| <= 0.175")
+    tr.add_argument("--truth-relaxation", type=finite_float, nargs="?", const=DEFAULT_RELAXATION[0],
+                    metavar="FRACTION", help="viscoelastic tissue (standard linear solid): the force at constant "
+                                             f"depth relaxes by FRACTION (default {DEFAULT_RELAXATION[0]:g}), 0..0.9")
+    tr.add_argument("--truth-relaxation-tau-s", type=finite_float, metavar="S",
+                    help=f"its time constant (default {DEFAULT_RELAXATION[1]:g} s)")
+    tr.add_argument("--truth-sensor-bias-n", type=finite_float, metavar="N",
+                    help="a sensor force bias along the tissue normal (on top of the preset's random one)")
+    tr.add_argument("--truth-sensor-drift-n-per-s", type=finite_float, metavar="N_PER_S",
+                    help="a sensor drift along the tissue normal, |N_PER_S| <= 0.01")
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", nargs="?", const="inmemory", choices=["inmemory", "controller"],
                      help="simulated arm (default): inmemory, or controller (the loopback UR controller)")
@@ -120,15 +143,17 @@ def _runner(get_interfaces, out: Path, stats: dict):
     return execute
 
 
-def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holder: dict | None = None):
-    """The simulated arm holding the TRUE scene (in this closure only); created at the first plan. ``holder["arm"]``
-    gets the arm (for its force-model range report, never its truth)."""
+def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holder: dict | None = None,
+                 conditions: TruthConditions | None = None):
+    """The simulated arm holding the TRUE scene and its conditions (in this closure only); created at the first
+    plan. ``holder["arm"]`` gets the arm (for its force-model range report, never its truth)."""
     arm = {}
 
     def interfaces(plan):
         if "c" not in arm:
             a = build_truth_arm(truth, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
-                                tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose)
+                                tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose,
+                                conditions=conditions)
             arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a))
             if holder is not None:
                 holder["arm"] = a
@@ -173,10 +198,33 @@ def _holds_run(out: Path) -> bool:
     return out.is_dir() and any((out / n).exists() for n in RUN_FILES) or any(out.glob("plan_round*.json"))
 
 
-def _run_options(args, scene) -> dict:
+TRUTH_OPTIONS = {"truth_surface_offset_m": "surface_offset_m", "truth_surface_tilt_rad": "surface_tilt_rad",
+                 "truth_relaxation": "relaxation_fraction", "truth_relaxation_tau_s": "relaxation_tau_s",
+                 "truth_sensor_bias_n": "sensor_bias_n", "truth_sensor_drift_n_per_s": "sensor_drift_n_per_s"}
+
+
+def truth_conditions(args) -> TruthConditions | None:
+    """The simulated world's conditions: the truth scene file's [truth] table, overridden by --truth-* options.
+    None for a real arm. Refused (UsageError): --truth-* options without the in-memory simulated arm."""
+    given = {f: getattr(args, o) for o, f in TRUTH_OPTIONS.items() if getattr(args, o, None) is not None}
+    if given and (args.host or args.sim == "controller"):
+        opt = "--" + next(o for o, f in TRUTH_OPTIONS.items() if f in given).replace("_", "-")
+        raise UsageError(f"{opt}: the simulated truth's conditions are options of the in-memory simulated arm "
+                         f"(--sim); {'a real arm has no simulated truth' if args.host else 'for --sim controller put them in the scene file [truth] table'}")
+    if args.host:
+        return None
+    try:
+        return conditions_of(args.scene).replace(**given)
+    except TruthError as e:
+        opt = next((o for o, f in TRUTH_OPTIONS.items() if f in given and f in str(e)), None)
+        raise UsageError(f"--{opt.replace('_', '-')} {given[TRUTH_OPTIONS[opt]]}: {e}" if opt else str(e)) from None
+
+
+def _run_options(args, scene, cond: TruthConditions | None = None) -> dict:
     """What decides the rounds of a run: a re-run resumes only with all of these equal."""
     plan_sha = hashlib.sha256(Path(args.plan).read_bytes()).hexdigest() if args.plan else None
     return {"scene": args.scene, "scene_key": scene.key(), "plan_sha256": plan_sha,
+            "prior": args.prior, "truth_conditions": None if cond is None or cond.ideal else cond.to_dict(),
             "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
             "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
             "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
@@ -222,21 +270,26 @@ def run(args) -> int:
         if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):
             raise UsageError(f"--json {args.json}: would overwrite the run's own {j.name}; choose another path")
     scene = load_scene(args.scene)
+    belief = load_scene(args.prior, "--prior").prior() if args.prior else None
+    cond = truth_conditions(args)
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
         if prior.stones:
             raise UsageError(f"--plan {args.plan}: the plan's scene has stones; a plan holds the prior scene only")
-        if prior.key() != scene.prior().key():
-            _say(f"warning: the plan's prior scene differs from {args.scene}'s prior")
+        if belief is not None and belief.key() != prior.key():
+            raise UsageError(f"--prior {args.prior}: differs from the prior scene of --plan {args.plan}; give one "
+                             f"of them (the plan was made on its own prior)")
+        if belief is None and prior.key() != scene.prior().key():
+            _say(f"the plan's prior scene differs from {args.scene}'s: the simulated truth is not the belief")
     else:
-        prior = scene.prior()
+        prior = belief if belief is not None else scene.prior()
         plan0 = None
     n_coarse = len(plan0.probes) if plan0 is not None else args.waypoints
     if args.budget_probes < n_coarse:
         raise UsageError(f"--budget-probes {args.budget_probes} must be at least the coarse raster's {n_coarse} "
                          f"waypoints")
-    opts = _run_options(args, scene)
+    opts = _run_options(args, scene, cond)
     resume = _check_resume(out, opts, args.fresh)
     if resume and (out / "plan_round0.json").exists():
         try:
@@ -285,7 +338,8 @@ def run(args) -> int:
     else:
         where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
         truth = scene
-        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm)
+        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm,
+                               conditions=cond)
     # ---- OUT: from here on files are written (never deleted: --fresh moves them aside)
     if args.fresh:
         moved = move_aside(out) if _holds_run(out) else None
@@ -341,7 +395,11 @@ def run(args) -> int:
     result["surrogate"] = {"build_s": sur.build_s, "bounds": {k: list(v) for k, v in sur.bounds.items()}}
     if truth is not None:        # comparison only, after the fact
         st = [{"x_m": s.x_m, "depth_m": s.depth_m, "diameter_m": s.diameter_m} for s in truth.stones]
-        result["sim"] = {"sensor": args.sensor, "seed": args.seed, "truth_stones": st}
+        result["sim"] = {"sensor": args.sensor, "seed": args.seed, "truth_stones": st,
+                         "truth_tissue": {"youngs_pa": truth.tissue.youngs_pa, "poisson": truth.tissue.poisson,
+                                          "height_m": truth.tissue.height_m,
+                                          "youngs_scale_to_prior": truth.tissue.youngs_pa / prior.tissue.youngs_pa},
+                         "truth_conditions": cond.to_dict() if cond is not None else None}
         if st and res is not None and loc.detected:
             result["sim"]["error"] = {"x_m": loc.x_m - st[0]["x_m"], "depth_m": loc.depth_m - st[0]["depth_m"],
                                       "diameter_m": loc.diameter_m - st[0]["diameter_m"]}

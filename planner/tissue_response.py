@@ -1,0 +1,99 @@
+"""The prior tissue's force at each probe as a function of the probe's TRUE indentation and of the tissue's
+thickness: what the localizer needs to fit the surface height and the thickness as nuisance parameters.
+
+A registration error moves the true surface against the nominal one, so a probe planned ``d`` deep is really
+``d + h(x)`` deep; a tissue thicker or thinner than the prior changes the force profile's *shape* (about 1.5 mN of
+0.1 N between the middle and the ends for 10 %, after the best stiffness scale: a broad bump a stone could be
+blamed for), where the Poisson ratio (0.35-0.49) changes it only by a scale (residual below 0.02 mN: measured with
+fem on the paper tissue, 15 positions at 4 mm). So the response is tabulated with fem per probe position on a
+geometric grid of indentations, for the prior and for the prior with its height scaled by ``1 -+ THICKNESS_STEP``,
+and interpolated: linearly in (log depth, log force) (exact for a power law; extrapolated the same way beyond the
+grid, where fem refuses: indentations at the tip radius), quadratically in the relative thickness change ``eta``.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from fem.contact import surface_model
+
+THICKNESS_STEP = 0.10          # the thickness nodes: prior height x (1 - step, 1, 1 + step)
+N_NODES = 32                   # indentation nodes, geometric from MIN_FRAC to MAX_FRAC of the tip radius
+MIN_FRAC, MAX_FRAC = 0.06, 0.96
+
+_ROWS: dict = {}               # (prior key, thickness node, round(x, 7)) -> log force row
+
+
+def _scene_with_height(prior, factor: float):
+    return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, height_m=prior.tissue.height_m * factor))
+
+
+class PriorResponse:
+    """log F(x_i, d, eta) of the prior (stone-free) tissue at fixed probe positions ``x_m``."""
+
+    def __init__(self, prior, x_m):
+        R = prior.indenter.radius_m
+        self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(MAX_FRAC * R), N_NODES)
+        self.step = self.logd[1] - self.logd[0]
+        W = prior.tissue.width_m
+        x = np.clip(np.asarray(x_m, float), 0.0, W)
+        tabs = []
+        for k in (-1, 0, 1):
+            sc = _scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+            model = None
+            rows = []
+            for xi in x:
+                key = (prior.key(), k, round(float(xi), 7))
+                row = _ROWS.get(key)
+                if row is None:
+                    model = model or surface_model(sc)
+                    row = np.log(np.maximum([model.force_n(float(xi), float(d)) for d in np.exp(self.logd)], 1e-12))
+                    _ROWS[key] = row
+                rows.append(row)
+            tabs.append(np.array(rows).reshape(len(x), N_NODES))
+        self.T = np.stack(tabs)           # (3, n, nodes)
+
+    def _rows(self, eta: float) -> np.ndarray:
+        """log F rows (n, nodes) at the relative thickness change ``eta`` (quadratic through the three nodes)."""
+        u = eta / THICKNESS_STEP
+        w = np.array([0.5 * u * (u - 1), 1 - u * u, 0.5 * u * (u + 1)])
+        return np.tensordot(w, self.T, axes=1)
+
+    def force_n(self, depth_m, eta: float = 0.0) -> np.ndarray:
+        """The prior's force at each probe's true indentation ``depth_m`` (0 where it is not in contact)."""
+        d = np.asarray(depth_m, float)
+        rows = self._rows(eta)
+        u = (np.log(np.maximum(d, 1e-7)) - self.logd[0]) / self.step
+        i = np.clip(np.floor(u).astype(int), 0, N_NODES - 2)
+        w = u - i                                            # outside [0, 1] at the ends: linear extrapolation
+        n = np.arange(len(d))
+        lf = (1 - w) * rows[n, i] + w * rows[n, i + 1]
+        return np.where(d > 0, np.exp(lf), 0.0)
+
+    def depth_at_force_m(self, force_n, eta: float = 0.0, idx=None) -> np.ndarray:
+        """The indentation at which each probe's (or probe ``idx``'s) prior force reaches ``force_n`` (the inverse
+        of ``force_n``)."""
+        rows = self._rows(eta)
+        if idx is not None:
+            rows = rows[idx]
+        lf = np.log(np.maximum(np.asarray(force_n, float), 1e-12))
+        k = np.clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, N_NODES - 2)     # rows rise with depth
+        n = np.arange(len(lf))
+        t = (lf - rows[n, k]) / (rows[n, k + 1] - rows[n, k])
+        out = self.logd[k] + t * self.step
+        return np.exp(out)
+
+
+def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarray]:
+    """The prior's force at ``x_m`` (indentation ``depth_m``: one, or one per position) and its derivative with respect to the relative thickness
+    change (central difference over the ``THICKNESS_STEP`` nodes): the nuisance columns of a design's Fisher
+    information (planner.refine)."""
+    W = prior.tissue.width_m
+    x = np.clip(np.asarray(x_m, float), 0.0, W)
+    d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
+    F = {}
+    for k in (-1, 0, 1):
+        m = surface_model(_scene_with_height(prior, 1.0 + k * THICKNESS_STEP))
+        F[k] = np.array([m.force_n(float(xi), float(di)) for xi, di in zip(x, d)])
+    return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)

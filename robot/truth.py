@@ -1,0 +1,123 @@
+"""What the simulated world does that the belief does not know: the truth's conditions beyond its scene.
+
+The TRUE scene (fem.scene.Scene) already holds the truth's tissue (modulus, Poisson ratio, thickness = its height)
+and stones; ``TruthConditions`` holds the rest, which only the simulated arm applies:
+
+* ``surface_offset_m``: the true tissue surface lies this far *above* the nominal (registered) one along the tissue
+  frame's outward normal (positive: the tip meets tissue earlier and presses deeper than planned);
+* ``surface_tilt_rad``: the true surface is rotated by this angle about the tissue frame's y axis through the
+  middle of the section: at tissue-frame x the surface is ``offset + (x - W/2) tan(tilt)`` above the nominal one;
+  the force keeps acting along the nominal normal and the indentation is measured along it (the cos error is
+  1.4e-3 at 3 deg);
+* ``relaxation_fraction`` and ``relaxation_tau_s``: a standard linear solid (quasi-linear viscoelastic) tissue: the
+  force at a constant indentation relaxes from the elastic value (the scene's modulus is the instantaneous one) to
+  ``1 - relaxation_fraction`` of it with time constant ``relaxation_tau_s``; ``DEFAULT_RELAXATION`` (25 %, 2 s) is
+  the documented default when relaxation is switched on (soft-tissue indentation studies report 20-30 % with
+  seconds-scale time constants);
+* ``sensor_bias_n`` and ``sensor_drift_n_per_s``: a force bias and a linear drift along the tissue normal, added to
+  the sensor preset's own random ones.
+
+In a scene TOML file they are the ``[truth]`` table (fem ignores it: the belief never reads it); ``palpate run``'s
+``--truth-*`` options override it. Nothing in planner/ or the driver imports this module.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+DEFAULT_RELAXATION = (0.25, 2.0)      # (fraction, tau_s) when relaxation is on without values
+
+
+class TruthError(ValueError):
+    """A bad truth condition (a [truth] field or a --truth-* option); the message names it and what is allowed."""
+
+
+# field -> (lo, hi, unit): every field is checked against its range (never clamped)
+RANGES = {"surface_offset_m": (-0.005, 0.005, "m"), "surface_tilt_rad": (-0.175, 0.175, "rad"),
+          "relaxation_fraction": (0.0, 0.9, ""), "relaxation_tau_s": (0.01, 1000.0, "s"),
+          "sensor_bias_n": (-10.0, 10.0, "N"), "sensor_drift_n_per_s": (-0.01, 0.01, "N/s")}
+
+
+@dataclass(frozen=True)
+class TruthConditions:
+    surface_offset_m: float = 0.0
+    surface_tilt_rad: float = 0.0
+    relaxation_fraction: float = 0.0
+    relaxation_tau_s: float = DEFAULT_RELAXATION[1]
+    sensor_bias_n: float = 0.0
+    sensor_drift_n_per_s: float = 0.0
+
+    def __post_init__(self):
+        for name, (lo, hi, unit) in RANGES.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise TruthError(f"[truth] {name} = {v!r}: must be a finite number in [{lo:g}, {hi:g}] {unit}")
+            if not lo <= v <= hi:
+                raise TruthError(f"[truth] {name} = {v!r} is outside the allowed range [{lo:g}, {hi:g}] {unit}")
+
+    @property
+    def ideal(self) -> bool:
+        """True when the simulated world adds nothing to its scene."""
+        return not any((self.surface_offset_m, self.surface_tilt_rad, self.relaxation_fraction, self.sensor_bias_n,
+                        self.sensor_drift_n_per_s))
+
+    def surface_height_m(self, x_m: float, width_m: float) -> float:
+        """Height of the true surface above the nominal one at tissue-frame ``x_m``."""
+        return self.surface_offset_m + (x_m - 0.5 * width_m) * math.tan(self.surface_tilt_rad)
+
+    def replace(self, **changes) -> "TruthConditions":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict, where: str = "[truth]") -> "TruthConditions":
+        if not isinstance(d, dict):
+            raise TruthError(f"{where} must be a table, got {type(d).__name__}")
+        known = [f.name for f in dataclasses.fields(TruthConditions)]
+        unknown = sorted(set(d) - set(known))
+        if unknown:
+            raise TruthError(f"unknown key(s) in {where}: {', '.join(map(str, unknown))} (known: {', '.join(known)})")
+        return TruthConditions(**d)
+
+
+def conditions_of(scene_spec) -> TruthConditions:
+    """The ``[truth]`` table of a scene TOML file (``scene_spec`` a path ending in .toml); the ideal world for a
+    built-in scene name, a Scene object or a file without the table."""
+    if not isinstance(scene_spec, (str, Path)) or not str(scene_spec).endswith(".toml"):
+        return TruthConditions()
+    try:
+        d = tomllib.loads(Path(scene_spec).read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise TruthError(f"{scene_spec}: not valid TOML ({e})") from None
+    return TruthConditions.from_dict(d.get("truth", {}), f"[truth] of {scene_spec}")
+
+
+class Relaxation:
+    """Standard linear solid on the tip's force: F = (1 - g) F_e + g h, dh/dt = dF_e/dt - h / tau, where F_e is the
+    elastic force at the current indentation (relaxation function 1 - g (1 - exp(-t/tau))). Out of contact the state
+    is reset (the tissue recovers while the tip is away: seconds between probes against tau)."""
+
+    def __init__(self, fraction: float, tau_s: float):
+        self.g, self.tau = float(fraction), float(tau_s)
+        self.h = 0.0
+        self.fe = 0.0
+
+    def step(self, fe: float, dt: float) -> None:
+        """Advance by ``dt`` to the elastic force ``fe`` (exact for F_e linear over the step)."""
+        if fe <= 0.0:
+            self.h, self.fe = 0.0, 0.0
+            return
+        a = math.exp(-dt / self.tau)
+        self.h = self.h * a + (fe - self.fe) * (1.0 - a) * self.tau / dt
+        self.fe = fe
+
+    def force(self, fe: float) -> float:
+        """The force now, for the elastic force ``fe`` at the current indentation."""
+        if fe <= 0.0:
+            return 0.0
+        return max((1.0 - self.g) * fe + self.g * (self.h + fe - self.fe), 0.0)
