@@ -41,7 +41,6 @@ import argparse
 import dataclasses
 import hashlib
 import json
-import multiprocessing as mp
 import sys
 import time
 from dataclasses import dataclass
@@ -55,6 +54,7 @@ from fem.model import build_model
 from fem.scene import Analysis, Stone, from_dict, load
 from fem.scene_mesh import mesh_for
 from fem.tip import contact_scene
+from planner.tasks import Runner, run_pieces
 
 FORMAT = 2           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored
 
@@ -121,11 +121,12 @@ def stone_model(scene):
     return SurfaceModel(scene, model=build_model(scene, mesh=mesh_for(scene, use=False), rigid_stones=True))
 
 
-def _one_stone(args):
-    """Force curves (levels, x0) of one grid stone. Runs in a worker process."""
-    prior_dict, xs, depth, diam, levels, x0 = args
-    prior = from_dict(prior_dict)
-    return _forces(stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)])), levels, x0)
+def _one_stone(shared: dict, stone: tuple[float, float, float]) -> np.ndarray:
+    """Force curves (levels, x0) of one grid stone (xs_m, depth_m, diameter_m). Runs on a worker (planner.tasks)."""
+    prior = from_dict(shared["prior"])
+    xs, depth, diam = stone
+    model = stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)]))
+    return _forces(model, shared["levels_m"], shared["x0_m"])
 
 
 def _forces(model, levels, x0) -> np.ndarray:
@@ -160,36 +161,40 @@ def _continue_in_depth(f: np.ndarray, levels: np.ndarray) -> None:
             f[a, b] = f[i1, b] * (levels[a] / levels[i1]) ** p
 
 
-def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None) -> dict:
-    """Run fem for every grid stone (``workers`` processes) on ``table_scene(prior)`` at the prior's own modulus
-    (``youngs_ref_pa``). Returns the arrays that ``Surrogate`` reads."""
+def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, runner: Runner | None = None,
+                store: Path | None = None) -> dict:
+    """Run fem for every grid stone on ``table_scene(prior)`` at the prior's own modulus (``youngs_ref_pa``), on
+    ``runner`` (planner.tasks; default a LocalCluster of ``workers``, serial for 1); finished stones are kept in
+    ``store`` (a re-run resumes). ``progress(done, total, elapsed_s)`` as stones finish. Returns the arrays that
+    ``Surrogate`` reads."""
+    runner = runner or Runner(workers=workers, progress=progress is None)
     prior = table_scene(prior, prior.tissue.youngs_pa)
     W = prior.tissue.width_m
     x0 = np.arange(0.0, W + 1e-12, grid.dx0_m)
     xs = _grid_xs(prior, grid)
-    jobs, idx = [], []
+    stones, idx = [], []
     H = prior.tissue.height_m
     for i, s in enumerate(grid.s_m):
         for j, D in enumerate(grid.diam_m):
             if s + D > H - 1e-3:
                 continue                  # the stone would leave the bottom: filled by extrapolation below
             for k, x in enumerate(xs):
-                jobs.append((prior.to_dict(), float(x), float(s + D / 2), float(D), list(grid.levels_m), x0))
+                stones.append((float(x), float(s + D / 2), float(D)))
                 idx.append((i, j, k))
     table = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs), len(grid.levels_m), len(x0)))
     t0 = time.perf_counter()
     base = _forces(surface_model(prior), grid.levels_m, x0)      # the prior's force, subtracted from every stone's
-    if workers > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for n, ((i, j, k), res) in enumerate(zip(idx, pool.imap(_one_stone, jobs, chunksize=4))):
-                table[i, j, k] = res - base
-                if progress and n % 20 == 0:
-                    progress(n + 1, len(jobs), time.perf_counter() - t0)
-    else:
-        for n, ((i, j, k), job) in enumerate(zip(idx, jobs)):
-            table[i, j, k] = _one_stone(job) - base
-            if progress and n % 20 == 0:
-                progress(n + 1, len(jobs), time.perf_counter() - t0)
+    done = {"n": 0}
+
+    def arrived(n, res):
+        i, j, k = idx[n]
+        table[i, j, k] = res - base
+        done["n"] += 1
+        if progress and (done["n"] % 20 == 0 or done["n"] == len(stones)):
+            progress(done["n"], len(stones), time.perf_counter() - t0)
+    shared = {"prior": prior.to_dict(), "levels_m": list(grid.levels_m), "x0_m": x0}
+    run_pieces(_one_stone, shared, stones, [f"stone-{i}-{j}-{k}" for i, j, k in idx], runner=runner, store=store,
+               desc="surrogate stones", on_result=arrived)
     _fill_invalid(table, grid, H)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "xs_m": xs,
             "levels_m": np.array(grid.levels_m), "x0_m": x0, "table": table, "width_m": np.array(W),
@@ -293,7 +298,7 @@ def table_candidates(prior, grid: Grid) -> list[Path]:
 
 
 def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int = 2, progress=None,
-                   check: bool = True) -> Surrogate:
+                   check: bool = True, runner: Runner | None = None) -> Surrogate:
     """The surrogate of a prior scene (stone-free): from memory, the disk cache or the tables shipped in
     planner/data, provided its fingerprint matches what fem computes now (``fingerprint``, ~1 s); else built with
     fem (minutes) and written to the cache."""
@@ -325,7 +330,8 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
     if data is None:
         if not build:
             raise FileNotFoundError(f"no valid surrogate table at {path}")
-        data = build_table(prior, grid, workers=workers, progress=progress)
+        store = path.with_suffix(".parts") if diskcache.enabled() else None     # finished stones: resumable
+        data = build_table(prior, grid, workers=workers, progress=progress, runner=runner, store=store)
         data["fingerprint"] = fingerprint(own, grid) if fp is None else fp
         if diskcache.enabled():
             diskcache.write(path, data)
@@ -379,14 +385,15 @@ def check_error(sur: Surrogate, prior, n: int = 10, seed: int = 0, depth_m: floa
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m planner.surrogate", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", default="paper")
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=2, help="dask LocalCluster workers (1: serial)")
+    p.add_argument("--scheduler", help="an existing dask scheduler (tcp://HOST:PORT) instead")
     p.add_argument("--check", type=int, default=0, metavar="N", help="measure the error at N random stones")
     p.add_argument("--json", metavar="PATH")
     p.add_argument("--ship", action="store_true", help="also write the table (float32) to planner/data/")
     a = p.parse_args(argv)
     prior = load(a.scene).prior()
     t0 = time.perf_counter()
-    sur = load_surrogate(prior, workers=a.workers, progress=lambda i, n, t: print(
+    sur = load_surrogate(prior, runner=Runner(workers=a.workers, scheduler=a.scheduler), progress=lambda i, n, t: print(
         f"  surrogate: {i}/{n} stones, {t:.0f} s", file=sys.stderr, flush=True))
     print(f"surrogate for {a.scene}: {cache_path(prior, Grid())} ({time.perf_counter() - t0:.1f} s; "
           f"built in {sur.build_s:.0f} s)")

@@ -27,7 +27,8 @@ ALLOWED = {
 ROBOT_FEM_USERS = {"robot.simarm"}
 # imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "fem.plots", "fem.export",
-           "planner.plots_plan", "planner.plots_run", "importlib.metadata")
+           "planner.plots_plan", "planner.plots_run", "planner.plots_accuracy", "importlib.metadata",
+           "distributed")
 
 
 def modules() -> dict[str, Path]:

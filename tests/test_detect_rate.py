@@ -5,21 +5,17 @@ chi2 with 3 dof). Here 150 simulated 15-probe rasters over a 4 mm stone 30 mm de
 sensitive case) are localized and counted. Measured: 0.43 +- 0.04 against 0.52 predicted -- the chi2 approximation
 (the detection LR maximises over the stone's position too) is optimistic by about 0.1 at the margin; the
 tolerance below is 3 standard errors plus that 0.1, no more. Probe records come from the accuracy study's measurement model
-(bench/accuracy_study.py FastArm, itself checked against the simulated arm in test_robot_sim)."""
+(planner.accuracy.FastArm, itself checked against the simulated arm in test_robot_sim)."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-from accuracy_study import DEPTH_M, FastArm  # noqa: E402
 
 from core.contracts import Motion  # noqa: E402
 from core.contracts import sensor_spec as spec  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
+from planner.accuracy import DEPTH_M, FastArm  # noqa: E402
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
 from planner.localize import Measurements, localize  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402
