@@ -24,7 +24,7 @@ COMMANDS = {
     "plan": "a CasADi raster plan for a UR5e: poses, joints, depths, timing (plan.json)",
     "run": "plan, probe (simulated arm by default), locate the stone, refine",
     "bench": "run time against error, skips, scaling, stress tests",
-    "study": "the accuracy study on dask.distributed (serial, LocalCluster or a cluster)",
+    "study": "accuracy and detectability studies on dask.distributed (serial, LocalCluster or a cluster)",
 }
 
 EPILOG = """examples:

@@ -145,6 +145,7 @@ def write_report(out: Path, rows: list[dict], sensor: str, budget: int, target_m
     trials = len({r["seed"] for r in rows if "err_x_m" in r})
     healthy = len({r["seed"] for r in rows}) - trials
     where = f"; {where}" if where else ""
+    out.mkdir(parents=True, exist_ok=True)
     if write_csv:
         keys = sorted({k for r in rows for k in r})
         with open(out / "accuracy.csv", "w", newline="") as f:

@@ -70,3 +70,25 @@ def figure(rows, path, sensor):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def detect_figure(rows, path) -> None:
+    """Predicted against Monte-Carlo detection rate (with 1 standard error), one point per stone."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    pred = np.array([r["predicted"] for r in rows])
+    rate = np.array([r["rate"] for r in rows])
+    ax.errorbar(pred, rate, yerr=[r["se"] for r in rows], fmt="o", capsize=3)
+    for r in rows:
+        ax.annotate(f"{r['diameter_m'] * 1e3:g} mm @ {r['depth_m'] * 1e3:g} mm", (r["predicted"], r["rate"]),
+                    fontsize=7, xytext=(4, -10), textcoords="offset points")
+    ax.plot([0, 1], [0, 1], "k--", lw=0.8)
+    ax.set_xlim(-0.03, 1.03)
+    ax.set_ylim(-0.03, 1.03)
+    ax.set_xlabel("predicted detection rate (planner.detectability)")
+    ax.set_ylabel("Monte-Carlo detection rate")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -71,6 +71,7 @@ def _write_once(path: Path, write) -> None:
 
 
 def save_piece(store: Path, name: str, result) -> None:
+    store.mkdir(parents=True, exist_ok=True)          # created with the first finished piece, not before
     if isinstance(result, np.ndarray):
         _write_once(store / f"{name}.npy", lambda f: np.save(f, result, allow_pickle=False))
     else:
@@ -118,8 +119,6 @@ def run_pieces(fn: Callable, shared, pieces: Sequence, names: Sequence[str], run
         raise ValueError("run_pieces: one unique name per piece")
     results: list = [None] * len(pieces)
     todo = []
-    if store is not None:
-        store.mkdir(parents=True, exist_ok=True)
     for i, name in enumerate(names):
         r = load_piece(store, name) if store is not None else None
         if r is None:
