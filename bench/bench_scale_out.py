@@ -43,12 +43,13 @@ def _env(code: Path, cache: Path) -> dict:
             "OMP_NUM_THREADS": "1"}
 
 
-def timed(cmd: list[str], env: dict, log: Path, watch: Path | None = None) -> dict:
-    """Run ``cmd``; wall time, and the time until ``watch`` (a probes.jsonl) has its first line."""
+def timed(cmd: list[str], env: dict, log: Path, watch: Path | None = None, cwd: Path = ROOT) -> dict:
+    """Run ``cmd`` in ``cwd`` (``python -m app.cli`` takes the code of the working directory first); wall time, and
+    the time until ``watch`` (a probes.jsonl) has its first line."""
     t0 = time.perf_counter()
     first = None
     with open(log, "w") as f:
-        p = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT)
+        p = subprocess.Popen(cmd, env=env, stdout=f, stderr=subprocess.STDOUT, cwd=cwd)
         while p.poll() is None:
             if first is None and watch is not None and watch.exists() and watch.read_text().strip():
                 first = time.perf_counter() - t0
@@ -80,7 +81,7 @@ def run_part(out: Path, code: Path, label: str) -> dict:
     d = out / f"run_{label}"
     cache = Path(tempfile.mkdtemp(prefix=f"palpate-cache-{label}-", dir=out))
     r = timed([sys.executable, "-m", "app.cli", "run", str(scene), "--sim", "--no-figure", "--out", str(d)],
-              _env(code, cache), out / f"run_{label}.log", watch=d / "probes.jsonl")
+              _env(code, cache), out / f"run_{label}.log", watch=d / "probes.jsonl", cwd=code)
     if (d / "result.json").exists():
         res = json.loads((d / "result.json").read_text())
         r["detected"], r["probes_used"] = res.get("detected"), res.get("probes_used")

@@ -16,6 +16,10 @@ from planner.surrogate import Grid, Surrogate, load_surrogate
 from planner.tasks import Runner
 
 
+class TableBuildError(RuntimeError):
+    """The background build failed (fem could not model the prior's candidate stones); the cause is chained."""
+
+
 class PendingSurrogate:
     """Stands in for ``load_surrogate(prior)`` while it builds; every attribute waits for the table (``result``)."""
 
@@ -59,9 +63,12 @@ class PendingSurrogate:
         return self._done.is_set()
 
     def result(self) -> Surrogate:
-        """The table (waiting for the build, with a status line every ``every_s``); the build's error re-raised."""
+        """The table (waiting for the build, with a status line every ``every_s``); a failed build raises
+        TableBuildError."""
         while not self._done.wait(self._every_s):
             self._say("waiting for the table: " + self.status())
+        if isinstance(self._error, Exception):
+            raise TableBuildError(f"the surrogate table could not be built: {self._error}") from self._error
         if self._error is not None:
             raise self._error
         return self._sur

@@ -321,7 +321,7 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
         if check:
             fp = fingerprint(own, grid) if fp is None else fp
             if "fingerprint" not in d or d["fingerprint"].shape != fp.shape or not np.allclose(
-                    d["fingerprint"] * modulus_scale(d, prior), fp, rtol=1e-7, atol=1e-12):
+                    d["fingerprint"] * modulus_scale(d, prior), fp, rtol=1e-7, atol=1e-12 * modulus_scale(d, prior)):
                 print(f"surrogate: {cand} was built by a different fem (fingerprint differs): not used",
                       file=sys.stderr)
                 continue

@@ -66,6 +66,9 @@ def _write_once(path: Path, write) -> None:
             os.link(tmp, path)                 # fails if the piece is already there
         except FileExistsError:
             pass
+        except OSError:                        # a file system without hard links: rename, unless it is there
+            if not path.exists():
+                os.replace(tmp, path)
     finally:
         Path(tmp).unlink(missing_ok=True)
 

@@ -49,3 +49,18 @@ def test_run_probes_while_the_table_is_built(tmp_path, monkeypatch, capsys):
     r = json.loads((out / "result.json").read_text())
     assert r["time"]["probing_started_s"] < r["time"]["wall_s"]
     assert r["detectability"]["usable"] is not None
+
+
+def test_a_failed_table_build_is_one_line_and_the_probes_are_kept(tmp_path, monkeypatch, capsys):
+    def failing_build(prior, **kwargs):
+        raise ValueError("fem refused a candidate stone")
+
+    monkeypatch.setattr(pending, "load_surrogate", failing_build)
+    scene = tmp_path / "mine.toml"
+    scene.write_text(TOML)
+    out = tmp_path / "run"
+    assert main(["run", str(scene), "--sim", "--budget-probes", "15", "--no-figure", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "cannot be modelled" in err[-1] and "fem refused a candidate stone" in err[-1]
+    assert "Traceback" not in "\n".join(err)
+    assert len((out / "probes.jsonl").read_text().splitlines()) == 15

@@ -37,7 +37,7 @@ from app.options import (
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
 from planner.localize import Localization, localize
-from planner.pending import PendingSurrogate
+from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster, replan
 from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
@@ -260,7 +260,7 @@ def run(args) -> int:
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                          f"sizes)") from None
 
-    def detectable(table) -> tuple[dict, dict]:
+    def detectable(table, when: str = "before probing") -> tuple[dict, dict]:
         try:
             det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
                                 depth_limit_m=plan0.limits.depth_limit_m,
@@ -273,7 +273,7 @@ def run(args) -> int:
             if r["detectable"]:
                 k = f"{r['depth_m'] * 1e3:g}"
                 smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
-        _say("detectable before probing (coarse raster, sensor " + args.sensor + "): " + (
+        _say(f"detectable {when} (coarse raster, sensor {args.sensor}): " + (
             ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
             else det["reason"]))
         return det, smallest
@@ -338,11 +338,17 @@ def run(args) -> int:
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
         _say(str(e))
+    except TableBuildError as e:    # the measured probes are on disk; a re-run resumes them
+        raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                         f"sizes)") from None
     finally:
         cleanup.close()
     if isinstance(sur, PendingSurrogate):       # built beside the coarse raster: what it could detect, stated now
-        sur = sur.result()
-        det, smallest = detectable(sur)
+        try:
+            sur = sur.result()
+        except TableBuildError as e:
+            raise UsageError(f"{where_prior} cannot be modelled: {e}") from None
+        det, smallest = detectable(sur, "with the coarse raster (stated once the table was built)")
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
