@@ -40,7 +40,7 @@ from planner.detectability import baseline_samples, p_detect, probe_sigma_n, pro
 from planner.localize import Measurements, localize, prior_force
 from planner.raster import raster_positions
 from planner.refine import adaptive
-from planner.surrogate import stone_model
+from planner.surrogate import _forces, stone_model
 from planner.tasks import Runner, run_pieces
 
 DENSE = (15, 21, 29, 41, 57, 81, 113)   # even rasters localized with the same fem fit (and the model-free peak fit)
@@ -48,6 +48,19 @@ PEAK_ONLY = (161, 241)                  # larger even rasters for the model-free
 BOOT = 1000                             # bootstrap resamples of the stones for the ratios' intervals
 STRATEGIES = ("design", "raster")
 DEPTH_M = 0.004           # the planner's depth on this tissue (depth limit 4 mm, force far below the limit)
+
+
+def continued_force(model):
+    """``model.force_n``, continued where fem refuses the indentation (a stone so shallow that the tip would crush
+    the tissue against it: fem.contact.check_waypoint) with the local power law in depth, as the surrogate's table
+    does (planner.surrogate._forces); a real probe there stops at its force limit first. Elsewhere unchanged."""
+    def f(x_m: float, depth_m: float) -> float:
+        try:
+            return model.force_n(x_m, depth_m)
+        except ValueError:
+            levels = depth_m * np.array([0.25, 0.375, 0.5, 0.625, 0.75, 0.875, 1.0])
+            return float(_forces(model, levels, [x_m])[-1, 0])
+    return f
 
 
 class FastArm:
@@ -93,7 +106,7 @@ def trial(prior, sur, stone, sensor, seed, budget, target_m):
     rng = np.random.default_rng(seed)
     truth = prior if stone is None else prior.with_stones([stone])
     model = surface_model(prior) if stone is None else stone_model(truth)
-    fast = FastArm(model.force_n, sensor, rng)
+    fast = FastArm(continued_force(model), sensor, rng)
     W = prior.tissue.width_m
     rows = []
 

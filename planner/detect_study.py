@@ -18,7 +18,7 @@ import numpy as np
 
 from core.contracts import Motion, sensor_spec
 from fem.scene import Stone
-from planner.accuracy import DEPTH_M, FastArm
+from planner.accuracy import DEPTH_M, FastArm, continued_force
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
 from planner.localize import Measurements, localize
 from planner.raster import raster_positions
@@ -64,7 +64,7 @@ def run_case(sur, c: Case) -> dict:
                     tau_s=np.full(len(x), float(probe_tau_s(Motion(), DEPTH_M))))
     hits = 0
     for k in range(c.runs):
-        arm = FastArm(truth.force_n, c.sensor, np.random.default_rng(c.seed * 100000 + c.index * 1000 + k))
+        arm = FastArm(continued_force(truth), c.sensor, np.random.default_rng(c.seed * 100000 + c.index * 1000 + k))
         hits += bool(localize(prior, Measurements.from_records(arm.execute(x), Motion()), sur).detected)
     rate = hits / c.runs
     return {"index": c.index, "x_m": c.x_m, "depth_m": c.depth_m, "diameter_m": c.diameter_m, "runs": c.runs,

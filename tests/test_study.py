@@ -166,3 +166,17 @@ def test_sweep_study_scenes_are_seeded_per_scene(tmp_path):
     for i, r in enumerate(rows):
         assert _comparable([r]) == _comparable([alone[i]])          # (as JSON: NaN equals NaN)
     assert (out / "sweep.md").read_text().startswith("### Random-scene sweep (3 scenes)")
+
+
+def test_the_study_arm_continues_the_force_where_fem_refuses_the_indentation():
+    """A stone 4.6 mm under the surface: fem refuses 4 mm (tissue crushed against it); the study's arm continues the
+    force with the local power law (as the table does) instead of failing the trial; elsewhere fem's force."""
+    from fem.scene import Stone
+    from planner.accuracy import continued_force
+    from planner.surrogate import stone_model
+    m = stone_model(load("paper").prior().with_stones([Stone(x_m=0.0436, depth_m=0.0086, diameter_m=0.008)]))
+    f = continued_force(m)
+    with pytest.raises(ValueError):
+        m.force_n(0.0436, 0.004)
+    assert f(0.0436, 0.003) == m.force_n(0.0436, 0.003)
+    assert f(0.0436, 0.003) < f(0.0436, 0.004) < 2 * f(0.0436, 0.003)
