@@ -8,12 +8,14 @@ import importlib
 import os
 import sys
 
-from app.errors import EXIT_USAGE, guarded
-
-# Single-threaded BLAS unless the environment says otherwise (before any numpy import): on 2 shared cores
-# OpenBLAS's threads spin against other processes; 100 predictions with stresses measured 3-4x more CPU time.
+# Single-threaded BLAS unless the environment says otherwise (before any numpy import, so before app.errors, which
+# imports numpy through core): on 2 shared cores OpenBLAS's threads spin against other processes; 100 predictions
+# with stresses measured 3-4x more CPU time. It also makes a study's serial run and its dask workers (which dask
+# starts single-threaded) compute bit for bit the same.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from app.errors import EXIT_USAGE, guarded  # noqa: E402
 
 # name -> one-line help (the module app.commands.<name> is imported only when its subcommand runs)
 COMMANDS = {
@@ -22,6 +24,7 @@ COMMANDS = {
     "plan": "a CasADi raster plan for a UR5e: poses, joints, depths, timing (plan.json)",
     "run": "plan, probe (simulated arm by default), locate the stone, refine",
     "bench": "run time against error, skips, scaling, stress tests",
+    "study": "accuracy and detectability studies on dask.distributed (serial, LocalCluster or a cluster)",
 }
 
 EPILOG = """examples:
@@ -30,6 +33,7 @@ EPILOG = """examples:
   palpate predict paper --waypoints 50 --depth-m 0.004    force and stress across the surface (load B)
   palpate plan paper --out plan.json --plots out/          CasADi raster plan for a UR5e
   palpate run paper --sim --out run/                       plan, probe with the simulated arm, locate the stone
+  palpate study accuracy --out study/ --quick              the accuracy study on a dask LocalCluster
 scenes: a built-in name (paper, paper-left, paper-right, paper-deep, healthy) or a TOML file (see README).
 Add --debug to any command to see a traceback instead of a one-line error."""
 

@@ -38,9 +38,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from accuracy_study import DEPTH_M, peak_fit, random_stone  # noqa: E402
-
 from fem.scene import load  # noqa: E402
+from planner.accuracy import DEPTH_M, peak_fit, random_stone  # noqa: E402
 from planner.surrogate import load_surrogate, stone_model  # noqa: E402
 
 MARGIN_M = 0.005

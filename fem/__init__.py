@@ -16,7 +16,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   results     Profile, UniformResult (load A results)
   mixed       load A, locking-free Taylor-Hood u-p
   uniform     load A: solve_uniform (dispatches to mixed)
-  tip         TipCompliance (an elastic tip), rigid_tip_bound
+  tip         TipCompliance (an elastic tip), rigid_tip_bound, treated_as_rigid, contact_scene (what a key names)
   contact     load B: SurfaceModel, surface_model (memory + disk cache), indent_full, tip_profile, check_waypoint
   export      VTU export (meshio): write_vtu, write_result_vtu
   plots       figures (matplotlib), not imported here

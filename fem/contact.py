@@ -36,7 +36,7 @@ from .model import Model, build_model
 from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
 from .scene_mesh import check_surface_budget, code_version, mesh_for
 from .stress import components, nodal_poisson, recovery_operator
-from .tip import TipCompliance, rigid_tip_bound
+from .tip import TIP_TOLERANCE, TipCompliance, contact_scene, rigid_tip_bound
 
 
 @dataclass
@@ -129,7 +129,7 @@ class SurfaceModel:
     """
 
     def __init__(self, scene, model: Model | None = None, rigid_tip: str | bool = "auto",
-                 tip_tolerance: float = 1e-3, stress_band_m: float | None = None,
+                 tip_tolerance: float = TIP_TOLERANCE, stress_band_m: float | None = None,
                  rigid_stones: str | bool = "auto", *, compliance: np.ndarray | None = None,
                  tip: TipCompliance | None = None):
         t0 = time.perf_counter()
@@ -358,7 +358,10 @@ def check_waypoint(scene, x_m: float, depth_m: float) -> None:
 
 
 def _surface_spec(scene, options: dict) -> dict:
-    return {"scene": scene.key(), "options": options, "code": code_version()}
+    """What a SurfaceModel's operators depend on: the scene's content without what cannot change them (a tip fem
+    treats as rigid shares the rigid tip's entry: fem.tip.contact_scene), the options, the code version."""
+    tip = {k: options[k] for k in ("rigid_tip", "tip_tolerance") if k in options}
+    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code_version()}
 
 
 def surface_key(scene, options: dict) -> str:

@@ -12,6 +12,7 @@ tissue rho = 4.5e-5. The tests and the bench measure the actual change against t
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,15 +20,35 @@ import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
 from .mesh import mesh_tip
+from .scene import Indenter
+
+TIP_TOLERANCE = 1e-3   # an elastic tip whose rigid_tip_bound is below this is treated as rigid (SurfaceModel "auto")
 
 
 def rigid_tip_bound(scene) -> float:
+    """The relative change of the force from treating the scene's tip as rigid (Hertz estimate rho, module doc)."""
     ind, t = scene.indenter, scene.tissue
     if ind.youngs_pa is None:
         return 0.0
     if scene.analysis.plane == "strain":
         return t.youngs_pa * (1 - ind.poisson ** 2) / (ind.youngs_pa * (1 - t.poisson ** 2))
     return t.youngs_pa / ind.youngs_pa
+
+
+def treated_as_rigid(scene, rigid_tip: str | bool = "auto", tip_tolerance: float = TIP_TOLERANCE) -> bool:
+    """Whether fem models the scene's tip as rigid (no modulus given, forced, or within ``tip_tolerance``)."""
+    if scene.indenter.youngs_pa is None or rigid_tip is True:
+        return True
+    return rigid_tip == "auto" and rigid_tip_bound(scene) < tip_tolerance
+
+
+def contact_scene(scene, rigid_tip: str | bool = "auto", tip_tolerance: float = TIP_TOLERANCE):
+    """The scene with only what changes a contact answer: a tip fem treats as rigid loses its modulus (and its
+    Poisson ratio), so a 60 MPa tip on 2.5 kPa tissue shares the rigid tip's cached operators and tables."""
+    if scene.indenter.youngs_pa is None or not treated_as_rigid(scene, rigid_tip, tip_tolerance):
+        return scene
+    rigid = dataclasses.replace(scene.indenter, youngs_pa=None, poisson=Indenter().poisson)
+    return dataclasses.replace(scene, indenter=rigid)
 
 
 @dataclass

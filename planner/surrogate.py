@@ -16,19 +16,31 @@ keeps a peak sharp where plain interpolation in xs would smear it) and blended l
 correction); linear in x0 and in probe depth. Candidate stones are rigid (the paper's 5 GPa stone is treated as rigid
 by fem: a stone 10^6 times stiffer than tissue).
 
-The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``), keyed by the
-prior's content and the grid, and carries a behavioural fingerprint of the fem that built it (``fingerprint``: fem's
-forces for the prior and one grid stone at a few probes, recomputed in ~1 s at load; a mismatch means rebuild). It is
-built once (~10 min on 2 busy cores; 360 fem models) and read in milliseconds. A table for the built-in paper tissue
-may be shipped in planner/data/ (same file name, same check).
+What selects a table (``table_scene``): only what changes the answer. In linear elasticity with a rigid stone and a
+rigid tip, the force is proportional to the tissue's Young's modulus at fixed Poisson ratio (the stiffness matrix is
+E times a matrix of the geometry and nu; the contact constraints are displacements), so the key holds the tissue at a
+unit modulus and a table built at ``youngs_ref_pa`` serves every modulus, scaled by E / youngs_ref_pa
+(tests/test_table_keys.py checks this against direct fem at another modulus). A tip fem treats as rigid (its
+relative compliance rho = E (1 - nu_tip^2) / (E_tip (1 - nu^2)) below fem.tip.TIP_TOLERANCE = 1e-3: the force
+changes by about rho; the study's 60 MPa tip: 4.5e-5) keys as the rigid tip; an elastic tip keys by E_tip / E. The
+key thus holds: the tissue's width, height and Poisson ratio; the tip's shape, radius and thickness (and E_tip / E
+for an elastic tip); the analysis' plane, order, mesh size, surface refinement and formulation; the grid. Not: the
+scene's name, the tissue modulus, the stones, a rigid-treated tip's modulus, load A's top displacement.
+
+The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``) and carries a
+behavioural fingerprint of the fem that built it (``fingerprint``: fem's forces for the prior and one grid stone at a
+few probes, recomputed in ~1 s at load at the prior's own modulus and compared with the stored one scaled; a
+mismatch means rebuild). It is built once (~10 min on 2 busy cores; 360 fem models; on dask.distributed with
+``planner.tasks``) and read in milliseconds. A table for the built-in paper tissue is shipped in planner/data/ (same
+file name, same check).
 ``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
-import multiprocessing as mp
 import sys
 import time
 from dataclasses import dataclass
@@ -39,10 +51,12 @@ import numpy as np
 from fem import diskcache
 from fem.contact import SurfaceModel, surface_model
 from fem.model import build_model
-from fem.scene import Stone, from_dict, load
+from fem.scene import Analysis, Stone, from_dict, load
 from fem.scene_mesh import mesh_for
+from fem.tip import contact_scene
+from planner.tasks import Runner, run_pieces
 
-FORMAT = 1
+FORMAT = 2           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored
 
 
 @dataclass(frozen=True)
@@ -57,10 +71,24 @@ class Grid:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in self.__dict__.items()}
 
 
+def table_scene(prior, youngs_pa: float = 1.0):
+    """The scene a table is computed on and keyed by (module doc): the prior with only what changes the contrast,
+    its tissue at modulus ``youngs_pa`` (an elastic tip's modulus scaled with it), load A's option at its default."""
+    prior = contact_scene(prior)
+    scale = youngs_pa / prior.tissue.youngs_pa
+    ind = prior.indenter
+    if ind.youngs_pa is not None:
+        ind = dataclasses.replace(ind, youngs_pa=ind.youngs_pa * scale)
+    return dataclasses.replace(prior, name="surrogate-table", stones=(),
+                               tissue=dataclasses.replace(prior.tissue, youngs_pa=youngs_pa), indenter=ind,
+                               analysis=dataclasses.replace(prior.analysis,
+                                                            top_displacement_m=Analysis().top_displacement_m))
+
+
 def cache_path(prior, grid: Grid, root: Path | None = None) -> Path:
     """Where the table of ``prior`` lives in ``root`` (default: fem's disk cache directory)."""
     root = diskcache.cache_dir() if root is None else root
-    key = hashlib.sha256(json.dumps({"scene": prior.key(), "grid": grid.to_dict(), "format": FORMAT},
+    key = hashlib.sha256(json.dumps({"scene": table_scene(prior).key(), "grid": grid.to_dict(), "format": FORMAT},
                                     sort_keys=True).encode()).hexdigest()[:16]
     return root / f"surrogate-{key}.npz"
 
@@ -88,15 +116,17 @@ def _grid_xs(prior, grid: Grid) -> np.ndarray:
 
 def stone_model(scene):
     """fem's SurfaceModel of a one-off scene (a candidate or random stone), kept out of fem's disk cache (hundreds
-    of meshes used once would only fill it)."""
-    return SurfaceModel(scene, model=build_model(scene, mesh=mesh_for(scene, use=False)))
+    of meshes used once would only fill it). Its stones are rigid, whatever the tissue's modulus (the table's
+    candidates are rigid stones; fem would make a 5 GPa stone rigid on 2.5 kPa tissue anyway)."""
+    return SurfaceModel(scene, model=build_model(scene, mesh=mesh_for(scene, use=False), rigid_stones=True))
 
 
-def _one_stone(args):
-    """Force curves (levels, x0) of one grid stone. Runs in a worker process."""
-    prior_dict, xs, depth, diam, levels, x0 = args
-    prior = from_dict(prior_dict)
-    return _forces(stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)])), levels, x0)
+def _one_stone(shared: dict, stone: tuple[float, float, float]) -> np.ndarray:
+    """Force curves (levels, x0) of one grid stone (xs_m, depth_m, diameter_m). Runs on a worker (planner.tasks)."""
+    prior = from_dict(shared["prior"])
+    xs, depth, diam = stone
+    model = stone_model(prior.with_stones([Stone(x_m=xs, depth_m=depth, diameter_m=diam)]))
+    return _forces(model, shared["levels_m"], shared["x0_m"])
 
 
 def _forces(model, levels, x0) -> np.ndarray:
@@ -131,38 +161,44 @@ def _continue_in_depth(f: np.ndarray, levels: np.ndarray) -> None:
             f[a, b] = f[i1, b] * (levels[a] / levels[i1]) ** p
 
 
-def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None) -> dict:
-    """Run fem for every grid stone (``workers`` processes). Returns the arrays that ``Surrogate`` reads."""
+def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, runner: Runner | None = None,
+                store: Path | None = None) -> dict:
+    """Run fem for every grid stone on ``table_scene(prior)`` at the prior's own modulus (``youngs_ref_pa``), on
+    ``runner`` (planner.tasks; default a LocalCluster of ``workers``, serial for 1); finished stones are kept in
+    ``store`` (a re-run resumes). ``progress(done, total, elapsed_s)`` as stones finish. Returns the arrays that
+    ``Surrogate`` reads."""
+    runner = runner or Runner(workers=workers, progress=progress is None)
+    prior = table_scene(prior, prior.tissue.youngs_pa)
     W = prior.tissue.width_m
     x0 = np.arange(0.0, W + 1e-12, grid.dx0_m)
     xs = _grid_xs(prior, grid)
-    jobs, idx = [], []
+    stones, idx = [], []
     H = prior.tissue.height_m
     for i, s in enumerate(grid.s_m):
         for j, D in enumerate(grid.diam_m):
             if s + D > H - 1e-3:
                 continue                  # the stone would leave the bottom: filled by extrapolation below
             for k, x in enumerate(xs):
-                jobs.append((prior.to_dict(), float(x), float(s + D / 2), float(D), list(grid.levels_m), x0))
+                stones.append((float(x), float(s + D / 2), float(D)))
                 idx.append((i, j, k))
     table = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs), len(grid.levels_m), len(x0)))
     t0 = time.perf_counter()
     base = _forces(surface_model(prior), grid.levels_m, x0)      # the prior's force, subtracted from every stone's
-    if workers > 1:
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for n, ((i, j, k), res) in enumerate(zip(idx, pool.imap(_one_stone, jobs, chunksize=4))):
-                table[i, j, k] = res - base
-                if progress and n % 20 == 0:
-                    progress(n + 1, len(jobs), time.perf_counter() - t0)
-    else:
-        for n, ((i, j, k), job) in enumerate(zip(idx, jobs)):
-            table[i, j, k] = _one_stone(job) - base
-            if progress and n % 20 == 0:
-                progress(n + 1, len(jobs), time.perf_counter() - t0)
+    done = {"n": 0}
+
+    def arrived(n, res):
+        i, j, k = idx[n]
+        table[i, j, k] = res - base
+        done["n"] += 1
+        if progress and (done["n"] % 20 == 0 or done["n"] == len(stones)):
+            progress(done["n"], len(stones), time.perf_counter() - t0)
+    shared = {"prior": prior.to_dict(), "levels_m": list(grid.levels_m), "x0_m": x0}
+    run_pieces(_one_stone, shared, stones, [f"stone-{i}-{j}-{k}" for i, j, k in idx], runner=runner, store=store,
+               desc="surrogate stones", on_result=arrived)
     _fill_invalid(table, grid, H)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "xs_m": xs,
             "levels_m": np.array(grid.levels_m), "x0_m": x0, "table": table, "width_m": np.array(W),
-            "build_s": np.array(time.perf_counter() - t0)}
+            "youngs_ref_pa": np.array(prior.tissue.youngs_pa), "build_s": np.array(time.perf_counter() - t0)}
 
 
 def _fill_invalid(table: np.ndarray, grid: Grid, H: float) -> None:
@@ -190,18 +226,25 @@ def _lagrange4(nodes: np.ndarray, u: float) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(i, i + 4), w
 
 
+def modulus_scale(data: dict, prior) -> float:
+    """The factor that turns a table built at its ``youngs_ref_pa`` into the prior's forces (module doc)."""
+    return float(prior.tissue.youngs_pa / float(data["youngs_ref_pa"]))
+
+
 class Surrogate:
-    """The tabulated contrast; ``contrast(x0_m, depth_m, xs_m, stone_depth_m, diam_m)`` per probe (N)."""
+    """The tabulated contrast; ``contrast(x0_m, depth_m, xs_m, stone_depth_m, diam_m)`` per probe (N). With a
+    ``prior`` the table is scaled to the prior's tissue modulus (``modulus_scale``)."""
 
     def __init__(self, data: dict, prior=None):
         self.prior = prior
+        self.scale = modulus_scale(data, prior) if prior is not None else 1.0
         self.s = np.asarray(data["s_m"])
         self.logs = np.log(self.s)
         self.diam = np.asarray(data["diam_m"])
         self.xs = np.asarray(data["xs_m"])
         self.levels = np.asarray(data["levels_m"])
         self.x0 = np.asarray(data["x0_m"])
-        self.T = np.asarray(data["table"])
+        self.T = np.asarray(data["table"]) * self.scale if self.scale != 1.0 else np.asarray(data["table"])
         self.W = float(data["width_m"])
         self.build_s = float(data.get("build_s", 0.0))
 
@@ -255,25 +298,30 @@ def table_candidates(prior, grid: Grid) -> list[Path]:
 
 
 def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int = 2, progress=None,
-                   check: bool = True) -> Surrogate:
+                   check: bool = True, runner: Runner | None = None) -> Surrogate:
     """The surrogate of a prior scene (stone-free): from memory, the disk cache or the tables shipped in
     planner/data, provided its fingerprint matches what fem computes now (``fingerprint``, ~1 s); else built with
     fem (minutes) and written to the cache."""
     if prior.stones:
         raise ValueError("the surrogate is built on the prior scene (no stones); pass scene.prior()")
     path = cache_path(prior, grid)
-    if str(path) in _MEM:
-        return _MEM[str(path)]
+    mem_key = (str(path), prior.tissue.youngs_pa)
+    if mem_key in _MEM:
+        return _MEM[mem_key]
+    own = table_scene(prior, prior.tissue.youngs_pa)     # the prior as fem computes it, at its own modulus
     fp = None
     data = None
     for cand in table_candidates(prior, grid):
         d = diskcache.read(cand)
         if d is None:
             continue
+        if "youngs_ref_pa" not in d:
+            print(f"surrogate: {cand} has no youngs_ref_pa (an older format): not used", file=sys.stderr)
+            continue
         if check:
-            fp = fingerprint(prior, grid) if fp is None else fp
+            fp = fingerprint(own, grid) if fp is None else fp
             if "fingerprint" not in d or d["fingerprint"].shape != fp.shape or not np.allclose(
-                    d["fingerprint"], fp, rtol=1e-7, atol=1e-12):
+                    d["fingerprint"] * modulus_scale(d, prior), fp, rtol=1e-7, atol=1e-12 * modulus_scale(d, prior)):
                 print(f"surrogate: {cand} was built by a different fem (fingerprint differs): not used",
                       file=sys.stderr)
                 continue
@@ -282,12 +330,13 @@ def load_surrogate(prior, grid: Grid = Grid(), build: bool = True, workers: int 
     if data is None:
         if not build:
             raise FileNotFoundError(f"no valid surrogate table at {path}")
-        data = build_table(prior, grid, workers=workers, progress=progress)
-        data["fingerprint"] = fingerprint(prior, grid) if fp is None else fp
+        store = path.with_suffix(".parts") if diskcache.enabled() else None     # finished stones: resumable
+        data = build_table(prior, grid, workers=workers, progress=progress, runner=runner, store=store)
+        data["fingerprint"] = fingerprint(own, grid) if fp is None else fp
         if diskcache.enabled():
             diskcache.write(path, data)
     sur = Surrogate(data, prior)
-    _MEM[str(path)] = sur
+    _MEM[mem_key] = sur
     return sur
 
 
@@ -336,14 +385,15 @@ def check_error(sur: Surrogate, prior, n: int = 10, seed: int = 0, depth_m: floa
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m planner.surrogate", description=__doc__.splitlines()[0])
     p.add_argument("scene", nargs="?", default="paper")
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=int, default=2, help="dask LocalCluster workers (1: serial)")
+    p.add_argument("--scheduler", help="an existing dask scheduler (tcp://HOST:PORT) instead")
     p.add_argument("--check", type=int, default=0, metavar="N", help="measure the error at N random stones")
     p.add_argument("--json", metavar="PATH")
     p.add_argument("--ship", action="store_true", help="also write the table (float32) to planner/data/")
     a = p.parse_args(argv)
     prior = load(a.scene).prior()
     t0 = time.perf_counter()
-    sur = load_surrogate(prior, workers=a.workers, progress=lambda i, n, t: print(
+    sur = load_surrogate(prior, runner=Runner(workers=a.workers, scheduler=a.scheduler), progress=lambda i, n, t: print(
         f"  surrogate: {i}/{n} stones, {t:.0f} s", file=sys.stderr, flush=True))
     print(f"surrogate for {a.scene}: {cache_path(prior, Grid())} ({time.perf_counter() - t0:.1f} s; "
           f"built in {sur.build_s:.0f} s)")

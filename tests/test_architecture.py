@@ -26,8 +26,9 @@ ALLOWED = {
 # robot modules that may ask fem for forces: the simulated truth (the driver never does)
 ROBOT_FEM_USERS = {"robot.simarm"}
 # imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
-LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots", "fem.export",
-           "planner.plots_plan", "planner.plots_run", "importlib.metadata")
+LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
+           "fem.export", "planner.plots_plan", "planner.plots_run", "planner.plots_accuracy", "importlib.metadata",
+           "distributed")
 
 
 def modules() -> dict[str, Path]:

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-from accuracy_study import peak_fit  # noqa: E402
 from design_bound import a_optimal  # noqa: E402
+
+from planner.accuracy import peak_fit  # noqa: E402
 
 
 def test_c_optimal_slope_design_is_the_two_ends():

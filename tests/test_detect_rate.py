@@ -8,21 +8,17 @@ measured 0.36 +- 0.04; 60 keep CI short). The prediction is optimistic at the ma
 before, a 4 mm stone 30 mm deep: 0.43 against 0.52): the fit maximises over the stone's position, and a weak stone's
 fit starts from a no-stone fit whose thickness has taken part of its contrast. The tolerance below is 3 standard
 errors plus 0.2 (with 60 runs: 0.39), no more: a prediction that ignored the tissue's unknowns (1.00) fails. Probe records come from the accuracy study's measurement model
-(bench/accuracy_study.py FastArm, itself checked against the simulated arm in test_robot_sim)."""
+(planner.accuracy.FastArm, itself checked against the simulated arm in test_robot_sim)."""
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "bench"))
-from accuracy_study import DEPTH_M, FastArm  # noqa: E402
 
 from core.contracts import Motion  # noqa: E402
 from core.contracts import sensor_spec as spec  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
+from planner.accuracy import DEPTH_M, FastArm  # noqa: E402
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
 from planner.localize import Measurements, localize  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402

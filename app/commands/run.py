@@ -41,6 +41,7 @@ from app.options import (
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
 from planner.localize import Localization, localize
+from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster, replan
 from planner.refine import adaptive, describe, renumber
 from planner.surrogate import load_surrogate
@@ -301,23 +302,37 @@ def run(args) -> int:
     elif plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)
-    _say("loading the fem surrogate (first use on a scene: built with fem and cached, a few minutes)")
+    where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     try:
-        sur = load_surrogate(prior, progress=lambda i, n, t: _say(f"surrogate: {i}/{n} stones ({t:.0f} s)"))
-        det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
-                            depth_limit_m=plan0.limits.depth_limit_m, x_positions_m=[p.x_m for p in plan0.probes],
-                            surrogate=sur, motion=plan0.motion)
+        sur = load_surrogate(prior, build=False)
+    except FileNotFoundError:       # no table for this tissue: built beside the coarse raster (planner.pending)
+        _say("no fem surrogate table for this tissue yet (planner/surrogate.py says which scene fields select one): "
+             "building it in the background (a few minutes on 2 cores) while the coarse raster is probed")
+        sur = PendingSurrogate(prior, _say)
     except (RuntimeError, ArithmeticError, ValueError) as e:   # e.g. fem's contact solve on an implausible prior
-        where = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
-        raise UsageError(f"{where} cannot be modelled: {e} (check the tissue and indenter moduli and sizes)") from None
-    smallest = {}
-    for r in det["rows"]:
-        if r["detectable"]:
-            k = f"{r['depth_m'] * 1e3:g}"
-            smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
-    _say("detectable before probing (coarse raster, sensor " + args.sensor + "): " + (
-        ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
-        else det["reason"]))
+        raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                         f"sizes)") from None
+
+    def detectable(table, when: str = "before probing") -> tuple[dict, dict]:
+        try:
+            det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
+                                depth_limit_m=plan0.limits.depth_limit_m,
+                                x_positions_m=[p.x_m for p in plan0.probes], surrogate=table, motion=plan0.motion)
+        except (RuntimeError, ArithmeticError, ValueError) as e:
+            raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                             f"sizes)") from None
+        smallest = {}
+        for r in det["rows"]:
+            if r["detectable"]:
+                k = f"{r['depth_m'] * 1e3:g}"
+                smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
+        _say(f"detectable {when} (coarse raster, sensor {args.sensor}): " + (
+            ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
+            else det["reason"]))
+        return det, smallest
+
+    if not isinstance(sur, PendingSurrogate):
+        det, smallest = detectable(sur)
     stats = {"clean_end": False, "n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
@@ -351,6 +366,11 @@ def run(args) -> int:
         tmp.write_text(json.dumps(opts, indent=1))
         tmp.replace(out / "run_options.json")
     _say(f"probing on the {where}")
+    t_first: dict = {}
+
+    def execute_timed(plan_or_x, k):
+        t_first.setdefault("probing_started_s", time.perf_counter() - t_wall)
+        return execute(plan_or_x, k)
 
     rounds_planned = {"n": 0}
 
@@ -364,7 +384,7 @@ def run(args) -> int:
 
     status, fault = "ok", None
     try:
-        res = adaptive(prior, execute, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
+        res = adaptive(prior, execute_timed, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
                        budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                        target_m=args.target_uncertainty_m, surrogate=sur, progress=_say,
                        strategy=args.strategy)
@@ -372,8 +392,17 @@ def run(args) -> int:
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
         _say(str(e))
+    except TableBuildError as e:    # the measured probes are on disk; a re-run resumes them
+        raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                         f"sizes)") from None
     finally:
         cleanup.close()
+    if isinstance(sur, PendingSurrogate):       # built beside the coarse raster: what it could detect, stated now
+        try:
+            sur = sur.result()
+        except TableBuildError as e:
+            raise UsageError(f"{where_prior} cannot be modelled: {e}") from None
+        det, smallest = detectable(sur, "with the coarse raster (stated once the table was built)")
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
@@ -387,7 +416,7 @@ def run(args) -> int:
         loc = Localization(detected=False, lr=float("nan"), lr_threshold=float("nan"))
         result.update(loc.to_dict())
         result.update({"probes_used": stats["n_probes"], "fault": fault})
-    result["time"] = {"wall_s": time.perf_counter() - t_wall, "robot_s": stats["controller_s"],
+    result["time"] = {"wall_s": time.perf_counter() - t_wall, **t_first, "robot_s": stats["controller_s"],
                       "planned_s": stats["planned_s"]}
     result["detectability"] = {"sensor": det["sensor"], "usable": det["usable"], "reason": det["reason"],
                                "probe_sigma_n": det["sigma_n"],

@@ -1,0 +1,190 @@
+"""`palpate study accuracy --out DIR [--quick] [--workers N | --scheduler ADDRESS]`: the studies, on dask.
+
+Each study is a list of independent pieces (planner.tasks) run serially (``--workers 1``), on a dask LocalCluster of
+this machine (``--workers N``; the default: one worker per CPU) or on an existing dask cluster (``--scheduler
+ADDRESS``). The results equal a serial run's (every piece carries its own seed). Finished pieces are kept in
+``DIR/pieces/<study>-<options hash>/`` and never overwritten: the same command resumes an interrupted study; other
+options start another set beside it.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import hashlib
+import json
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+from app.commands.output import write_json
+from app.errors import UsageError
+from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float
+from fem.sweep import summarize as summarize_sweep
+from fem.sweep import sweep_piece
+from planner.accuracy import run_accuracy, study_trials
+from planner.accuracy_report import write_report
+from planner.detect_study import run_detect, study_cases
+from planner.detect_study import write_report as write_detect
+from planner.surrogate import load_surrogate
+from planner.tasks import Runner, run_pieces
+
+STUDIES = {  # mismatch (issue 14) is not here: it is being built in parallel
+    "accuracy": "localization and adaptive refinement over random stones against even rasters (planner.accuracy)",
+    "detect": "predicted detection rate against Monte-Carlo rasters, stones near the margin (planner.detect_study)",
+    "sweep": "random valid scenes under load A and B: no NaN, residuals, contact checks (fem.sweep)",
+}
+
+HELP = """Studies of the localizer, on dask.distributed. Outputs (JSON, CSV, markdown, figures) go into --out.
+
+studies:
+""" + "\n".join(f"  {k:10s} {v}" for k, v in STUDIES.items()) + """
+
+  accuracy writes accuracy.csv (one row per trial and method), accuracy.json (summary by method),
+  accuracy_ratio.json (equal-accuracy ratios), accuracy.md (the tables) and accuracy.png.
+  detect   writes detect.json, detect.csv, detect.md and detect.png (9 stones x 150 rasters; --quick 4 x 40).
+  sweep    writes sweep.json, sweep.csv and sweep.md (300 scenes, --quick 40); exit 1 if any scene fails.
+
+where it runs: --workers 1 (serial, this process), --workers N (a dask LocalCluster of N processes on this machine;
+default: one per CPU) or --scheduler tcp://HOST:8786 (an existing cluster: `dask scheduler` on one machine, `dask
+worker tcp://HOST:8786 --nthreads 1` on each machine, palpate installed on all; see README).
+
+examples:
+  palpate study accuracy --out study/ --quick              20 stones + 10 healthy scenes, LocalCluster
+  palpate study accuracy --out study/ --workers 1          serial (same numbers)
+  palpate study accuracy --out study/ --scheduler tcp://10.0.0.5:8786"""
+
+ADDRESS = re.compile(r"^(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
+
+
+def scheduler_address(s: str) -> str:
+    """``tcp://HOST:PORT`` (or ``HOST:PORT``, taken as tcp)."""
+    a = s if "://" in s else f"tcp://{s}"
+    if not ADDRESS.match(a) or not 0 < int(a.rsplit(":", 1)[1]) < 65536:
+        raise argparse.ArgumentTypeError(f"must be a dask scheduler address tcp://HOST:PORT (port 1-65535), "
+                                         f"got {s!r}")
+    return a
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    p = sub.add_parser("study", help="accuracy and detectability studies on dask.distributed",
+                       description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("study", choices=list(STUDIES), help="which study")
+    p.add_argument("--out", metavar="DIR", required=True, help="output directory (a re-run resumes)")
+    p.add_argument("--quick", action="store_true", help="a smaller study (accuracy: 20 stones, 10 healthy)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int_range(1, 1024), metavar="N",
+                       help="1: serial; N > 1: a LocalCluster of N processes (default: one per CPU)")
+    where.add_argument("--scheduler", type=scheduler_address, metavar="ADDRESS",
+                       help="an existing dask scheduler, tcp://HOST:PORT")
+    p.add_argument("--scene", default="paper", help="the tissue (its prior is used; default paper)")
+    p.add_argument("--trials", type=int_range(1, 100000), help="accuracy: random stones (default 100, --quick 20)")
+    p.add_argument("--runs", type=int_range(1, 100000), help="detect: rasters per stone (default 150, --quick 40)")
+    p.add_argument("--scenes", type=int_range(1, 100000), help="sweep: random scenes (default 300, --quick 40)")
+    p.add_argument("--healthy", type=int_range(0, 100000), help="accuracy: healthy scenes (default 40, --quick 10)")
+    p.add_argument("--seed", type=int_range(0, 2 ** 31), default=1, help="the study's seed (default 1)")
+    p.add_argument("--sensor", default="nano17", choices=["nano17", "ur5e-builtin"])
+    p.add_argument("--budget-probes", type=int_range(15, 10000), default=45)
+    p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4)
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", metavar="PATH", help="also write the summary here ('-': standard output)")
+    p.set_defaults(func=run)
+    return p
+
+
+def runner_of(args) -> Runner:
+    if args.scheduler:
+        return Runner(scheduler=args.scheduler, progress=not args.no_progress)
+    return Runner(workers=args.workers or (os.cpu_count() or 1), progress=not args.no_progress)
+
+
+def pieces_dir(out: Path, study: str, options: dict) -> Path:
+    h = hashlib.sha256(json.dumps(options, sort_keys=True).encode()).hexdigest()[:12]
+    return out / "pieces" / f"{study}-{h}"
+
+
+def _say(msg: str) -> None:
+    print(f"palpate study: {msg}", file=sys.stderr, flush=True)
+
+
+def run(args) -> int:
+    check_output_dir(args.out, "--out")
+    check_output_file(args.json, "--json")
+    out = Path(args.out)
+    scene = load_scene(args.scene, "--scene")
+    runner = runner_of(args)
+    study = {"accuracy": run_accuracy_study, "detect": run_detect_study, "sweep": run_sweep_study}[args.study]
+    summary = study(args, scene, runner, out)
+    write_json(args.json, summary)
+    return 1 if summary.get("failures") else 0
+
+
+def _run(runner: Runner, compute):
+    try:
+        return compute()
+    except OSError as e:            # a scheduler that cannot be reached
+        if runner.scheduler:
+            raise UsageError(f"--scheduler {runner.scheduler}: cannot use it: {e}") from None
+        raise
+
+
+def run_sweep_study(args, scene, runner: Runner, out: Path) -> dict:
+    n = args.scenes or (40 if args.quick else 300)
+    store = pieces_dir(out, "sweep", {"scenes": n, "seed": args.seed})
+    _say(f"sweep: {n} random scenes on {runner.describe()}; pieces in {store}")
+    t0 = time.perf_counter()
+    rows = _run(runner, lambda: run_pieces(sweep_piece, args.seed, list(range(n)), [f"scene-{i:04d}" for i in range(n)],
+                                           runner=runner, store=store, desc="sweep scenes"))
+    elapsed = time.perf_counter() - t0
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sweep.json").write_text(json.dumps(rows, indent=1))
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(out / "sweep.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    md = summarize_sweep(rows)
+    (out / "sweep.md").write_text(md)
+    print(md)
+    failures = sum(r["status"] == "FAIL" for r in rows)
+    _say(f"sweep: {n} scenes in {elapsed:.0f} s, {failures} failures; results in {out}")
+    return {"study": "sweep", "scenes": n, "elapsed_s": elapsed, "where": runner.describe(), "failures": failures}
+
+
+def run_detect_study(args, scene, runner: Runner, out: Path) -> dict:
+    prior = scene.prior()
+    cases = study_cases(args.quick, runs=args.runs, seed=args.seed, sensor=args.sensor)
+    options = {"scene": prior.key(), "cases": [c.name for c in cases], "runs": cases[0].runs, "seed": args.seed,
+               "sensor": args.sensor}
+    store = pieces_dir(out, "detect", options)
+    _say(f"detect: {len(cases)} stones x {cases[0].runs} rasters on {runner.describe()}; pieces in {store}")
+    t0 = time.perf_counter()
+    rows = _run(runner, lambda: run_detect(load_surrogate(prior, runner=runner), cases, runner, store))
+    elapsed = time.perf_counter() - t0
+    lines = write_detect(out, rows, elapsed, where=runner.describe())
+    print("\n".join(lines))
+    _say(f"detect: {len(cases)} stones in {elapsed:.0f} s; results in {out}")
+    return {"study": "detect", "elapsed_s": elapsed, "where": runner.describe(), "cases": rows}
+
+
+def run_accuracy_study(args, scene, runner: Runner, out: Path) -> dict:
+    trials = args.trials if args.trials is not None else (20 if args.quick else 100)
+    healthy = args.healthy if args.healthy is not None else (10 if args.quick else 40)
+    prior = scene.prior()
+    options = {"scene": prior.key(), "trials": trials, "healthy": healthy, "seed": args.seed, "sensor": args.sensor,
+               "budget": args.budget_probes, "target_m": args.target_uncertainty_m}
+    sur = load_surrogate(prior, runner=runner)
+    plan = study_trials(prior.tissue.width_m, trials, healthy, sensor=args.sensor, budget=args.budget_probes,
+                        target_m=args.target_uncertainty_m, seed=args.seed)
+    store = pieces_dir(out, "accuracy", options)
+    _say(f"accuracy: {trials} stones + {healthy} healthy scenes on {runner.describe()}; pieces in {store}")
+    t0 = time.perf_counter()
+    rows = _run(runner, lambda: run_accuracy(sur, plan, runner=runner, store=store))
+    elapsed = time.perf_counter() - t0
+    lines = write_report(out, rows, args.sensor, args.budget_probes, args.target_uncertainty_m, elapsed,
+                         where=runner.describe())
+    print("\n".join(lines))
+    _say(f"accuracy: {len(plan)} trials in {elapsed:.0f} s; results in {out}")
+    return {"study": "accuracy", "trials": trials, "healthy": healthy, "elapsed_s": elapsed,
+            "where": runner.describe(), "summary": json.loads((out / "accuracy.json").read_text())}

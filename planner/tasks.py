@@ -1,0 +1,158 @@
+"""Independent pieces of work (table stones, study trials) run serially or on dask.distributed, resumably.
+
+``run_pieces(fn, shared, pieces, names, store, runner)`` returns ``[fn(shared, piece) for piece in pieces]``, in
+order, whatever runs them:
+
+* ``Runner(workers=1)``: in this process, one after the other;
+* ``Runner(workers=N)``: a dask ``LocalCluster`` of N single-threaded worker processes on this machine;
+* ``Runner(scheduler="tcp://host:8786")``: the workers of an existing dask scheduler (any number of machines; each
+  needs palpate importable, e.g. ``pip install -e .`` on a shared checkout).
+
+Results equal a serial run's: each piece carries its own seed and the pieces do not talk to each other; ``shared``
+(a surrogate table, say) is sent to every worker once (``Client.scatter(broadcast=True)``). With a ``store``
+directory every finished piece is written there as soon as it arrives (``<name>.json``, or ``<name>.npy`` for an
+array; atomically, never overwritten) and a re-run reads it back instead of computing it again: an interrupted
+study or table resumes. A progress bar (tqdm, on standard error) shows pieces done and the ETA.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+
+@dataclass(frozen=True)
+class Runner:
+    """Where pieces run: ``workers`` processes on this machine (1: serially in this process) or, with
+    ``scheduler``, an existing dask cluster (its address, e.g. tcp://10.0.0.5:8786)."""
+    workers: int = 1
+    scheduler: str | None = None
+    progress: bool = True
+
+    def describe(self) -> str:
+        if self.scheduler:
+            return f"dask scheduler {self.scheduler}"
+        return "serial (this process)" if self.workers <= 1 else f"dask LocalCluster, {self.workers} workers"
+
+
+def _json_default(v):
+    if isinstance(v, np.integer):
+        return int(v)
+    if isinstance(v, np.floating):
+        return float(v)
+    if isinstance(v, np.bool_):
+        return bool(v)
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    raise TypeError(f"not JSON-able: {type(v).__name__}")
+
+
+def _write_once(path: Path, write) -> None:
+    """Write a file atomically and only if it does not exist yet (a finished piece is never overwritten)."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+        try:
+            os.link(tmp, path)                 # fails if the piece is already there
+        except FileExistsError:
+            pass
+        except OSError:                        # a file system without hard links: rename, unless it is there
+            if not path.exists():
+                os.replace(tmp, path)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def save_piece(store: Path, name: str, result) -> None:
+    store.mkdir(parents=True, exist_ok=True)          # created with the first finished piece, not before
+    if isinstance(result, np.ndarray):
+        _write_once(store / f"{name}.npy", lambda f: np.save(f, result, allow_pickle=False))
+    else:
+        text = json.dumps(result, default=_json_default).encode()
+        _write_once(store / f"{name}.json", lambda f: f.write(text))
+
+
+def load_piece(store: Path, name: str):
+    """A finished piece from ``store``, or None."""
+    npy, js = store / f"{name}.npy", store / f"{name}.json"
+    if npy.exists():
+        return np.load(npy, allow_pickle=False)
+    if js.exists():
+        return json.loads(js.read_text())
+    return None
+
+
+@contextmanager
+def dask_client(runner: Runner):
+    """A dask.distributed Client for ``runner`` (a LocalCluster it starts and stops, or the scheduler's)."""
+    from distributed import Client, LocalCluster
+    if runner.scheduler:
+        client = Client(runner.scheduler, timeout="20s")
+        try:
+            yield client
+        finally:
+            client.close()
+        return
+    with LocalCluster(n_workers=runner.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                      silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+        yield client
+
+
+def _bar(runner: Runner, total: int, done: int, desc: str):
+    return tqdm(total=total, initial=done, desc=desc, unit="piece", file=sys.stderr, disable=not runner.progress,
+                smoothing=0.1, dynamic_ncols=True)
+
+
+def run_pieces(fn: Callable, shared, pieces: Sequence, names: Sequence[str], runner: Runner = Runner(),
+               store: Path | None = None, desc: str = "pieces", on_result: Callable | None = None) -> list:
+    """``[fn(shared, p) for p in pieces]`` on ``runner`` (module doc); ``names`` (unique, file-name safe) name the
+    pieces in ``store``. ``on_result(i, result)`` is called in this process as each piece finishes (or is read
+    back). ``fn`` must be importable by its module path on the workers (a module-level function)."""
+    if len(names) != len(pieces) or len(set(names)) != len(names):
+        raise ValueError("run_pieces: one unique name per piece")
+    results: list = [None] * len(pieces)
+    todo = []
+    for i, name in enumerate(names):
+        r = load_piece(store, name) if store is not None else None
+        if r is None:
+            todo.append(i)
+        else:
+            results[i] = r
+            if on_result:
+                on_result(i, r)
+
+    def finish(i, r):
+        if store is not None:
+            save_piece(store, names[i], r)
+            r = load_piece(store, names[i])     # what a resumed run would read: the same values either way
+        results[i] = r
+        if on_result:
+            on_result(i, r)
+
+    with _bar(runner, len(pieces), len(pieces) - len(todo), desc) as bar:
+        if not todo:
+            return results
+        if runner.scheduler is None and runner.workers <= 1:
+            for i in todo:
+                finish(i, fn(shared, pieces[i]))
+                bar.update(1)
+            return results
+        from distributed import as_completed
+        with dask_client(runner) as client:
+            # a list of one: scatter would split a dict or a tuple into separate pieces
+            shared_f = client.scatter([shared], broadcast=True)[0] if shared is not None else None
+            futures = {client.submit(fn, shared_f, pieces[i], pure=False): i for i in todo}
+            for fut in as_completed(futures):
+                finish(futures[fut], fut.result())
+                bar.update(1)
+    return results

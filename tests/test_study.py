@@ -1,0 +1,182 @@
+"""Studies on dask.distributed (planner.tasks, palpate study): the same rows as a serial run, on a LocalCluster and
+on a scheduler and worker started as separate processes on loopback; finished pieces resume and are never
+overwritten; bad options are one line and exit 2."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from fem.scene import load
+from planner.accuracy import run_accuracy, study_trials
+from planner.surrogate import load_surrogate
+from planner.tasks import Runner, load_piece, run_pieces
+
+ROOT = Path(__file__).resolve().parents[1]
+TRIALS, HEALTHY = 2, 1
+
+
+def _square(shared, x):
+    return {"x": x, "y": shared * x * x, "nan": float("nan")}
+
+
+def _fail(shared, x):
+    raise AssertionError("a finished piece was computed again")
+
+
+def _comparable(rows):
+    """The rows without wall-clock times (measured, not computed)."""
+    return json.dumps([{k: v for k, v in r.items() if k != "time_s"} for r in rows], sort_keys=True)
+
+
+def test_pieces_resume_from_disk_and_are_never_overwritten(tmp_path):
+    names = [f"p{i}" for i in range(4)]
+    first = run_pieces(_square, 3, [1, 2, 3, 4], names, Runner(progress=False), store=tmp_path)
+    assert [r["y"] for r in first] == [3, 12, 27, 48]
+    mtimes = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    assert sorted(mtimes) == [f"{n}.json" for n in names]
+    again = run_pieces(_fail, 3, [1, 2, 3, 4], names, Runner(progress=False), store=tmp_path)
+    assert json.dumps(again) == json.dumps(first)
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == mtimes
+    (tmp_path / "p2.json").unlink()              # an interrupted run: one piece missing, only it is computed
+    assert run_pieces(_square, 3, [1, 2, 3, 4], names, Runner(progress=False), store=tmp_path)[2]["y"] == 27
+    assert load_piece(tmp_path, "p2")["y"] == 27
+    with pytest.raises(ValueError):
+        run_pieces(_square, 3, [1, 2], ["a", "a"], Runner(progress=False))
+
+
+@pytest.fixture(scope="module")
+def small_study():
+    sur = load_surrogate(load("paper").prior(), build=False)
+    trials = study_trials(sur.W, TRIALS, HEALTHY, seed=7)
+    return sur, trials, run_accuracy(sur, trials, Runner(progress=False))
+
+
+def test_accuracy_study_on_a_local_cluster_equals_the_serial_run(small_study, tmp_path):
+    sur, trials, serial = small_study
+    assert {r["seed"] for r in serial} == {t.seed for t in trials}
+    distributed = run_accuracy(sur, trials, Runner(workers=2, progress=False), store=tmp_path)
+    assert _comparable(distributed) == _comparable(serial)
+    assert len(list(tmp_path.glob("trial-*.json"))) == len(trials)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_path):
+    """`dask scheduler` and `dask worker` as their own processes on loopback; `palpate study accuracy --scheduler`
+    gives the serial run's rows."""
+    sur, trials, serial = small_study
+    dask = Path(sys.executable).with_name("dask")
+    cmd = [str(dask)] if dask.exists() else [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    try:
+        port = _free_port()
+    except OSError as e:
+        pytest.skip(f"no loopback port available: {e}")
+    addr = f"tcp://127.0.0.1:{port}"
+    logs = open(tmp_path / "dask.log", "w")
+    procs = [subprocess.Popen([*cmd, "scheduler", "--host", "127.0.0.1", "--port", str(port), "--no-dashboard"],
+                              env=env, stdout=logs, stderr=subprocess.STDOUT)]
+    try:
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline or procs[0].poll() is not None:
+                    pytest.skip(f"the dask scheduler did not listen on {addr}: {(tmp_path / 'dask.log').read_text()}")
+                time.sleep(0.2)
+        procs.append(subprocess.Popen([*cmd, "worker", addr, "--nthreads", "1", "--nworkers", "1", "--no-dashboard",
+                                       "--local-directory", str(tmp_path / "worker")], env=env, stdout=logs,
+                                      stderr=subprocess.STDOUT))
+        out = tmp_path / "study"
+        assert main(["study", "accuracy", "--out", str(out), "--scheduler", addr, "--trials", str(TRIALS),
+                     "--healthy", str(HEALTHY), "--seed", "7", "--no-progress"]) == 0
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        logs.close()
+    with open(out / "accuracy.csv") as f:
+        rows = list(csv.DictReader(f))
+    by_key = {(int(r["seed"]), r["method"]): r for r in rows}
+    assert len(rows) == len(serial)
+    for r in serial:
+        got = by_key[(r["seed"], r["method"])]
+        for k in ("x_est_m", "depth_est_m", "lr", "n_probes"):
+            if k in r:
+                assert float(got[k]) == r[k] or (np.isnan(r[k]) and np.isnan(float(got[k]))), (k, r, got)
+    for name in ("accuracy.json", "accuracy_ratio.json", "accuracy.md", "accuracy.png"):
+        assert (out / name).stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--scheduler", "not an address"], "--scheduler"),
+    (["--workers", "0"], "--workers"),
+    (["--workers", "2", "--scheduler", "tcp://127.0.0.1:8786"], "not allowed with"),
+])
+def test_study_bad_options_are_one_line_and_exit_2(tmp_path, capsys, args, needle):
+    assert main(["study", "accuracy", "--out", str(tmp_path / "o"), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert needle in err[-1] and "Traceback" not in "\n".join(err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_detect_study_writes_its_report(tmp_path):
+    """`palpate study detect --quick --runs 3 --workers 1`: every case predicted and counted, files written."""
+    out = tmp_path / "d"
+    assert main(["study", "detect", "--quick", "--runs", "3", "--workers", "1", "--no-progress",
+                 "--out", str(out)]) == 0
+    rows = json.loads((out / "detect.json").read_text())
+    assert len(rows) == 4 and all(r["runs"] == 3 and 0 <= r["detected"] <= 3 for r in rows)
+    assert all(0.0 <= r["predicted"] <= 1.0 for r in rows)
+    assert 0.2 < rows[0]["predicted"] < 0.8         # 4 mm at 30 mm: the marginal stone of test_detect_rate
+    for name in ("detect.csv", "detect.md", "detect.png"):
+        assert (out / name).stat().st_size > 0
+    assert len(list(out.glob("pieces/detect-*/case-*.json"))) == 4
+
+
+def test_sweep_study_scenes_are_seeded_per_scene(tmp_path):
+    """`palpate study sweep`: scene i is drawn from its own generator (any order, any worker gives the same
+    scene), so each row equals fem.sweep.sweep_piece(seed, i) computed on its own, in reverse order."""
+    from fem.sweep import sweep_piece
+    out = tmp_path / "s"
+    assert main(["study", "sweep", "--scenes", "3", "--seed", "5", "--workers", "1", "--no-progress",
+                 "--out", str(out)]) == 0
+    rows = json.loads((out / "sweep.json").read_text())
+    alone = {i: sweep_piece(5, i) for i in (2, 1, 0)}
+    for i, r in enumerate(rows):
+        assert _comparable([r]) == _comparable([alone[i]])          # (as JSON: NaN equals NaN)
+    assert (out / "sweep.md").read_text().startswith("### Random-scene sweep (3 scenes)")
+
+
+def test_the_study_arm_continues_the_force_where_fem_refuses_the_indentation():
+    """A stone 4.6 mm under the surface: fem refuses 4 mm (tissue crushed against it); the study's arm continues the
+    force with the local power law (as the table does) instead of failing the trial; elsewhere fem's force."""
+    from fem.scene import Stone
+    from planner.accuracy import continued_force
+    from planner.surrogate import stone_model
+    m = stone_model(load("paper").prior().with_stones([Stone(x_m=0.0436, depth_m=0.0086, diameter_m=0.008)]))
+    f = continued_force(m)
+    with pytest.raises(ValueError):
+        m.force_n(0.0436, 0.004)
+    assert f(0.0436, 0.003) == m.force_n(0.0436, 0.003)
+    assert f(0.0436, 0.003) < f(0.0436, 0.004) < 2 * f(0.0436, 0.003)
