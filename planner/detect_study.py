@@ -27,7 +27,8 @@ from planner.tasks import Runner, run_pieces
 
 DIAMETERS_M = (0.004, 0.006, 0.008)
 DEPTHS_M = (0.020, 0.030, 0.040)
-QUICK = ((0.004, 0.030), (0.006, 0.035), (0.008, 0.040), (0.004, 0.020))    # (diameter, depth): near the margin
+# (diameter, depth): across the margin with the tissue's unknowns fitted (issue 14): 6 mm at 20 mm predicted 0.59
+QUICK = ((0.004, 0.030), (0.006, 0.020), (0.010, 0.025), (0.012, 0.030))
 
 
 @dataclass(frozen=True)

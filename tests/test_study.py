@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import os
 import socket
 import subprocess
@@ -12,7 +13,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from app.cli import main
@@ -36,6 +36,32 @@ def _fail(shared, x):
 def _comparable(rows):
     """The rows without wall-clock times (measured, not computed)."""
     return json.dumps([{k: v for k, v in r.items() if k != "time_s"} for r in rows], sort_keys=True)
+
+
+REL_TOL = 1e-4     # the localizer's fit (issue 14) is not bit for bit the same in another process: well-determined
+                   # estimates agree to about 1e-10 relative (x_est_m 0.04587595818494586 vs ...154577505), the
+                   # ill-conditioned ones of an undetected stone to 1e-5 (sigma_depth_m 0.0828819 vs 0.0828811)
+ABS_TOL = 1e-9     # ... and errors (a difference of two such numbers, ~1e-5 m) to about 1e-13 m
+
+
+def _same(a, b) -> bool:
+    """Equal rows: the same keys, equal integers and strings, floats within REL_TOL (NaN equals NaN)."""
+    if isinstance(a, float) or isinstance(b, float):
+        a, b = float(a), float(b)
+        return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= REL_TOL * max(abs(a), abs(b)) + ABS_TOL
+    return a == b
+
+
+def _differences(xs, ys) -> list:
+    xs, ys = json.loads(_comparable(xs)), json.loads(_comparable(ys))
+    return [(i, k, x.get(k), y.get(k)) for i, (x, y) in enumerate(zip(xs, ys)) for k in set(x) | set(y)
+            if not _same(x.get(k), y.get(k))]
+
+
+def _rows_equal(xs, ys) -> bool:
+    xs, ys = json.loads(_comparable(xs)), json.loads(_comparable(ys))
+    return len(xs) == len(ys) and all(x.keys() == y.keys() and all(_same(x[k], y[k]) for k in x)
+                                      for x, y in zip(xs, ys))
 
 
 def test_pieces_resume_from_disk_and_are_never_overwritten(tmp_path):
@@ -65,7 +91,7 @@ def test_accuracy_study_on_a_local_cluster_equals_the_serial_run(small_study, tm
     sur, trials, serial = small_study
     assert {r["seed"] for r in serial} == {t.seed for t in trials}
     distributed = run_accuracy(sur, trials, Runner(workers=2, progress=False), store=tmp_path)
-    assert _comparable(distributed) == _comparable(serial)
+    assert _rows_equal(distributed, serial), _differences(distributed, serial)
     assert len(list(tmp_path.glob("trial-*.json"))) == len(trials)
 
 
@@ -123,7 +149,7 @@ def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_
         got = by_key[(r["seed"], r["method"])]
         for k in ("x_est_m", "depth_est_m", "lr", "n_probes"):
             if k in r:
-                assert float(got[k]) == r[k] or (np.isnan(r[k]) and np.isnan(float(got[k]))), (k, r, got)
+                assert _same(float(got[k]), float(r[k])), (k, r, got)
     for name in ("accuracy.json", "accuracy_ratio.json", "accuracy.md", "accuracy.png"):
         assert (out / name).stat().st_size > 0
 
@@ -148,7 +174,9 @@ def test_detect_study_writes_its_report(tmp_path):
     rows = json.loads((out / "detect.json").read_text())
     assert len(rows) == 4 and all(r["runs"] == 3 and 0 <= r["detected"] <= 3 for r in rows)
     assert all(0.0 <= r["predicted"] <= 1.0 for r in rows)
-    assert 0.2 < rows[0]["predicted"] < 0.8         # 4 mm at 30 mm: the marginal stone of test_detect_rate
+    # the quick grid spans the margin: with the tissue's unknowns fitted (issue 14) its smallest, deepest stone is
+    # below it and a larger one above
+    assert min(r["predicted"] for r in rows) < 0.2 and max(r["predicted"] for r in rows) > 0.8, rows
     for name in ("detect.csv", "detect.md", "detect.png"):
         assert (out / name).stat().st_size > 0
     assert len(list(out.glob("pieces/detect-*/case-*.json"))) == 4
