@@ -44,6 +44,9 @@ HARD_FORCE_LIMIT_N = 10.0          # contact force
 HARD_DEPTH_LIMIT_M = 0.02          # indentation below the undeformed surface (the tip radius is the other cap)
 HARD_TOOL_SPEED_M_S = 0.25         # tool speed in free air
 HARD_PROBE_SPEED_M_S = 0.01        # tool speed inside tissue
+MIN_PROBE_SPEED_M_S = 1e-4         # slower: a 4 mm descent would take over 40 s (and a run days, in the simulator)
+MIN_TOOL_SPEED_M_S = 1e-3          # moves between probes
+MIN_ACCEL_M_S2 = 1e-2
 HARD_ACCEL_M_S2 = 1.5
 MAX_DWELL_S = 10.0                 # hold at depth
 DEFAULT_TIP_RADIUS_M = 0.005       # fem.scene.Indenter's default, for a plan scene without [indenter]
@@ -216,12 +219,17 @@ class Plan:
                allowed=f"(0, {HARD_FORCE_LIMIT_N:g}] N (the hard cap)")
         number("limits.depth_limit_m", L.depth_limit_m, hi=min(tip, HARD_DEPTH_LIMIT_M), hi_open=tip <= HARD_DEPTH_LIMIT_M,
                allowed=f"(0, {min(tip, HARD_DEPTH_LIMIT_M):g}) m (below the tip radius {tip:g} m)")
-        number("limits.max_tool_speed_m_s", L.max_tool_speed_m_s, hi=HARD_TOOL_SPEED_M_S)
+        number("limits.max_tool_speed_m_s", L.max_tool_speed_m_s, lo=MIN_TOOL_SPEED_M_S, lo_open=False,
+               hi=HARD_TOOL_SPEED_M_S)
         number("motion.approach_height_m", mo.approach_height_m, hi=1.0)
-        number("motion.approach_speed_m_s", mo.approach_speed_m_s, hi=HARD_TOOL_SPEED_M_S)
-        number("motion.approach_accel_m_s2", mo.approach_accel_m_s2, hi=HARD_ACCEL_M_S2)
-        number("motion.probe_speed_m_s", mo.probe_speed_m_s, hi=HARD_PROBE_SPEED_M_S)
-        number("motion.probe_accel_m_s2", mo.probe_accel_m_s2, hi=HARD_ACCEL_M_S2)
+        number("motion.approach_speed_m_s", mo.approach_speed_m_s, lo=MIN_TOOL_SPEED_M_S, lo_open=False,
+               hi=HARD_TOOL_SPEED_M_S)
+        number("motion.approach_accel_m_s2", mo.approach_accel_m_s2, lo=MIN_ACCEL_M_S2, lo_open=False,
+               hi=HARD_ACCEL_M_S2)
+        number("motion.probe_speed_m_s", mo.probe_speed_m_s, lo=MIN_PROBE_SPEED_M_S, lo_open=False,
+               hi=HARD_PROBE_SPEED_M_S)
+        number("motion.probe_accel_m_s2", mo.probe_accel_m_s2, lo=MIN_ACCEL_M_S2, lo_open=False,
+               hi=HARD_ACCEL_M_S2)
         number("motion.contact_threshold_n", mo.contact_threshold_n, hi=L.force_limit_n, hi_open=True,
                allowed=f"(0, limits.force_limit_n = {L.force_limit_n:g}) N")
         number("motion.dwell_s", mo.dwell_s, hi=MAX_DWELL_S)
