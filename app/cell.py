@@ -47,6 +47,8 @@ from robot.simfaults import parse as parse_fault
 from robot.simlaunch import PortsUnavailable, start_controller
 
 EXIT_OK, EXIT_FAULT, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+CONNECT_TIMEOUT_S = 20.0        # ur_rtde connects in well under a second; its constructors wait for good on a
+                                # controller that accepts connections but never answers (frozen)
 EXIT_REJECTED = EXIT_USAGE     # a plan the driver's safety checks refuse is bad input too: nothing was sent
 EXIT_PORTS_UNAVAILABLE = 4     # --sim controller: ur_rtde's fixed ports are taken on every loopback address tried
 
@@ -72,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--yes", action="store_true", help="do not ask for confirmation before moving a real arm")
     p.add_argument("--skip-invalid", action="store_true", help="skip probes that fail the safety checks "
                    "instead of refusing the plan")
+    p.add_argument("--connect-timeout-s", type=float_range(1.0, 600.0, lo_open=False, unit="s"),
+                   default=CONNECT_TIMEOUT_S, help="give up connecting after this long (default %(default)g s): "
+                   "ur_rtde waits for good on a controller that accepts connections but never answers")
     p.add_argument("--payload-kg", type=float_range(0.0, MAX_PAYLOAD_KG, lo_open=False, unit="kg"), default=0.1,
                    help=f"tool payload, 0..{MAX_PAYLOAD_KG:g} kg (default 0.1)")
     p.add_argument("--json", metavar="PATH", help="also write the run report here")
@@ -254,10 +259,6 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
         return _run_host(plan, args, out, cfg, ctl.host)
 
 
-CONNECT_TIMEOUT_S = 20.0        # ur_rtde connects in well under a second; its constructors wait for good on a
-                                # controller that accepts connections but never answers (frozen)
-
-
 class NotConnected(RuntimeError):
     """The link could not be made, or the arm is not ready (the message says what the operator must do)."""
 
@@ -266,9 +267,10 @@ def _run_host(plan: Plan, args, out: Path, cfg: DriverConfig, host: str) -> RunR
     """Connect ur_rtde and run, in a child process (app.isolate): if the vendor client crashes, the records are on
     disk and this process still reports the fault."""
     try:
-        tag, value = run_in_child(_linked_session, plan, args, out, cfg, host, start_timeout_s=CONNECT_TIMEOUT_S)
+        tag, value = run_in_child(_linked_session, plan, args, out, cfg, host,
+                                  start_timeout_s=args.connect_timeout_s)
     except ChildTimeout:
-        raise NotConnected(f"no answer from the controller at {host} within {CONNECT_TIMEOUT_S:g} s while "
+        raise NotConnected(f"no answer from the controller at {host} within {args.connect_timeout_s:g} s while "
                            f"connecting (frozen, overloaded, or not a UR controller); nothing was sent") from None
     except ChildDied as e:
         # the client is gone; what it left on the controller may be a program ur_rtde uploaded on its own (no
