@@ -9,13 +9,12 @@ resumes).
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fem.sweep import check_scene, random_scene, summarize, sweep_piece  # noqa: E402, F401
+from fem.sweep import check_scene, random_scene, summarize, sweep_piece, write_results  # noqa: E402, F401
 from planner.tasks import Runner, run_pieces  # noqa: E402
 
 
@@ -24,15 +23,7 @@ def run(out_dir, quick: bool = False, n: int | None = None, seed: int = 1, runne
     n = n or (40 if quick else 300)
     rows = run_pieces(sweep_piece, seed, list(range(n)), [f"scene-{i:04d}" for i in range(n)], runner=runner,
                       store=out / "pieces" / f"sweep-seed{seed}", desc="sweep scenes")
-    out.mkdir(parents=True, exist_ok=True)
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(out / "sweep.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    md = summarize(rows)
-    (out / "sweep.md").write_text(md)
-    print(md)
+    print(write_results(rows, out))
     return {"rows": rows, "failures": sum(r["status"] == "FAIL" for r in rows)}
 
 

@@ -14,6 +14,7 @@ serially or on dask workers (planner.tasks), in any order.
 """
 from __future__ import annotations
 
+import csv
 import math
 import os
 import re
@@ -21,6 +22,7 @@ import time
 import traceback
 import warnings
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -168,3 +170,16 @@ def sweep_piece(seed: int, i: int) -> dict:
             os.environ.pop("PALPATE_CACHE", None)
         else:
             os.environ["PALPATE_CACHE"] = old
+
+
+def write_results(rows: list[dict], out: Path) -> str:
+    """sweep.csv (one row per scene) and sweep.md (the summary) in ``out``; returns the markdown."""
+    out.mkdir(parents=True, exist_ok=True)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with open(out / "sweep.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    md = summarize(rows)
+    (out / "sweep.md").write_text(md)
+    return md

@@ -9,7 +9,6 @@ options start another set beside it.
 from __future__ import annotations
 
 import argparse
-import csv
 import hashlib
 import json
 import os
@@ -21,8 +20,8 @@ from pathlib import Path
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float
-from fem.sweep import summarize as summarize_sweep
 from fem.sweep import sweep_piece
+from fem.sweep import write_results as write_sweep
 from planner.accuracy import run_accuracy, study_trials
 from planner.accuracy_report import write_report
 from planner.detect_study import run_detect, study_cases
@@ -137,15 +136,8 @@ def run_sweep_study(args, scene, runner: Runner, out: Path) -> dict:
     rows = _run(runner, lambda: run_pieces(sweep_piece, args.seed, list(range(n)), [f"scene-{i:04d}" for i in range(n)],
                                            runner=runner, store=store, desc="sweep scenes"))
     elapsed = time.perf_counter() - t0
-    out.mkdir(parents=True, exist_ok=True)
+    md = write_sweep(rows, out)
     (out / "sweep.json").write_text(json.dumps(rows, indent=1))
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(out / "sweep.csv", "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        w.writerows(rows)
-    md = summarize_sweep(rows)
-    (out / "sweep.md").write_text(md)
     print(md)
     failures = sum(r["status"] == "FAIL" for r in rows)
     _say(f"sweep: {n} scenes in {elapsed:.0f} s, {failures} failures; results in {out}")
