@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .assembly import Material
-from .elements3d import quadrature, shape, shape_grad
+from .elements3d import EDGES, quadrature, shape, shape_grad
 from .mesh3d import Mesh3D
 
 
@@ -73,10 +73,32 @@ def element_dofs3d(mesh: Mesh3D) -> np.ndarray:
 CHUNK = 20_000   # elements per vectorized block (bounds the temporary arrays to a few hundred MB for P2)
 
 
+def curved(mesh: Mesh3D) -> np.ndarray:
+    """(M,) bool: P2 elements whose mid-edge nodes are off their edges' midpoints (on a stone's sphere)."""
+    if mesh.order == 1:
+        return np.zeros(len(mesh.tets), bool)
+    X = mesh.nodes
+    off = np.zeros(len(mesh.tets))
+    for k, (a, b) in enumerate(EDGES):
+        dev = X[mesh.tets[:, 4 + k]] - 0.5 * (X[mesh.tets[:, a]] + X[mesh.tets[:, b]])
+        off = np.maximum(off, np.abs(dev).max(axis=1))
+    return off > 1e-9 * max(mesh.width_m, mesh.length_m, mesh.height_m)
+
+
 def stiffness3d(mesh: Mesh3D, D: np.ndarray, elements: np.ndarray | None = None) -> sp.csr_matrix:
-    """Global stiffness matrix (3N x 3N, CSR) from per-element D (M, 6, 6); ``elements`` restricts the sum."""
-    pts, w = quadrature(2 * (mesh.order - 1))
+    """Global stiffness matrix (3N x 3N, CSR) from per-element D (M, 6, 6); ``elements`` restricts the sum.
+    Straight elements: the rule exact for their integrand (degree 2 (p - 1)); curved P2 elements (on a sphere) a
+    degree-5 rule: their Jacobian's cofactors are quadratic, so the constant-strain (patch) test needs degree 3."""
     els = np.arange(len(mesh.tets)) if elements is None else np.asarray(elements)
+    bent = curved(mesh)[els]
+    K = _stiffness(mesh, D, els[~bent], quadrature(2 * (mesh.order - 1)))
+    if bent.any():
+        K = K + _stiffness(mesh, D, els[bent], quadrature(5))
+    return K
+
+
+def _stiffness(mesh: Mesh3D, D: np.ndarray, els: np.ndarray, rule) -> sp.csr_matrix:
+    pts, w = rule
     dofs_all = element_dofs3d(mesh)
     n = mesh.n_dofs
     K = sp.csr_matrix((n, n))

@@ -57,6 +57,8 @@ def quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
         a, b = 0.5854101966249685, 0.1381966011250105
         p = np.array([[b, b, b], [a, b, b], [b, a, b], [b, b, a]])
         return p, np.full(4, 1 / 24)
+    if degree >= 5:
+        return _degree5()
     # Keast's 11-point rule, degree 4 (one negative weight)
     p = [[0.25, 0.25, 0.25]]
     w = [-0.01315555555555556]
@@ -67,3 +69,22 @@ def quadrature(degree: int) -> tuple[np.ndarray, np.ndarray]:
     p += [[a, a, b], [a, b, a], [a, b, b], [b, a, a], [b, a, b], [b, b, a]]
     w += [0.02488888888888889] * 6
     return np.array(p), np.array(w)
+
+
+def _degree5() -> tuple[np.ndarray, np.ndarray]:
+    """The 14-point rule of degree 5 with positive weights (Walkington; Keast's rule 6)."""
+    pts, w = [], []
+    for a, wa in ((0.0927352503108912, 0.01224884051939366), (0.3108859192633006, 0.01878132095300264)):
+        for k in range(4):
+            L = np.full(4, a)
+            L[k] = 1 - 3 * a
+            pts.append(L[1:])
+            w.append(wa)
+    b = 0.4544962958743504
+    for i in range(4):
+        for j in range(i + 1, 4):
+            L = np.full(4, 0.5 - b)
+            L[[i, j]] = b
+            pts.append(L[1:])
+            w.append(0.007091003462846911)
+    return np.array(pts), np.array(w)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .elements3d import EDGES
+from .elements3d import EDGES, nodes_ref, quadrature, shape_grad
 from .mesh import _GMSH_LOCK, _start
 
 GRADE = 0.5   # element size grows by this much per unit distance from the probed patch and from the stones
@@ -30,6 +30,7 @@ class Mesh3D:
     height_m: float
     top: np.ndarray = field(default=None)     # node indices on the top face z = height, sorted by (x, y)
     bottom: np.ndarray = field(default=None)  # node indices on the bottom face z = 0, sorted by (x, y)
+    straightened: int = 0       # curved P2 elements that folded on a coarse sphere and were made straight
 
     def __post_init__(self):
         tol = 1e-9 * max(self.width_m, self.length_m, self.height_m)
@@ -181,7 +182,23 @@ def _extract(gmsh, vols_by_region: list[list[int]], order: int, width: float, le
     mesh = Mesh3D(nodes=nodes[used], tets=remap[tets], region=np.concatenate(region), order=order,
                   width_m=width, length_m=length, height_m=height)
     _orient(mesh)
+    if order == 2:
+        mesh.straightened = straighten_inverted(mesh)
     return mesh
+
+
+def straighten_inverted(mesh: Mesh3D) -> int:
+    """Put the mid-edge nodes of curved P2 elements whose Jacobian is not positive everywhere (at their nodes and
+    at the points of the degree-5 rule used for curved elements) back on their straight edges; returns how many.
+    A coarse mesh of a sphere folds a few such elements; their boundary then is a chord (as in 2D)."""
+    pts = np.vstack([quadrature(5)[0], nodes_ref(2)])
+    dN = shape_grad(2, pts)
+    J = np.einsum("mai,qaj->mqij", mesh.nodes[mesh.tets], dN)
+    bad = np.flatnonzero(~(np.linalg.det(J).min(axis=1) > 0))
+    t = mesh.tets[bad]
+    for k, (a, b) in enumerate(EDGES):
+        mesh.nodes[t[:, 4 + k]] = 0.5 * (mesh.nodes[t[:, a]] + mesh.nodes[t[:, b]])
+    return len(bad)
 
 
 def mesh_scene3d(scene) -> Mesh3D:

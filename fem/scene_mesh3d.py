@@ -7,6 +7,7 @@ exceed the DOF cap ($PALPATE_MAX_DOFS) are refused before gmsh runs.
 from __future__ import annotations
 
 import functools
+import warnings
 from importlib import metadata
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from .scene import Scene, SceneError
 from .scene_mesh import max_dofs
 
 FORMAT = 1
-_SOURCES = ("scene_mesh3d.py", "mesh3d.py", "assembly3d.py", "elements3d.py", "model3d.py")
+_SOURCES = ("scene_mesh3d.py", "mesh3d.py", "assembly3d.py", "elements3d.py", "model3d.py", "contact3d.py", "condense.py")
 
 
 @functools.lru_cache(maxsize=1)
@@ -63,6 +64,9 @@ def jacobians3d(mesh: Mesh3D) -> np.ndarray:
 
 def checked_mesh3d(mesh: Mesh3D, scene: Scene) -> Mesh3D:
     """The mesh if every element has a positive Jacobian, else a SceneError saying what to change."""
+    if mesh.straightened:
+        warnings.warn(f"scene {scene.name!r}: {mesh.straightened} curved P2 element(s) folded on a coarse stone "
+                      f"surface were straightened; refine the mesh there for a curved boundary", stacklevel=3)
     det = jacobians3d(mesh)
     if np.all(det > 0) and np.all(np.isfinite(mesh.nodes)):
         return mesh
