@@ -291,6 +291,8 @@ def _validate_analysis(scene: Scene) -> None:
                          f"(top_displacement_m <= {STRAIN_MAX * t.height_m:.4g} m; it is stated for up to "
                          f"{STRAIN_WARN:.0%})")
     if scene.is_3d:
+        if a.plane != "strain":
+            raise SceneError(f"analysis.plane = {a.plane!r} is 2D only (a 3D block has no plane assumption): drop it")
         if a.formulation != "displacement":
             raise SceneError(f"analysis.formulation = {a.formulation!r} is 2D only; a 3D scene uses "
                              f"'displacement' (P1/P2 tetrahedra)")
