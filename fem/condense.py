@@ -12,6 +12,8 @@ ordering of the interior and the contact DOFs appended; its postordering is swit
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
@@ -37,6 +39,7 @@ class CholmodSchur:
         import cvxopt.amd
         import cvxopt.cholmod as chm
         self._cvx, self._chm = cvxopt, chm
+        t0 = time.perf_counter()
         pos = np.full(K.shape[0], -1)
         pos[free] = np.arange(len(free))
         c = pos[contact]
@@ -48,6 +51,7 @@ class CholmodSchur:
         self._A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
                                   cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
         order = np.asarray(cvxopt.amd.order(self._A), dtype=np.int64).ravel()
+        t1 = time.perf_counter()
         is_c = np.zeros(n, bool)
         is_c[c] = True
         p = np.concatenate([order[~is_c[order]], c])
@@ -61,17 +65,22 @@ class CholmodSchur:
             chm.solve(self._F, probe, sys=7)                      # probe = P (0..n-1): the order used
             if not np.array_equal(np.asarray(probe).ravel().astype(np.int64), p):
                 raise RuntimeError("CHOLMOD reordered the Schur factorization; cannot read the Schur complement")
+            t2 = time.perf_counter()
             L = chm.getfactor(self._F)                            # converts the factor (see module docstring)
             self._F = None
         finally:
             chm.options.clear()
             chm.options.update(saved)
-        cols = np.asarray(L.J, dtype=np.int64).ravel()
-        rows = np.asarray(L.I, dtype=np.int64).ravel()
-        tail = (rows >= n - nc) & (cols >= n - nc)
+        colptr, rowind, vals = L.CCS                              # compressed columns; only the trailing
+        start = int(colptr[n - nc])                               # nc columns are read (lower triangular:
+        ptr = np.asarray(colptr[n - nc:], dtype=np.int64).ravel() - start   # their rows are trailing too)
+        rows = np.asarray(rowind[start:], dtype=np.int64).ravel() - (n - nc)
+        cols = np.repeat(np.arange(nc), np.diff(ptr))
         Lcc = np.zeros((nc, nc), order="F")
-        Lcc[rows[tail] - (n - nc), cols[tail] - (n - nc)] = np.asarray(L.V).ravel()[tail]
+        Lcc[rows, cols] = np.asarray(vals[start:]).ravel()
+        del colptr, rowind, vals
         del L
+        t3 = time.perf_counter()
         Cinv, info = sla.lapack.dpotri(Lcc, lower=1, overwrite_c=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"dpotri failed (info {info}): the Schur complement is not positive definite")
@@ -79,6 +88,8 @@ class CholmodSchur:
         C += np.tril(C, -1).T
         self.compliance = C
         self.free, self.c = free, c
+        self.timings_s = {"order_s": t1 - t0, "factor_s": t2 - t1, "extract_s": t3 - t2,
+                          "inverse_s": time.perf_counter() - t3}
         self._factored = False
 
     def solve(self, rhs_free: np.ndarray) -> np.ndarray:

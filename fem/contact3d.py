@@ -163,6 +163,8 @@ class SurfaceModel3D:
         self.C = compliance
         self.band_m = stress_band_m if stress_band_m is not None else 2 * scene.indenter.radius_m
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
+        if self._fac is not None and hasattr(self._fac, "timings_s"):
+            self.timings_s["condense_parts_s"] = dict(self._fac.timings_s)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"C": self.C}

@@ -132,7 +132,7 @@ def _indent(args, sc, rigid) -> int:
           f"  contact radius {r.contact_radius_m * 1e3:.3f} mm, {int((r.nodal_force_n > 0).sum())} nodes in contact\n"
           f"  max von Mises {r.max_von_mises_pa:.4g} Pa at ({r.max_von_mises_at_m[0] * 1e3:.2f}, "
           f"{r.max_von_mises_at_m[1] * 1e3:.2f}) mm, {r.max_von_mises_at_m[2] * 1e3:.2f} mm deep\n  tip: {r.tip_note}\n"
-          "  time: " + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in out["timings_s"].items())
+          "  time: " + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in out["timings_s"].items() if isinstance(v, float))
           + "".join(f"\n  wrote {k}: {f}" for k, f in out["files"].items()), file=stream)
     write_json(args.json, out)
     return 0
