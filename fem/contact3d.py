@@ -156,6 +156,7 @@ class SurfaceModel3D:
                              f"lower analysis.patch_m or analysis.surface_refine")
         self.xy = self.mesh.nodes[self.patch, :2]
         self._fac = None
+        self._band = None
         if compliance is None:
             compliance = self.fac.compliance
         if not np.all(np.isfinite(compliance)):
@@ -240,31 +241,55 @@ class SurfaceModel3D:
         Y[self.fac.free] = self.fac.solve(rhs)
         return self.model.P @ Y
 
-    def indent(self, x_m: float, y_m: float, depth_m: float, stresses: bool = True) -> IndentResult3D:
-        idx, f, gap = self.contact_forces(x_m, y_m, depth_m)
-        active = f > 0
-        vm_max, at, pressure = 0.0, (float(x_m), float(y_m), 0.0), np.zeros(len(idx))
-        if stresses and active.any():
-            F = np.zeros((len(self.patch), 1))
-            F[idx, 0] = f
-            u = self.displacements(F)[:, 0]
-            mesh = self.mesh
+    def _band_op(self):
+        """(nodes, recovery operator) for every node within band_m below the probed patch (grown by band_m
+        sideways): built once, then each waypoint takes the rows of the nodes under its tip."""
+        if self._band is None:
+            mesh, b = self.mesh, self.band_m
+            x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, self.scene.analysis.patch_m)
             X = mesh.nodes
-            R = self.band_m
-            band = np.flatnonzero((X[:, 2] >= mesh.height_m - R - 1e-12) & (np.abs(X[:, 0] - x_m) <= R)
-                                  & (np.abs(X[:, 1] - y_m) <= R))
-            s = components3d((recovery_operator3d(self.model, band) @ u).reshape(-1, 6))
-            j = int(np.argmax(s["von_mises_pa"]))
-            vm_max = float(s["von_mises_pa"][j])
-            at = (float(X[band[j], 0]), float(X[band[j], 1]), float(mesh.height_m - X[band[j], 2]))
-            st = components3d((recovery_operator3d(self.model, self.patch[idx]) @ u).reshape(-1, 6))
-            pressure = np.where(active, np.maximum(-st["szz_pa"], 0.0), 0.0)
-        return IndentResult3D(x_m=float(x_m), y_m=float(y_m), depth_m=float(depth_m),
-                              force_n=check_finite(float(f.sum()), f"scene {self.scene.name!r}: force"),
-                              max_von_mises_pa=vm_max, max_von_mises_at_m=at,
-                              contact_radius_m=_contact_radius(self.xy[idx], (x_m, y_m), active),
-                              contact_x_m=self.xy[idx, 0], contact_y_m=self.xy[idx, 1], pressure_pa=pressure,
-                              nodal_force_n=f, gap_m=gap, rigid_tip=self.rigid_tip, tip_note=self.tip_note)
+            nodes = np.flatnonzero((X[:, 2] >= mesh.height_m - b - 1e-12) & (X[:, 0] >= x0 - b) & (X[:, 0] <= x1 + b)
+                                   & (X[:, 1] >= y0 - b) & (X[:, 1] <= y1 + b))
+            pos = np.full(mesh.n_nodes, -1)
+            pos[nodes] = np.arange(len(nodes))
+            self._band = (nodes, pos, recovery_operator3d(self.model, nodes).tocsr())
+        return self._band
+
+    def indent(self, x_m: float, y_m: float, depth_m: float, stresses: bool = True) -> IndentResult3D:
+        return self.indent_many([(x_m, y_m, depth_m)], stresses=stresses)[0]
+
+    def indent_many(self, waypoints, stresses: bool = True) -> list[IndentResult3D]:
+        """Several waypoints (x_m, y_m, depth_m); their displacement fields come from one batched solve."""
+        pts = [tuple(float(v) for v in w) for w in waypoints]
+        sols = [self.contact_forces(*p) for p in pts]
+        U = None
+        if stresses and any(f.any() for _, f, _ in sols):
+            F = np.zeros((len(self.patch), len(sols)))
+            for k, (idx, f, _) in enumerate(sols):
+                F[idx, k] = f
+            U = self.displacements(F)
+            nodes, pos, Rb = self._band_op()
+        out = []
+        mesh, X, b = self.mesh, self.mesh.nodes, self.band_m
+        for k, ((idx, f, gap), (x_m, y_m, depth_m)) in enumerate(zip(sols, pts)):
+            active = f > 0
+            vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
+            if U is not None and active.any():
+                near = nodes[(np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)]
+                s = components3d(_stress_at(Rb, pos[near], U[:, k]))
+                j = int(np.argmax(s["von_mises_pa"]))
+                vm_max = float(s["von_mises_pa"][j])
+                at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
+                st = components3d(_stress_at(Rb, pos[self.patch[idx]], U[:, k]))
+                pressure = np.where(active, np.maximum(-st["szz_pa"], 0.0), 0.0)
+            out.append(IndentResult3D(
+                x_m=x_m, y_m=y_m, depth_m=depth_m,
+                force_n=check_finite(float(f.sum()), f"scene {self.scene.name!r}: force"),
+                max_von_mises_pa=vm_max, max_von_mises_at_m=at,
+                contact_radius_m=_contact_radius(self.xy[idx], (x_m, y_m), active), contact_x_m=self.xy[idx, 0],
+                contact_y_m=self.xy[idx, 1], pressure_pa=pressure, nodal_force_n=f, gap_m=gap,
+                rigid_tip=self.rigid_tip, tip_note=self.tip_note))
+        return out
 
     def full_field(self, x_m: float, y_m: float, depth_m: float) -> np.ndarray:
         """Full displacement vector (3N,) for one waypoint: one more back-substitution."""
@@ -272,6 +297,11 @@ class SurfaceModel3D:
         F = np.zeros((len(self.patch), 1))
         F[idx, 0] = f
         return check_finite(self.displacements(F)[:, 0], f"scene {self.scene.name!r}: displacements")
+
+
+def _stress_at(R, node_pos: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(n, 6) stresses at the nodes in rows ``node_pos`` of the recovery operator R, for displacement u."""
+    return (R[(6 * node_pos[:, None] + np.arange(6)).ravel()] @ u).reshape(-1, 6)
 
 
 def _contact_radius(xy: np.ndarray, centre, active: np.ndarray) -> float:

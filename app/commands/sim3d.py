@@ -26,6 +26,7 @@ from fem.uniform3d import solve_uniform3d
 FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
 FIG_INDENT = ("fig3d_indent_surface.png", "fig3d_indent_section.png")
 FIG_PREDICT = "fig3d_predict.png"
+BATCH = 50             # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
 
 
 def _mesh_dict(mesh, model) -> dict:
@@ -166,7 +167,10 @@ def _predict(sc, xs, ys, depth_m, stresses: bool) -> dict:
     t0 = time.perf_counter()
     m = surface_model3d(sc)
     t1 = time.perf_counter()
-    rows = [m.indent(float(x), float(y), depth_m, stresses=stresses) for y in ys for x in xs]
+    pts = [(float(x), float(y), depth_m) for y in ys for x in xs]
+    rows = []
+    for k in range(0, len(pts), BATCH):          # one batched solve per BATCH waypoints (their stress fields)
+        rows += m.indent_many(pts[k:k + BATCH], stresses=stresses)
     t2 = time.perf_counter()
     n = len(rows)
     return {"x_m": [r.x_m for r in rows], "y_m": [r.y_m for r in rows], "force_n": [r.force_n for r in rows],
