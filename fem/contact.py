@@ -357,11 +357,12 @@ def check_waypoint(scene, x_m: float, depth_m: float) -> None:
                              f"against the stone, which the linear model does not represent")
 
 
-def _surface_spec(scene, options: dict) -> dict:
+def _surface_spec(scene, options: dict, code: str | None = None) -> dict:
     """What a SurfaceModel's operators depend on: the scene's content without what cannot change them (a tip fem
-    treats as rigid shares the rigid tip's entry: fem.tip.contact_scene), the options, the code version."""
+    treats as rigid shares the rigid tip's entry: fem.tip.contact_scene), the options, the code version (``code``,
+    default fem.scene_mesh.code_version(); fem.contact3d gives its own)."""
     tip = {k: options[k] for k in ("rigid_tip", "tip_tolerance") if k in options}
-    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code_version()}
+    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code or code_version()}
 
 
 def surface_key(scene, options: dict) -> str:

@@ -24,7 +24,7 @@ import numpy as np
 
 from . import diskcache
 from .condense import schur
-from .contact import STONE_LAYER_MAX
+from .contact import STONE_LAYER_MAX, _surface_spec
 from .guards import check_finite
 from .lcp import solve_lcp
 from .mesh3d import Mesh3D, patch_bounds
@@ -32,7 +32,7 @@ from .model3d import Model3D, build_model3d, fixed_bottom
 from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
 from .scene_mesh3d import code_version3d, mesh_for3d
 from .stress3d import components3d, recovery_operator3d
-from .tip import TIP_TOLERANCE, contact_scene, treated_as_rigid
+from .tip import TIP_TOLERANCE, treated_as_rigid
 
 # The contact model keeps a dense compliance of the patch's top nodes (8 n^2 bytes): 16000 nodes are 2 GB.
 MAX_PATCH_NODES = 16_000
@@ -314,17 +314,12 @@ def _contact_radius(xy: np.ndarray, centre, active: np.ndarray) -> float:
     return float(0.5 * (inner + beyond.min())) if len(beyond) else float(inner)
 
 
-def _surface_spec(scene, options: dict) -> dict:
-    tip = {k: options[k] for k in ("rigid_tip", "tip_tolerance") if k in options}
-    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code_version3d()}
-
-
 def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> SurfaceModel3D:
     """A SurfaceModel3D restored from the disk cache (its compliance; the model is assembled only when fields are
     asked for), else built and stored."""
     mesh = mesh_for3d(scene, use=use)
     return diskcache.load_or_build(
-        "surface3d", _surface_spec(scene, options), build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
+        "surface3d", _surface_spec(scene, options, code_version3d()), build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
         to_arrays=SurfaceModel3D.to_arrays,
         from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use)
 

@@ -21,8 +21,32 @@ from .scene_mesh import mesh_for
 RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
 
 
+class ReducedModel:
+    """What a model with rigid-stone reduction offers (fem.model.Model in 2D, fem.model3d.Model3D in 3D): the
+    reduced stiffness K and the prolongation P (full DOFs = P @ reduced DOFs) set by the subclass."""
+    K: sp.csr_matrix
+    P: sp.csr_matrix
+
+    @property
+    def n_dofs(self) -> int:
+        return self.K.shape[0]
+
+    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
+        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
+        if not any(self.rigid):
+            return np.asarray(full_dofs)
+        P = self.P[np.asarray(full_dofs)]
+        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
+            raise ValueError("a requested DOF belongs to a rigid stone")
+        return P.indices.copy()
+
+    def partition(self, fixed: np.ndarray) -> Factored:
+        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
+        return Factored(self, np.asarray(fixed, dtype=np.int64))
+
+
 @dataclass
-class Model:
+class Model(ReducedModel):
     mesh: Mesh
     materials: list[Material]            # region 0 tissue, region k stone k-1
     plane: str
@@ -69,23 +93,6 @@ class Model:
             vals += [one, -y, one, x]
         rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
         return sp.csr_matrix((vals, (rows, cols.astype(np.int64))), shape=(n, n_free + 3 * len(rigid_ids)))
-
-    @property
-    def n_dofs(self) -> int:
-        return self.K.shape[0]
-
-    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
-        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
-        if not any(self.rigid):
-            return np.asarray(full_dofs)
-        P = self.P[np.asarray(full_dofs)]
-        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
-            raise ValueError("a requested DOF belongs to a rigid stone")
-        return P.indices.copy()
-
-    def partition(self, fixed: np.ndarray) -> Factored:
-        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
-        return Factored(self, np.asarray(fixed, dtype=np.int64))
 
 
 class Factored:

@@ -15,12 +15,12 @@ import scipy.sparse as sp
 from .assembly import Material
 from .assembly3d import element_D3d, stiffness3d
 from .mesh3d import Mesh3D
-from .model import RIGID_RATIO, Factored, materials_of, warn_if_ill_conditioned, warn_if_locking
+from .model import RIGID_RATIO, ReducedModel, materials_of, warn_if_ill_conditioned, warn_if_locking
 from .scene_mesh3d import mesh_for3d
 
 
 @dataclass
-class Model3D:
+class Model3D(ReducedModel):
     mesh: Mesh3D
     materials: list[Material]                   # region 0 tissue, region k stone k-1
     centres: list[tuple[float, float, float]]   # stone centres (x, y, z)
@@ -71,23 +71,6 @@ class Model3D:
                 vals.append(v)
         rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
         return sp.csr_matrix((vals, (rows, cols.astype(np.int64))), shape=(n, n_free + 6 * sum(self.rigid)))
-
-    @property
-    def n_dofs(self) -> int:
-        return self.K.shape[0]
-
-    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
-        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
-        if not any(self.rigid):
-            return np.asarray(full_dofs)
-        P = self.P[np.asarray(full_dofs)]
-        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
-            raise ValueError("a requested DOF belongs to a rigid stone")
-        return P.indices.copy()
-
-    def partition(self, fixed: np.ndarray) -> Factored:
-        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
-        return Factored(self, np.asarray(fixed, dtype=np.int64))
 
 
 def build_model3d(scene, mesh: Mesh3D | None = None, rigid_stones: str | bool = "auto",

@@ -13,6 +13,7 @@ import matplotlib.pyplot as plt
 import matplotlib.tri as mtri
 import numpy as np
 from matplotlib.patches import Circle
+from scipy.interpolate import LinearNDInterpolator
 
 MM = 1e3
 
@@ -69,7 +70,6 @@ def grid_maps(path, scene, xs: np.ndarray, ys: np.ndarray, maps: dict[str, np.nd
 
 def section(path, scene, mesh, values: np.ndarray, y_m: float, label: str, title: str, n: int = 160) -> Path:
     """Nodal values interpolated (linearly, over the nodes' Delaunay tetrahedra) onto the vertical plane y = y_m."""
-    from scipy.interpolate import LinearNDInterpolator
     X = mesh.nodes
     near = np.abs(X[:, 1] - y_m) <= 0.15 * max(mesh.width_m, mesh.length_m)
     f = LinearNDInterpolator(X[near], values[near])

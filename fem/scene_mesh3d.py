@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import functools
 import warnings
-from importlib import metadata
-from pathlib import Path
 
 import numpy as np
 
@@ -17,7 +15,7 @@ from . import diskcache
 from .elements3d import nodes_ref, quadrature, shape_grad
 from .mesh3d import Mesh3D, estimate_nodes3d, mesh_scene3d
 from .scene import Scene, SceneError
-from .scene_mesh import max_dofs
+from .scene_mesh import max_dofs, sources_version
 
 FORMAT = 1
 _SOURCES = ("scene_mesh3d.py", "mesh3d.py", "assembly3d.py", "elements3d.py", "model3d.py", "contact3d.py", "condense.py")
@@ -25,12 +23,7 @@ _SOURCES = ("scene_mesh3d.py", "mesh3d.py", "assembly3d.py", "elements3d.py", "m
 
 @functools.lru_cache(maxsize=1)
 def code_version3d() -> str:
-    try:
-        gv = metadata.version("gmsh")
-    except metadata.PackageNotFoundError:
-        gv = "?"
-    here = Path(__file__).resolve().parent
-    return diskcache.files_digest([here / name for name in _SOURCES], f"3d format {FORMAT}; gmsh {gv}")
+    return sources_version(_SOURCES, f"3d format {FORMAT}")
 
 
 def check_mesh_budget3d(scene: Scene) -> dict:

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 FEM = Path(__file__).resolve().parent.parent / "fem"
-LAZY_OK = ("gmsh", "meshio", "matplotlib")   # optional heavy imports that may stay inside functions
+LAZY_OK = ("gmsh", "meshio", "matplotlib", "cvxopt")   # optional heavy imports that may stay inside functions
 
 
 def _is_lazy_ok(module: str) -> bool:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import sim3d
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
@@ -104,7 +105,6 @@ def run(args) -> int:
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     sc = _scene(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
-        from app.commands import sim3d
         if args.indenter_radius_m is not None:
             sc = dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, radius_m=args.indenter_radius_m))
         return sim3d.run_simulate(args, sc, _rigid(args))
