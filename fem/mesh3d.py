@@ -99,10 +99,13 @@ def patch_bounds(width_m: float, length_m: float, patch_m: float | None) -> tupl
 
 def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tuple[float, float, float, float]],
                size_m: float, surface_refine: float = 8.0, order: int = 2, patch_m: float | None = None,
-               focus: tuple[float, float, float, float] | None = None) -> Mesh3D:
+               focus: tuple[float, float, float, float] | None = None,
+               cylinders_y: list[tuple[float, float, float]] = ()) -> Mesh3D:
     """Mesh the block with spherical stones given as (x_m, y_m, z_centre_m, radius_m). focus = (x_m, y_m, size_m,
     radius_m): element size size_m within radius_m of the top-face point (x_m, y_m), growing with slope GRADE
-    beyond it (for verification against local closed forms such as Hertz contact)."""
+    beyond it (for verification against local closed forms such as Hertz contact). cylinders_y: stones that are
+    cylinders (x_m, z_centre_m, radius_m) through the whole block along y (the 2D-against-3D slab check); their
+    regions follow the spheres'."""
     import gmsh  # lazy: a heavy import, only needed on a cache miss
     with _GMSH_LOCK:
         _start(gmsh)
@@ -110,6 +113,7 @@ def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tu
             occ = gmsh.model.occ
             box = occ.addBox(0, 0, 0, width_m, length_m, height_m)
             balls = [occ.addSphere(x, y, z, r) for x, y, z, r in stones]
+            balls += [occ.addCylinder(x, 0, z, 0, length_m, 0, r) for x, z, r in cylinders_y]
             if balls:
                 _, vmap = occ.fragment([(3, box)], [(3, b) for b in balls])
             occ.synchronize()
