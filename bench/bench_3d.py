@@ -36,6 +36,7 @@ LEVELS = {   # name: (order, mesh_size_m, surface_refine)
     "p2-2.0": (2, 0.012, 6.0), "p2-1.5": (2, 0.012, 8.0), "p2-1.25": (2, 0.010, 8.0), "p2-1.0": (2, 0.010, 10.0),
     "p2-0.83": (2, 0.010, 12.0),
 }
+GRADES = {"g25": 0.25, "g35": 0.35}   # a level name with a suffix -g25 uses analysis.grade = 0.25
 DEPTH_M = 0.003
 
 
@@ -54,8 +55,10 @@ def one_convergence(level: str) -> dict:
     from fem.scene import load
     from fem.scene_mesh3d import mesh_for3d
     from fem.uniform3d import solve_uniform3d
-    order, size, refine = LEVELS[level]
-    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine)
+    base, _, g = level.partition("-g")
+    order, size, refine = LEVELS[base]
+    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine,
+                                        grade=GRADES[f"g{g}"] if g else None)
     t0 = time.perf_counter()
     mesh = mesh_for3d(sc, use=False)
     t1 = time.perf_counter()
@@ -71,6 +74,7 @@ def one_convergence(level: str) -> dict:
     la = solve_uniform3d(sc, model=model, full_field=False)
     xp, yp, vp = la.surface.peak()
     return {"level": level, "order": order, "mesh_size_m": size, "surface_refine": refine,
+            "grade": sc.analysis.grade or 0.5,
             "h_top_m": size / refine, "nodes": int(mesh.n_nodes), "tets": int(len(mesh.tets)),
             "dofs": int(model.n_dofs), "patch_nodes": int(len(sm.patch)), "forces_n": forces,
             "force_centre_n": sm.force_n(0.035, 0.035, DEPTH_M), "load_a_peak": [xp, yp, vp],
@@ -116,14 +120,15 @@ def one_waypoints(cache_dir: str, phase: str) -> dict:
             "first_stress_query_s": first_stress_s, "peak_rss_gb": _rss_gb()}
 
 
-def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05) -> dict:
+def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05, H_over_W: float = 0.5,
+              grade: float = 0.5) -> dict:
     from scipy.optimize import brentq
 
     from fem.contact3d import SurfaceModel3D
     from fem.mesh3d import mesh_block
     from fem.scene import Analysis, Indenter, Scene, Tissue
     R, E, nu = 0.005, 2500.0, 0.4
-    W, H, d = W_over_R * R, 0.5 * W_over_R * R, d_over_R * R
+    W, H, d = W_over_R * R, H_over_W * W_over_R * R, d_over_R * R
     a = np.sqrt(R * d)
     fine = R * fine_over_R
     sc = Scene(name="hertz", tissue=Tissue(width_m=W, length_m=W, height_m=H, youngs_pa=E, poisson=nu),
@@ -131,14 +136,16 @@ def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05
                analysis=Analysis(order=2, mesh_size_m=H / 4, surface_refine=H / 4 / (4 * fine), patch_m=2.2 * R,
                                  top_displacement_m=0.0))
     t0 = time.perf_counter()
-    mesh = mesh_block(W, W, H, [], H / 4, H / 4 / (4 * fine), 2, patch_m=2.2 * R, focus=(W / 2, W / 2, fine, 1.5 * a))
+    mesh = mesh_block(W, W, H, [], H / 4, H / 4 / (4 * fine), 2, patch_m=2.2 * R, focus=(W / 2, W / 2, fine, 1.5 * a),
+                      grade=grade)
     sm = SurfaceModel3D(sc, mesh=mesh)
     r = sm.indent(W / 2, W / 2, d, stresses=False)
     Es = E / (1 - nu ** 2)
     F_hertz = 4 / 3 * Es * np.sqrt(R) * d ** 1.5
     a_s = brentq(lambda x: x / 2 * np.log((R + x) / (R - x)) - d, 1e-12, 0.999 * R)
     F_sneddon = Es / 2 * ((a_s ** 2 + R ** 2) * np.log((R + a_s) / (R - a_s)) - 2 * a_s * R)
-    return {"fine_over_R": fine_over_R, "W_over_R": W_over_R, "H_over_R": 0.5 * W_over_R, "d_over_R": d_over_R,
+    return {"fine_over_R": fine_over_R, "W_over_R": W_over_R, "H_over_R": H_over_W * W_over_R, "d_over_R": d_over_R,
+            "grade": grade,
             "nodes": int(mesh.n_nodes), "dofs": int(sm.model.n_dofs), "patch_nodes": int(len(sm.patch)),
             "force_n": r.force_n, "hertz_n": F_hertz, "sneddon_sphere_n": F_sneddon,
             "err_hertz": r.force_n / F_hertz - 1, "err_sneddon": r.force_n / F_sneddon - 1,
@@ -194,16 +201,16 @@ def table(out: Path) -> str:
     lines = []
     conv = {r["level"]: r for r in _read(out, "convergence")}
     if conv:
-        ref = min(conv.values(), key=lambda r: (-r["order"], r["h_top_m"]))
+        ref = min(conv.values(), key=lambda r: (-r["order"], r["h_top_m"], r.get("grade", 0.5)))
         F_ref = np.asarray(ref["forces_n"])
         lines += [f"block3d, 100 waypoints (10 x 10 over the central 40 x 40 mm, depth 3 mm); reference: "
                   f"{ref['level']} (P{ref['order']}, h_top = {ref['h_top_m'] * 1e3:g} mm)", "",
-                  "| mesh | h_top (mm) | DOFs | patch nodes | max force error | centre force (N) | load A peak (Pa) "
+                  "| mesh | h_top (mm) | grade | DOFs | patch nodes | max force error | centre force (N) | load A peak (Pa) "
                   "| set-up (s): mesh + assemble + condense | ms / waypoint | peak memory (GB) | load avg |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|"]
-        for r in sorted(conv.values(), key=lambda r: (r["order"], -r["h_top_m"])):
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in sorted(conv.values(), key=lambda r: (r["order"], -r["h_top_m"], -r.get("grade", 0.5))):
             err = np.max(np.abs(np.asarray(r["forces_n"]) / F_ref - 1))
-            lines.append(f"| P{r['order']} {r['level']} | {r['h_top_m'] * 1e3:.3g} | {r['dofs']} | {r['patch_nodes']} | "
+            lines.append(f"| P{r['order']} {r['level']} | {r['h_top_m'] * 1e3:.3g} | {r.get('grade', 0.5):g} | {r['dofs']} | {r['patch_nodes']} | "
                          f"{err:.2%} | {r['force_centre_n']:.5g} | {r['load_a_peak'][2]:.4g} | "
                          f"{r['mesh_s']:.1f} + {r['assemble_s']:.1f} + {r['condense_s']:.1f} | "
                          f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} | {r['load_avg']:.1f} |")
@@ -229,11 +236,13 @@ def table(out: Path) -> str:
         lines.append("")
     hz = _read(out, "hertz")
     if hz:
-        lines += ["Hertz, rigid sphere R = 5 mm on a block 20 R wide and 10 R deep (P2, focused refinement):", "",
-                  "| h under the tip / R | d / R | DOFs | F / F_Hertz - 1 | F / F_sphere(Sneddon) - 1 | a / sqrt(R d) | time (s) |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += ["Hertz, rigid sphere R = 5 mm on a block W wide and H deep (P2, focused refinement):", "",
+                  "| W / R | H / R | grade | h under the tip / R | d / R | DOFs | F / F_Hertz - 1 | "
+                  "F / F_sphere(Sneddon) - 1 | a / sqrt(R d) | time (s) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for r in hz:
-            lines.append(f"| {r['fine_over_R']:g} | {r['d_over_R']:g} | {r['dofs']} | {r['err_hertz']:+.2%} | "
+            lines.append(f"| {r['W_over_R']:g} | {r['H_over_R']:g} | {r.get('grade', 0.5):g} | "
+                         f"{r['fine_over_R']:g} | {r['d_over_R']:g} | {r['dofs']} | {r['err_hertz']:+.2%} | "
                          f"{r['err_sneddon']:+.2%} | {r['contact_radius_m'] / r['hertz_radius_m']:.3f} | {r['time_s']:.1f} |")
         lines.append("")
     sol = _read(out, "solver")
@@ -255,7 +264,7 @@ def main(argv=None) -> int:
     ap.add_argument("what", choices=("convergence", "waypoints", "hertz", "solvers", "table", "one"))
     ap.add_argument("rest", nargs="*")
     ap.add_argument("--out", default=str(ROOT / "bench-out"))
-    ap.add_argument("--levels", nargs="*", default=list(LEVELS))
+    ap.add_argument("--levels", nargs="*", default=list(LEVELS), help="LEVELS names, optionally with -g25 / -g35")
     a = ap.parse_args(argv)
     out = Path(a.out)
     if a.what == "one":
@@ -274,8 +283,7 @@ def main(argv=None) -> int:
             _spawn(out, "waypoints", d, "build")
             _spawn(out, "waypoints", d, "reload")
     elif a.what == "hertz":
-        for fine in (a.rest or ["0.1", "0.07", "0.05"]):
-            _spawn(out, "hertz", fine)
+        _spawn(out, "hertz", *(a.rest or ["0.05"]))
     elif a.what == "solvers":
         for method in ("cholmod", "superlu"):
             _spawn(out, "solver", method, (a.rest or ["p2-2.0"])[0])

@@ -100,12 +100,12 @@ def patch_bounds(width_m: float, length_m: float, patch_m: float | None) -> tupl
 def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tuple[float, float, float, float]],
                size_m: float, surface_refine: float = 8.0, order: int = 2, patch_m: float | None = None,
                focus: tuple[float, float, float, float] | None = None,
-               cylinders_y: list[tuple[float, float, float]] = ()) -> Mesh3D:
+               cylinders_y: list[tuple[float, float, float]] = (), grade: float = GRADE) -> Mesh3D:
     """Mesh the block with spherical stones given as (x_m, y_m, z_centre_m, radius_m). focus = (x_m, y_m, size_m,
     radius_m): element size size_m within radius_m of the top-face point (x_m, y_m), growing with slope GRADE
     beyond it (for verification against local closed forms such as Hertz contact). cylinders_y: stones that are
     cylinders (x_m, z_centre_m, radius_m) through the whole block along y (the 2D-against-3D slab check); their
-    regions follow the spheres'."""
+    regions follow the spheres'. grade: the size's growth per unit distance (default GRADE)."""
     import gmsh  # lazy: a heavy import, only needed on a cache miss
     with _GMSH_LOCK:
         _start(gmsh)
@@ -131,7 +131,7 @@ def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tu
                     f"({height_m} - z)^2)")
             fields = []
             me = f.add("MathEval")
-            f.setString(me, "F", f"Min({size_m}, {fine} + {GRADE} * {dist})")
+            f.setString(me, "F", f"Min({size_m}, {fine} + {grade} * {dist})")
             fields.append(me)
             if stone_surfs:
                 d = f.add("Distance")
@@ -143,12 +143,12 @@ def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tu
                 f.setNumber(th, "SizeMin", smin)
                 f.setNumber(th, "SizeMax", size_m)
                 f.setNumber(th, "DistMin", 0.0)
-                f.setNumber(th, "DistMax", (size_m - smin) / GRADE)
+                f.setNumber(th, "DistMax", (size_m - smin) / grade)
                 fields.append(th)
             if focus is not None:
                 fx, fy, fsize, frad = focus
                 fm = f.add("MathEval")
-                f.setString(fm, "F", f"Min({size_m}, {fsize} + {GRADE} * "
+                f.setString(fm, "F", f"Min({size_m}, {fsize} + {grade} * "
                                      f"Max(0, Sqrt((x - {fx})^2 + (y - {fy})^2 + (z - {height_m})^2) - {frad}))")
                 fields.append(fm)
             mn = f.add("Min")
@@ -210,7 +210,12 @@ def mesh_scene3d(scene) -> Mesh3D:
     t, a = scene.tissue, scene.analysis
     stones = [(s.x_m, s.y_m, t.height_m - s.depth_m, s.radius_m) for s in scene.stones]
     return mesh_block(t.width_m, t.length_m, t.height_m, stones, a.mesh_size_m, a.surface_refine, a.order,
-                      a.patch_m)
+                      a.patch_m, grade=grade_of(scene))
+
+
+def grade_of(scene) -> float:
+    """The scene's size growth rate (analysis.grade, GRADE when not given)."""
+    return GRADE if scene.analysis.grade is None else scene.analysis.grade
 
 
 def estimate_nodes3d(scene) -> dict:
@@ -225,10 +230,11 @@ def estimate_nodes3d(scene) -> dict:
     X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
     dist = np.sqrt(np.maximum(np.maximum(x0 - X, X - x1), 0) ** 2 + np.maximum(np.maximum(y0 - Y, Y - y1), 0) ** 2
                    + (t.height_m - Z) ** 2)
-    h = np.minimum(a.mesh_size_m, fine + GRADE * dist)
+    g = grade_of(scene)
+    h = np.minimum(a.mesh_size_m, fine + g * dist)
     for s in scene.stones:
         d = np.abs(np.sqrt((X - s.x_m) ** 2 + (Y - s.y_m) ** 2 + (Z - t.height_m + s.depth_m) ** 2) - s.radius_m)
-        h = np.minimum(h, np.minimum(2 * fine, a.mesh_size_m) + GRADE * d)
+        h = np.minimum(h, np.minimum(2 * fine, a.mesh_size_m) + g * d)
     vol = t.width_m * t.length_m * t.height_m
     vertices = VERTEX_DENSITY3D * float(np.mean(1.0 / h ** 3)) * vol
     nodes = vertices if a.order == 1 else 7.5 * vertices

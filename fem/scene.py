@@ -68,6 +68,7 @@ class Analysis:
     top_displacement_m: float = 0.005  # load A: the whole top edge moved down by this much
     formulation: str = "displacement"  # "displacement" (P1/P2) or "mixed" (Taylor-Hood P2/P1 u-p, locking-free)
     patch_m: float | None = None     # 3D: side of the centred probed square of the top face (None: the whole face)
+    grade: float | None = None       # 3D: element size growth per unit distance from the patch and stones (None: 0.5)
 
 
 @dataclass(frozen=True)
@@ -304,9 +305,13 @@ def _validate_analysis(scene: Scene) -> None:
             if a.patch_m > min(t.width_m, t.length_m):
                 raise SceneError(f"analysis.patch_m = {a.patch_m!r} is wider than the top face "
                                  f"({min(t.width_m, t.length_m):g} m, the smaller of width_m and length_m)")
-    elif a.patch_m is not None:
-        raise SceneError(f"analysis.patch_m = {a.patch_m!r} is the probed square of a 3D block's top face; a 2D "
-                         f"scene (no tissue.length_m) has none: drop it or give tissue.length_m")
+        if a.grade is not None:
+            _check_range("analysis.grade", a.grade, 0.05, 2.0, "",
+                         " (the element size's growth per unit distance from the probed patch and the stones)")
+    elif a.patch_m is not None or a.grade is not None:
+        which = "patch_m" if a.patch_m is not None else "grade"
+        raise SceneError(f"analysis.{which} = {getattr(a, which)!r} applies to a 3D block (its probed patch and "
+                         f"grading); a 2D scene (no tissue.length_m) has none: drop it or give tissue.length_m")
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -44,7 +44,8 @@ def _mesh_spec(scene: Scene) -> dict:
     t, a = scene.tissue, scene.analysis
     geo = {"w": t.width_m, "l": t.length_m, "h": t.height_m,
            "stones": [(s.x_m, s.y_m, s.depth_m, s.diameter_m) for s in scene.stones],
-           "order": a.order, "size": a.mesh_size_m, "refine": a.surface_refine, "patch": a.patch_m}
+           "order": a.order, "size": a.mesh_size_m, "refine": a.surface_refine, "patch": a.patch_m,
+           "grade": a.grade}
     return {"mesh3d": geo, "code": code_version3d()}
 
 
