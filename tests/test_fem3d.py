@@ -360,7 +360,7 @@ def test_3d_builtins_and_2d_keys_unchanged():
     assert S.load("block3d-healthy").stones == () and S.load("block3d").stones[0].y_m == 0.035
     assert S.load("paper").key() == "991c9db8de30c8f3"      # the 2D key before issue 15
     assert "length_m" not in S.load("paper").to_dict()["tissue"]
-    with pytest.raises(S.SceneError, match="patch_m = 0.01 is the probed square of a 3D block"):
+    with pytest.raises(S.SceneError, match="patch_m = 0.01 applies to a 3D block"):
         S.load("paper").with_analysis(patch_m=0.01)
     with pytest.raises(S.SceneError, match=r"indenter\.shape must be 'cylinder' or 'flat' in a 2D scene"):
         S.from_dict({**S.load("paper").to_dict(), "indenter": {"shape": "sphere"}})
