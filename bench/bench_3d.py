@@ -201,7 +201,7 @@ def table(out: Path) -> str:
     lines = []
     conv = {r["level"]: r for r in _read(out, "convergence")}
     if conv:
-        ref = min(conv.values(), key=lambda r: (-r["order"], r["h_top_m"], r.get("grade", 0.5)))
+        ref = min(conv.values(), key=lambda r: (-r["order"], r.get("grade", 0.5), r["h_top_m"]))   # finest bulk first
         F_ref = np.asarray(ref["forces_n"])
         lines += [f"block3d, 100 waypoints (10 x 10 over the central 40 x 40 mm, depth 3 mm); reference: "
                   f"{ref['level']} (P{ref['order']}, h_top = {ref['h_top_m'] * 1e3:g} mm)", "",

@@ -427,7 +427,7 @@ BUILTIN = {
 # 3D (issue 15): a 70 x 70 x 50 mm block, the study's tissue and stone, a spherical 5 mm tip of 60 MPa; the probed
 # patch is the central 50 x 50 mm (a 40 x 40 mm raster plus the tip radius on each side). The mesh options are those
 # of the convergence table in README (bench/bench_3d.py).
-BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.010, surface_refine=8.0, patch_m=0.050)
+BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.012, surface_refine=8.0, patch_m=0.050, grade=0.25)
 
 
 def _block3d(name: str, stone: bool = True, x_m: float = 0.035, y_m: float = 0.035, depth_m: float = 0.025,
