@@ -86,6 +86,16 @@ def _load_b_fixed(model: Model) -> np.ndarray:
     return model.reduced_index(np.concatenate([2 * mesh.bottom + 1, [2 * mesh.bottom[0]]]))
 
 
+def condensed_displacements(model, fac, F: np.ndarray) -> np.ndarray:
+    """Full displacement vectors (k columns) for downward nodal forces F (n_c, k) on the condensed DOFs of a Schur
+    factorization ``fac`` (SchurFactor or fem.condense.CholmodSchur) of ``model``."""
+    rhs = np.zeros((len(fac.free), F.shape[1]))
+    rhs[fac.c] = -F
+    Y = np.zeros((model.n_dofs, F.shape[1]))
+    Y[fac.free] = fac.solve(rhs)
+    return model.P @ Y
+
+
 class SchurFactor:
     """K_ff factorized with the contact DOFs ordered last, so that the trailing block of L U is the Schur
     complement S = K_cc - K_ci K_ii^-1 K_ic and the condensed compliance is exactly S^-1: no multi-right-hand-side
@@ -204,11 +214,7 @@ class SurfaceModel:
     # -- fields from contact forces (one back-substitution per waypoint, batched when many) ----------------------
     def displacements(self, F_top: np.ndarray) -> np.ndarray:
         """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes."""
-        rhs = np.zeros((len(self.fac.free), F_top.shape[1]))
-        rhs[self.fac.c] = -F_top
-        Y = np.zeros((self.model.n_dofs, F_top.shape[1]))
-        Y[self.fac.free] = self.fac.solve(rhs)
-        return self.model.P @ Y
+        return condensed_displacements(self.model, self.fac, F_top)
 
     def _band_op(self):
         if self._band is None:

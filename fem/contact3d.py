@@ -24,7 +24,7 @@ import numpy as np
 
 from . import diskcache
 from .condense import schur
-from .contact import STONE_LAYER_MAX, _surface_spec
+from .contact import STONE_LAYER_MAX, _surface_spec, condensed_displacements
 from .guards import check_finite
 from .lcp import solve_lcp
 from .mesh3d import Mesh3D, patch_bounds
@@ -235,11 +235,7 @@ class SurfaceModel3D:
 
     def displacements(self, F_patch: np.ndarray) -> np.ndarray:
         """Full displacement vectors (3N, k) for downward nodal forces F_patch (n_patch, k) on the patch nodes."""
-        rhs = np.zeros((len(self.fac.free), F_patch.shape[1]))
-        rhs[self.fac.c] = -F_patch
-        Y = np.zeros((self.model.n_dofs, F_patch.shape[1]))
-        Y[self.fac.free] = self.fac.solve(rhs)
-        return self.model.P @ Y
+        return condensed_displacements(self.model, self.fac, F_patch)
 
     def _band_op(self):
         """(nodes, recovery operator) for every node within band_m below the probed patch (grown by band_m

@@ -44,6 +44,25 @@ class ReducedModel:
         """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
         return Factored(self, np.asarray(fixed, dtype=np.int64))
 
+    def _reduce(self, stiffness_of) -> None:
+        """Set P (``_prolongation``) and K = P' K_tissue P from ``stiffness_of(elements)`` (None: all elements),
+        summed over the elements of the tissue and of the stones that stay elastic."""
+        keep = np.ones(len(self.mesh.region), bool)
+        for k, r in enumerate(self.rigid):
+            if r:
+                keep &= self.mesh.region != k + 1
+        Kfull = stiffness_of(None if keep.all() else np.flatnonzero(keep))
+        self.P = self._prolongation()
+        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+
+    def _owner(self) -> np.ndarray:
+        """(N,) the rigid stone each node belongs to (its elements' nodes, boundary included), -1 for the rest."""
+        owner = np.full(self.mesh.n_nodes, -1)
+        for k, r in enumerate(self.rigid):
+            if r:
+                owner[np.unique(self.mesh.tris[self.mesh.region == k + 1])] = k
+        return owner
+
 
 @dataclass
 class Model(ReducedModel):
@@ -58,22 +77,13 @@ class Model(ReducedModel):
 
     def __post_init__(self):
         self.D = element_D(self.mesh, self.materials, self.plane)
-        keep = np.ones(len(self.mesh.tris), bool)
-        for k, r in enumerate(self.rigid):
-            if r:
-                keep &= self.mesh.region != k + 1
-        Kfull = stiffness(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
-        self.P = self._prolongation()
-        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+        self._reduce(lambda elements: stiffness(self.mesh, self.D, elements=elements))
 
     def _prolongation(self) -> sp.csr_matrix:
         n = self.mesh.n_dofs
         if not any(self.rigid):
             return sp.identity(n, format="csr")
-        owner = np.full(self.mesh.n_nodes, -1)
-        for k, r in enumerate(self.rigid):
-            if r:
-                owner[np.unique(self.mesh.tris[self.mesh.region == k + 1])] = k
+        owner = self._owner()
         free_nodes = np.flatnonzero(owner < 0)
         n_free = 2 * len(free_nodes)
         rigid_ids = [k for k, r in enumerate(self.rigid) if r]

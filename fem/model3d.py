@@ -33,22 +33,13 @@ class Model3D(ReducedModel):
 
     def __post_init__(self):
         self.D = element_D3d(self.mesh, self.materials)
-        keep = np.ones(len(self.mesh.tets), bool)
-        for k, r in enumerate(self.rigid):
-            if r:
-                keep &= self.mesh.region != k + 1
-        Kfull = stiffness3d(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
-        self.P = self._prolongation()
-        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+        self._reduce(lambda elements: stiffness3d(self.mesh, self.D, elements=elements))
 
     def _prolongation(self) -> sp.csr_matrix:
         n = self.mesh.n_dofs
         if not any(self.rigid):
             return sp.identity(n, format="csr")
-        owner = np.full(self.mesh.n_nodes, -1)
-        for k, r in enumerate(self.rigid):
-            if r:
-                owner[np.unique(self.mesh.tets[self.mesh.region == k + 1])] = k
+        owner = self._owner()
         free_nodes = np.flatnonzero(owner < 0)
         n_free = 3 * len(free_nodes)
         rows, cols, vals = [], [], []
