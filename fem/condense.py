@@ -17,6 +17,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from .contact import SchurFactor
 
@@ -108,6 +109,33 @@ class CholmodSchur:
         B = cvxopt.matrix(np.asfortranarray(rhs_free, dtype=float))
         chm.solve(self._F, B)
         return np.asarray(B).reshape(rhs_free.shape)
+
+
+class Cholesky:
+    """K = L L' by CHOLMOD (AMD ordering, supernodal) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
+
+    def __init__(self, K):
+        import cvxopt
+        import cvxopt.cholmod as chm
+        low = sp.tril(K).tocoo()
+        A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
+                            cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
+        self._chm, self._cvx = chm, cvxopt
+        self._F = chm.symbolic(A)
+        chm.numeric(A, self._F)
+
+    def solve(self, rhs: np.ndarray) -> np.ndarray:
+        B = self._cvx.matrix(np.asfortranarray(rhs, dtype=float))
+        self._chm.solve(self._F, B)
+        return np.asarray(B).reshape(np.shape(rhs))
+
+
+def factorize_spd(K):
+    """A sparse Cholesky of SPD K (CHOLMOD when cvxopt is installed, else SuperLU with a symmetric ordering)."""
+    if available():
+        return Cholesky(K)
+    return spla.splu(sp.csc_matrix(K), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                     options={"SymmetricMode": True})
 
 
 def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto"):
