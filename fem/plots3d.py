@@ -49,6 +49,7 @@ def surface_maps(path, scene, x_m: np.ndarray, y_m: np.ndarray, fields: dict[str
         ax.set_aspect("equal")
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("y (mm)")
+    fig.subplots_adjust(wspace=0.4)
     fig.suptitle(title, fontsize=9)
     return _save(fig, path)
 
