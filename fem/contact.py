@@ -336,6 +336,22 @@ def _half_width(xs: np.ndarray, active: np.ndarray) -> float:
 STONE_LAYER_MAX = 0.75
 
 
+def check_depth(scene, depth_m: float) -> None:
+    """ValueError unless depth_m lies in [0, STRAIN_MAX * height] and, for a round tip (a cylinder in 2D, a sphere
+    in 3D), below its radius."""
+    H = scene.tissue.height_m
+    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
+        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
+    R = scene.indenter.radius_m
+    if scene.indenter.shape in ("cylinder", "sphere") and depth_m >= R:
+        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
+                         f"tip's sides, which this contact model does not represent")
+    if depth_m > STRAIN_MAX * H:
+        raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
+                         f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
+                         f"{STRAIN_WARN:.0%})")
+
+
 def check_waypoint(scene, x_m: float, depth_m: float) -> None:
     """ValueError unless (x_m, depth_m) is a waypoint the contact model covers: x_m on the surface, depth in
     [0, STRAIN_MAX * height] (the linear model's range), for a cylinder below the tip radius, and for every stone
@@ -343,17 +359,8 @@ def check_waypoint(scene, x_m: float, depth_m: float) -> None:
     tissue layer above it."""
     if not (isinstance(x_m, (int, float)) and math.isfinite(x_m)) or not (0.0 <= x_m <= scene.tissue.width_m):
         raise ValueError(f"x_m={x_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
-    H = scene.tissue.height_m
-    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
-        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
+    check_depth(scene, depth_m)
     R = scene.indenter.radius_m
-    if scene.indenter.shape == "cylinder" and depth_m >= R:
-        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
-                         f"tip's sides, which this contact model does not represent")
-    if depth_m > STRAIN_MAX * H:
-        raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
-                         f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
-                         f"{STRAIN_WARN:.0%})")
     for i, s in enumerate(scene.stones):
         layer = s.depth_m - s.radius_m
         if abs(s.x_m - x_m) < R + s.radius_m and depth_m > STONE_LAYER_MAX * layer:

@@ -24,12 +24,12 @@ import numpy as np
 
 from . import diskcache
 from .condense import schur
-from .contact import STONE_LAYER_MAX, _surface_spec, condensed_displacements
+from .contact import STONE_LAYER_MAX, _surface_spec, check_depth, condensed_displacements
 from .guards import check_finite
 from .lcp import solve_lcp
 from .mesh3d import Mesh3D, patch_bounds
 from .model3d import Model3D, build_model3d, fixed_bottom
-from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
+from .scene import SceneError
 from .scene_mesh3d import code_version3d, mesh_for3d
 from .stress3d import components3d, recovery_operator3d
 from .tip import TIP_TOLERANCE, treated_as_rigid
@@ -93,16 +93,7 @@ def check_waypoint3d(scene, x_m: float, y_m: float, depth_m: float) -> None:
             raise ValueError(f"{name}={v!r} must lie in [{lo + R:.6g}, {hi - R:.6g}] m: the tip's footprint (radius "
                              f"{R:g} m) must stay on the probed patch [{lo:.6g}, {hi:.6g}] m (analysis.patch_m = "
                              f"{a.patch_m})")
-    H = t.height_m
-    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
-        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
-    if ind.shape == "sphere" and depth_m >= R:
-        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
-                         f"tip's sides, which this contact model does not represent")
-    if depth_m > STRAIN_MAX * H:
-        raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
-                         f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
-                         f"{STRAIN_WARN:.0%})")
+    check_depth(scene, depth_m)
     for i, s in enumerate(scene.stones):
         layer = s.depth_m - s.radius_m
         if math.hypot(s.x_m - x_m, s.y_m - y_m) < R + s.radius_m and depth_m > STONE_LAYER_MAX * layer:
