@@ -31,7 +31,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   stress3d    3D nodal stress recovery
   results3d   SurfaceMap (top-face stress map, its peak), UniformResult3D
   uniform3d   load A in 3D: solve_uniform3d
-  condense    Schur condensation onto contact DOFs (CHOLMOD via cvxopt; SuperLU fallback)
+  condense    Schur condensation onto contact DOFs and a sparse Cholesky (CHOLMOD via cvxopt; SuperLU fallback)
   contact3d   load B in 3D: SurfaceModel3D, surface_model3d (memory + disk cache), check_waypoint3d
   export3d    VTU export of tetrahedral meshes
   plots3d     3D figures (matplotlib), not imported here
