@@ -27,7 +27,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from . import diskcache
 from .guards import check_finite, check_not_inverted
@@ -95,6 +94,7 @@ class SchurFactor:
     solve. The interior keeps SuperLU's fill-reducing ordering (taken from a first factorization)."""
 
     def __init__(self, K, free: np.ndarray, contact: np.ndarray):
+        import scipy.sparse.linalg as spla
         Kff = K[free][:, free].tocsc()
         pos = np.full(K.shape[0], -1)
         pos[free] = np.arange(len(free))
@@ -427,7 +427,8 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
         from_arrays=lambda arrays: SurfaceModel.from_arrays(scene, arrays, model=model, **options), use=use)
     sm._influence_loader = lambda build: diskcache.load_or_build(          # noqa: SLF001 (the cache's hook)
         "influence", {"surface": spec, "band_m": sm.band_m}, build=build, to_arrays=Influence.to_arrays,
-        from_arrays=lambda arrays: Influence.from_arrays(arrays, model, sm.band_m, len(sm.top)), use=use)
+        from_arrays=lambda arrays: Influence.from_arrays(arrays, model, sm.band_m, len(sm.top)), use=use,
+        mmap=True)
     return sm
 
 
@@ -448,6 +449,7 @@ def indent_full(scene, x_m: float, depth_m: float, model: Model | None = None, m
     refactorized at every iteration of its own primal-dual active-set loop (add penetrating nodes, release nodes
     pulled by tension). No condensation and no LCP solver; rigid tip only. Used to check the fast path and as the
     "full re-solve per waypoint" baseline of the benchmark."""
+    import scipy.sparse.linalg as spla
     check_waypoint(scene, x_m, depth_m)
     model = model or build_model(scene)
     mesh = model.mesh
