@@ -38,6 +38,7 @@ from .scene_mesh import check_surface_budget, code_version, mesh_for
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TIP_TOLERANCE, TipCompliance, contact_scene, rigid_tip_bound
 
+INFLUENCE_MIN_WAYPOINTS = 50   # a batch this large builds the influence operators (a smaller one uses them if cached)
 INVERSION_HINT = "indent less deep (the tissue above a stone or the tissue height is too thin)"
 
 
@@ -176,7 +177,8 @@ class SurfaceModel:
         self._band_ops = None
         self.use_influence = use_influence
         self._influence: Influence | bool | None = None
-        self._influence_loader = None        # set by load_or_build_surface: the disk cache's load_or_build
+        self._influence_cache = None         # set by load_or_build_surface: the disk cache's entry for them
+        self._cache_probed = False
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -223,16 +225,21 @@ class SurfaceModel:
                               recovery_operator(self.model, self.top))
         return self._band_ops
 
-    def influence(self) -> Influence | None:
-        """The influence operators (fem.influence; built on first use, from the disk cache when this model came
-        from it), or None when they would exceed fem.influence.MAX_OPERATOR_BYTES or are switched off."""
+    def influence(self, build: bool = True) -> Influence | None:
+        """The influence operators (fem.influence): from the disk cache when this model came from it, else built
+        (when ``build``); None when they would exceed fem.influence.MAX_OPERATOR_BYTES, are switched off, or are
+        neither cached nor to be built. Building them costs about one back-substitution per top node (a few
+        seconds on the paper scene, once per scene): worth it for INFLUENCE_MIN_WAYPOINTS waypoints or more."""
         if self._influence is None:
             if not (self.use_influence and fits(self.model, self.band_m, len(self.top))):
                 self._influence = False
-            else:
-                build = lambda: Influence.build(self.model, self.band_m, self.x, self.scene.indenter.radius_m,  # noqa: E731
-                                                self.displacements)
-                self._influence = self._influence_loader(build) if self._influence_loader else build()
+            elif self._influence_cache is not None and not self._cache_probed:
+                self._cache_probed = True
+                self._influence = self._influence_cache(None)
+            if self._influence is None and build:
+                make = lambda: Influence.build(self.model, self.band_m, self.x, self.scene.indenter.radius_m,  # noqa: E731
+                                               self.displacements)
+                self._influence = self._influence_cache(make) if self._influence_cache else make()
         return self._influence or None
 
     def _tip_stresses(self, sols, x0s, depths) -> list[tuple[float, int, np.ndarray] | None]:
@@ -243,7 +250,7 @@ class SurfaceModel:
         hit = [k for k, (_, f, _) in enumerate(sols) if (f > 0).any()]
         if not hit:
             return out
-        inf = self.influence()
+        inf = self.influence(build=len(hit) >= INFLUENCE_MIN_WAYPOINTS)
         if inf is not None:
             where = {int(n): i for i, n in enumerate(inf.band)}
             top_rows = np.array([where[int(n)] for n in self.top])       # the top nodes lie in the band
@@ -425,10 +432,17 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
         "surface", spec, build=lambda: SurfaceModel(scene, model=model, **options),
         to_arrays=SurfaceModel.to_arrays,
         from_arrays=lambda arrays: SurfaceModel.from_arrays(scene, arrays, model=model, **options), use=use)
-    sm._influence_loader = lambda build: diskcache.load_or_build(          # noqa: SLF001 (the cache's hook)
-        "influence", {"surface": spec, "band_m": sm.band_m}, build=build, to_arrays=Influence.to_arrays,
-        from_arrays=lambda arrays: Influence.from_arrays(arrays, model, sm.band_m, len(sm.top)), use=use,
-        mmap=True)
+    ispec = {"surface": spec, "band_m": sm.band_m}
+    read = lambda arrays: Influence.from_arrays(arrays, model, sm.band_m, len(sm.top))  # noqa: E731
+
+    def influence_cache(build):
+        """The influence operators from the disk cache (memory-mapped), else ``build()`` and stored; with
+        build=None only what the cache holds (or None)."""
+        if build is None:
+            return diskcache.load("influence", ispec, read, use=use, mmap=True)
+        return diskcache.load_or_build("influence", ispec, build=build, to_arrays=Influence.to_arrays,
+                                       from_arrays=read, use=use, mmap=True)
+    sm._influence_cache = influence_cache                                  # noqa: SLF001 (the cache's hook)
     return sm
 
 

@@ -124,19 +124,30 @@ def load_or_build(kind: str, spec: dict, build: Callable[[], T], to_arrays: Call
     ``mmap``: hand ``from_arrays`` read-only memory maps of the stored arrays (large operators read in part)."""
     if not enabled(use):
         return build()
-    path = entry_path(kind, spec)
-    arrays = read(path, mmap=mmap)
-    if arrays is not None:
-        try:
-            obj = from_arrays(arrays)
-        except (KeyError, ValueError) as e:
-            stats["corrupt"] += 1
-            warnings.warn(f"palpate cache: ignoring entry {path} ({type(e).__name__}: {e}); rebuilding",
-                          stacklevel=2)
-        else:
-            stats[f"{kind}_hit"] += 1
-            return obj
+    obj = load(kind, spec, from_arrays, use=use, mmap=mmap)
+    if obj is not None:
+        return obj
     stats[f"{kind}_miss"] += 1
     obj = build()
-    write(path, to_arrays(obj))
+    write(entry_path(kind, spec), to_arrays(obj))
+    return obj
+
+
+def load(kind: str, spec: dict, from_arrays: Callable[[Arrays], T], use: bool | None = None,
+         mmap: bool = False) -> T | None:
+    """``from_arrays`` of the stored entry, or None when there is none (or it cannot be used: then with a
+    warning, as in ``load_or_build``)."""
+    if not enabled(use):
+        return None
+    path = entry_path(kind, spec)
+    arrays = read(path, mmap=mmap)
+    if arrays is None:
+        return None
+    try:
+        obj = from_arrays(arrays)
+    except (KeyError, ValueError) as e:
+        stats["corrupt"] += 1
+        warnings.warn(f"palpate cache: ignoring entry {path} ({type(e).__name__}: {e}); rebuilding", stacklevel=3)
+        return None
+    stats[f"{kind}_hit"] += 1
     return obj
