@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import dataclasses
+import os
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -95,3 +98,22 @@ def test_disk_round_trip(tmp_path, monkeypatch):
     arrays["g"] = arrays["g"][:, :-1]
     with pytest.raises(ValueError, match="do not fit"):
         FI.Influence.from_arrays(arrays, built.model, built.band_m, len(built.top))
+
+
+def test_cached_scene_predicts_without_scipy(tmp_path):
+    """Start-up (issue 19): with the surface and influence operators on disk, a new process predicts forces and
+    stresses with numpy alone (scipy, a third of a second to import, is not loaded)."""
+    code = ("import sys, numpy as np\n"
+            "from fem import scene as S\n"
+            "from fem.contact import surface_model\n"
+            f"sc = S.load('paper').with_analysis(mesh_size_m={MESH['mesh_size_m']}, "
+            f"surface_refine={MESH['surface_refine']})\n"
+            "m = surface_model(sc)\n"
+            "r = m.indent_many(np.linspace(0.006, 0.064, 60), 0.003)\n"
+            "print(m.influence() is not None, min(x.max_von_mises_pa for x in r) > 0, "
+            "any(k.startswith('scipy') for k in sys.modules))\n")
+    env = dict(os.environ, PALPATE_CACHE_DIR=str(tmp_path), PALPATE_CACHE="1")
+    run = lambda: subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,  # noqa: E731
+                                 check=True).stdout.split()
+    assert run() == ["True", "True", "True"]         # cold: meshed, factorized and built (scipy needed)
+    assert run() == ["True", "True", "False"]        # cached: numpy only
