@@ -112,6 +112,18 @@ def in_process(repeats: int) -> dict:
             "fast_100_force_s": statistics.median(force), "fast_100_stresses_s": statistics.median(stress)}
 
 
+def period_floor(n: int = 20000) -> dict:
+    """The bare cost of one simulated 2 ms control period as the driver sees it: the simulated arm steps (at rest)
+    and the four getters the driver reads each period, with no driver logic at all."""
+    from robot.sim import make_sim
+    arm, c, r = make_sim()
+    t0 = time.process_time()
+    for _ in range(n):
+        c.waitPeriod(c.initPeriod())
+        r.getTimestamp(), r.getActualTCPPose(), r.getActualTCPForce(), r.isProtectiveStopped()
+    return {"per_period_cpu_s": (time.process_time() - t0) / n, "period_s": arm.period_s}
+
+
 def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -125,6 +137,7 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
           f"{N_WAYPOINTS} waypoints: force {ip['fast_100_force_s']:.4f} s, with stresses "
           f"{ip['fast_100_stresses_s']:.4f} s", flush=True)
     fl = floor(env, 5)
+    pf = period_floor()
     rows = {}
     n = 0
     for name, argv in commands(work).items():
@@ -140,6 +153,11 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
                 ts.append(time_command([a.replace("{n}", str(n)) for a in argv], env))
             med = {k: statistics.median(t[k] for t in ts) for k in ts[0]}
             rows[f"{name}:{phase}"] = {"command": "palpate " + " ".join(argv), "runs": len(ts), **med}
+            if name == "run_sim":
+                robot_s = json.loads((work / f"run-{n}" / "result.json").read_text())["time"]["robot_s"]
+                periods = robot_s / pf["period_s"]
+                rows[f"{name}:{phase}"].update(robot_s=robot_s, periods=periods,
+                                               cpu_per_period_s=med["cpu_s"] / periods)
             print(f"  {name:20s} {phase:6s} wall {med['wall_s']:7.3f} s  cpu {med['cpu_s']:7.3f} s  "
                   f"first output {med['first_output_s']:.3f} s", flush=True)
     ratio = {}
@@ -150,7 +168,7 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
     result = {
         "machine": {"cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0],
                     "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS")},
-        "in_process": ip, "floor_s": fl, "commands": rows, "ratio_to_naive": ratio,
+        "in_process": ip, "floor_s": fl, "period_floor": pf, "commands": rows, "ratio_to_naive": ratio,
         "in_process_ratio": {"force": naive * N_WAYPOINTS / ip["fast_100_force_s"],
                              "stresses": naive * N_WAYPOINTS / ip["fast_100_stresses_s"]},
         "best_possible_predict_ratio": best,
@@ -179,6 +197,15 @@ def markdown(r: dict) -> str:
     lines += ["", f"Floor: an interpreter that does nothing takes {fl['python'] * 1e3:.0f} ms, one that imports numpy "
               f"{fl['python_numpy'] * 1e3:.0f} ms: no Python command that loads numpy can beat "
               f"{r['best_possible_predict_ratio']:.0f}x on {N_WAYPOINTS} waypoints against this run's naive re-solve."]
+    pf = r["period_floor"]
+    for key, row in r["commands"].items():
+        if "periods" in row:
+            lines.append(f"`palpate run paper --sim` ({key.split(':')[1]}): {row['robot_s']:.0f} s of robot time = "
+                         f"{row['periods']:,.0f} control periods of {pf['period_s'] * 1e3:g} ms, "
+                         f"{row['cpu_per_period_s'] * 1e6:.0f} us of CPU per period in all; a bare simulated period "
+                         f"(the arm's step and the driver's four getters, no driver logic) costs "
+                         f"{pf['per_period_cpu_s'] * 1e6:.0f} us, so this run cannot take less than "
+                         f"{row['periods'] * pf['per_period_cpu_s']:.1f} s of CPU while it steps every period.")
     return "\n".join(lines) + "\n"
 
 
