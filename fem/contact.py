@@ -258,8 +258,7 @@ class SurfaceModel:
                 idx, f, _ = sols[k]
                 inf.check(self.model, idx, f, float(x0s[k]), full=lambda: self._field(idx, f),
                           what=self._where([x0s[k]], [depths[k]]), hint=INVERSION_HINT)
-                S, span = inf.band_stresses(self.model, idx, f, float(x0s[k]))
-                vm = components(S, inf._lookups(self.model)["nu"][span], self.model.plane)["von_mises_pa"]
+                vm, span = inf.band_von_mises(self.model, idx, f, float(x0s[k]))
                 j = int(np.argmax(vm))
                 syy = np.tensordot(f, inf.A[inf.rows(idx)][:, top_rows[idx], 1], axes=1)
                 out[k] = (float(vm[j]), int(inf.band[span][j]), syy)

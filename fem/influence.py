@@ -88,14 +88,21 @@ class Influence:
     _geo: dict = field(default_factory=dict, repr=False)     # per-model lookups, made on first use
 
     def _lookups(self, model: Model) -> dict:
+        """Per-model arrays the waypoints read: band x and Poisson ratios, element centroids x, and for the exact
+        check of flagged elements their Y_c slots and gradient operators (H = sum_a u_a (x) Bg_a at each check
+        point: Bg = the shape gradients through J0^-1, as fem.guards.displacement_gradients computes H)."""
         if not self._geo:
             mesh = model.mesh
             pos = np.full(mesh.n_nodes, -1)
             pos[self.cnodes] = np.arange(len(self.cnodes))
             G, J0 = check_points(mesh, self.els)
+            d0 = J0[..., 0, 0] * J0[..., 1, 1] - J0[..., 0, 1] * J0[..., 1, 0]
+            inv = np.stack([np.stack([J0[..., 1, 1], -J0[..., 0, 1]], -1),
+                            np.stack([-J0[..., 1, 0], J0[..., 0, 0]], -1)], -2) / d0[..., None, None]
+            cslot = pos[mesh.tris[self.els]]
             self._geo.update(bx=mesh.nodes[self.band, 0], nu=nodal_poisson(model, self.band),
-                             cx=mesh.nodes[mesh.tris[self.els], 0].mean(axis=1), G=G, J0=J0,
-                             cslot=pos[mesh.tris[self.els]])
+                             cx=mesh.nodes[mesh.tris[self.els], 0].mean(axis=1), G=G, J0=J0, cslot=cslot,
+                             in_closure=(cslot >= 0).all(axis=1), Bg=np.einsum("qal,eqlj->eqaj", G, inv))
         return self._geo
 
     @classmethod
@@ -136,7 +143,8 @@ class Influence:
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], model: Model, band_m: float, n_top: int) -> Influence:
         band = band_nodes(model, band_m)
-        inf = cls(window_m=float(arrays["window_m"]), **{k: arrays[k] for k in
+        # memory maps as plain arrays (no copy; np.memmap's indexing costs ~20 us a call in Python)
+        inf = cls(window_m=float(arrays["window_m"]), **{k: np.asarray(arrays[k]) for k in
                                                           ("band", "A", "vm_far", "els", "g", "g_far", "cnodes",
                                                            "Y_c")})
         M = len(model.mesh.tris)
@@ -158,17 +166,18 @@ class Influence:
         return slice(int(np.searchsorted(x_sorted, x0 - self.window_m, "left")),
                      int(np.searchsorted(x_sorted, x0 + self.window_m, "right")))
 
-    def band_stresses(self, model: Model, idx: np.ndarray, f: np.ndarray, x0: float) -> tuple[np.ndarray, slice]:
-        """(stresses (n, 3) at the band nodes self.band[span], span) for forces f on top nodes idx at tip x0: the
-        window's nodes when they hold the band's maximum von Mises for certain, else the whole band."""
+    def band_von_mises(self, model: Model, idx: np.ndarray, f: np.ndarray, x0: float) -> tuple[np.ndarray, slice]:
+        """(von Mises (Pa) at the band nodes self.band[span], span) for forces f on top nodes idx at tip x0: the
+        window's nodes when they hold the band's maximum for certain, else the whole band."""
         geo = self._lookups(model)
         idx = self.rows(idx)
         span = self._span(geo["bx"], x0)
         S = (f @ self.A[idx, span].reshape(len(f), -1)).reshape(-1, 3)
         vm = components(S, geo["nu"][span], model.plane)["von_mises_pa"]
         if vm.size and float(np.abs(f) @ self.vm_far[idx]) < vm.max():
-            return S, span
-        return (f @ self.A[idx].reshape(len(f), -1)).reshape(-1, 3), slice(0, len(self.band))
+            return vm, span
+        S = (f @ self.A[idx].reshape(len(f), -1)).reshape(-1, 3)
+        return components(S, geo["nu"], model.plane)["von_mises_pa"], slice(0, len(self.band))
 
     def check(self, model: Model, idx: np.ndarray, f: np.ndarray, x0: float, full, what: str, hint: str) -> None:
         """InvertedElementsError (naming ``what``) if forces f on top nodes idx fold an element; ``full()``: the
@@ -179,13 +188,15 @@ class Influence:
         idx = self.rows(idx)
         span = self._span(geo["cx"], x0)
         flag = np.flatnonzero(a @ self.g[idx, span] >= 1.0) + span.start       # positions in self.els
-        slots = geo["cslot"][flag]                                             # (n, a): rows of Y_c
-        if float(a @ self.g_far[idx]) < 1.0 and (slots >= 0).all():
+        if float(a @ self.g_far[idx]) < 1.0 and geo["in_closure"][flag].all():
             if not len(flag):
                 return
-            Y = self.Y_c[idx]
-            U_el = (f @ Y[:, slots.ravel()].reshape(len(f), -1)).reshape(*slots.shape, 2, 1)
-            det, strain = det_and_strain(displacement_gradients(U_el, geo["G"], geo["J0"][flag]), geo["J0"][flag])
+            slots = geo["cslot"][flag]                                         # (n, a): rows of Y_c
+            U_el = (f @ self.Y_c[idx][:, slots.ravel()].reshape(len(f), -1)).reshape(*slots.shape, 2)
+            H = np.swapaxes(U_el, 1, 2)[:, None] @ geo["Bg"][flag]              # (n, q, 2, 2)
+            if ((1 + H[..., 0, 0]) * (1 + H[..., 1, 1]) - H[..., 0, 1] * H[..., 1, 0] > 0).all():
+                return                                                         # det J = det J0 det(I + H) > 0
+            det, strain = det_and_strain(H[None], geo["J0"][flag])
         else:                                                      # beyond the operators: the plain check
             det, strain = deformation(mesh, np.asarray(full()), elements=None)
         bad = ~(det[0] > 0)
