@@ -43,7 +43,9 @@ from core.contracts import (
     ProbeStatus,
     RunStatus,
 )
+from robot.forcesource import ForceSource, RtdeForce
 from robot.link import CallTimeout, CallWorker, deadline_for
+from robot.netft import SensorFault
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
 from robot.safety import (
@@ -145,12 +147,15 @@ class _Samples:
 
 
 class Driver(Recovery):
-    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None, diagnose=None):
+    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None, diagnose=None,
+                 force_source: ForceSource | None = None):
         self.plan, self.cfg = plan, config or DriverConfig()
         self.diagnose = diagnose        # () -> an operator hint or None, asked after a fault (bounded in time)
         self.lim = SafetyLimits.from_plan(plan)
         self.tf = TissueFrame(plan.frames.tissue_pose_base)
         self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
+        # the wrench: the UR's wrist sensor (default) or an external one (robot.forcesource); the caller owns it
+        self.fs = force_source if force_source is not None else RtdeForce(self.c, rtde_r)
         self.filt = deque(maxlen=self.cfg.filter_window)
         self.last_ts, self.stale, self.ts = None, 0, 0.0
         self.samples = _Samples()
@@ -209,17 +214,23 @@ class Driver(Recovery):
         if self._call(r.isConnected) is not True:    # ur_rtde reconnecting by itself: its getters are not safe now
             raise ProbeFault(FaultKind.CONNECTION_LOST, "the receive interface reports no connection (the link "
                                                         "dropped; ur_rtde may be reconnecting by itself)")
-        ts, pose, w, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.getActualTCPForce,
-                                                    r.isProtectiveStopped))
+        ts, pose, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.isProtectiveStopped))
         if ps is True:
             raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the controller reports a protective stop")
         if not _vec6(pose):
             raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPPose returned {pose!r}")
         if not isinstance(ts, (int, float)) or not math.isfinite(ts):
             raise ProbeFault(FaultKind.INVALID_READING, f"getTimestamp returned {ts!r}")
+        try:
+            w = self.fs.wrench(self._call, pose)
+        except SensorFault as e:          # strict: a fault; else (stopping, retracting out of tissue) no force
+            if strict:
+                raise ProbeFault(e.kind, e.message) from None
+            w = None
         ok_w = _vec6(w)
         if strict and not ok_w:
-            raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPForce returned {w!r}")
+            what = "getActualTCPForce" if self.fs.name == "rtde" else f"the {self.fs.name} force source"
+            raise ProbeFault(FaultKind.INVALID_READING, f"{what} returned {w!r}")
         self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
         if self.stale >= self.cfg.stale_periods:   # ur_rtde keeps returning the last values when the link drops
             lost = self._call(self.r.isConnected) is False
@@ -349,7 +360,8 @@ class Driver(Recovery):
         self.phase = FREE
         self._wait(self.cfg.settle_s)
         self._link_up("zeroFtSensor")
-        self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor")
+        self._require(self._sensor(self.fs.zero, self._call),
+                      "zeroFtSensor" if self.fs.name == "rtde" else f"zeroing the {self.fs.name} sensor")
         self.filt.clear()
         self._wait(self.cfg.settle_s)
         self.filt.clear()
@@ -364,6 +376,14 @@ class Driver(Recovery):
                                              f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
                                              f"enforced with this sensor")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
+
+    @staticmethod
+    def _sensor(fn, *args):
+        """A force-source call whose SensorFault is a probe fault."""
+        try:
+            return fn(*args)
+        except SensorFault as e:
+            raise ProbeFault(e.kind, e.message) from None
 
     def _probe(self, p):
         mo, lim = self.plan.motion, self.lim
@@ -430,7 +450,7 @@ class Driver(Recovery):
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
             rep.program_restarts = self.program_restarts
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
-                           "commands_sent": len(self.c.sent)})
+                           "commands_sent": len(self.c.sent), "force_source": self.fs.report()})
         try:
             if problems or (bad and not cfg.skip_invalid):
                 rep.status = RunStatus.REJECTED
@@ -490,6 +510,7 @@ class Driver(Recovery):
                 gc.enable()
 
     def _setup(self) -> None:
+        self._sensor(self.fs.start)                  # an external sensor streams before anything moves
         self._ensure_program()
         s = self._read(strict=False)
         p = s["pose"]
@@ -500,7 +521,9 @@ class Driver(Recovery):
 
 
 def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = None, resume=True,
-             progress=None, diagnose=None) -> RunReport:
+             progress=None, diagnose=None, force_source: ForceSource | None = None) -> RunReport:
     """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py).
-    ``diagnose()``: after a fault, an operator hint to add to the report (or None)."""
-    return Driver(plan, rtde_c, rtde_r, config, diagnose).run(out_dir, resume=resume, progress=progress)
+    ``diagnose()``: after a fault, an operator hint to add to the report (or None). ``force_source``: where the
+    wrench comes from (robot.forcesource; default the UR's wrist sensor over ur_rtde)."""
+    return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
+                                                                            progress=progress)

@@ -99,6 +99,7 @@ class ArmModel:
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
+        self.on_step: list = []           # called after every step (a simulated external sensor samples there)
         n_lat = max(0, int(round(latency_s / period_s)))
         self.samples: deque = deque(maxlen=n_lat + 1)
         self._sample()
@@ -266,6 +267,8 @@ class ArmModel:
         if fc > self.safety_force_n and not self.protective_stopped:
             self.trigger_protective_stop()
         self._sample()
+        for fn in self.on_step:
+            fn()
 
     def _sample(self) -> None:
         w = self.sensor.read(self.true_wrench(), self.t_s)

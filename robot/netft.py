@@ -1,0 +1,237 @@
+"""Reading an ATI Net F/T box over UDP (RDT, robot.rdt): ``NetFtReader``.
+
+The reader asks the box to stream (real-time mode, endless) and, on every ``poll()``, drains what the socket holds
+without blocking (no thread: a read per controller period costs one non-blocking recvfrom per record, and nothing
+competes with the control loop for the GIL). Each record is checked before it is kept in a ring buffer:
+
+* sequence: the RDT sequence (uint32, wraps) must advance; a gap counts lost records, an older or repeated one was
+  reordered on the way and is dropped; more than ``max_lost_fraction`` of the last ``loss_window`` sequence numbers
+  lost is a fault (SENSOR_PACKET_LOSS);
+* status: anything but 0 is the box reporting a problem (a broken gauge, saturation, a configuration error): a fault
+  (SENSOR_STATUS) with the word in hex;
+* saturation: a force axis at or beyond ``range_n`` (or a torque beyond ``range_nm``) means the true force is unknown,
+  so the force limit could not be enforced: a fault (SENSOR_SATURATED);
+* freshness: no new record for ``stale_s`` on the reader's clock is a fault (SENSOR_LOST) -- the box, its cable or
+  the network is gone.
+
+Counts become SI with the box's calibration (counts per N, counts per N m): ``NetFtCalibration``, read from the
+box's ``http://BOX/netftapi2.xml`` (``fetch_calibration``) or given. Readings stay in the SENSOR frame here; the
+force source (robot.forcesource) zeroes them and turns them into the base frame.
+"""
+from __future__ import annotations
+
+import math
+import re
+import socket
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.contracts import FaultKind
+from robot.rdt import CMD_START_REALTIME, CMD_STOP, RDT_PORT, pack_request, seq_ahead, unpack_records
+
+HTTP_TIMEOUT_S = 2.0
+
+
+class SensorFault(Exception):
+    """The external sensor cannot be trusted now; ``kind`` is a core.contracts.FaultKind."""
+
+    def __init__(self, kind: str, message: str):
+        super().__init__(f"{kind}: {message}")
+        self.kind, self.message = kind, message
+
+
+@dataclass(frozen=True)
+class NetFtCalibration:
+    counts_per_force: float         # counts per N
+    counts_per_torque: float        # counts per N m
+
+    def __post_init__(self):
+        for name in ("counts_per_force", "counts_per_torque"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} {v!r}: a positive finite number of counts is needed")
+
+    @staticmethod
+    def from_xml(text: str) -> "NetFtCalibration":
+        """From the box's netftapi2.xml: ``cfgcpf`` / ``cfgcpt`` with their units ``cfgfu`` / ``cfgtu``, which must
+        be N and Nm (the box can be configured to others: set it to N and Nm on its configuration page)."""
+        def element(tag: str) -> str:
+            m = re.search(rf"<{tag}>\s*([^<]*?)\s*</{tag}>", text)
+            if m is None:
+                raise ValueError(f"netftapi2.xml: no <{tag}> element")
+            return m.group(1)
+        units = {"cfgfu": ("N", "2"), "cfgtu": ("Nm", "N-m", "3")}     # by name, or the box's unit code
+        for tag, allowed in units.items():
+            u = element(tag)
+            if u not in allowed:
+                raise ValueError(f"netftapi2.xml: <{tag}> is {u!r}; set the box's {'force' if tag == 'cfgfu' else 'torque'} "
+                                 f"unit to {allowed[0]} on its configuration page")
+        try:
+            return NetFtCalibration(float(element("cfgcpf")), float(element("cfgcpt")))
+        except ValueError as e:
+            raise ValueError(f"netftapi2.xml: {e}") from None
+
+
+def fetch_calibration(host: str, timeout_s: float = HTTP_TIMEOUT_S, port: int = 80) -> NetFtCalibration:
+    """The box's calibration from ``http://HOST/netftapi2.xml``. OSError (unreachable) or ValueError (not a Net
+    F/T configuration page, other units)."""
+    from urllib.request import urlopen    # stdlib, loaded only for a real box
+    with urlopen(f"http://{host}:{port}/netftapi2.xml", timeout=timeout_s) as resp:
+        return NetFtCalibration.from_xml(resp.read().decode("utf-8", "replace"))
+
+
+@dataclass(frozen=True)
+class NetFtConfig:
+    host: str
+    calibration: NetFtCalibration
+    port: int = RDT_PORT
+    range_n: float = math.inf       # rated force range per axis: a reading there is saturated
+    range_nm: float = math.inf      # rated torque range per axis
+    stale_s: float = 0.1            # no new record for this long (reader's clock): the sensor is lost
+    start_timeout_s: float = 1.0    # the first record must come within this (wall time)
+    max_lost_fraction: float = 0.5  # of the last loss_window sequence numbers
+    loss_window: int = 1000
+    buffer_len: int = 4096          # records kept (a few seconds at 1 kHz)
+
+
+class NetFtReader:
+    """A Net F/T box's stream: ``start()``, then ``poll()`` and ``latest()`` / ``mean(n)`` each control period,
+    ``stop()``. ``clock``: what ``stale_s`` is measured on (wall time for a real box; the simulated controller's time
+    for a box stepped with the in-memory arm, whose ``wait`` then lets a controller period pass)."""
+
+    def __init__(self, cfg: NetFtConfig, clock=time.monotonic, wait=None):
+        self.cfg, self.clock = cfg, clock
+        self.wait = wait or (lambda: time.sleep(0.001))   # between polls while waiting for the first record
+        self.sock: socket.socket | None = None
+        n = cfg.buffer_len
+        self.ft = np.zeros((n, 6))          # SI, sensor frame
+        self.seq = np.zeros(n, dtype=np.int64)
+        self.count = 0                      # records kept since start (index of the next slot = count % n)
+        self.last_seq: int | None = None
+        self.last_rx: float | None = None
+        self.gaps: deque = deque(maxlen=cfg.loss_window)   # per kept record: sequence numbers it advanced by
+        self.n_lost = self.n_reordered = self.n_datagrams_bad = 0
+        self.max_abs_n = 0.0
+        self._scale = np.array([1.0 / cfg.calibration.counts_per_force] * 3 +
+                               [1.0 / cfg.calibration.counts_per_torque] * 3)
+
+    # ---- session ---------------------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the socket, ask for endless real-time streaming, wait for the first record."""
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)   # a host held up 1 s at 7 kHz loses nothing
+        try:
+            s.connect((self.cfg.host, self.cfg.port))   # only the box's datagrams are received
+        except OSError as e:
+            s.close()
+            raise SensorFault(FaultKind.SENSOR_LOST, f"Net F/T at {self.cfg.host}:{self.cfg.port}: {e.strerror or e}")
+        s.setblocking(False)
+        self.sock = s
+        self._send(CMD_START_REALTIME)
+        t_end = time.monotonic() + self.cfg.start_timeout_s
+        while self.poll() == 0:
+            if time.monotonic() > t_end:
+                self.stop()
+                raise SensorFault(FaultKind.SENSOR_LOST, f"no record from the Net F/T at {self.cfg.host}:"
+                                                         f"{self.cfg.port} within {self.cfg.start_timeout_s:g} s "
+                                                         f"of asking it to stream (address, cable, power?)")
+            self.wait()
+
+    def _send(self, command: int) -> None:
+        try:
+            self.sock.send(pack_request(command))
+        except OSError as e:       # e.g. ECONNREFUSED from an earlier datagram: nothing listens there
+            raise SensorFault(FaultKind.SENSOR_LOST, f"Net F/T at {self.cfg.host}:{self.cfg.port}: "
+                                                     f"{e.strerror or e}") from None
+
+    def stop(self) -> None:
+        """Ask the box to stop streaming and close the socket (never raises)."""
+        if self.sock is not None:
+            try:
+                self.sock.send(pack_request(CMD_STOP))
+            except OSError:
+                pass
+            self.sock.close()
+            self.sock = None
+
+    # ---- data ------------------------------------------------------------------------------------------------
+    def poll(self) -> int:
+        """Drain the socket; check and keep every record. Returns how many were kept; raises SensorFault."""
+        if self.sock is None:
+            raise SensorFault(FaultKind.SENSOR_LOST, f"the Net F/T at {self.cfg.host} is not streaming (stopped)")
+        kept = 0
+        while True:
+            try:
+                data = self.sock.recv(4096)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError as e:
+                raise SensorFault(FaultKind.SENSOR_LOST, f"Net F/T at {self.cfg.host}: {e.strerror or e}") from None
+            try:
+                records = unpack_records(data)
+            except ValueError:
+                self.n_datagrams_bad += 1
+                continue
+            for rec in records:
+                kept += self._keep(rec)
+        if kept:
+            self.last_rx = self.clock()
+        return kept
+
+    def _keep(self, rec) -> int:
+        if self.last_seq is not None:
+            ahead = seq_ahead(rec.rdt_sequence, self.last_seq)
+            if ahead <= 0:
+                self.n_reordered += 1
+                return 0
+            self.n_lost += ahead - 1
+            self.gaps.append(ahead)
+            if len(self.gaps) >= min(100, self.gaps.maxlen):
+                total = sum(self.gaps)
+                lost = total - len(self.gaps)
+                if lost > self.cfg.max_lost_fraction * total:
+                    raise SensorFault(FaultKind.SENSOR_PACKET_LOSS,
+                                      f"{lost} of the last {total} Net F/T records lost on the way (more than "
+                                      f"{self.cfg.max_lost_fraction:.0%}): check the network between host and box")
+        self.last_seq = rec.rdt_sequence
+        if rec.status != 0:
+            raise SensorFault(FaultKind.SENSOR_STATUS, f"the Net F/T box reports status 0x{rec.status:08x} (record "
+                                                       f"{rec.rdt_sequence}): see its manual and web page")
+        ft = np.asarray(rec.counts, dtype=float) * self._scale
+        fmax, tmax = float(np.max(np.abs(ft[:3]))), float(np.max(np.abs(ft[3:])))
+        self.max_abs_n = max(self.max_abs_n, fmax)
+        if fmax >= self.cfg.range_n or tmax >= self.cfg.range_nm:
+            raise SensorFault(FaultKind.SENSOR_SATURATED,
+                              f"Net F/T reading {np.round(ft, 4).tolist()} at its rated range ({self.cfg.range_n:g} N, "
+                              f"{self.cfg.range_nm:g} N m): the true force is unknown")
+        i = self.count % self.cfg.buffer_len
+        self.ft[i], self.seq[i] = ft, rec.rdt_sequence
+        self.count += 1
+        return 1
+
+    def check_fresh(self) -> None:
+        if self.last_rx is None or self.clock() - self.last_rx > self.cfg.stale_s:
+            age = "never" if self.last_rx is None else f"{self.clock() - self.last_rx:.3f} s ago"
+            raise SensorFault(FaultKind.SENSOR_LOST, f"no new Net F/T record for more than {self.cfg.stale_s:g} s "
+                                                     f"(last {age}): the box, its cable or the network is gone")
+
+    def latest(self) -> np.ndarray:
+        """The newest record (N, N m; sensor frame) after ``poll()``; SensorFault if it is stale."""
+        self.poll()
+        self.check_fresh()
+        return self.ft[(self.count - 1) % self.cfg.buffer_len].copy()
+
+    def mean(self, n: int) -> tuple[np.ndarray, int]:
+        """The mean of the newest ``n`` records (fewer if fewer were kept) and how many that was."""
+        k = min(n, self.count, self.cfg.buffer_len)
+        if k == 0:
+            raise SensorFault(FaultKind.SENSOR_LOST, "no Net F/T record to average")
+        idx = (self.count - 1 - np.arange(k)) % self.cfg.buffer_len
+        return self.ft[idx].mean(axis=0), k
+
+    def report(self) -> dict:
+        return {"records": int(self.count), "lost": int(self.n_lost), "reordered": int(self.n_reordered),
+                "bad_datagrams": int(self.n_datagrams_bad), "max_abs_force_n": self.max_abs_n}
