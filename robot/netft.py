@@ -33,6 +33,7 @@ from core.contracts import FaultKind
 from robot.rdt import CMD_START_REALTIME, CMD_STOP, RDT_PORT, pack_request, seq_ahead, unpack_records
 
 HTTP_TIMEOUT_S = 2.0
+MIN_LOSS_SPAN = 100             # the loss fraction is judged over at least this many sequence numbers
 
 
 class SensorFault(Exception):
@@ -93,7 +94,7 @@ class NetFtConfig:
     stale_s: float = 0.1            # no new record for this long (reader's clock): the sensor is lost
     start_timeout_s: float = 1.0    # the first record must come within this (wall time)
     max_lost_fraction: float = 0.5  # of the last loss_window sequence numbers
-    loss_window: int = 1000
+    loss_window: int = 200          # sequence numbers (0.2 s at 1 kHz)
     buffer_len: int = 4096          # records kept (a few seconds at 1 kHz)
 
 
@@ -112,7 +113,8 @@ class NetFtReader:
         self.count = 0                      # records kept since start (index of the next slot = count % n)
         self.last_seq: int | None = None
         self.last_rx: float | None = None
-        self.gaps: deque = deque(maxlen=cfg.loss_window)   # per kept record: sequence numbers it advanced by
+        self.gaps: deque = deque()          # per kept record of the loss window: sequence numbers it advanced by
+        self.span = 0                       # their sum
         self.n_lost = self.n_reordered = self.n_datagrams_bad = 0
         self.max_abs_n = 0.0
         self._scale = np.array([1.0 / cfg.calibration.counts_per_force] * 3 +
@@ -189,13 +191,14 @@ class NetFtReader:
                 return 0
             self.n_lost += ahead - 1
             self.gaps.append(ahead)
-            if len(self.gaps) >= min(100, self.gaps.maxlen):
-                total = sum(self.gaps)
-                lost = total - len(self.gaps)
-                if lost > self.cfg.max_lost_fraction * total:
-                    raise SensorFault(FaultKind.SENSOR_PACKET_LOSS,
-                                      f"{lost} of the last {total} Net F/T records lost on the way (more than "
-                                      f"{self.cfg.max_lost_fraction:.0%}): check the network between host and box")
+            self.span += ahead
+            while len(self.gaps) > 1 and self.span - self.gaps[0] >= self.cfg.loss_window:
+                self.span -= self.gaps.popleft()
+            total, lost = self.span, self.span - len(self.gaps)
+            if total >= min(MIN_LOSS_SPAN, self.cfg.loss_window) and lost > self.cfg.max_lost_fraction * total:
+                raise SensorFault(FaultKind.SENSOR_PACKET_LOSS,
+                                  f"{lost} of the last {total} Net F/T records lost on the way (more than "
+                                  f"{self.cfg.max_lost_fraction:.0%}): check the network between host and box")
         self.last_seq = rec.rdt_sequence
         if rec.status != 0:
             raise SensorFault(FaultKind.SENSOR_STATUS, f"the Net F/T box reports status 0x{rec.status:08x} (record "
