@@ -98,12 +98,12 @@ class NetFtForce:
     same period."""
     name = "netft"
 
-    def __init__(self, cfg: NetFtConfig, mount: Mount, rate_hz: float = 1000.0, **clock_wait):
+    def __init__(self, cfg: NetFtConfig, mount: Mount, **clock_wait):
         self.reader = NetFtReader(cfg, **clock_wait)          # clock=, wait=: see NetFtReader
         self.mount, self.T_tcp_sensor = mount, mount.tcp_sensor()
         self.offset = np.zeros(6)
-        self.n_zero = max(1, int(round(ZERO_WINDOW_S * rate_hz)))
         self.zeros = 0
+        self.zero_records = 0               # records averaged by the last zero
         self.started = False
 
     def start(self) -> None:
@@ -114,8 +114,8 @@ class NetFtForce:
 
     def zero(self, call) -> bool:
         self.reader.latest()                 # drained, and fresh: the records averaged are recent
-        mean, n = self.reader.mean(self.n_zero)
-        self.offset = mean
+        mean, n = self.reader.mean(ZERO_WINDOW_S)
+        self.offset, self.zero_records = mean, n
         self.zeros += 1
         return n > 0 and bool(np.all(np.isfinite(mean)))
 
@@ -127,7 +127,7 @@ class NetFtForce:
 
     def report(self) -> dict:
         c = self.reader.cfg
-        return {"source": self.name, "host": c.host, "port": c.port, "zeros": self.zeros,
+        return {"source": self.name, "host": c.host, "port": c.port, "zeros": self.zeros, "zero_records": self.zero_records,
                 "counts_per_force": c.calibration.counts_per_force, "counts_per_torque": c.calibration.counts_per_torque,
                 "sensor_pose_flange": list(self.mount.sensor_pose_flange), "stale_s": c.stale_s, **self.reader.report()}
 

@@ -79,7 +79,7 @@ class NetFtCalibration:
 def fetch_calibration(host: str, timeout_s: float = HTTP_TIMEOUT_S, port: int = 80) -> NetFtCalibration:
     """The box's calibration from ``http://HOST/netftapi2.xml``. OSError (unreachable) or ValueError (not a Net
     F/T configuration page, other units)."""
-    from urllib.request import urlopen    # stdlib, loaded only for a real box
+    from urllib.request import urlopen  # stdlib, loaded only for a real box
     with urlopen(f"http://{host}:{port}/netftapi2.xml", timeout=timeout_s) as resp:
         return NetFtCalibration.from_xml(resp.read().decode("utf-8", "replace"))
 
@@ -110,6 +110,7 @@ class NetFtReader:
         n = cfg.buffer_len
         self.ft = np.zeros((n, 6))          # SI, sensor frame
         self.seq = np.zeros(n, dtype=np.int64)
+        self.t = np.zeros(n)                # reader's clock at the poll that received it
         self.count = 0                      # records kept since start (index of the next slot = count % n)
         self.last_seq: int | None = None
         self.last_rx: float | None = None
@@ -164,7 +165,7 @@ class NetFtReader:
         """Drain the socket; check and keep every record. Returns how many were kept; raises SensorFault."""
         if self.sock is None:
             raise SensorFault(FaultKind.SENSOR_LOST, f"the Net F/T at {self.cfg.host} is not streaming (stopped)")
-        kept = 0
+        kept, now = 0, self.clock()
         while True:
             try:
                 data = self.sock.recv(4096)
@@ -178,12 +179,12 @@ class NetFtReader:
                 self.n_datagrams_bad += 1
                 continue
             for rec in records:
-                kept += self._keep(rec)
+                kept += self._keep(rec, now)
         if kept:
-            self.last_rx = self.clock()
+            self.last_rx = now
         return kept
 
-    def _keep(self, rec) -> int:
+    def _keep(self, rec, now: float) -> int:
         if self.last_seq is not None:
             ahead = seq_ahead(rec.rdt_sequence, self.last_seq)
             if ahead <= 0:
@@ -211,7 +212,7 @@ class NetFtReader:
                               f"Net F/T reading {np.round(ft, 4).tolist()} at its rated range ({self.cfg.range_n:g} N, "
                               f"{self.cfg.range_nm:g} N m): the true force is unknown")
         i = self.count % self.cfg.buffer_len
-        self.ft[i], self.seq[i] = ft, rec.rdt_sequence
+        self.ft[i], self.seq[i], self.t[i] = ft, rec.rdt_sequence, now
         self.count += 1
         return 1
 
@@ -227,13 +228,15 @@ class NetFtReader:
         self.check_fresh()
         return self.ft[(self.count - 1) % self.cfg.buffer_len].copy()
 
-    def mean(self, n: int) -> tuple[np.ndarray, int]:
-        """The mean of the newest ``n`` records (fewer if fewer were kept) and how many that was."""
-        k = min(n, self.count, self.cfg.buffer_len)
+    def mean(self, window_s: float) -> tuple[np.ndarray, int]:
+        """The mean of the records received in the last ``window_s`` (at least the newest one; at most the buffer)
+        and how many they were."""
+        k = min(self.count, self.cfg.buffer_len)
         if k == 0:
             raise SensorFault(FaultKind.SENSOR_LOST, "no Net F/T record to average")
         idx = (self.count - 1 - np.arange(k)) % self.cfg.buffer_len
-        return self.ft[idx].mean(axis=0), k
+        recent = idx[self.t[idx] >= self.t[idx[0]] - window_s]
+        return self.ft[recent].mean(axis=0), len(recent)
 
     def report(self) -> dict:
         return {"records": int(self.count), "lost": int(self.n_lost), "reordered": int(self.n_reordered),

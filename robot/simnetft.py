@@ -18,8 +18,7 @@ import numpy as np
 
 from core import ur5e
 from robot.netft import NetFtCalibration
-from robot.rdt import CMD_START_BUFFERED, CMD_START_REALTIME, CMD_STOP, RDT_PORT, RdtRecord, pack_record, \
-    unpack_request
+from robot.rdt import CMD_START_BUFFERED, CMD_START_REALTIME, CMD_STOP, RDT_PORT, RdtRecord, pack_record, unpack_request
 from robot.sensor import Sensor
 from robot.simfaults import FaultSpec, trigger
 
