@@ -34,7 +34,9 @@ from robot import rtde_wire as W
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
 from robot.simarm import build_truth_arm
+from robot.rdt import RDT_PORT
 from robot.simfaults import FaultSpec, parse, trigger
+from robot.simnetft import SIM_SENSOR_POSE_FLANGE, attach_box
 from robot.urscript_cmds import ArmPort, ControlScript, split_programs
 
 log = logging.getLogger("simcontroller")
@@ -484,6 +486,11 @@ def main(argv=None) -> int:
     ap.add_argument("--inject", action="append", default=[],
                     help="fault (repeatable; robot.simfaults), e.g. protective-stop-at-depth-m=0.002, "
                          "partition-after-probes=1, freeze-at-depth-m=0.0015")
+    ap.add_argument("--netft", action="store_true", help="also serve a simulated ATI Net F/T box (UDP, RDT, "
+                    f"1 kHz) on the same address, port {RDT_PORT} + --port-offset (robot.simnetft)")
+    ap.add_argument("--netft-sensor-pose", type=lambda s: [float(v) for v in s.split(",")],
+                    default=list(SIM_SENSOR_POSE_FLANGE), help="the simulated Net F/T sensor's pose on the flange "
+                    "x,y,z,rx,ry,rz (m, rad)")
     ap.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.x.x.x only)")
     ap.add_argument("--port-offset", type=int, default=0, help="add to every port (ur_rtde itself needs 0)")
     ap.add_argument("--log-level", default="INFO")
@@ -513,6 +520,18 @@ def main(argv=None) -> int:
         if f.on_controller:
             ctl.schedule(f)
     ctl.port = ArmPort(ctl.arm)
+    box = None
+    if a.netft:                       # stepped with the arm: 2 records per 2 ms cycle, in real time
+        try:
+            box = attach_box(ctl.arm, faults=faults, host=a.host, port=RDT_PORT + a.port_offset, sensor=a.sensor,
+                             seed=a.seed, sensor_pose_flange=a.netft_sensor_pose, records_per_step=2)
+        except OSError as e:
+            ctl.close_listeners()
+            print(f"SIMCONTROLLER PORTS UNAVAILABLE: cannot bind {a.host}:{RDT_PORT + a.port_offset} (Net F/T, "
+                  f"UDP): {e.strerror}", flush=True)
+            return 3
+    elif any(f.on_ft for f in faults):
+        ap.error("--inject: an ft-* fault needs --netft")
     log.info("physics ready in %.1f s (scene %s, sensor %s)", time.perf_counter() - t0, a.scene, a.sensor)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
@@ -525,6 +544,8 @@ def main(argv=None) -> int:
     while not done.wait(0.2) and not ctl.stop_event.is_set():
         pass
     ctl.shutdown()
+    if box is not None:
+        box.close()
     return 4 if ctl.failed else 0
 
 
