@@ -156,8 +156,8 @@ def inmemory_source(args, arm, c, r, tcp_offset, faults=()) -> tuple[NetFtForce,
 
 def linked_source(args, c, r, tcp_offset, host: str | None = None):
     """The force source for a ur_rtde link: the wrist sensor, a real box (``args.ft.host``) or the simulated
-    controller's box at ``host`` (its loopback address)."""
-    if args.ft.kind == "rtde":
+    controller's box at ``host`` (its loopback address). ``args`` None: the wrist sensor."""
+    if args is None or args.ft.kind == "rtde":
         return RtdeForce(c, r)
     cfg = args.ft_config if args.ft.host else sim_config(host, RDT_PORT, args.sensor)
     return NetFtForce(cfg, Mount(sensor_pose(args), tuple(tcp_offset)))
@@ -165,4 +165,4 @@ def linked_source(args, c, r, tcp_offset, host: str | None = None):
 
 def controller_pose(args):
     """The simulated controller's Net F/T mounting (None: no box)."""
-    return list(sensor_pose(args)) if args.ft.kind == "netft" else None
+    return list(sensor_pose(args)) if args is not None and args.ft.kind == "netft" else None

@@ -31,10 +31,10 @@ import numpy as np
 
 from core.contracts import Frames
 from robot import rtde_wire as W
+from robot.rdt import RDT_PORT
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
 from robot.simarm import build_truth_arm
-from robot.rdt import RDT_PORT
 from robot.simfaults import FaultSpec, parse, trigger
 from robot.simnetft import SIM_SENSOR_POSE_FLANGE, attach_box
 from robot.urscript_cmds import ArmPort, ControlScript, split_programs
