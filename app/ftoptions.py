@@ -43,7 +43,7 @@ def ft_choice(s: str) -> FtChoice:
     if kind == "netft" and (not sep or host.strip()):
         return FtChoice("netft", host.strip() or None)
     raise argparse.ArgumentTypeError(f"must be rtde (the UR's wrist sensor), netft:HOST (an ATI Net F/T box at HOST) "
-                                     f"or netft (the simulated box, with --sim), got {s!r}")
+                                     f"or netft (a simulated box), got {s!r}")
 
 
 def pose6(s: str) -> tuple:
