@@ -103,6 +103,18 @@ def watchdog_rate_hz(cfg: DriverConfig, probe_speed_m_s: float) -> float:
     return float(min(100.0, max(cfg.watchdog_hz, probe_speed_m_s / cfg.max_unsupervised_travel_m)))
 
 
+def stop_lead_periods(filter_window: int) -> int:
+    """Periods between a force and the arm's stop: the moving average's lag, the reading's latency, the stop."""
+    return filter_window // 2 + 2
+
+
+def force_when_stopped(hist, lead: int) -> float:
+    """Where the filtered force will be when the arm has stopped: the newest of ``hist`` (filtered forces, one per
+    period) plus its rising slope over ``lead`` periods. The force monitor stops when this exceeds the limit."""
+    slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
+    return hist[-1] + max(slope, 0.0) * lead
+
+
 @dataclass
 class RunReport:
     status: RunStatus
@@ -396,14 +408,13 @@ class Driver(Recovery):
         contact = {}
 
         hist = deque(maxlen=self.cfg.filter_window + 1)
-        lead = self.cfg.filter_window // 2 + 2      # periods: filter lag + reading latency + stop
+        lead = stop_lead_periods(self.cfg.filter_window)
 
         def watch(s):
             if "depth" not in contact and s["filt"] > self.contact_thr:
                 contact.update(depth=s["depth"], x=s["x"])
             hist.append(s["filt"])
-            slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
-            if s["filt"] + max(slope, 0.0) * lead > lim.force_limit_n:   # where the force will be when stopped
+            if force_when_stopped(hist, lead) > lim.force_limit_n:
                 self._stop()
                 return ProbeStatus.FORCE_LIMIT
             return None

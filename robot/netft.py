@@ -91,7 +91,11 @@ class NetFtConfig:
     port: int = RDT_PORT
     range_n: float = math.inf       # rated force range per axis: a reading there is saturated
     range_nm: float = math.inf      # rated torque range per axis
-    stale_s: float = 0.1            # no new record for this long (reader's clock): the sensor is lost
+    resync_after_s: float = 0.1     # no poll for this long: the host was away, what the socket holds is old
+    stale_s: float = 0.05           # no new record for this long (reader's clock): the sensor is lost. A real box
+                                    # sends >= 1 kHz and the kernel keeps what a held-up host has not read, so only
+                                    # a silent box trips it; the margin is for a simulated box in a busy process.
+                                    # Blind travel at 2 mm/s: 0.1 mm (bench/ft_reaction.py has the overshoot)
     start_timeout_s: float = 1.0    # the first record must come within this (wall time)
     max_lost_fraction: float = 0.5  # of the last loss_window sequence numbers
     loss_window: int = 200          # sequence numbers (0.2 s at 1 kHz)
@@ -116,7 +120,8 @@ class NetFtReader:
         self.last_rx: float | None = None
         self.gaps: deque = deque()          # per kept record of the loss window: sequence numbers it advanced by
         self.span = 0                       # their sum
-        self.n_lost = self.n_reordered = self.n_datagrams_bad = 0
+        self.n_lost = self.n_reordered = self.n_datagrams_bad = self.resyncs = 0
+        self.last_poll: float | None = None
         self.max_abs_n = 0.0
         self._scale = np.array([1.0 / cfg.calibration.counts_per_force] * 3 +
                                [1.0 / cfg.calibration.counts_per_torque] * 3)
@@ -162,15 +167,29 @@ class NetFtReader:
 
     # ---- data ------------------------------------------------------------------------------------------------
     def poll(self) -> int:
-        """Drain the socket; check and keep every record. Returns how many were kept; raises SensorFault."""
+        """Drain the socket; check and keep every record. Returns how many were kept; raises SensorFault. After
+        more than ``resync_after_s`` without a poll (the host was busy elsewhere: between runs, planning) the reader
+        resynchronises first."""
         if self.sock is None:
             raise SensorFault(FaultKind.SENSOR_LOST, f"the Net F/T at {self.cfg.host} is not streaming (stopped)")
-        kept, now = 0, self.clock()
+        now = self.clock()
+        away = self.last_poll is not None and now - self.last_poll > self.cfg.resync_after_s
+        self.last_poll = now
+        if away:
+            self.resync()
+            now = self.last_poll = self.clock()
+        kept = self._drain(now)
+        if kept:
+            self.last_rx = now
+        return kept
+
+    def _drain(self, now: float, keep: bool = True) -> int:
+        kept = 0
         while True:
             try:
                 data = self.sock.recv(4096)
             except (BlockingIOError, InterruptedError):
-                break
+                return kept
             except OSError as e:
                 raise SensorFault(FaultKind.SENSOR_LOST, f"Net F/T at {self.cfg.host}: {e.strerror or e}") from None
             try:
@@ -179,10 +198,23 @@ class NetFtReader:
                 self.n_datagrams_bad += 1
                 continue
             for rec in records:
-                kept += self._keep(rec, now)
-        if kept:
-            self.last_rx = now
-        return kept
+                kept += self._keep(rec, now) if keep else 0
+
+    def resync(self) -> None:
+        """What the socket holds is old: the host did not read it for a while, and once the kernel's buffer was full
+        the newer records were dropped (the host's doing, not the network's). Discard it, forget the sequence and
+        the loss window, and wait (``wait``, at most ``start_timeout_s``) for a fresh record."""
+        self._drain(0.0, keep=False)
+        self.last_seq, self.span, self.last_rx = None, 0, None
+        self.gaps.clear()
+        self.resyncs += 1
+        t_end = time.monotonic() + self.cfg.start_timeout_s
+        while self._drain(self.clock()) == 0:
+            if time.monotonic() > t_end:
+                raise SensorFault(FaultKind.SENSOR_LOST, f"no fresh record from the Net F/T at {self.cfg.host} within "
+                                                         f"{self.cfg.start_timeout_s:g} s")
+            self.wait()
+        self.last_rx = self.clock()
 
     def _keep(self, rec, now: float) -> int:
         if self.last_seq is not None:
@@ -240,4 +272,5 @@ class NetFtReader:
 
     def report(self) -> dict:
         return {"records": int(self.count), "lost": int(self.n_lost), "reordered": int(self.n_reordered),
-                "bad_datagrams": int(self.n_datagrams_bad), "max_abs_force_n": self.max_abs_n}
+                "bad_datagrams": int(self.n_datagrams_bad),
+                "resyncs": int(self.resyncs), "max_abs_force_n": self.max_abs_n}
