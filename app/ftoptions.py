@@ -21,6 +21,10 @@ from robot.netft import NetFtCalibration, NetFtConfig, fetch_calibration
 from robot.rdt import RDT_PORT
 from robot.simnetft import SIM_CALIBRATION, SIM_SENSOR_POSE_FLANGE, attach_box
 
+# the simulated controller's box lives in a process a busy machine can hold up (its records then stop, unlike a real
+# box's, which the host's kernel keeps): the margin the driver gives its RTDE data for the same reason
+# (DriverConfig.stale_periods, 0.2 s) instead of a real box's 50 ms
+SIM_CONTROLLER_STALE_S = 0.2
 SIM_RANGE_NM = 0.25             # the simulated box's torque range (an ATI Nano17 SI-25-0.25's); its force range is
                                 # the --sensor preset's range_n
 
@@ -139,9 +143,9 @@ def real_config(args) -> NetFtConfig:
     return NetFtConfig(host=host, calibration=cal, range_n=args.ft_range_n, range_nm=args.ft_range_nm)
 
 
-def sim_config(host: str, port: int, sensor: str) -> NetFtConfig:
+def sim_config(host: str, port: int, sensor: str, **kw) -> NetFtConfig:
     return NetFtConfig(host=host, port=port, calibration=SIM_CALIBRATION, range_n=SENSORS[sensor].range_n,
-                       range_nm=SIM_RANGE_NM)
+                       range_nm=SIM_RANGE_NM, **kw)
 
 
 def inmemory_source(args, arm, c, r, tcp_offset, faults=()) -> tuple[NetFtForce, object]:
@@ -159,7 +163,8 @@ def linked_source(args, c, r, tcp_offset, host: str | None = None):
     controller's box at ``host`` (its loopback address). ``args`` None: the wrist sensor."""
     if args is None or args.ft.kind == "rtde":
         return RtdeForce(c, r)
-    cfg = args.ft_config if args.ft.host else sim_config(host, RDT_PORT, args.sensor)
+    cfg = args.ft_config if args.ft.host else sim_config(host, RDT_PORT, args.sensor,
+                                                         stale_s=SIM_CONTROLLER_STALE_S)
     return NetFtForce(cfg, Mount(sensor_pose(args), tuple(tcp_offset)))
 
 

@@ -13,6 +13,11 @@ arm still accepts commands) with a report in run.json. The interrupted probe's r
 before any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one
 after its own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
 
+The wrench comes from a force source (robot.forcesource): the UR's wrist sensor over the receive interface by
+default, or an external ATI Net F/T box over UDP; the UR's own force protection never sees the latter, so then this
+driver's force limit is the only guard on the contact force. A sensor fault (robot.netft.SensorFault: silent, bad
+status, saturated, too many records lost) is a probe fault like the others.
+
 Contact force convention: getActualTCPForce is the external force on the tool in the base frame; the contact force
 is its projection on the tissue's outward normal n (z axis of ``frames.tissue_pose_base``), times
 ``DriverConfig.force_sign`` (+1): tissue pushing the tip back out gives a positive force. Verify the sign on a new
