@@ -75,3 +75,19 @@ def test_cell_sensor_fault_ends_safe_with_records(tmp_path, capsys, plan_file):
     assert run_json["force_source"]["source"] == "netft"
     recs = read_records(out)
     assert recs[-1].status == "fault" and recs[-1].n_samples_total > 0
+
+
+def test_cell_through_the_simulated_controller_and_its_box(tmp_path, capsys, plan_file):
+    """The real ur_rtde client, the simulated controller serving the Net F/T box in real time: the first probe is
+    measured through the box, a bad status word in the second's descent ends the run safe."""
+    out = tmp_path / "run"
+    code = cell.main(["--sim", "controller", "--plan", plan_file, "--out", str(out), "--force-model", "standin",
+                      "--ft", "netft", "--inject", "ft-status-after-probes=1:32768"])
+    text = capsys.readouterr().out
+    assert code == 1 and "FAULT sensor_status" in text and "0x00008000" in text, text
+    run_json = json.loads((out / "run.json").read_text())
+    assert run_json["fault"]["stopped"] is True and run_json["n_ok"] == 1
+    src = run_json["force_source"]
+    assert src["source"] == "netft" and src["records"] > 1000 and src["lost"] == 0
+    first = read_records(out)[0]
+    assert first.status == "ok" and 0.05 < first.force_mean_n < 1.0     # the stand-in tissue at 3 mm
