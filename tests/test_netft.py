@@ -6,6 +6,8 @@ import json
 import math
 import socket
 import sys
+import threading
+from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +21,7 @@ from core import ur5e  # noqa: E402
 from core.contracts import SENSORS  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
 from robot.forcesource import Mount, NetFtForce, sensor_to_base  # noqa: E402
-from robot.netft import NetFtCalibration, NetFtConfig, NetFtReader, SensorFault  # noqa: E402
+from robot.netft import NetFtCalibration, NetFtConfig, NetFtReader, SensorFault, fetch_calibration  # noqa: E402
 from robot.rdt import (  # noqa: E402
     CMD_START_REALTIME,
     RdtRecord,
@@ -53,6 +55,28 @@ def test_calibration_from_the_box_page():
         NetFtCalibration.from_xml(page.replace("<cfgfu>N<", "<cfgfu>lbf<"))
     with pytest.raises(ValueError, match="counts_per_force"):
         NetFtCalibration.from_xml(page.replace("1000000", "0"))
+
+
+def test_calibration_fetched_over_http():
+    page = b"<?xml version='1.0'?><netft><cfgcpf>1000000</cfgcpf><cfgcpt>1000</cfgcpt><cfgfu>N</cfgfu>" \
+           b"<cfgtu>Nm</cfgtu></netft>"
+
+    class Page(BaseHTTPRequestHandler):
+        def do_GET(self):
+            ok = self.path == "/netftapi2.xml"
+            self.send_response(200 if ok else 404)
+            self.end_headers()
+            self.wfile.write(page if ok else b"")
+
+        def log_message(self, *a):
+            pass
+    srv = HTTPServer(("127.0.0.1", 0), Page)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        assert fetch_calibration("127.0.0.1", port=srv.server_address[1]) == NetFtCalibration(1e6, 1e3)
+    finally:
+        srv.shutdown()
+        srv.server_close()
 
 
 class ScriptedBox:

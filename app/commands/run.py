@@ -8,6 +8,8 @@ and nothing else. The truth is written into result.json only after localization,
 The truth may differ from the belief beyond its stones (issue 14): ``--prior PRIOR`` plans and localizes on another
 scene's prior (a ``--plan`` carries its own), and the truth scene file's ``[truth]`` table or the ``--truth-*``
 options (robot/truth.py: registration error, relaxation, sensor bias and drift) reach only the simulated arm.
+The force comes from the UR's wrist sensor (``--ft rtde``) or an ATI Net F/T box (``--ft netft:HOST``; with a
+simulated arm ``--ft netft``, a simulated box): app/ftoptions.py, issue 18.
 
 Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
 no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
