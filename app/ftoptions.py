@@ -144,6 +144,9 @@ def real_config(args) -> NetFtConfig:
 
 
 def sim_config(host: str, port: int, sensor: str, **kw) -> NetFtConfig:
+    """The simulated box's configuration (a noiseless preset repeats itself: not a stuck box there)."""
+    if SENSORS[sensor].noise_std_n == 0:
+        kw.setdefault("max_identical", 0)
     return NetFtConfig(host=host, port=port, calibration=SIM_CALIBRATION, range_n=SENSORS[sensor].range_n,
                        range_nm=SIM_RANGE_NM, **kw)
 

@@ -332,6 +332,8 @@ class FaultKind(StrEnum):
     SENSOR_STATUS = "sensor_status"      # the external F/T sensor reports a problem in its status word
     SENSOR_SATURATED = "sensor_saturated"  # a reading at the sensor's rated range: the force is unknown
     SENSOR_PACKET_LOSS = "sensor_packet_loss"  # too many of its records lost on the way
+    SENSOR_FROZEN = "sensor_frozen"      # its readings stopped changing (a real sensor always has noise)
+    SENSOR_DISAGREES = "sensor_disagrees"  # the wrist sensor reads far more than the external one
 
 
 @dataclass

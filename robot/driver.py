@@ -91,6 +91,11 @@ class DriverConfig:
                                        # and the motion. Kicked every period. This is the lowest rate; 0: off.
     max_unsupervised_travel_m: float = 4e-4   # ... and the rate is raised so that a probe moving at its speed
                                        # travels at most this far before that stop (see watchdog_rate_hz)
+    wrist_backstop_margin_n: float = 5.0  # with an external sensor: the wrist sensor (zeroed with it) reading
+                                       # more than the force limit + this along the normal (filtered) is a fault --
+                                       # the external one, which should have stopped the probe, is stuck, misread
+                                       # or wrongly mounted. 5 N is 6.4 sigma of the filtered UR5e wrist noise
+                                       # (1.75 N / sqrt(5)). 0: off
 
 
 NEEDS_PROGRAM = frozenset({"moveL", "zeroFtSensor", "setTcp", "setPayload", "setWatchdog"})
@@ -173,6 +178,8 @@ class Driver(Recovery):
         self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
         # the wrench: the UR's wrist sensor (default) or an external one (robot.forcesource); the caller owns it
         self.fs = force_source if force_source is not None else RtdeForce(self.c, rtde_r)
+        self.backstop = self.fs.name != "rtde" and self.cfg.wrist_backstop_margin_n > 0
+        self.wrist_filt = deque(maxlen=self.cfg.filter_window)
         self.filt = deque(maxlen=self.cfg.filter_window)
         self.last_ts, self.stale, self.ts = None, 0, 0.0
         self.samples = _Samples()
@@ -244,6 +251,8 @@ class Driver(Recovery):
             if strict:
                 raise ProbeFault(e.kind, e.message) from None
             w = None
+        if strict and self.backstop:
+            self._check_wrist(w)
         ok_w = _vec6(w)
         if strict and not ok_w:
             what = "getActualTCPForce" if self.fs.name == "rtde" else f"the {self.fs.name} force source"
@@ -265,6 +274,23 @@ class Driver(Recovery):
         filt = sum(self.filt) / len(self.filt) if self.filt else float("nan")
         self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase)
         return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
+
+    def _check_wrist(self, w) -> None:
+        """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
+        wr = self._call(self.r.getActualTCPForce)
+        if not _vec6(wr):
+            return                  # the wrist's reading is not the one the probe relies on
+        self.wrist_filt.append(self.cfg.force_sign * float(np.dot(np.asarray(wr[:3], dtype=float), self.tf.normal)))
+        fw = sum(self.wrist_filt) / len(self.wrist_filt)
+        backstop = self.lim.force_limit_n + self.cfg.wrist_backstop_margin_n
+        if fw > backstop:
+            fe = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) \
+                if _vec6(w) else float("nan")
+            raise ProbeFault(FaultKind.SENSOR_DISAGREES,
+                             f"the wrist sensor reads {fw:.2f} N along the normal, above the backstop {backstop:g} N "
+                             f"(the force limit + {self.cfg.wrist_backstop_margin_n:g} N), while the {self.fs.name} "
+                             f"sensor reads {fe:.3f} N: the "
+                             f"external sensor is stuck, misread or wrongly mounted")
 
     def _loop(self, max_s: float, body, strict=True, what="wait"):
         """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s."""
@@ -379,6 +405,9 @@ class Driver(Recovery):
         self._link_up("zeroFtSensor")
         self._require(self._sensor(self.fs.zero, self._call),
                       "zeroFtSensor" if self.fs.name == "rtde" else f"zeroing the {self.fs.name} sensor")
+        if self.backstop:           # the wrist sensor too: it is the backstop
+            self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor (the wrist sensor: the backstop)")
+            self.wrist_filt.clear()
         self.filt.clear()
         self._wait(self.cfg.settle_s)
         self.filt.clear()

@@ -12,7 +12,10 @@ competes with the control loop for the GIL). Each record is checked before it is
 * saturation: a force axis at or beyond ``range_n`` (or a torque beyond ``range_nm``) means the true force is unknown,
   so the force limit could not be enforced: a fault (SENSOR_SATURATED);
 * freshness: no new record for ``stale_s`` on the reader's clock is a fault (SENSOR_LOST) -- the box, its cable or
-  the network is gone.
+  the network is gone;
+* life: more than ``max_identical`` records in a row with the very same counts on all six axes is a fault
+  (SENSOR_FROZEN) -- a live gauge always shows noise (thousands of counts for an ATI transducer), a stuck box
+  repeats itself with a healthy status.
 
 Counts become SI with the box's calibration (counts per N, counts per N m): ``NetFtCalibration``, read from the
 box's ``http://BOX/netftapi2.xml`` (``fetch_calibration``) or given. Readings stay in the SENSOR frame here; the
@@ -100,6 +103,8 @@ class NetFtConfig:
     max_lost_fraction: float = 0.5  # of the last loss_window sequence numbers
     loss_window: int = 200          # sequence numbers (0.2 s at 1 kHz)
     buffer_len: int = 4096          # records kept (a few seconds at 1 kHz)
+    max_identical: int = 50         # records in a row with identical counts (0: not checked, a noiseless sensor):
+                                    # 50 ms at 1 kHz, the same blind time as stale_s
 
 
 class NetFtReader:
@@ -122,6 +127,7 @@ class NetFtReader:
         self.span = 0                       # their sum
         self.n_lost = self.n_reordered = self.n_datagrams_bad = self.resyncs = 0
         self.last_poll: float | None = None
+        self.prev_counts, self.identical = None, 0
         self.max_abs_n = 0.0
         self._scale = np.array([1.0 / cfg.calibration.counts_per_force] * 3 +
                                [1.0 / cfg.calibration.counts_per_torque] * 3)
@@ -236,6 +242,14 @@ class NetFtReader:
         if rec.status != 0:
             raise SensorFault(FaultKind.SENSOR_STATUS, f"the Net F/T box reports status 0x{rec.status:08x} (record "
                                                        f"{rec.rdt_sequence}): see its manual and web page")
+        if rec.counts == self.prev_counts:
+            self.identical += 1
+            if self.cfg.max_identical and self.identical >= self.cfg.max_identical:
+                raise SensorFault(FaultKind.SENSOR_FROZEN, f"{self.identical + 1} Net F/T records in a row with the "
+                                                           f"same counts {list(rec.counts)}: the box or its gauges are "
+                                                           f"stuck (a live sensor always shows noise)")
+        else:
+            self.prev_counts, self.identical = rec.counts, 0
         ft = np.asarray(rec.counts, dtype=float) * self._scale
         fmax, tmax = float(np.max(np.abs(ft[:3]))), float(np.max(np.abs(ft[3:])))
         self.max_abs_n = max(self.max_abs_n, fmax)

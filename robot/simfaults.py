@@ -23,6 +23,7 @@ External sensor faults (the simulated Net F/T box only, robot.simnetft fires the
   ft-status         the box reports status word X (default 1) from then on
   ft-loss           a fraction X (default 0.9) of its records is lost on the way from then on
   ft-spike          X newtons along the tissue normal on its reading for 10 ms (beyond its range: saturated)
+  ft-freeze         the box repeats its last reading from then on (sequence advancing, status 0: a stuck box)
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ from dataclasses import dataclass
 ARM_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",
               "force-spike": "force_spike", "nan": "nan", "stall": "stall"}
 CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
-FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike")
+FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike", "ft-freeze")
 TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it

@@ -49,6 +49,8 @@ class SimNetFtBox:
         self.silent_until = -1.0          # simulated time (inf: for good)
         self.loss = 0.0
         self.spike_until, self.spike_n = -1.0, 0.0
+        self.frozen = False
+        self.last_counts = None
         self.faults: list = []            # [FaultSpec, when(arm), fired]
         self.rng = np.random.default_rng(seed + 104729)
         self.sent = 0
@@ -108,6 +110,8 @@ class SimNetFtBox:
                 self.loss = 0.9 if f.x is None else float(f.x)
             elif f.kind == "ft-spike":
                 self.spike_until, self.spike_n = self.arm.t_s + SPIKE_S, float(f.x or 0.0)
+            elif f.kind == "ft-freeze":
+                self.frozen = True
 
     def wrench_sensor(self, t_s: float) -> np.ndarray:
         """The reading now: the true wrench on the tool in the sensor frame, through the sensor model."""
@@ -127,11 +131,12 @@ class SimNetFtBox:
         self.ft_seq += 1
         if self.loss > 0 and self.rng.random() < self.loss:
             return                           # lost on the way: the sequence number is used up
-        w = self.wrench_sensor(t_s)
-        cal = self.calibration
-        counts = np.concatenate([w[:3] * cal.counts_per_force, w[3:] * cal.counts_per_torque])
-        counts = np.clip(np.round(counts), -2**31, 2**31 - 1).astype(np.int64)
-        data = pack_record(RdtRecord(self.seq, self.ft_seq, self.status, tuple(int(c) for c in counts)))
+        if not (self.frozen and self.last_counts is not None):
+            w = self.wrench_sensor(t_s)
+            cal = self.calibration
+            counts = np.concatenate([w[:3] * cal.counts_per_force, w[3:] * cal.counts_per_torque])
+            self.last_counts = tuple(int(c) for c in np.clip(np.round(counts), -2**31, 2**31 - 1))
+        data = pack_record(RdtRecord(self.seq, self.ft_seq, self.status, self.last_counts))
         try:
             self.sock.sendto(data, self.client)
             self.sent += 1

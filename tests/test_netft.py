@@ -32,6 +32,7 @@ from robot.rdt import (  # noqa: E402
     unpack_request,
 )
 from robot.simfaults import parse  # noqa: E402
+from robot.simforce import standin_force_model  # noqa: E402
 from robot.simnetft import SIM_CALIBRATION, SIM_SENSOR_POSE_FLANGE, attach_box  # noqa: E402
 
 CAL = NetFtCalibration(counts_per_force=1e6, counts_per_torque=2e6)
@@ -89,6 +90,7 @@ class ScriptedBox:
         self.client = None
 
     def cfg(self, **kw) -> NetFtConfig:
+        kw.setdefault("max_identical", 0)            # its records are noiseless
         return NetFtConfig(host="127.0.0.1", port=self.sock.getsockname()[1], calibration=CAL, **kw)
 
     def send(self, seq, counts=(0, 0, 0, 0, 0, 0), status=0):
@@ -205,12 +207,12 @@ def test_frame_transform_undoes_the_mounting():
     box.close()
 
 
-def netft_sim(faults=(), sensor="nano17", **arm_kw):
+def netft_sim(faults=(), sensor="nano17", max_identical=50, **arm_kw):
     """The in-memory arm with a simulated Net F/T box, and the driver's force source reading it."""
     arm, c, r = make_sim(sensor=sensor, **arm_kw)
     box = attach_box(arm, faults=[parse(f) for f in faults], host="127.0.0.1", port=0, sensor=sensor)
     cfg = NetFtConfig(host="127.0.0.1", port=box.address[1], calibration=SIM_CALIBRATION,
-                      range_n=SENSORS[sensor].range_n)
+                      range_n=SENSORS[sensor].range_n, max_identical=max_identical)
     fs = NetFtForce(cfg, Mount(SIM_SENSOR_POSE_FLANGE, tuple(TCP)), clock=r.getTimestamp,
                     wait=lambda: c.waitPeriod(c.initPeriod()))
     return arm, c, r, fs, box
@@ -238,7 +240,8 @@ def test_probing_with_the_net_ft_box_measures_what_the_wrist_sensor_does(tmp_pat
     ("ft-silent-at-depth-m=0.0015", "sensor_lost"),
     ("ft-status-at-depth-m=0.0015:4096", "sensor_status"),
     ("ft-spike-at-depth-m=0.0015:60", "sensor_saturated"),
-    ("ft-loss-at-depth-m=0.0015:0.65", "sensor_packet_loss"),    # 0.9 would as well be a silent box
+    ("ft-loss-at-depth-m=0.0015:0.65", "sensor_packet_loss"),
+    ("ft-freeze-at-depth-m=0.0015", "sensor_frozen"),    # 0.9 would as well be a silent box
 ])
 def test_sensor_faults_end_safe_with_the_records_kept(tmp_path, fault, kind):
     """In the second probe's descent the box goes silent, reports a problem, saturates or loses most records: the
@@ -251,5 +254,19 @@ def test_sensor_faults_end_safe_with_the_records_kept(tmp_path, fault, kind):
     recs = check_safe_end(rep, arm, tmp_path, kind)
     assert rep.fault["stopped"] is True
     assert math.isfinite(recs[-1].force_peak_n) and arm.max_contact_force_n < 2.0
+    fs.close()
+    box.close()
+
+
+def test_the_wrist_sensor_backs_up_a_stuck_box(tmp_path):
+    """A box that repeats itself unnoticed (its own check off) in very stiff tissue: the external force stays where
+    it froze while the true one climbs; the wrist sensor, zeroed with it, ends the probe once it reads the limit
+    + 5 N -- below the 10 N hard cap and before the controller's own 30 N protective stop."""
+    arm, c, r, fs, box = netft_sim(["ft-freeze-at-depth-m=0.00005"], max_identical=0,
+                                   force_model=standin_force_model(k_n_per_m15=1e6))
+    rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs)
+    assert rep.fault["kind"] == "sensor_disagrees" and rep.fault["stopped"] is True, rep.fault
+    assert 7.0 < arm.max_contact_force_n < 10.0 and not arm.protective_stopped
+    assert rep.records[-1].status == "fault" and rep.records[-1].force_peak_n < 1.0    # what the stuck box said
     fs.close()
     box.close()
