@@ -130,7 +130,7 @@ def inmemory_arm(plan: Plan, args):
     c, r = SimRTDEControl(arm), SimRTDEReceive(arm)
     fs = None
     if args.ft.kind == "netft":
-        fs, _ = inmemory_source(args, arm, c, r, plan.frames.tcp_offset, [parse_fault(f) for f in args.inject])
+        fs, _ = inmemory_source(args, arm, c, plan.frames.tcp_offset, [parse_fault(f) for f in args.inject])
     return arm, c, r, fs
 
 

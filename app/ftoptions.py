@@ -151,13 +151,15 @@ def sim_config(host: str, port: int, sensor: str, **kw) -> NetFtConfig:
                        range_nm=SIM_RANGE_NM, **kw)
 
 
-def inmemory_source(args, arm, c, r, tcp_offset, faults=()) -> tuple[NetFtForce, object]:
-    """A simulated box stepped with the in-memory ``arm`` and the force source reading it (staleness on the
-    controller's clock, the first record awaited by letting controller periods pass): (source, box)."""
+def inmemory_source(args, arm, c, tcp_offset, faults=(), **cfg_kw) -> tuple[NetFtForce, object]:
+    """A simulated box stepped with the in-memory ``arm`` and the force source reading it: staleness on the clock the
+    driver paces with (``c.initPeriod()``: simulated time), the first record awaited by letting controller periods
+    pass. ``args``: ``sensor``, ``seed``, ``ft_sensor_pose``; ``cfg_kw``: NetFtConfig fields. (source, box)."""
     box = attach_box(arm, faults=faults, host="127.0.0.1", port=0, sensor=args.sensor, seed=args.seed,
                      sensor_pose_flange=sensor_pose(args))
-    fs = NetFtForce(sim_config("127.0.0.1", box.address[1], args.sensor), Mount(sensor_pose(args), tuple(tcp_offset)),
-                    clock=r.getTimestamp, wait=lambda: c.waitPeriod(c.initPeriod()))
+    fs = NetFtForce(sim_config("127.0.0.1", box.address[1], args.sensor, **cfg_kw),
+                    Mount(sensor_pose(args), tuple(tcp_offset)),
+                    clock=lambda: c.initPeriod().total_seconds(), wait=lambda: c.waitPeriod(c.initPeriod()))
     return fs, box
 
 

@@ -9,6 +9,7 @@ import sys
 import threading
 from http.server import BaseHTTPRequestHandler, HTTPServer
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -17,10 +18,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import TCP, make_plan, make_sim  # noqa: E402
 from test_driver_faults import DEPTH, XS, at_probe, check_safe_end  # noqa: E402
 
+from app.ftoptions import inmemory_source  # noqa: E402
 from core import ur5e  # noqa: E402
-from core.contracts import SENSORS  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
-from robot.forcesource import Mount, NetFtForce, sensor_to_base  # noqa: E402
+from robot.forcesource import Mount, sensor_to_base  # noqa: E402
 from robot.netft import NetFtCalibration, NetFtConfig, NetFtReader, SensorFault, fetch_calibration  # noqa: E402
 from robot.rdt import (  # noqa: E402
     CMD_START_REALTIME,
@@ -33,7 +34,7 @@ from robot.rdt import (  # noqa: E402
 )
 from robot.simfaults import parse  # noqa: E402
 from robot.simforce import standin_force_model  # noqa: E402
-from robot.simnetft import SIM_CALIBRATION, SIM_SENSOR_POSE_FLANGE, attach_box  # noqa: E402
+from robot.simnetft import SIM_SENSOR_POSE_FLANGE, attach_box  # noqa: E402
 
 CAL = NetFtCalibration(counts_per_force=1e6, counts_per_torque=2e6)
 
@@ -207,14 +208,12 @@ def test_frame_transform_undoes_the_mounting():
     box.close()
 
 
-def netft_sim(faults=(), sensor="nano17", max_identical=50, **arm_kw):
-    """The in-memory arm with a simulated Net F/T box, and the driver's force source reading it."""
-    arm, c, r = make_sim(sensor=sensor, **arm_kw)
-    box = attach_box(arm, faults=[parse(f) for f in faults], host="127.0.0.1", port=0, sensor=sensor)
-    cfg = NetFtConfig(host="127.0.0.1", port=box.address[1], calibration=SIM_CALIBRATION,
-                      range_n=SENSORS[sensor].range_n, max_identical=max_identical)
-    fs = NetFtForce(cfg, Mount(SIM_SENSOR_POSE_FLANGE, tuple(TCP)), clock=r.getTimestamp,
-                    wait=lambda: c.waitPeriod(c.initPeriod()))
+def netft_sim(faults=(), max_identical=50, **arm_kw):
+    """The in-memory arm with a simulated Net F/T box, and the driver's force source reading it (as app.cell and
+    palpate run build them)."""
+    arm, c, r = make_sim(**arm_kw)
+    fs, box = inmemory_source(SimpleNamespace(sensor="nano17", seed=0, ft_sensor_pose=None), arm, c, TCP,
+                              [parse(f) for f in faults], max_identical=max_identical)
     return arm, c, r, fs, box
 
 

@@ -163,7 +163,7 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holde
                                 conditions=conditions)
             arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a), fs=None)
             if ft is not None:
-                arm["fs"], _ = inmemory_source(ft, a, arm["c"], arm["r"], plan.frames.tcp_offset)
+                arm["fs"], _ = inmemory_source(ft, a, arm["c"], plan.frames.tcp_offset)
                 if cleanup is not None:
                     cleanup.callback(arm["fs"].close)
             if holder is not None:
