@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from core.contracts import FILTER_WINDOW, PERIOD_S, Motion  # noqa: E402
 from robot.driver import DriverConfig, force_when_stopped, stop_lead_periods  # noqa: E402
 from robot.forcesource import Mount, NetFtForce  # noqa: E402
-from robot.netft import NetFtCalibration, NetFtConfig  # noqa: E402
+from robot.netft import NetFtCalibration, NetFtConfig, SensorFault  # noqa: E402
 from robot.rdt import RdtRecord, pack_record, unpack_request  # noqa: E402
 
 CAL = NetFtCalibration(1e6, 1e6)
@@ -95,7 +95,7 @@ def host_loop(port: int, seconds: float) -> dict:
     seen, stopped_until = reader.count, -1.0
     t_next = time.monotonic()
     t_end = t_next + seconds
-    late = []
+    late, box_gaps = [], 0
     while True:
         t_next += PERIOD_S
         while (now := time.monotonic()) < t_next:          # ur_rtde's waitPeriod: sleep, then spin
@@ -106,10 +106,11 @@ def host_loop(port: int, seconds: float) -> dict:
             break
         try:
             w = fs.wrench(None, pose)
-        except Exception as e:                              # noqa: BLE001 -- the box ended its stream
-            if now > t_end - 1.0:
-                break
-            raise RuntimeError(f"sensor fault during the measurement: {e}") from e
+        except SensorFault as e:        # the scripted box's process held up by the busy machine: counted
+            if e.kind != "sensor_lost":
+                raise
+            box_gaps += 1
+            continue
         n = reader.count
         for i in range(max(seen, n - cfg.buffer_len), n):
             seen_seq.append(int(reader.seq[i % cfg.buffer_len]))
@@ -122,7 +123,8 @@ def host_loop(port: int, seconds: float) -> dict:
             stopped_until = now + 0.05                      # one decision per step
     rep = reader.report()
     fs.close()
-    return {"seen_seq": seen_seq, "seen_t": seen_t, "stops": stops, "late_s": late, "reader": rep}
+    return {"seen_seq": seen_seq, "seen_t": seen_t, "stops": stops, "late_s": late, "reader": rep,
+            "box_gaps": box_gaps}
 
 
 def pct(a, q) -> float:
@@ -179,7 +181,7 @@ def main(argv=None) -> int:
     t_decide_max = max(max(decisions, default=math.nan), pct(decisions, 50) + pct(late, 100))
     stale_s = NetFtConfig(host="", calibration=CAL).stale_s
     res = {"seconds": a.seconds, "rate_hz": a.rate_hz, "step_n": a.step_n, "limit_n": LIMIT_N,
-           "reader": host["reader"], "records_seen": int(len(seq)),
+           "reader": host["reader"], "records_seen": int(len(seq)), "box_gaps_over_stale_s": host["box_gaps"],
            "data_latency_s": {q: pct(data_lat, p) for q, p in (("p50", 50), ("p90", 90), ("p99", 99), ("max", 100))},
            "period_late_s": {q: pct(late, p) for q, p in (("p50", 50), ("p99", 99), ("max", 100))},
            "decision_latency_s": {"n": len(decisions), "missed": missed,
@@ -202,7 +204,8 @@ def render(r: dict) -> str:
     ms = lambda v: f"{v * 1e3:.2f}"       # noqa: E731
     dl, dd, pl = r["data_latency_s"], r["decision_latency_s"], r["period_late_s"]
     lines = [f"Net F/T path on this host: {r['records_seen']} records over {r['seconds']:g} s at {r['rate_hz']:g} Hz "
-             f"(lost {r['reader']['lost']}, reordered {r['reader']['reordered']}); {dd['n']} force steps of "
+             f"(lost {r['reader']['lost']}, reordered {r['reader']['reordered']}; the box's own process was held up past "
+             f"stale_s in {r['box_gaps_over_stale_s']} periods); {dd['n']} force steps of "
              f"{r['step_n']:g} N against a {r['limit_n']:g} N limit ({dd['missed']} not stopped within 30 ms).", "",
              "| latency (ms) | p50 | p90 | p99 | max |", "|---|---:|---:|---:|---:|",
              f"| data: record sent -> in the host's period | {ms(dl['p50'])} | {ms(dl['p90'])} | {ms(dl['p99'])} | "
