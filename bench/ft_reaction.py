@@ -131,14 +131,30 @@ def pct(a, q) -> float:
     return float(np.percentile(a, q)) if len(a) else math.nan
 
 
+def travel_m(v: float, t_react_s: float) -> float:
+    """How far the probe goes past the force limit: the reaction, the stopL's way to the controller, the braking."""
+    return v * (t_react_s + PERIOD_S) + v * v / (2 * DriverConfig().stop_decel_m_s2)
+
+
+def max_speed_m_s(t_react_s: float, fraction: float) -> float:
+    """The probe speed at which the overshoot in the stiffest tissue is ``fraction`` of the limit (bisection)."""
+    k = STONE_GAIN * K_STIFF
+    d_lim = (LIMIT_N / k) ** (2 / 3)
+    allowed = d_lim * ((1 + fraction) ** (2 / 3) - 1)
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if travel_m(mid, t_react_s) < allowed else (lo, mid)
+    return lo
+
+
 def safety_rows(t_react_s: float, stale_s: float) -> list[dict]:
     """Travel past the limit and the force it adds at the stiffest tissue, per probe speed."""
-    a = DriverConfig().stop_decel_m_s2
     k = STONE_GAIN * K_STIFF
     d_lim = (LIMIT_N / k) ** (2 / 3)
     rows = []
     for v in (0.0005, 0.001, 0.002, 0.005, 0.01):
-        travel = v * (t_react_s + PERIOD_S) + v * v / (2 * a)       # + the stopL's way to the controller
+        travel = travel_m(v, t_react_s)
         blind = v * stale_s + travel
         rows.append({"probe_speed_m_s": v, "travel_m": travel, "overshoot_n": k * (d_lim + travel) ** 1.5 - LIMIT_N,
                      "silent_sensor_travel_m": blind,
@@ -190,6 +206,8 @@ def main(argv=None) -> int:
            "stale_s": stale_s, "stop_decel_m_s2": DriverConfig().stop_decel_m_s2,
            "default_probe_speed_m_s": Motion().probe_speed_m_s,
            "worst_decision_s": t_decide_max,
+           "max_probe_speed_m_s": {f"overshoot_{int(f * 100)}pct_at_{name}": max_speed_m_s(t, f)
+                                   for f in (0.05, 0.2) for name, t in (("p99", t_decide_p99), ("worst", t_decide_max))},
            "safety_at_p99": safety_rows(t_decide_p99, stale_s), "safety_at_worst": safety_rows(t_decide_max, stale_s)}
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -225,7 +243,10 @@ def render(r: dict) -> str:
                          f"{row['overshoot_n']:.3f} | {row['silent_sensor_travel_m'] * 1e6:.0f} | "
                          f"{row['silent_sensor_overshoot_n']:.2f} |")
         lines.append("")
-    return "\n".join(lines)
+    lines.append("The largest probe speed for a force overshoot of at most 5 % / 20 % of the limit in that tissue: "
+                 + "; ".join(f"{k.replace('_', ' ')}: {v * 1e3:.2f} mm/s" for k, v in r["max_probe_speed_m_s"].items())
+                 + f" (default {r['default_probe_speed_m_s'] * 1e3:g} mm/s).")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":
