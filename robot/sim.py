@@ -100,6 +100,7 @@ class ArmModel:
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
         self.on_step: list = []           # called after every step (a simulated external sensor samples there)
+        self.stops_s: list = []
         n_lat = max(0, int(round(latency_s / period_s)))
         self.samples: deque = deque(maxlen=n_lat + 1)
         self._sample()
@@ -191,6 +192,7 @@ class ArmModel:
             self.motions_ended += 1
 
     def stop(self, decel: float) -> None:
+        self.stops_s.append(self.t_s)    # when each stop was commanded (reaction-time measurements)
         if self.motion is not None:
             self.motion.a_stop = float(decel)
 

@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import struct
@@ -85,6 +86,8 @@ class SimController:
         self.link.set()
         self.pending: list = []        # controller faults not yet fired: (FaultSpec, when(arm))
         self.overruns = 0              # times the process was held up > MAX_CATCH_UP_S (a very busy machine)
+        self.box = None                # the simulated Net F/T box (--netft)
+        self._logged = {"box": 0, "stops": 0}
         self.failed = False
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
@@ -265,6 +268,7 @@ class SimController:
             if f["fired_s"] is not None and not f.get("logged"):
                 f["logged"] = True
                 log.warning("injected fault %s at t=%.3f s", f["kind"], f["fired_s"])
+        self._log_events()
         if check_watchdog:
             self._watchdog()
         if not arm.connected:
@@ -278,6 +282,18 @@ class SimController:
                 self.paused = True
         if self.script is not None:
             self.script.tick(self.inputs)
+
+    def _log_events(self) -> None:
+        """The Net F/T box's faults and every stop commanded, as ``EVENT <what> t=<s>`` lines (controller time):
+        ``read_events`` reads them back (reaction-time measurements)."""
+        events = []
+        if self.box is not None:
+            events += [(f"ft-fault {text}", t) for text, t in self.box.fired[self._logged["box"]:]]
+            self._logged["box"] = len(self.box.fired)
+        events += [("stop", t) for t in self.arm.stops_s[self._logged["stops"]:]]
+        self._logged["stops"] = len(self.arm.stops_s)
+        for what, t in events:
+            log.warning("EVENT %s t=%.4f", what, t)
 
     def _snapshot(self) -> dict:
         arm = self.arm
@@ -467,6 +483,26 @@ class SimController:
         return f"could not understand: 'simcontroller {' '.join(words)}'"
 
 
+def read_events(log_text: str) -> list[tuple[str, float]]:
+    """The ``EVENT`` lines of a controller log: (what, controller time s)."""
+    out = []
+    for m in re.finditer(r"EVENT (.+?) t=([-0-9.]+)", log_text):
+        out.append((m.group(1), float(m.group(2))))
+    return out
+
+
+def reaction_times_s(events) -> list[float]:
+    """For every Net F/T force spike: controller time from its first record to the next stop commanded."""
+    stops = [t for what, t in events if what == "stop"]
+    out = []
+    for what, t in events:
+        if what.startswith("ft-fault ft-spike"):
+            after = [s for s in stops if s >= t]
+            if after:
+                out.append(after[0] - t)
+    return out
+
+
 # ---- CLI (the process launcher is robot/simlaunch.py) ------------------------------------------------------------
 
 def main(argv=None) -> int:
@@ -523,8 +559,9 @@ def main(argv=None) -> int:
     box = None
     if a.netft:                       # stepped with the arm: 2 records per 2 ms cycle, in real time
         try:
-            box = attach_box(ctl.arm, faults=faults, host=a.host, port=RDT_PORT + a.port_offset, sensor=a.sensor,
-                             seed=a.seed, sensor_pose_flange=a.netft_sensor_pose, records_per_step=2)
+            box = ctl.box = attach_box(ctl.arm, faults=faults, host=a.host, port=RDT_PORT + a.port_offset,
+                                       sensor=a.sensor, seed=a.seed, sensor_pose_flange=a.netft_sensor_pose,
+                                       records_per_step=2)
         except OSError as e:
             ctl.close_listeners()
             print(f"SIMCONTROLLER PORTS UNAVAILABLE: cannot bind {a.host}:{RDT_PORT + a.port_offset} (Net F/T, "

@@ -53,6 +53,7 @@ class SimNetFtBox:
         self.last_counts = None
         self.faults: list = []            # [FaultSpec, when(arm), fired]
         self.rng = np.random.default_rng(seed + 104729)
+        self.fired: list = []             # (fault text, simulated time): what the simulated controller logs
         self.sent = 0
 
     @property
@@ -102,6 +103,7 @@ class SimNetFtBox:
             if fired or not when(self.arm):
                 continue
             item[2] = True
+            self.fired.append((f.text(), self.arm.t_s))
             if f.kind == "ft-silent":
                 self.silent_until = self.arm.t_s + f.x if f.x else float("inf")
             elif f.kind == "ft-status":

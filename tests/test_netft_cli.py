@@ -13,7 +13,9 @@ sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import make_plan  # noqa: E402
 
 from app import cell, cli  # noqa: E402
+from robot.driver import DriverConfig, watchdog_rate_hz  # noqa: E402
 from robot.records import read_records  # noqa: E402
+from robot.simcontroller import reaction_times_s, read_events  # noqa: E402
 
 
 @pytest.fixture
@@ -77,17 +79,25 @@ def test_cell_sensor_fault_ends_safe_with_records(tmp_path, capsys, plan_file):
     assert recs[-1].status == "fault" and recs[-1].n_samples_total > 0
 
 
-def test_cell_through_the_simulated_controller_and_its_box(tmp_path, capsys, plan_file):
-    """The real ur_rtde client, the simulated controller serving the Net F/T box in real time: the first probe is
-    measured through the box, a bad status word in the second's descent ends the run safe."""
+def test_cell_through_the_simulated_controller_and_its_box(tmp_path, capsys):
+    """The real ur_rtde client, the simulated controller serving the Net F/T box in real time: a 5 N spike in the
+    first descent is stopped (stopL through ur_rtde) well within the stated bound -- the watchdog's 1/rate, 0.2 s at
+    2 mm/s, what a host stalled for good would get -- the second probe is measured through the box, a bad status word
+    before the third ends the run safe."""
+    plan = tmp_path / "plan.json"
+    make_plan((0.02, 0.035, 0.05), depth_m=0.003).save(plan)
     out = tmp_path / "run"
-    code = cell.main(["--sim", "controller", "--plan", plan_file, "--out", str(out), "--force-model", "standin",
-                      "--ft", "netft", "--inject", "ft-status-after-probes=1:32768"])
+    code = cell.main(["--sim", "controller", "--plan", str(plan), "--out", str(out), "--force-model", "standin",
+                      "--ft", "netft", "--inject", "ft-spike-at-depth-m=0.001:5",
+                      "--inject", "ft-status-after-probes=2:32768"])
     text = capsys.readouterr().out
     assert code == 1 and "FAULT sensor_status" in text and "0x00008000" in text, text
     run_json = json.loads((out / "run.json").read_text())
-    assert run_json["fault"]["stopped"] is True and run_json["n_ok"] == 1
+    assert run_json["fault"]["stopped"] is True and (run_json["n_force_limit"], run_json["n_ok"]) == (1, 1)
     src = run_json["force_source"]
     assert src["source"] == "netft" and src["records"] > 1000 and src["lost"] == 0
-    first = read_records(out)[0]
-    assert first.status == "ok" and 0.05 < first.force_mean_n < 1.0     # the stand-in tissue at 3 mm
+    spiked, measured = read_records(out)[:2]
+    assert spiked.status == "force_limit" and measured.status == "ok"
+    assert 0.05 < measured.force_mean_n < 1.0                          # the stand-in tissue at 3 mm
+    reaction = reaction_times_s(read_events((out / "simcontroller.log").read_text()))
+    assert len(reaction) == 1 and 0.002 <= reaction[0] <= 1.0 / watchdog_rate_hz(DriverConfig(), 0.002), reaction
