@@ -20,6 +20,11 @@ the force overshoot it gives in the stiffest tissue of the driver's randomized s
 F = 1.7 k d^1.5 over a stone, k = 1e5 N/m^1.5: the limit is reached at a slope of several kN/m), for probe speeds
 from 0.5 to 10 mm/s; also the blind travel while a silent sensor is detected (``NetFtConfig.stale_s``).
 
+``--e2e-runs R``: also the whole path to the arm, through the real ur_rtde client. R times, ``palpate-cell --sim
+controller --ft netft`` probes a 2-waypoint plan (stand-in tissue) with a 5 N spike injected in each descent; the
+simulated controller logs when the box sent the spike's first record and when the stopL arrived and braked the arm,
+both on its clock (robot.simcontroller.read_events): the reaction the arm sees, RTDE included.
+
 Writes OUT/ft_reaction.json (every number) and OUT/ft_reaction.md (the tables); prints the markdown.
 """
 from __future__ import annotations
@@ -30,6 +35,7 @@ import math
 import multiprocessing as mp
 import random
 import socket
+import subprocess
 import sys
 import time
 from collections import deque
@@ -43,6 +49,9 @@ from robot.driver import DriverConfig, force_when_stopped, stop_lead_periods  # 
 from robot.forcesource import Mount, NetFtForce  # noqa: E402
 from robot.netft import NetFtCalibration, NetFtConfig, SensorFault  # noqa: E402
 from robot.rdt import RdtRecord, pack_record, unpack_request  # noqa: E402
+from robot.simcontroller import reaction_times_s, read_events  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
 
 CAL = NetFtCalibration(1e6, 1e6)
 LIMIT_N = 2.0
@@ -162,6 +171,25 @@ def safety_rows(t_react_s: float, stale_s: float) -> list[dict]:
     return rows
 
 
+def end_to_end(runs: int, out: Path) -> list[float]:
+    """Reaction times (controller clock) from a spike's first record to the stop, through palpate-cell."""
+    plan = out / "e2e_plan.json"
+    subprocess.run([sys.executable, "-m", "app.cli", "plan", "paper", "--waypoints", "2", "--out", str(plan)],
+                   cwd=ROOT, check=True, capture_output=True)
+    times = []
+    for k in range(runs):
+        d = out / f"e2e_{k}"
+        r = subprocess.run([sys.executable, "-m", "app.cell", "--sim", "controller", "--plan", str(plan), "--out",
+                            str(d), "--fresh", "--force-model", "standin", "--ft", "netft", "--seed", str(k),
+                            "--inject", "ft-spike-at-depth-m=0.0008:5", "--inject", "ft-spike-at-depth-m=0.0014:5"],
+                           cwd=ROOT, capture_output=True, text=True)
+        log = (d / "simcontroller.log").read_text() if (d / "simcontroller.log").exists() else ""
+        got = reaction_times_s(read_events(log))
+        print(f"e2e run {k}: exit {r.returncode}, reactions {[round(t * 1e3, 1) for t in got]} ms", file=sys.stderr)
+        times += got
+    return times
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=60.0)
@@ -169,7 +197,11 @@ def main(argv=None) -> int:
     ap.add_argument("--step-n", type=float, default=5.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="bench-out/ft_reaction")
+    ap.add_argument("--e2e-runs", type=int, default=0, help="also measure through palpate-cell --sim controller")
     a = ap.parse_args(argv)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    e2e = end_to_end(a.e2e_runs, out) if a.e2e_runs > 0 else []
     ctx = mp.get_context("spawn")
     port_q, done_q = ctx.Queue(), ctx.Queue()
     box = ctx.Process(target=box_process, args=(port_q, done_q, a.seconds + 1.0, a.rate_hz, a.step_n, a.seed))
@@ -208,9 +240,9 @@ def main(argv=None) -> int:
            "worst_decision_s": t_decide_max,
            "max_probe_speed_m_s": {f"overshoot_{int(f * 100)}pct_at_{name}": max_speed_m_s(t, f)
                                    for f in (0.05, 0.2) for name, t in (("p99", t_decide_p99), ("worst", t_decide_max))},
-           "safety_at_p99": safety_rows(t_decide_p99, stale_s), "safety_at_worst": safety_rows(t_decide_max, stale_s)}
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
+           "safety_at_p99": safety_rows(t_decide_p99, stale_s), "safety_at_worst": safety_rows(t_decide_max, stale_s),
+           "end_to_end_s": {"n": len(e2e), **{q: pct(e2e, p) for q, p in (("p50", 50), ("p90", 90), ("max", 100))}},
+           "end_to_end_samples_s": e2e}
     (out / "ft_reaction.json").write_text(json.dumps(res, indent=1))
     md = render(res)
     (out / "ft_reaction.md").write_text(md)
@@ -231,6 +263,11 @@ def render(r: dict) -> str:
              f"| decision: step sent -> stop called | {ms(dd['p50'])} | {ms(dd['p90'])} | {ms(dd['p99'])} | "
              f"{ms(dd['max'])} |",
              f"| host period overrun | {ms(pl['p50'])} | | {ms(pl['p99'])} | {ms(pl['max'])} |", ""]
+    ee = r["end_to_end_s"]
+    if ee["n"]:
+        lines += [f"End to end through the real ur_rtde client and the simulated controller ({ee['n']} spikes): from "
+                  f"the box's first spiked record to the stop commanded at the controller, p50 {ms(ee['p50'])} ms, "
+                  f"p90 {ms(ee['p90'])} ms, max {ms(ee['max'])} ms.", ""]
     worst = f"worst ({ms(r['worst_decision_s'])} ms: the median plus the longest host overrun seen)"
     for name, key in ((f"p99 ({ms(dd['p99'])} ms)", "safety_at_p99"), (worst, "safety_at_worst")):
         lines += [f"Travel past the limit and force overshoot at the {name} decision latency (+ 2 ms for stopL to reach "
