@@ -13,9 +13,11 @@ competes with the control loop for the GIL). Each record is checked before it is
   so the force limit could not be enforced: a fault (SENSOR_SATURATED);
 * freshness: no new record for ``stale_s`` on the reader's clock is a fault (SENSOR_LOST) -- the box, its cable or
   the network is gone;
-* life: more than ``max_identical`` records in a row with the very same counts on all six axes is a fault
-  (SENSOR_FROZEN) -- a live gauge always shows noise (thousands of counts for an ATI transducer), a stuck box
-  repeats itself with a healthy status.
+* life: more than ``max_identical`` records in a row with the very same counts on all six axes, or with the same
+  F/T sequence (the box's own sample counter), is a fault (SENSOR_FROZEN) -- a live gauge always shows noise
+  (thousands of counts for an ATI transducer) and a sampling box counts on, a stuck one repeats itself with a healthy
+  status;
+* scaling: a reading that is not finite once scaled is a fault (INVALID_READING).
 
 Counts become SI with the box's calibration (counts per N, counts per N m): ``NetFtCalibration``, read from the
 box's ``http://BOX/netftapi2.xml`` (``fetch_calibration``) or given. Readings stay in the SENSOR frame here; the
@@ -127,7 +129,7 @@ class NetFtReader:
         self.span = 0                       # their sum
         self.n_lost = self.n_reordered = self.n_datagrams_bad = self.resyncs = 0
         self.last_poll: float | None = None
-        self.prev_counts, self.identical = None, 0
+        self.prev_counts, self.prev_ft_seq, self.identical = None, None, 0
         self.max_abs_n = 0.0
         self._scale = np.array([1.0 / cfg.calibration.counts_per_force] * 3 +
                                [1.0 / cfg.calibration.counts_per_torque] * 3)
@@ -242,15 +244,19 @@ class NetFtReader:
         if rec.status != 0:
             raise SensorFault(FaultKind.SENSOR_STATUS, f"the Net F/T box reports status 0x{rec.status:08x} (record "
                                                        f"{rec.rdt_sequence}): see its manual and web page")
-        if rec.counts == self.prev_counts:
+        if rec.counts == self.prev_counts or rec.ft_sequence == self.prev_ft_seq:
             self.identical += 1
             if self.cfg.max_identical and self.identical >= self.cfg.max_identical:
                 raise SensorFault(FaultKind.SENSOR_FROZEN, f"{self.identical + 1} Net F/T records in a row with the "
-                                                           f"same counts {list(rec.counts)}: the box or its gauges are "
-                                                           f"stuck (a live sensor always shows noise)")
+                                                           f"same counts or F/T sequence (counts {list(rec.counts)}, "
+                                                           f"F/T sequence {rec.ft_sequence}): the box or its gauges "
+                                                           f"are stuck (a live sensor shows noise and counts on)")
         else:
-            self.prev_counts, self.identical = rec.counts, 0
+            self.identical = 0
+        self.prev_counts, self.prev_ft_seq = rec.counts, rec.ft_sequence
         ft = np.asarray(rec.counts, dtype=float) * self._scale
+        if not np.all(np.isfinite(ft)):
+            raise SensorFault(FaultKind.INVALID_READING, f"Net F/T record {rec.rdt_sequence} scales to {ft.tolist()}")
         fmax, tmax = float(np.max(np.abs(ft[:3]))), float(np.max(np.abs(ft[3:])))
         self.max_abs_n = max(self.max_abs_n, fmax)
         if fmax >= self.cfg.range_n or tmax >= self.cfg.range_nm:

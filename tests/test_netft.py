@@ -141,6 +141,17 @@ def test_reader_refuses_status_and_saturation(box, record, kind):
     r.stop()
 
 
+def test_reader_refuses_a_box_that_stopped_sampling(box):
+    """Fresh RDT records, changing counts, but the box's own F/T sample counter stuck: frozen after 5 records."""
+    r = started(box, max_identical=5)
+    with pytest.raises(SensorFault) as e:
+        for seq in range(2, 8):
+            box.sock.sendto(pack_record(RdtRecord(seq, 1, 0, (seq, 0, 0, 0, 0, 0))), box.client)
+            r.poll()
+    assert e.value.kind == "sensor_frozen" and seq == 6
+    r.stop()
+
+
 def test_reader_stale_and_packet_loss(box):
     now = [0.0]
     r = started(box, clock=lambda: now[0], stale_s=0.05, loss_window=200, max_lost_fraction=0.5)
