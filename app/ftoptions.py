@@ -14,7 +14,7 @@ import math
 from dataclasses import dataclass
 
 from app.errors import UsageError
-from app.options import positive_float
+from app.options import int_range, positive_float
 from core.contracts import SENSORS
 from robot.forcesource import Mount, NetFtForce, RtdeForce
 from robot.netft import NetFtCalibration, NetFtConfig, fetch_calibration
@@ -75,13 +75,15 @@ def add_ft_options(p, *, sim_help: str = "with --sim") -> None:
                         "box; the simulated one's is the --sensor preset's")
     g.add_argument("--ft-range-nm", type=positive_float, metavar="NM",
                    help=f"its rated torque range per axis (N m); needed for a real box (simulated: {SIM_RANGE_NM:g})")
+    g.add_argument("--ft-port", type=int_range(1, 65535), metavar="PORT",
+                   help=f"a real box's RDT port (default {RDT_PORT}, ATI's)")
     g.add_argument("--ft-counts-per-force", type=positive_float, metavar="COUNTS",
                    help="the box's counts per N (default: read from http://HOST/netftapi2.xml)")
     g.add_argument("--ft-counts-per-torque", type=positive_float, metavar="COUNTS",
                    help="the box's counts per N m (default: read from the box with the counts per N)")
 
 
-FT_DETAIL = ("ft_sensor_pose", "ft_range_n", "ft_range_nm", "ft_counts_per_force", "ft_counts_per_torque")
+FT_DETAIL = ("ft_sensor_pose", "ft_range_n", "ft_range_nm", "ft_port", "ft_counts_per_force", "ft_counts_per_torque")
 
 
 def _opt(name: str) -> str:
@@ -114,7 +116,7 @@ def check_ft(args, *, sim: bool, real_host: bool) -> None:
     else:
         extra = [n for n in given if n != "ft_sensor_pose"]
         if extra:
-            raise UsageError(f"{_opt(extra[0])}: the simulated box's range and calibration are its own "
+            raise UsageError(f"{_opt(extra[0])}: the simulated box's range, port and calibration are its own "
                              f"(--sensor preset); only --ft-sensor-pose applies to it")
     cpf, cpt = getattr(args, "ft_counts_per_force", None), getattr(args, "ft_counts_per_torque", None)
     if (cpf is None) != (cpt is None):
@@ -140,7 +142,8 @@ def real_config(args) -> NetFtConfig:
             raise UsageError(f"--ft {args.ft.text}: cannot read the calibration from http://{host}/netftapi2.xml "
                              f"({e}); give --ft-counts-per-force and --ft-counts-per-torque from its calibration "
                              f"sheet") from None
-    return NetFtConfig(host=host, calibration=cal, range_n=args.ft_range_n, range_nm=args.ft_range_nm)
+    return NetFtConfig(host=host, port=args.ft_port or RDT_PORT, calibration=cal, range_n=args.ft_range_n,
+                       range_nm=args.ft_range_nm)
 
 
 def sim_config(host: str, port: int, sensor: str, **kw) -> NetFtConfig:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -15,7 +17,9 @@ from robot_fixtures import make_plan  # noqa: E402
 from app import cell, cli  # noqa: E402
 from robot.driver import DriverConfig, watchdog_rate_hz  # noqa: E402
 from robot.records import read_records  # noqa: E402
+from robot.sim import ArmModel  # noqa: E402
 from robot.simcontroller import reaction_times_s, read_events  # noqa: E402
+from robot.simnetft import attach_box  # noqa: E402
 
 
 @pytest.fixture
@@ -35,6 +39,7 @@ def plan_file(tmp_path):
     (["run", "--host", "192.0.2.1", "--ft", "netft:192.0.2.2", "--ft-sensor-pose", "0,0,0.02,0,0,0",
       "--ft-range-n", "25", "--ft-range-nm", "0.25", "--ft-counts-per-force", "1e6"], "--ft-counts-per-torque"),
     (["ft", "--ft", "rtde"], "--ft rtde"),
+    (["ft", "--ft", "netft", "--ft-port", "49152"], "--ft-port"),
 ])
 def test_bad_ft_combinations_are_refused_in_one_line(tmp_path, capsys, argv, names):
     code = cli.main(argv + ["--out", str(tmp_path / "out")] if argv[0] == "run" else argv)
@@ -64,6 +69,32 @@ def test_palpate_ft_reads_the_simulated_box(tmp_path, capsys):
     assert rep["simulated"] and rep["fault"] is None and rep["lost"] == 0
     assert 300 <= rep["rate_hz"] <= 1100                 # 1 kHz stepped by a thread on a busy machine
     assert all(0.001 < s < 0.01 for s in rep["force_std_n"])    # the nano17 preset's 3 mN noise
+
+
+def test_palpate_ft_reads_a_box_at_an_address(tmp_path):
+    """The real-box path (address, port, calibration and ranges given) against a simulated box on loopback."""
+    arm = ArmModel(None, sensor="ideal")
+    box = attach_box(arm, host="127.0.0.1", port=0, records_per_step=2)
+    port = box.address[1]
+    stop = threading.Event()
+
+    def tick():
+        while not stop.is_set():
+            arm.step()
+            time.sleep(0.002)
+    stepper = threading.Thread(target=tick, daemon=True)
+    stepper.start()
+    out = tmp_path / "ft.json"
+    try:
+        code = cli.main(["ft", "--ft", "netft:127.0.0.1", "--ft-port", str(port), "--ft-counts-per-force",
+                         "1e6", "--ft-counts-per-torque", "1e6", "--ft-range-n", "35", "--ft-range-nm", "0.25",
+                         "--duration-s", "0.3", "--json", str(out)])
+    finally:
+        stop.set()
+        stepper.join()
+        box.close()
+    rep = json.loads(out.read_text())
+    assert code == 0 and not rep["simulated"] and rep["port"] == port and rep["records"] > 100
 
 
 def test_cell_sensor_fault_ends_safe_with_records(tmp_path, capsys, plan_file):

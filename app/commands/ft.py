@@ -44,7 +44,8 @@ def _check(args) -> None:
         raise UsageError(f"--ft {ft.text}: palpate ft reads a Net F/T box: give --ft netft:HOST (or --ft netft for "
                          f"the simulated one)")
     if not ft.host:
-        for name in ("ft_sensor_pose", "ft_range_n", "ft_range_nm", "ft_counts_per_force", "ft_counts_per_torque"):
+        for name in ("ft_sensor_pose", "ft_range_n", "ft_range_nm", "ft_port", "ft_counts_per_force",
+                     "ft_counts_per_torque"):
             if getattr(args, name) is not None:
                 raise UsageError(f"--{name.replace('_', '-')}: the simulated box's settings are its own")
     elif args.ft_sensor_pose is not None:
