@@ -101,6 +101,8 @@ class ArmModel:
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
+        self.on_step: list = []           # called after every step (a simulated external sensor samples there)
+        self.stops_s: list = []
         n_lat = max(0, int(round(latency_s / period_s)))
         self.samples: deque = deque(maxlen=n_lat + 1)
         self._sample()
@@ -199,6 +201,7 @@ class ArmModel:
             self.motions_ended += 1
 
     def stop(self, decel: float) -> None:
+        self.stops_s.append(self.t_s)    # when each stop was commanded (reaction-time measurements)
         if self.motion is not None:
             self.motion.a_stop = float(decel)
 
@@ -275,10 +278,12 @@ class ArmModel:
         if fc > self.safety_force_n and not self.protective_stopped:
             self.trigger_protective_stop()
         self._sample(fc)
+        for fn in self.on_step:
+            fn()
 
     def _pose(self) -> list[float]:
-        """ur5e.T_to_pose(T_tcp), the rotation vector reused while the orientation stays the same (a probe's
-        descent and most travel: the slerp of equal rotations is that rotation)."""
+        """ur5e.T_to_pose(T_tcp), the rotation vector reused while the orientation stays the same (the arm at
+        rest: zeroing, dwells, waits)."""
         R = self.T_tcp[:3, :3]
         key = R.tobytes()
         if key != self._rotvec_key:
