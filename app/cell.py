@@ -26,6 +26,7 @@ from pathlib import Path
 
 from app.commands.output import write_json
 from app.errors import UsageError, guarded
+from app.ftoptions import add_ft_options, check_ft, controller_pose, inmemory_source, linked_source
 from app.isolate import ChildDied, ChildTimeout, run_in_child
 from app.options import (
     check_output_dir,
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "ur_rtde waits for good on a controller that accepts connections but never answers")
     p.add_argument("--payload-kg", type=float_range(0.0, MAX_PAYLOAD_KG, lo_open=False, unit="kg"), default=0.1,
                    help=f"tool payload, 0..{MAX_PAYLOAD_KG:g} kg (default 0.1)")
+    add_ft_options(p)
     p.add_argument("--json", metavar="PATH", help="also write the run report here")
     p.add_argument("--debug", action="store_true", help="show a traceback on errors")
     g = p.add_argument_group("simulation (--sim)")
@@ -118,13 +120,18 @@ def truth_scene(plan: Plan, arg: str | None) -> str:
 
 
 def inmemory_arm(plan: Plan, args):
-    """The in-memory simulated arm (robot.simarm) and its ur_rtde-like interfaces."""
+    """The in-memory simulated arm (robot.simarm), its ur_rtde-like interfaces and the force source (None: the
+    wrist sensor; else a Net F/T source reading a simulated box stepped with the arm)."""
     truth = truth_scene(plan, args.truth) if args.force_model == "fem" else None
     arm = build_truth_arm(truth, force=args.force_model, sensor=args.sensor, seed=args.seed,
                           tissue_pose=plan.frames.tissue_pose_base, tcp_offset=plan.frames.tcp_offset,
                           start_above_pose=plan.probes[0].approach_pose if plan.probes else None,
                           mesh_m=args.sim_mesh_m, inject=args.inject)
-    return arm, SimRTDEControl(arm), SimRTDEReceive(arm)
+    c, r = SimRTDEControl(arm), SimRTDEReceive(arm)
+    fs = None
+    if args.ft.kind == "netft":
+        fs, _ = inmemory_source(args, arm, c, plan.frames.tcp_offset, [parse_fault(f) for f in args.inject])
+    return arm, c, r, fs
 
 
 def print_preflight(pre: dict, where: str) -> None:
@@ -186,6 +193,10 @@ def _main(args) -> int:
     on_ctl = [f.text() for f in faults if f.on_controller]
     if on_ctl and args.sim != "controller":
         raise UsageError(f"--inject {on_ctl[0]}: a controller fault, only with --sim controller")
+    check_ft(args, sim=bool(args.sim), real_host=bool(args.host))
+    on_ft = [f.text() for f in faults if f.on_ft]
+    if on_ft and args.ft.kind != "netft":
+        raise UsageError(f"--inject {on_ft[0]}: a fault of the simulated Net F/T box, only with --ft netft")
     args.inject = [f.text() for f in faults]
     if args.sim and args.force_model == "fem":
         truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
@@ -193,6 +204,9 @@ def _main(args) -> int:
             truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
     done = set() if args.fresh else done_indices(out)
     where = f"simulated arm ({args.sim})" if args.sim else f"UR controller at {args.host}"
+    if args.ft.kind == "netft":
+        where += f", force from the Net F/T box ({args.ft.host or 'simulated'}: the UR's own force protection does " \
+                 f"not see it, the driver's force limit is the only guard on it)"
     pre = preflight(plan, done)
     print_preflight(pre, where)
     cfg = DriverConfig(payload_kg=args.payload_kg, skip_invalid=args.skip_invalid)
@@ -208,8 +222,13 @@ def _main(args) -> int:
             rep = _run_controller(plan, args, out, cfg)
         else:
             if args.sim:
-                arm, c, r = inmemory_arm(plan, args)
-                rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress)
+                arm, c, r, fs = inmemory_arm(plan, args)
+                try:
+                    rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress,
+                                   force_source=fs)
+                finally:
+                    if fs is not None:
+                        fs.close()
             else:
                 rep = _run_host(plan, args, out, cfg, args.host)
     except ControllerPortsUnavailable as e:
@@ -252,7 +271,7 @@ def _run_controller(plan: Plan, args, out: Path, cfg: DriverConfig):
         ctl = start_controller(scene=truth, sensor=args.sensor, seed=args.seed,
                                inject=args.inject, force=args.force_model, tissue_pose=plan.frames.tissue_pose_base,
                                mesh_m=args.sim_mesh_m, tool=plan.frames.tcp_offset, host="auto",
-                               log_path=out / "simcontroller.log")
+                               log_path=out / "simcontroller.log", netft_sensor_pose=controller_pose(args))
     except PortsUnavailable as e:
         raise ControllerPortsUnavailable(str(e)) from None
     with ctl:
@@ -291,15 +310,17 @@ def _linked_session(started, plan: Plan, args, out: Path, cfg: DriverConfig, hos
         return "not_connected", str(e)
     started()
     clean = False
+    fs = linked_source(args, c, r, plan.frames.tcp_offset, host)
     try:
         rep = None
         rep = run_plan(plan, c, r, out, config=cfg, resume=not args.fresh, progress=_progress,
-                       diagnose=lambda: LOCAL_CONTROL if remote_control(host) is False else None)
+                       diagnose=lambda: LOCAL_CONTROL if remote_control(host) is False else None, force_source=fs)
         clean = rep.status == "ok"
         return "report", rep
     finally:
         # after a silent link nothing more is sent, not even a disconnect (a call may still be pending on it):
         # the child's exit closes the sockets
+        fs.close()
         if not (rep is not None and rep.fault and rep.fault.get("silent_link")):
             end_session(c, r, clean)
 

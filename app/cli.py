@@ -25,6 +25,7 @@ COMMANDS = {
     "run": "plan, probe (simulated arm by default), locate the stone, refine",
     "bench": "run time against error, skips, scaling, stress tests",
     "study": "accuracy and detectability studies on dask.distributed (serial, LocalCluster or a cluster)",
+    "ft": "read an ATI Net F/T box for a while: rate, lost records, mean and noise per axis",
 }
 
 EPILOG = """examples:
@@ -34,6 +35,7 @@ EPILOG = """examples:
   palpate plan paper --out plan.json --plots out/          CasADi raster plan for a UR5e
   palpate run paper --sim --out run/                       plan, probe with the simulated arm, locate the stone
   palpate study accuracy --out study/ --quick              the accuracy study on a dask LocalCluster
+  palpate ft --ft netft:192.168.1.1 --ft-range-n 25 --ft-range-nm 0.25   check an ATI Net F/T box
 scenes: a built-in name (paper, paper-left, paper-right, paper-deep, healthy) or a TOML file (see README).
 Add --debug to any command to see a traceback instead of a one-line error."""
 

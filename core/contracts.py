@@ -328,6 +328,12 @@ class FaultKind(StrEnum):
     INTERRUPTED = "interrupted"
     CLIENT_CRASHED = "client_crashed"  # the process holding the ur_rtde link died (app.isolate)
     PROGRAM_STOPPED = "program_stopped"  # an operator stopped the control program (pendant, dashboard, local mode)
+    SENSOR_LOST = "sensor_lost"          # the external F/T sensor sends nothing (cable, box, network)
+    SENSOR_STATUS = "sensor_status"      # the external F/T sensor reports a problem in its status word
+    SENSOR_SATURATED = "sensor_saturated"  # a reading at the sensor's rated range: the force is unknown
+    SENSOR_PACKET_LOSS = "sensor_packet_loss"  # too many of its records lost on the way
+    SENSOR_FROZEN = "sensor_frozen"      # its readings stopped changing (a real sensor always has noise)
+    SENSOR_DISAGREES = "sensor_disagrees"  # the wrist sensor reads far more than the external one
 
 
 @dataclass

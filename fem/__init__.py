@@ -1,7 +1,9 @@
 """palpate's finite-element package: scenes, meshes, load A (uniform compression) and load B (tip contact).
 
-The names in ``__all__`` are the public API. Importing fem stays light: gmsh and meshio are imported only when a
-mesh is built or a file written, and matplotlib only by ``fem.plots`` (import it explicitly).
+The names in ``__all__`` are the public API, each imported from its module on first use (core.lazy). Importing fem
+stays light: scipy is imported only when a model is assembled, factorized or its stress operators built (a scene
+whose surface operators come from the disk cache predicts with numpy alone), gmsh and meshio only when a mesh is
+built or a file written, and matplotlib only by ``fem.plots`` (import it explicitly).
 
 Modules (each imports only modules listed before it; tests/test_fem_imports.py checks there is no cycle):
   scene       Scene, Tissue, Stone, Indenter, Analysis, SceneError, load, from_dict (TOML scenes, built-ins)
@@ -17,6 +19,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   mixed       load A, locking-free Taylor-Hood u-p
   uniform     load A: solve_uniform (dispatches to mixed)
   tip         TipCompliance (an elastic tip), rigid_tip_bound, treated_as_rigid, contact_scene (what a key names)
+  influence   influence operators of the top nodes: stresses and the no-inversion check at the cost of forces
   contact     load B: SurfaceModel, surface_model (memory + disk cache), indent_full, tip_profile, check_waypoint
   export      VTU export (meshio): write_vtu, write_result_vtu
   plots       figures (matplotlib), not imported here
@@ -36,27 +39,16 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   export3d    VTU export of tetrahedral meshes
   plots3d     3D figures (matplotlib), not imported here
 """
-from .contact import (
-    IndentResult,
-    SurfaceModel,
-    check_waypoint,
-    indent_full,
-    surface_model,
-    tip_profile,
-)
-from .export import write_result_vtu, write_vtu
-from .lcp import solve_lcp
-from .mesh import Mesh, mesh_scene, mesh_section
-from .model import Model, build_model
-from .results import Profile, UniformResult
-from .scene import Analysis, Indenter, Scene, SceneError, Stone, Tissue, from_dict, load
-from .scene_mesh import mesh_for
-from .stress import components, nodal_poisson, recovery_operator
-from .uniform import solve_uniform
+from core.lazy import lazy_exports
 
-__all__ = [   # see the module docstring for where each name lives
-    "Analysis", "IndentResult", "Indenter", "Mesh", "Model", "Profile", "Scene", "SceneError", "Stone",
-    "SurfaceModel", "Tissue", "UniformResult", "build_model", "check_waypoint", "components", "from_dict",
-    "indent_full", "load", "mesh_for", "mesh_scene", "mesh_section", "nodal_poisson", "recovery_operator",
-    "solve_lcp", "solve_uniform", "surface_model", "tip_profile", "write_result_vtu", "write_vtu"
-]
+_EXPORTS = {
+    "IndentResult": "contact", "SurfaceModel": "contact", "check_waypoint": "contact", "indent_full": "contact",
+    "surface_model": "contact", "tip_profile": "contact", "write_result_vtu": "export", "write_vtu": "export",
+    "solve_lcp": "lcp", "Mesh": "mesh", "mesh_scene": "mesh", "mesh_section": "mesh", "Model": "model",
+    "build_model": "model", "Profile": "results", "UniformResult": "results", "Analysis": "scene",
+    "Indenter": "scene", "Scene": "scene", "SceneError": "scene", "Stone": "scene", "Tissue": "scene",
+    "from_dict": "scene", "load": "scene", "mesh_for": "scene_mesh", "components": "stress",
+    "nodal_poisson": "stress", "recovery_operator": "stress", "solve_uniform": "uniform",
+}
+__all__ = sorted(_EXPORTS)   # see the module docstring for where each name lives
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)

@@ -5,12 +5,15 @@ DOFs are interleaved: node i has ux at 2i and uy at 2i+1. Strain in Voigt form [
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from .elements import quadrature, shape, shape_grad
 from .mesh import Mesh
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 
 @dataclass(frozen=True)
@@ -77,6 +80,7 @@ def element_dofs(mesh: Mesh) -> np.ndarray:
 
 def stiffness(mesh: Mesh, D: np.ndarray, elements: np.ndarray | None = None) -> sp.csr_matrix:
     """Global stiffness matrix (2N x 2N, CSR) from per-element D (M, 3, 3); ``elements`` restricts the sum."""
+    import scipy.sparse as sp
     pts, w = quadrature(2 * (mesh.order - 1))
     G, det = gradients(mesh, pts)
     B = strain_matrices(G)                                 # (M, q, 3, ne)

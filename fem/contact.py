@@ -27,16 +27,19 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from . import diskcache
 from .guards import check_finite, check_not_inverted
+from .influence import Influence, band_nodes, fits
 from .lcp import solve_lcp
 from .model import Model, build_model
 from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
 from .scene_mesh import check_surface_budget, code_version, mesh_for
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TIP_TOLERANCE, TipCompliance, contact_scene, rigid_tip_bound
+
+INFLUENCE_MIN_WAYPOINTS = 50   # a batch this large builds the influence operators (a smaller one uses them if cached)
+INVERSION_HINT = "indent less deep (the tissue above a stone or the tissue height is too thin)"
 
 
 @dataclass
@@ -102,6 +105,7 @@ class SchurFactor:
     solve. The interior keeps SuperLU's fill-reducing ordering (taken from a first factorization)."""
 
     def __init__(self, K, free: np.ndarray, contact: np.ndarray):
+        import scipy.sparse.linalg as spla
         Kff = K[free][:, free].tocsc()
         pos = np.full(K.shape[0], -1)
         pos[free] = np.arange(len(free))
@@ -140,7 +144,7 @@ class SurfaceModel:
 
     def __init__(self, scene, model: Model | None = None, rigid_tip: str | bool = "auto",
                  tip_tolerance: float = TIP_TOLERANCE, stress_band_m: float | None = None,
-                 rigid_stones: str | bool = "auto", *, compliance: np.ndarray | None = None,
+                 rigid_stones: str | bool = "auto", use_influence: bool = True, *, compliance: np.ndarray | None = None,
                  tip: TipCompliance | None = None):
         t0 = time.perf_counter()
         if scene.analysis.formulation != "displacement":
@@ -180,8 +184,11 @@ class SurfaceModel:
             self.tip_note = "elastic tip (condensed tip compliance added)"
         self.tip = None if self.rigid_tip else (tip if tip is not None else TipCompliance.build(scene))
         self.band_m = stress_band_m if stress_band_m is not None else 2 * ind.radius_m
-        self._band = None
-        self._top_op = None
+        self._band_ops = None
+        self.use_influence = use_influence
+        self._influence: Influence | bool | None = None
+        self._influence_cache = None         # set by load_or_build_surface: the disk cache's entry for them
+        self._cache_probed = False
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
 
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -216,17 +223,71 @@ class SurfaceModel:
         """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes."""
         return condensed_displacements(self.model, self.fac, F_top)
 
-    def _band_op(self):
-        if self._band is None:
-            mesh = self.model.mesh
-            nodes = np.flatnonzero(mesh.nodes[:, 1] >= mesh.height_m - self.band_m - 1e-12)
-            self._band = (nodes, recovery_operator(self.model, nodes), nodal_poisson(self.model, nodes))
-        return self._band
+    def _band(self) -> tuple[np.ndarray, np.ndarray, object, object]:
+        """(band nodes, their Poisson ratios, recovery operators on the full displacements: band, top)."""
+        if self._band_ops is None:
+            nodes = band_nodes(self.model, self.band_m)
+            self._band_ops = (nodes, nodal_poisson(self.model, nodes), recovery_operator(self.model, nodes),
+                              recovery_operator(self.model, self.top))
+        return self._band_ops
 
-    def _top_stress_op(self):
-        if self._top_op is None:
-            self._top_op = recovery_operator(self.model, self.top)
-        return self._top_op
+    def influence(self, build: bool = True) -> Influence | None:
+        """The influence operators (fem.influence): from the disk cache when this model came from it, else built
+        (when ``build``); None when they would exceed fem.influence.MAX_OPERATOR_BYTES, are switched off, or are
+        neither cached nor to be built. Building them costs about one back-substitution per top node (a few
+        seconds on the paper scene, once per scene): worth it for INFLUENCE_MIN_WAYPOINTS waypoints or more."""
+        if self._influence is None:
+            if not (self.use_influence and fits(self.model, self.band_m, len(self.top))):
+                self._influence = False
+            elif self._influence_cache is not None and not self._cache_probed:
+                self._cache_probed = True
+                self._influence = self._influence_cache(None)
+            if self._influence is None and build:
+                make = lambda: Influence.build(self.model, self.band_m, self.x, self.scene.indenter.radius_m,  # noqa: E731
+                                               self.displacements)
+                self._influence = self._influence_cache(make) if self._influence_cache else make()
+        return self._influence or None
+
+    def _tip_stresses(self, sols, x0s, depths) -> list[tuple[float, int, np.ndarray] | None]:
+        """Per waypoint with contact: (max von Mises over the band (Pa), the node where, sigma_yy at the window's
+        top nodes), after the no-inversion check; None without contact. From the influence operators when the
+        model has them, else from one batched back-substitution."""
+        out: list = [None] * len(sols)
+        hit = [k for k, (_, f, _) in enumerate(sols) if (f > 0).any()]
+        if not hit:
+            return out
+        inf = self.influence(build=len(hit) >= INFLUENCE_MIN_WAYPOINTS)
+        if inf is not None:
+            where = {int(n): i for i, n in enumerate(inf.band)}
+            top_rows = np.array([where[int(n)] for n in self.top])       # the top nodes lie in the band
+            for k in hit:
+                idx, f, _ = sols[k]
+                inf.check(self.model, idx, f, float(x0s[k]), full=lambda: self._field(idx, f),
+                          what=self._where([x0s[k]], [depths[k]]), hint=INVERSION_HINT)
+                vm, span = inf.band_von_mises(self.model, idx, f, float(x0s[k]))
+                j = int(np.argmax(vm))
+                syy = np.tensordot(f, inf.A[inf.rows(idx)][:, top_rows[idx], 1], axes=1)
+                out[k] = (float(vm[j]), int(inf.band[span][j]), syy)
+            return out
+        F = np.zeros((len(self.top), len(hit)))
+        for c, k in enumerate(hit):
+            idx, f, _ = sols[k]
+            F[idx, c] = f
+        nodes, nu, Rb, Rt = self._band()
+        U = self.displacements(F)
+        self.check_deformation(U, x0s[hit], depths[hit])
+        vm = components(np.moveaxis((Rb @ U).reshape(len(nodes), 3, -1), 2, 0), nu[None, :],
+                        self.model.plane)["von_mises_pa"]                                         # (k, n_band)
+        St = (Rt @ U).reshape(len(self.top), 3, -1)
+        for c, k in enumerate(hit):
+            j = int(np.argmax(vm[c]))
+            out[k] = (float(vm[c, j]), int(nodes[j]), St[sols[k][0], 1, c])
+        return out
+
+    def _field(self, idx: np.ndarray, f: np.ndarray) -> np.ndarray:
+        F = np.zeros((len(self.top), 1))
+        F[idx, 0] = f
+        return self.displacements(F)[:, 0]
 
     # -- one waypoint --------------------------------------------------------------------------------------------
     def _window(self, x_m: float) -> np.ndarray:
@@ -257,31 +318,20 @@ class SurfaceModel:
         return self.indent_many([x_m], [depth_m], stresses=stresses)[0]
 
     def indent_many(self, x_m, depth_m, stresses: bool = True) -> list[IndentResult]:
-        """Several waypoints; their stress fields come from one batched back-substitution."""
+        """Several waypoints; stresses from the influence operators (fem.influence), else one batched back-substitution."""
         x0s = np.atleast_1d(np.asarray(x_m, float))
         depths = np.broadcast_to(np.asarray(depth_m, float), x0s.shape)
         sols = [self.contact_forces(float(x), float(d)) for x, d in zip(x0s, depths)]
-        F = np.zeros((len(self.top), len(sols)))
-        for k, (idx, f, _) in enumerate(sols):
-            F[idx, k] = f
-        if stresses and F.any():
-            U = self.displacements(F)
-            self.check_deformation(U, x0s, depths)
-            nodes, Rb, nu = self._band_op()
-            Sb = (Rb @ U).reshape(len(nodes), 3, -1)
-            St = (self._top_stress_op() @ U).reshape(len(self.top), 3, -1)
-            vm = components(np.moveaxis(Sb, 2, 0), nu[None, :], self.model.plane)["von_mises_pa"]  # (k, n_band)
+        tip = self._tip_stresses(sols, x0s, depths) if stresses else [None] * len(sols)
         out = []
         H = self.model.mesh.height_m
-        for k, ((idx, f, gap), x0, d) in enumerate(zip(sols, x0s, depths)):
+        for (idx, f, gap), x0, d, t in zip(sols, x0s, depths, tip):
             active = f > 0
             vm_max, at, pressure = 0.0, (float(x0), 0.0), np.zeros(len(idx))
-            if stresses and active.any():
-                j = int(np.argmax(vm[k]))
-                node = nodes[j]
-                vm_max = float(vm[k, j])
+            if t is not None:
+                vm_max, node, syy = t
                 at = (float(self.model.mesh.nodes[node, 0]), float(H - self.model.mesh.nodes[node, 1]))
-                pressure = np.where(active, np.maximum(-St[idx, 1, k], 0.0), 0.0)
+                pressure = np.where(active, np.maximum(-syy, 0.0), 0.0)
             P = float(f.sum())
             out.append(IndentResult(x_m=float(x0), depth_m=float(d), force_n_per_m=P,
                                     force_n=P * self.scene.indenter.thickness_m, max_von_mises_pa=vm_max,
@@ -294,10 +344,12 @@ class SurfaceModel:
         """InvertedElementsError if the displacements U (2N,) or (2N, k) of the waypoints fold an element over;
         else the largest principal strain of each. A few ms on the paper scene; the force-only path (force_n)
         computes no displacements and relies on check_waypoint."""
+        return check_not_inverted(self.model.mesh, U, self._where(x_m, depth_m), INVERSION_HINT)
+
+    def _where(self, x_m, depth_m) -> str:
         where = ", ".join(f"(x_m={float(x):.4g}, depth_m={float(d):.4g})"
                           for x, d in zip(np.atleast_1d(x_m), np.atleast_1d(depth_m)))
-        return check_not_inverted(self.model.mesh, U, f"scene {self.scene.name!r}: indentation at {where}",
-                                  "indent less deep (the tissue above a stone or the tissue height is too thin)")
+        return f"scene {self.scene.name!r}: indentation at {where}"
 
     def depth_for_force(self, x_m: float, force_n: float, depth_max_m: float) -> float:
         """The depth at which the tip force reaches ``force_n`` (force is monotone in depth); depth_max_m if never."""
@@ -388,10 +440,23 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
     $PALPATE_CACHE, False skips the disk cache."""
     check_surface_budget(scene)
     model = build_model(scene, mesh=mesh_for(scene, use=use), rigid_stones=options.get("rigid_stones", "auto"))
-    return diskcache.load_or_build(
-        "surface", _surface_spec(scene, options), build=lambda: SurfaceModel(scene, model=model, **options),
+    spec = _surface_spec(scene, options)
+    sm = diskcache.load_or_build(
+        "surface", spec, build=lambda: SurfaceModel(scene, model=model, **options),
         to_arrays=SurfaceModel.to_arrays,
         from_arrays=lambda arrays: SurfaceModel.from_arrays(scene, arrays, model=model, **options), use=use)
+    ispec = {"surface": spec, "band_m": sm.band_m}
+    read = lambda arrays: Influence.from_arrays(arrays, model, sm.band_m, len(sm.top))  # noqa: E731
+
+    def influence_cache(build):
+        """The influence operators from the disk cache (memory-mapped), else ``build()`` and stored; with
+        build=None only what the cache holds (or None)."""
+        if build is None:
+            return diskcache.load("influence", ispec, read, use=use, mmap=True)
+        return diskcache.load_or_build("influence", ispec, build=build, to_arrays=Influence.to_arrays,
+                                       from_arrays=read, use=use, mmap=True)
+    sm._influence_cache = influence_cache                                  # noqa: SLF001 (the cache's hook)
+    return sm
 
 
 _CACHE: dict[tuple, SurfaceModel] = {}
@@ -411,6 +476,7 @@ def indent_full(scene, x_m: float, depth_m: float, model: Model | None = None, m
     refactorized at every iteration of its own primal-dual active-set loop (add penetrating nodes, release nodes
     pulled by tension). No condensation and no LCP solver; rigid tip only. Used to check the fast path and as the
     "full re-solve per waypoint" baseline of the benchmark."""
+    import scipy.sparse.linalg as spla
     check_waypoint(scene, x_m, depth_m)
     model = model or build_model(scene)
     mesh = model.mesh
@@ -439,7 +505,7 @@ def indent_full(scene, x_m: float, depth_m: float, model: Model | None = None, m
         raise RuntimeError(f"full contact solve did not settle in {max_iter} iterations")
     u_full = model.P @ u
     check_not_inverted(mesh, u_full, f"scene {scene.name!r}: indentation at (x_m={x_m}, depth_m={depth_m})",
-                       "indent less deep (the tissue above a stone or the tissue height is too thin)")
+                       INVERSION_HINT)
     check_finite(u_full, f"scene {scene.name!r}: displacements at x_m={x_m}, depth_m={depth_m}")
     P = float(force.sum())
     return {"x_m": x_m, "depth_m": depth_m, "force_n_per_m": P, "force_n": P * scene.indenter.thickness_m,

@@ -15,6 +15,7 @@ import json
 import os
 import tempfile
 import warnings
+import zipfile
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
@@ -73,11 +74,40 @@ def write(path: Path, arrays: Arrays) -> None:
         warnings.warn(f"palpate cache: could not write {path}: {e}", stacklevel=3)
 
 
-def read(path: Path) -> Arrays | None:
-    """The arrays of an entry; None when absent or unreadable (with a warning)."""
+def _mapped(path: Path) -> Arrays:
+    """The arrays of an uncompressed .npz (what ``write`` makes) as read-only memory maps: nothing is read until
+    used, so a large operator of which a run touches a part costs only that part. Each member's bytes are contiguous
+    in the file (stored, not deflated); its .npy header gives dtype, shape and order."""
+    out = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as f:
+        for info in zf.infolist():
+            if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                raise ValueError(f"member {info.filename} is not a stored .npy")
+            f.seek(info.header_offset)
+            local = f.read(30)
+            name_len, extra_len = int.from_bytes(local[26:28], "little"), int.from_bytes(local[28:30], "little")
+            f.seek(info.header_offset + 30 + name_len + extra_len)
+            version = np.lib.format.read_magic(f)
+            shape, fortran, dtype = (np.lib.format.read_array_header_1_0(f) if version == (1, 0) else
+                                     np.lib.format.read_array_header_2_0(f))
+            if dtype.hasobject:
+                raise ValueError(f"member {info.filename} holds Python objects")
+            key = info.filename[:-4]
+            if int(np.prod(shape)) == 0:
+                out[key] = np.zeros(shape, dtype)
+            else:
+                out[key] = np.memmap(path, dtype=dtype, mode="r", offset=f.tell(), shape=shape,
+                                     order="F" if fortran else "C")
+    return out
+
+
+def read(path: Path, mmap: bool = False) -> Arrays | None:
+    """The arrays of an entry (memory-mapped when ``mmap``); None when absent or unreadable (with a warning)."""
     if not path.exists():
         return None
     try:
+        if mmap:
+            return _mapped(path)
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
     except Exception as e:  # noqa: BLE001 - any damage means: ignore the entry and rebuild
@@ -88,24 +118,36 @@ def read(path: Path) -> Arrays | None:
 
 
 def load_or_build(kind: str, spec: dict, build: Callable[[], T], to_arrays: Callable[[T], Arrays],
-                  from_arrays: Callable[[Arrays], T], use: bool | None = None) -> T:
+                  from_arrays: Callable[[Arrays], T], use: bool | None = None, mmap: bool = False) -> T:
     """``from_arrays`` of the stored entry, else ``build()`` (stored with ``to_arrays``). ``from_arrays`` raises
-    KeyError or ValueError for an entry it cannot use; the entry is then ignored with a warning and rebuilt."""
+    KeyError or ValueError for an entry it cannot use; the entry is then ignored with a warning and rebuilt.
+    ``mmap``: hand ``from_arrays`` read-only memory maps of the stored arrays (large operators read in part)."""
     if not enabled(use):
         return build()
-    path = entry_path(kind, spec)
-    arrays = read(path)
-    if arrays is not None:
-        try:
-            obj = from_arrays(arrays)
-        except (KeyError, ValueError) as e:
-            stats["corrupt"] += 1
-            warnings.warn(f"palpate cache: ignoring entry {path} ({type(e).__name__}: {e}); rebuilding",
-                          stacklevel=2)
-        else:
-            stats[f"{kind}_hit"] += 1
-            return obj
+    obj = load(kind, spec, from_arrays, use=use, mmap=mmap)
+    if obj is not None:
+        return obj
     stats[f"{kind}_miss"] += 1
     obj = build()
-    write(path, to_arrays(obj))
+    write(entry_path(kind, spec), to_arrays(obj))
+    return obj
+
+
+def load(kind: str, spec: dict, from_arrays: Callable[[Arrays], T], use: bool | None = None,
+         mmap: bool = False) -> T | None:
+    """``from_arrays`` of the stored entry, or None when there is none (or it cannot be used: then with a
+    warning, as in ``load_or_build``)."""
+    if not enabled(use):
+        return None
+    path = entry_path(kind, spec)
+    arrays = read(path, mmap=mmap)
+    if arrays is None:
+        return None
+    try:
+        obj = from_arrays(arrays)
+    except (KeyError, ValueError) as e:
+        stats["corrupt"] += 1
+        warnings.warn(f"palpate cache: ignoring entry {path} ({type(e).__name__}: {e}); rebuilding", stacklevel=3)
+        return None
+    stats[f"{kind}_hit"] += 1
     return obj

@@ -24,23 +24,51 @@ class NonFiniteResultError(SceneError):
     """A result with a NaN or an infinity in it."""
 
 
-def deformation(mesh: Mesh, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(det J of each deformed element, smallest over its quadrature points and nodes; its largest principal strain
-    magnitude) for the full displacement vector u (2N,), or u (2N, k) for k load cases: arrays (k, M)."""
-    U = np.asarray(u, float).reshape(mesh.n_nodes, 2, -1)
+def check_points(mesh: Mesh, elements: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(shape gradients G (q, a, 2) at the check points: the quadrature points and the nodes; reference Jacobians
+    J0 (M, q, 2, 2) of the ``elements`` (all when None) there)."""
     pts = np.vstack([quadrature(2 * (mesh.order - 1))[0], nodes_ref(mesh.order)])
     G = shape_grad(mesh.order, pts)                                    # (q, a, 2)
-    J0 = np.tensordot(mesh.nodes[mesh.tris], G, axes=([1], [1])).transpose(0, 2, 1, 3)      # (M, q, 2, 2)
-    Ju = np.tensordot(U[mesh.tris], G, axes=([1], [1])).transpose(2, 0, 3, 1, 4)         # (k, M, q, 2, 2)
-    J = J0[None] + Ju
-    det = (J[..., 0, 0] * J[..., 1, 1] - J[..., 0, 1] * J[..., 1, 0]).min(axis=2)
+    tris = mesh.tris if elements is None else mesh.tris[elements]
+    J0 = np.tensordot(mesh.nodes[tris], G, axes=([1], [1])).transpose(0, 2, 1, 3)          # (M, q, 2, 2)
+    return G, J0
+
+
+def displacement_gradients(U_el: np.ndarray, G: np.ndarray, J0: np.ndarray) -> np.ndarray:
+    """Displacement gradients H (k, M, q, 2, 2) at the check points from the elements' nodal displacements U_el
+    (M, a, 2, k): the deformed Jacobian is J0 (I + H)."""
+    Ju = np.tensordot(U_el, G, axes=([1], [1])).transpose(2, 0, 3, 1, 4)                  # (k, M, q, 2, 2)
     d0 = J0[..., 0, 0] * J0[..., 1, 1] - J0[..., 0, 1] * J0[..., 1, 0]
     inv = np.stack([np.stack([J0[..., 1, 1], -J0[..., 0, 1]], -1),
                     np.stack([-J0[..., 1, 0], J0[..., 0, 0]], -1)], -2) / d0[..., None, None]
-    H = Ju @ inv[None]                                                  # displacement gradient
+    return Ju @ inv[None]
+
+
+def deformation(mesh: Mesh, u: np.ndarray, elements: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(det J of each deformed element, smallest over its quadrature points and nodes; its largest principal strain
+    magnitude) for the full displacement vector u (2N,), or u (2N, k) for k load cases: arrays (k, M) over the
+    ``elements`` (all when None)."""
+    U = np.asarray(u, float).reshape(mesh.n_nodes, 2, -1)
+    G, J0 = check_points(mesh, elements)
+    H = displacement_gradients(U[mesh.tris if elements is None else mesh.tris[elements]], G, J0)
+    return det_and_strain(H, J0)
+
+
+def det_and_strain(H: np.ndarray, J0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(smallest det J0 (I + H) over the check points, largest principal strain magnitude): arrays (k, M) from
+    displacement gradients H (k, M, q, 2, 2) and reference Jacobians J0 (M, q, 2, 2)."""
+    d0 = J0[..., 0, 0] * J0[..., 1, 1] - J0[..., 0, 1] * J0[..., 1, 0]
+    A = H + np.eye(2)
+    det = (d0[None] * (A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0])).min(axis=2)
     exx, eyy, exy = H[..., 0, 0], H[..., 1, 1], 0.5 * (H[..., 0, 1] + H[..., 1, 0])
     strain = (np.abs(0.5 * (exx + eyy)) + np.sqrt((0.5 * (exx - eyy)) ** 2 + exy ** 2)).max(axis=2)
     return det, strain
+
+
+def inverted_error(what: str, hint: str, n_bad: int, n_elements: int, strain_max: float) -> InvertedElementsError:
+    return InvertedElementsError(f"{what}: {n_bad} of {n_elements} elements turn inside out (det J <= 0) under "
+                                 f"this load, largest strain {strain_max:.0%}: the linear small-strain model does "
+                                 f"not hold; {hint}")
 
 
 def check_not_inverted(mesh: Mesh, u: np.ndarray, what: str, hint: str) -> np.ndarray:
@@ -50,9 +78,7 @@ def check_not_inverted(mesh: Mesh, u: np.ndarray, what: str, hint: str) -> np.nd
     bad = ~(det > 0)
     if bad.any():
         k = int(np.argmax(bad.sum(axis=1)))
-        raise InvertedElementsError(f"{what}: {int(bad[k].sum())} of {bad.shape[1]} elements turn inside out "
-                                    f"(det J <= 0) under this load, largest strain {strain[k].max():.0%}: the "
-                                    f"linear small-strain model does not hold; {hint}")
+        raise inverted_error(what, hint, int(bad[k].sum()), bad.shape[1], float(strain[k].max()))
     return strain.max(axis=1)
 
 

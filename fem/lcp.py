@@ -12,7 +12,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
 
 
 @dataclass
@@ -27,7 +26,7 @@ def _solve_active(M: np.ndarray, q: np.ndarray, P: np.ndarray) -> np.ndarray:
     s = np.zeros(len(q))
     idx = np.flatnonzero(P)
     if len(idx):
-        s[idx] = sla.solve(M[np.ix_(idx, idx)], -q[idx], assume_a="pos", check_finite=False)
+        s[idx] = np.linalg.solve(M[np.ix_(idx, idx)], -q[idx])
     return s
 
 

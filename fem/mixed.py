@@ -19,8 +19,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .assembly import element_dofs, gradients, strain_matrices
 from .elements import quadrature, shape
@@ -71,6 +69,7 @@ class MixedSystem:
         divB = np.einsum("k,mqki->mqi", _M, Bm)                             # (m, q, 12)
         Be = np.einsum("mq,qa,mqi->mai", wd, Np, divB, optimize=True)       # (m, 3, 12)
         Me = np.einsum("mq,m,qa,qb->mab", wd, 1.0 / kappa, Np, Np, optimize=True)
+        import scipy.sparse as sp
         udof = element_dofs(sub)
         n = mesh.n_dofs
         A = sp.csr_matrix((Ae.ravel(), (np.repeat(udof, 12, 1).ravel(), np.tile(udof, (1, 12)).ravel())), (n, n))
@@ -97,6 +96,7 @@ class MixedSystem:
         mask[fixed] = False
         free = np.flatnonzero(mask)
         x = np.zeros(n)
+        import scipy.sparse.linalg as spla
         x[fixed] = values
         rhs = -(self.K @ x)
         if load is not None:

@@ -8,82 +8,67 @@ system. The solution differs from the elastic stone's by O(E_t/E_s); tests and t
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
 from .mesh import Mesh
 from .scene_mesh import mesh_for
 
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
 RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
 
 
-class ReducedModel:
-    """What a model with rigid-stone reduction offers (fem.model.Model in 2D, fem.model3d.Model3D in 3D): the
-    reduced stiffness K and the prolongation P (full DOFs = P @ reduced DOFs) set by the subclass."""
-    K: sp.csr_matrix
-    P: sp.csr_matrix
+@dataclass
+class Model:
+    mesh: Mesh
+    materials: list[Material]            # region 0 tissue, region k stone k-1
+    plane: str
+    centres: list[tuple[float, float]]   # stone centres (x, y)
+    rigid: list[bool]                    # per stone
 
-    @property
-    def n_dofs(self) -> int:
-        return self.K.shape[0]
+    # D, K and P are made on first use (and scipy imported then): a model whose surface operators come from the
+    # disk cache needs none of them to predict forces and stresses (issue 19: start-up).
+    @cached_property
+    def D(self) -> np.ndarray:
+        """(M, 3, 3) elasticity matrices."""
+        return element_D(self.mesh, self.materials, self.plane)
 
-    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
-        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
-        if not any(self.rigid):
-            return np.asarray(full_dofs)
-        P = self.P[np.asarray(full_dofs)]
-        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
-            raise ValueError("a requested DOF belongs to a rigid stone")
-        return P.indices.copy()
-
-    def partition(self, fixed: np.ndarray) -> Factored:
-        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
-        return Factored(self, np.asarray(fixed, dtype=np.int64))
-
-    def _reduce(self, stiffness_of) -> None:
-        """Set P (``_prolongation``) and K = P' K_tissue P from ``stiffness_of(elements)`` (None: all elements),
-        summed over the elements of the tissue and of the stones that stay elastic."""
-        keep = np.ones(len(self.mesh.region), bool)
+    @cached_property
+    def K(self) -> sp.csc_matrix:
+        """Reduced stiffness (n_red x n_red)."""
+        keep = np.ones(len(self.mesh.tris), bool)
         for k, r in enumerate(self.rigid):
             if r:
                 keep &= self.mesh.region != k + 1
-        Kfull = stiffness_of(None if keep.all() else np.flatnonzero(keep))
-        self.P = self._prolongation()
-        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+        Kfull = stiffness(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
+        return (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
 
+    @cached_property
+    def P(self) -> sp.csr_matrix:
+        """Full DOFs = P @ reduced DOFs."""
+        return self._prolongation()
+
+    @cached_property
     def _owner(self) -> np.ndarray:
-        """(N,) the rigid stone each node belongs to (its elements' nodes, boundary included), -1 for the rest."""
+        """Per node: the rigid stone it moves with, -1 for a deformable node."""
         owner = np.full(self.mesh.n_nodes, -1)
         for k, r in enumerate(self.rigid):
             if r:
                 owner[np.unique(self.mesh.tris[self.mesh.region == k + 1])] = k
         return owner
 
-
-@dataclass
-class Model(ReducedModel):
-    mesh: Mesh
-    materials: list[Material]            # region 0 tissue, region k stone k-1
-    plane: str
-    centres: list[tuple[float, float]]   # stone centres (x, y)
-    rigid: list[bool]                    # per stone
-    D: np.ndarray = field(init=False)    # (M, 3, 3)
-    K: sp.csr_matrix = field(init=False)  # reduced stiffness (n_red x n_red)
-    P: sp.csr_matrix = field(init=False)  # full DOFs = P @ reduced DOFs
-
-    def __post_init__(self):
-        self.D = element_D(self.mesh, self.materials, self.plane)
-        self._reduce(lambda elements: stiffness(self.mesh, self.D, elements=elements))
-
     def _prolongation(self) -> sp.csr_matrix:
+        import scipy.sparse as sp
         n = self.mesh.n_dofs
         if not any(self.rigid):
             return sp.identity(n, format="csr")
-        owner = self._owner()
+        owner = self._owner
         free_nodes = np.flatnonzero(owner < 0)
         n_free = 2 * len(free_nodes)
         rigid_ids = [k for k, r in enumerate(self.rigid) if r]
@@ -104,18 +89,42 @@ class Model(ReducedModel):
         rows, cols, vals = (np.concatenate(a) for a in (rows, cols, vals))
         return sp.csr_matrix((vals, (rows, cols.astype(np.int64))), shape=(n, n_free + 3 * len(rigid_ids)))
 
+    @property
+    def n_dofs(self) -> int:
+        """Reduced DOFs: two per deformable node (in node order), then three per rigid stone (as P numbers them)."""
+        if not any(self.rigid):
+            return self.mesh.n_dofs
+        return 2 * int((self._owner < 0).sum()) + 3 * sum(self.rigid)
+
+    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
+        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
+        full_dofs = np.asarray(full_dofs)
+        if not any(self.rigid):
+            return full_dofs
+        node, comp = np.divmod(full_dofs, 2)
+        if np.any(self._owner[node] >= 0):
+            raise ValueError("a requested DOF belongs to a rigid stone")
+        rank = np.cumsum(self._owner < 0) - 1                 # deformable nodes numbered in node order
+        return 2 * rank[node] + comp
+
+    def partition(self, fixed: np.ndarray) -> Factored:
+        """Factor the stiffness with the given reduced DOFs fixed (their values are supplied at solve time)."""
+        return Factored(self, np.asarray(fixed, dtype=np.int64))
+
 
 class Factored:
     """K_ff factorized once; solves for any prescribed values on the fixed DOFs and any load on the free DOFs."""
 
     def __init__(self, model: Model, fixed: np.ndarray, factorize=None):
-        """factorize(K_ff) -> an object with ``solve(rhs)`` (default: SuperLU with a symmetric ordering)."""
+        """factorize(K_ff) -> an object with ``solve(rhs)`` (default: SuperLU with a symmetric ordering; the 3D
+        model passes CHOLMOD, fem.condense.factorize_spd)."""
         self.model = model
         n = model.n_dofs
         self.fixed = np.unique(fixed)
         mask = np.ones(n, bool)
         mask[self.fixed] = False
         self.free = np.flatnonzero(mask)
+        import scipy.sparse.linalg as spla
         K = model.K
         Kff = K[self.free][:, self.free].tocsc()
         self.Kfp = K[self.free][:, self.fixed].tocsc()

@@ -3,7 +3,7 @@
 As in 2D (fem.model): a stone E_s >= RIGID_RATIO E_t is replaced by a rigid body tied to the tissue, here with 6
 DOFs (a translation t and a small rotation w about its centre c: u(x) = t + w x (x - c)). Its elements leave the
 stiffness and its nodes' DOFs are expressed by P. The model has the 2D Model's interface (K, P, n_dofs,
-reduced_index, partition), so fem.model.Factored factorizes both.
+reduced_index, partition), so fem.model.Factored factorizes both (CHOLMOD here).
 """
 from __future__ import annotations
 
@@ -16,12 +16,12 @@ from .assembly import Material
 from .assembly3d import element_D3d, stiffness3d
 from .condense import factorize_spd
 from .mesh3d import Mesh3D
-from .model import RIGID_RATIO, Factored, ReducedModel, materials_of, warn_if_ill_conditioned, warn_if_locking
+from .model import RIGID_RATIO, Factored, materials_of, warn_if_ill_conditioned, warn_if_locking
 from .scene_mesh3d import mesh_for3d
 
 
 @dataclass
-class Model3D(ReducedModel):
+class Model3D:
     mesh: Mesh3D
     materials: list[Material]                   # region 0 tissue, region k stone k-1
     centres: list[tuple[float, float, float]]   # stone centres (x, y, z)
@@ -34,7 +34,34 @@ class Model3D(ReducedModel):
 
     def __post_init__(self):
         self.D = element_D3d(self.mesh, self.materials)
-        self._reduce(lambda elements: stiffness3d(self.mesh, self.D, elements=elements))
+        keep = np.ones(len(self.mesh.tets), bool)
+        for k, r in enumerate(self.rigid):
+            if r:
+                keep &= self.mesh.region != k + 1
+        Kfull = stiffness3d(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
+        self.P = self._prolongation()
+        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+
+    def _owner(self) -> np.ndarray:
+        """(N,) the rigid stone each node moves with (its elements' nodes, boundary included), -1 for the rest."""
+        owner = np.full(self.mesh.n_nodes, -1)
+        for k, r in enumerate(self.rigid):
+            if r:
+                owner[np.unique(self.mesh.tets[self.mesh.region == k + 1])] = k
+        return owner
+
+    @property
+    def n_dofs(self) -> int:
+        return self.K.shape[0]
+
+    def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
+        """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""
+        if not any(self.rigid):
+            return np.asarray(full_dofs)
+        P = self.P[np.asarray(full_dofs)]
+        if np.any(np.diff(P.indptr) != 1) or np.any(P.data != 1.0):
+            raise ValueError("a requested DOF belongs to a rigid stone")
+        return P.indices.copy()
 
     def _prolongation(self) -> sp.csr_matrix:
         n = self.mesh.n_dofs

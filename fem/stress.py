@@ -6,17 +6,22 @@ it. Building the operator only for the nodes asked for ("surface only") skips fu
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.sparse as sp
 
 from .assembly import element_dofs, gradients, strain_matrices
 from .elements import nodes_ref
 from .model import Model
 
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
 
 def recovery_operator(model: Model, nodes: np.ndarray | None = None, strain: bool = False) -> sp.csr_matrix:
     """Sparse (3 n, 2N) operator: full displacement -> [sxx, syy, sxy] (or [exx, eyy, gxy]) at ``nodes``
     (all nodes when None), row 3 i + k for the i-th requested node."""
+    import scipy.sparse as sp
     mesh = model.mesh
     nodes = np.arange(mesh.n_nodes) if nodes is None else np.asarray(nodes)
     primary = np.full(mesh.n_nodes, np.iinfo(np.int64).max)

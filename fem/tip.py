@@ -16,7 +16,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse.linalg as spla
 
 from .assembly import Material, element_D, stiffness
 from .mesh import mesh_tip
@@ -76,6 +75,7 @@ class TipCompliance:
         on_arc = np.abs(np.hypot(mesh.nodes[:, 0], mesh.nodes[:, 1] - R) - R) < 1e-6 * R
         arc = np.flatnonzero(on_arc & (mesh.nodes[:, 1] < R - tol))
         arc = arc[np.argsort(mesh.nodes[arc, 0])]
+        import scipy.sparse.linalg as spla
         lu = spla.splu(K[free][:, free].tocsc())
         pos = np.searchsorted(free, 2 * arc + 1)
         unit = np.zeros((len(free), len(arc)))

@@ -13,6 +13,11 @@ arm still accepts commands) with a report in run.json. The interrupted probe's r
 before any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one
 after its own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
 
+The wrench comes from a force source (robot.forcesource): the UR's wrist sensor over the receive interface by
+default, or an external ATI Net F/T box over UDP; the UR's own force protection never sees the latter, so then this
+driver's force limit is the only guard on the contact force. A sensor fault (robot.netft.SensorFault: silent, bad
+status, saturated, too many records lost) is a probe fault like the others.
+
 Contact force convention: getActualTCPForce is the external force on the tool in the base frame; the contact force
 is its projection on the tissue's outward normal n (z axis of ``frames.tissue_pose_base``), times
 ``DriverConfig.force_sign`` (+1): tissue pushing the tip back out gives a positive force. Verify the sign on a new
@@ -43,7 +48,9 @@ from core.contracts import (
     ProbeStatus,
     RunStatus,
 )
+from robot.forcesource import ForceSource, RtdeForce
 from robot.link import CallTimeout, CallWorker, deadline_for
+from robot.netft import SensorFault
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
 from robot.safety import (
@@ -84,6 +91,11 @@ class DriverConfig:
                                        # and the motion. Kicked every period. This is the lowest rate; 0: off.
     max_unsupervised_travel_m: float = 4e-4   # ... and the rate is raised so that a probe moving at its speed
                                        # travels at most this far before that stop (see watchdog_rate_hz)
+    wrist_backstop_margin_n: float = 5.0  # with an external sensor: the wrist sensor (zeroed with it) reading
+                                       # more than the force limit + this along the normal (filtered) is a fault --
+                                       # the external one, which should have stopped the probe, is stuck, misread
+                                       # or wrongly mounted. 5 N is 6.4 sigma of the filtered UR5e wrist noise
+                                       # (1.75 N / sqrt(5)). 0: off
 
 
 NEEDS_PROGRAM = frozenset({"moveL", "zeroFtSensor", "setTcp", "setPayload", "setWatchdog"})
@@ -99,6 +111,18 @@ def watchdog_rate_hz(cfg: DriverConfig, probe_speed_m_s: float) -> float:
     if cfg.watchdog_hz <= 0:
         return 0.0
     return float(min(100.0, max(cfg.watchdog_hz, probe_speed_m_s / cfg.max_unsupervised_travel_m)))
+
+
+def stop_lead_periods(filter_window: int) -> int:
+    """Periods between a force and the arm's stop: the moving average's lag, the reading's latency, the stop."""
+    return filter_window // 2 + 2
+
+
+def force_when_stopped(hist, lead: int) -> float:
+    """Where the filtered force will be when the arm has stopped: the newest of ``hist`` (filtered forces, one per
+    period) plus its rising slope over ``lead`` periods. The force monitor stops when this exceeds the limit."""
+    slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
+    return hist[-1] + max(slope, 0.0) * lead
 
 
 @dataclass
@@ -145,12 +169,17 @@ class _Samples:
 
 
 class Driver(Recovery):
-    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None, diagnose=None):
+    def __init__(self, plan, rtde_c, rtde_r, config: DriverConfig | None = None, diagnose=None,
+                 force_source: ForceSource | None = None):
         self.plan, self.cfg = plan, config or DriverConfig()
         self.diagnose = diagnose        # () -> an operator hint or None, asked after a fault (bounded in time)
         self.lim = SafetyLimits.from_plan(plan)
         self.tf = TissueFrame(plan.frames.tissue_pose_base)
         self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
+        # the wrench: the UR's wrist sensor (default) or an external one (robot.forcesource); the caller owns it
+        self.fs = force_source if force_source is not None else RtdeForce(self.c, rtde_r)
+        self.backstop = self.fs.name != "rtde" and self.cfg.wrist_backstop_margin_n > 0
+        self.wrist_filt = deque(maxlen=self.cfg.filter_window)
         self.filt = deque(maxlen=self.cfg.filter_window)
         self.last_ts, self.stale, self.ts = None, 0, 0.0
         self.samples = _Samples()
@@ -209,17 +238,25 @@ class Driver(Recovery):
         if self._call(r.isConnected) is not True:    # ur_rtde reconnecting by itself: its getters are not safe now
             raise ProbeFault(FaultKind.CONNECTION_LOST, "the receive interface reports no connection (the link "
                                                         "dropped; ur_rtde may be reconnecting by itself)")
-        ts, pose, w, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.getActualTCPForce,
-                                                    r.isProtectiveStopped))
+        ts, pose, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.isProtectiveStopped))
         if ps is True:
             raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the controller reports a protective stop")
         if not _vec6(pose):
             raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPPose returned {pose!r}")
         if not isinstance(ts, (int, float)) or not math.isfinite(ts):
             raise ProbeFault(FaultKind.INVALID_READING, f"getTimestamp returned {ts!r}")
+        try:
+            w = self.fs.wrench(self._call, pose)
+        except SensorFault as e:          # strict: a fault; else (stopping, retracting out of tissue) no force
+            if strict:
+                raise ProbeFault(e.kind, e.message) from None
+            w = None
+        if strict and self.backstop:
+            self._check_wrist(w)
         ok_w = _vec6(w)
         if strict and not ok_w:
-            raise ProbeFault(FaultKind.INVALID_READING, f"getActualTCPForce returned {w!r}")
+            what = "getActualTCPForce" if self.fs.name == "rtde" else f"the {self.fs.name} force source"
+            raise ProbeFault(FaultKind.INVALID_READING, f"{what} returned {w!r}")
         self.stale = self.stale + 1 if (self.last_ts is not None and ts <= self.last_ts) else 0
         if self.stale >= self.cfg.stale_periods:   # ur_rtde keeps returning the last values when the link drops
             lost = self._call(self.r.isConnected) is False
@@ -237,6 +274,23 @@ class Driver(Recovery):
         filt = sum(self.filt) / len(self.filt) if self.filt else float("nan")
         self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase)
         return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
+
+    def _check_wrist(self, w) -> None:
+        """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
+        wr = self._call(self.r.getActualTCPForce)
+        if not _vec6(wr):
+            return                  # the wrist's reading is not the one the probe relies on
+        self.wrist_filt.append(self.cfg.force_sign * float(np.dot(np.asarray(wr[:3], dtype=float), self.tf.normal)))
+        fw = sum(self.wrist_filt) / len(self.wrist_filt)
+        backstop = self.lim.force_limit_n + self.cfg.wrist_backstop_margin_n
+        if fw > backstop:
+            fe = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) \
+                if _vec6(w) else float("nan")
+            raise ProbeFault(FaultKind.SENSOR_DISAGREES,
+                             f"the wrist sensor reads {fw:.2f} N along the normal, above the backstop {backstop:g} N "
+                             f"(the force limit + {self.cfg.wrist_backstop_margin_n:g} N), while the {self.fs.name} "
+                             f"sensor reads {fe:.3f} N: the "
+                             f"external sensor is stuck, misread or wrongly mounted")
 
     def _loop(self, max_s: float, body, strict=True, what="wait"):
         """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s."""
@@ -349,7 +403,11 @@ class Driver(Recovery):
         self.phase = FREE
         self._wait(self.cfg.settle_s)
         self._link_up("zeroFtSensor")
-        self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor")
+        self._require(self._sensor(self.fs.zero, self._call),
+                      "zeroFtSensor" if self.fs.name == "rtde" else f"zeroing the {self.fs.name} sensor")
+        if self.backstop:           # the wrist sensor too: it is the backstop
+            self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor (the wrist sensor: the backstop)")
+            self.wrist_filt.clear()
         self.filt.clear()
         self._wait(self.cfg.settle_s)
         self.filt.clear()
@@ -365,6 +423,14 @@ class Driver(Recovery):
                                              f"enforced with this sensor")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
 
+    @staticmethod
+    def _sensor(fn, *args):
+        """A force-source call whose SensorFault is a probe fault."""
+        try:
+            return fn(*args)
+        except SensorFault as e:
+            raise ProbeFault(e.kind, e.message) from None
+
     def _probe(self, p):
         mo, lim = self.plan.motion, self.lim
         self.samples, self.phase = _Samples(), FREE
@@ -376,14 +442,13 @@ class Driver(Recovery):
         contact = {}
 
         hist = deque(maxlen=self.cfg.filter_window + 1)
-        lead = self.cfg.filter_window // 2 + 2      # periods: filter lag + reading latency + stop
+        lead = stop_lead_periods(self.cfg.filter_window)
 
         def watch(s):
             if "depth" not in contact and s["filt"] > self.contact_thr:
                 contact.update(depth=s["depth"], x=s["x"])
             hist.append(s["filt"])
-            slope = (hist[-1] - hist[0]) / (len(hist) - 1) if len(hist) > 1 else 0.0
-            if s["filt"] + max(slope, 0.0) * lead > lim.force_limit_n:   # where the force will be when stopped
+            if force_when_stopped(hist, lead) > lim.force_limit_n:
                 self._stop()
                 return ProbeStatus.FORCE_LIMIT
             return None
@@ -430,7 +495,7 @@ class Driver(Recovery):
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
             rep.program_restarts = self.program_restarts
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
-                           "commands_sent": len(self.c.sent)})
+                           "commands_sent": len(self.c.sent), "force_source": self.fs.report()})
         try:
             if problems or (bad and not cfg.skip_invalid):
                 rep.status = RunStatus.REJECTED
@@ -490,6 +555,7 @@ class Driver(Recovery):
                 gc.enable()
 
     def _setup(self) -> None:
+        self._sensor(self.fs.start)                  # an external sensor streams before anything moves
         self._ensure_program()
         s = self._read(strict=False)
         p = s["pose"]
@@ -500,7 +566,9 @@ class Driver(Recovery):
 
 
 def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = None, resume=True,
-             progress=None, diagnose=None) -> RunReport:
+             progress=None, diagnose=None, force_source: ForceSource | None = None) -> RunReport:
     """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py).
-    ``diagnose()``: after a fault, an operator hint to add to the report (or None)."""
-    return Driver(plan, rtde_c, rtde_r, config, diagnose).run(out_dir, resume=resume, progress=progress)
+    ``diagnose()``: after a fault, an operator hint to add to the report (or None). ``force_source``: where the
+    wrench comes from (robot.forcesource; default the UR's wrist sensor over ur_rtde)."""
+    return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
+                                                                            progress=progress)

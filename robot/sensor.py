@@ -12,6 +12,8 @@ import numpy as np
 
 from core.contracts import SensorSpec, sensor_spec
 
+NORMAL_BLOCK = 4096        # noise drawn this many samples ahead (8 s at 500 Hz)
+
 
 class Sensor:
     """One simulated F/T sensor. ``read(true_wrench, t_s)`` gives a measured 6-vector."""
@@ -24,11 +26,19 @@ class Sensor:
         self.drift = np.concatenate([self.rng.normal(0, s.drift_n_per_s, 3), np.zeros(3)])
         self.offset = np.zeros(6)
         self._std = np.array([s.noise_std_n] * 3 + [s.noise_std_nm] * 3)
+        self._normals = np.empty((0, 6))          # standard normals drawn ahead, in the generator's order
+
+    def _normal6(self) -> np.ndarray:
+        """The next six standard normals: the same stream as rng.normal(0, 1, 6) per call, drawn in blocks."""
+        if not len(self._normals):
+            self._normals = self.rng.standard_normal((NORMAL_BLOCK, 6))
+        z, self._normals = self._normals[0], self._normals[1:]
+        return z
 
     def _raw(self, true_wrench, t_s: float) -> np.ndarray:
         w = np.asarray(true_wrench, dtype=float) + self.bias + self.drift * t_s
         if self._std.any():
-            w = w + self.rng.normal(0.0, 1.0, 6) * self._std
+            w = w + self._normal6() * self._std
         return w
 
     def read(self, true_wrench, t_s: float) -> np.ndarray:
@@ -43,4 +53,4 @@ class Sensor:
         """Take the current reading (including whatever force acts now), averaged over ``n_average`` samples
         (0.1 s at 500 Hz), as the new zero: the offset keeps a noise error of noise_std / sqrt(n_average)."""
         w = np.asarray(true_wrench, dtype=float) + self.bias + self.drift * t_s
-        self.offset = w + self.rng.normal(0.0, 1.0, 6) * self._std / np.sqrt(max(1, n_average))
+        self.offset = w + self._normal6() * self._std / np.sqrt(max(1, n_average))

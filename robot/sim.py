@@ -82,6 +82,8 @@ class ArmModel:
         # the probe's tip as mounted on the flange: the physics (contact) is at the tip whatever TCP is set
         self.tool_offset = list(tcp_offset if tool_offset is None else tool_offset)
         self._T_tool = ur5e.pose_to_T(self.tool_offset)
+        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self._rotvec_key, self._rotvec = None, None     # the last rotation reported and its rotation vector
         self.T_tcp = ur5e.fk_flange(self.q) @ ur5e.pose_to_T(self.tcp_offset)
         self._q_stale = False
         self.motion: _Motion | None = None
@@ -99,6 +101,8 @@ class ArmModel:
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
+        self.on_step: list = []           # called after every step (a simulated external sensor samples there)
+        self.stops_s: list = []
         n_lat = max(0, int(round(latency_s / period_s)))
         self.samples: deque = deque(maxlen=n_lat + 1)
         self._sample()
@@ -127,7 +131,7 @@ class ArmModel:
         undeformed surface."""
         T_tip = self.T_tcp
         if self.tool_offset != self.tcp_offset:
-            T_tip = self.T_tcp @ np.linalg.inv(ur5e.pose_to_T(self.tcp_offset)) @ self._T_tool
+            T_tip = self.T_tcp @ self._tcp_inv @ self._T_tool
         p = self.T_tissue[:3, :3].T @ (T_tip[:3, 3] - self.T_tissue[:3, 3])
         return float(p[0]), float(-p[2])
 
@@ -144,9 +148,10 @@ class ArmModel:
         fe = self.elastic_force_n()
         return fe if self.relaxation is None else self.relaxation.force(fe)
 
-    def true_wrench(self) -> np.ndarray:
+    def true_wrench(self, fc: float | None = None) -> np.ndarray:
+        """The wrench on the tip now (``fc``: the contact force, when already computed)."""
         w = np.zeros(6)
-        w[:3] = self.contact_force_n() * self.n_base
+        w[:3] = (self.contact_force_n() if fc is None else fc) * self.n_base
         return w
 
     @property
@@ -157,17 +162,23 @@ class ArmModel:
     def set_tcp(self, offset) -> None:
         flange = self.T_tcp @ np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
         self.tcp_offset = list(offset)
+        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
         self.T_tcp = flange @ ur5e.pose_to_T(self.tcp_offset)
 
     def move_linear(self, pose, speed, accel) -> None:
         T0, T1 = self.T_tcp.copy(), ur5e.pose_to_T(pose)
         dist = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
         L = max(dist, 0.1 * ur5e.rotation_angle(T0[:3, :3], T1[:3, :3]))
+        rel = ur5e.matrix_to_rotvec(T0[:3, :3].T @ T1[:3, :3])       # ur5e.slerp_matrix's, made once per move
+        turns = float(np.linalg.norm(rel)) >= 1e-12                  # below, rotvec_to_matrix(u rel) is I
 
         def interp(u):
             T = np.eye(4)
             T[:3, 3] = T0[:3, 3] + u * (T1[:3, 3] - T0[:3, 3])
-            T[:3, :3] = T1[:3, :3] if u >= 1 else ur5e.slerp_matrix(T0[:3, :3], T1[:3, :3], u)
+            if u >= 1:
+                T[:3, :3] = T1[:3, :3]
+            else:
+                T[:3, :3] = T0[:3, :3] @ ur5e.rotvec_to_matrix(u * rel) if turns else T0[:3, :3]
             self.T_tcp, self._q_stale = T, True
         self._start(_Motion(L, speed, accel, interp), "linear")
 
@@ -190,6 +201,7 @@ class ArmModel:
             self.motions_ended += 1
 
     def stop(self, decel: float) -> None:
+        self.stops_s.append(self.t_s)    # when each stop was commanded (reaction-time measurements)
         if self.motion is not None:
             self.motion.a_stop = float(decel)
 
@@ -265,15 +277,27 @@ class ArmModel:
         self.max_contact_force_n = max(self.max_contact_force_n, fc)
         if fc > self.safety_force_n and not self.protective_stopped:
             self.trigger_protective_stop()
-        self._sample()
+        self._sample(fc)
+        for fn in self.on_step:
+            fn()
 
-    def _sample(self) -> None:
-        w = self.sensor.read(self.true_wrench(), self.t_s)
+    def _pose(self) -> list[float]:
+        """ur5e.T_to_pose(T_tcp), the rotation vector reused while the orientation stays the same (the arm at
+        rest: zeroing, dwells, waits)."""
+        R = self.T_tcp[:3, :3]
+        key = R.tobytes()
+        if key != self._rotvec_key:
+            self._rotvec_key, self._rotvec = key, ur5e.matrix_to_rotvec(R)
+        return [float(v) for v in (*self.T_tcp[:3, 3], *self._rotvec)]
+
+    def _sample(self, fc: float | None = None) -> None:
+        """A reading now; ``fc``: the contact force already computed this step."""
+        w = self.sensor.read(self.true_wrench(fc), self.t_s)
         if self.t_s < self._spike_until:
             w[:3] += self._spike_n * self.n_base
         if self.t_s < self._nan_until:
             w[:] = np.nan
-        self.samples.append((self.t_s, ur5e.T_to_pose(self.T_tcp), w))
+        self.samples.append((self.t_s, self._pose(), w))
 
     def reading(self):
         """(timestamp_s, tcp_pose, wrench) as the controller reports it now (``latency_s`` old)."""

@@ -53,7 +53,8 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
                     inject=(), tool_offset=None, conditions: TruthConditions | None = None) -> ArmModel:
     """The simulated arm over the TRUE scene (``force="fem"``) or a Hertz-like stand-in (``"standin"``), with its
     sensor model and any injected faults (robot.simfaults syntax; controller faults are left to the simulated
-    controller). ``conditions``: what the world adds to the scene (robot.truth); None: the ``[truth]`` table of a
+    controller, external sensor faults to the simulated Net F/T box). ``conditions``: what the world adds to the
+    scene (robot.truth); None: the ``[truth]`` table of a
     TOML ``truth`` (ideal for anything else)."""
     cond = conditions_of(truth) if conditions is None else conditions
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
@@ -78,6 +79,6 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     arm.sensor.drift[:3] += cond.sensor_drift_n_per_s * arm.n_base
     for spec in inject:
         f = parse(spec)
-        if not f.on_controller:
+        if f.on_arm:
             inject_arm(arm, f)
     return arm

@@ -20,6 +20,7 @@ import argparse
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import struct
@@ -31,10 +32,12 @@ import numpy as np
 
 from core.contracts import Frames
 from robot import rtde_wire as W
+from robot.rdt import RDT_PORT
 from robot.rtde_wire import Conn
 from robot.sim import PROGRAM_STOP_DECEL_M_S2
 from robot.simarm import build_truth_arm
 from robot.simfaults import FaultSpec, parse, trigger
+from robot.simnetft import SIM_SENSOR_POSE_FLANGE, attach_box
 from robot.urscript_cmds import ArmPort, ControlScript, split_programs
 
 log = logging.getLogger("simcontroller")
@@ -83,6 +86,8 @@ class SimController:
         self.link.set()
         self.pending: list = []        # controller faults not yet fired: (FaultSpec, when(arm))
         self.overruns = 0              # times the process was held up > MAX_CATCH_UP_S (a very busy machine)
+        self.box = None                # the simulated Net F/T box (--netft)
+        self._logged = {"box": 0, "stops": 0}
         self.failed = False
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
@@ -263,6 +268,7 @@ class SimController:
             if f["fired_s"] is not None and not f.get("logged"):
                 f["logged"] = True
                 log.warning("injected fault %s at t=%.3f s", f["kind"], f["fired_s"])
+        self._log_events()
         if check_watchdog:
             self._watchdog()
         if not arm.connected:
@@ -276,6 +282,18 @@ class SimController:
                 self.paused = True
         if self.script is not None:
             self.script.tick(self.inputs)
+
+    def _log_events(self) -> None:
+        """The Net F/T box's faults and every stop commanded, as ``EVENT <what> t=<s>`` lines (controller time):
+        ``read_events`` reads them back (reaction-time measurements)."""
+        events = []
+        if self.box is not None:
+            events += [(f"ft-fault {text}", t) for text, t in self.box.fired[self._logged["box"]:]]
+            self._logged["box"] = len(self.box.fired)
+        events += [("stop", t) for t in self.arm.stops_s[self._logged["stops"]:]]
+        self._logged["stops"] = len(self.arm.stops_s)
+        for what, t in events:
+            log.warning("EVENT %s t=%.4f", what, t)
 
     def _snapshot(self) -> dict:
         arm = self.arm
@@ -465,6 +483,26 @@ class SimController:
         return f"could not understand: 'simcontroller {' '.join(words)}'"
 
 
+def read_events(log_text: str) -> list[tuple[str, float]]:
+    """The ``EVENT`` lines of a controller log: (what, controller time s)."""
+    out = []
+    for m in re.finditer(r"EVENT (.+?) t=([-0-9.]+)", log_text):
+        out.append((m.group(1), float(m.group(2))))
+    return out
+
+
+def reaction_times_s(events) -> list[float]:
+    """For every Net F/T force spike: controller time from its first record to the next stop commanded."""
+    stops = [t for what, t in events if what == "stop"]
+    out = []
+    for what, t in events:
+        if what.startswith("ft-fault ft-spike"):
+            after = [s for s in stops if s >= t]
+            if after:
+                out.append(after[0] - t)
+    return out
+
+
 # ---- CLI (the process launcher is robot/simlaunch.py) ------------------------------------------------------------
 
 def main(argv=None) -> int:
@@ -484,6 +522,11 @@ def main(argv=None) -> int:
     ap.add_argument("--inject", action="append", default=[],
                     help="fault (repeatable; robot.simfaults), e.g. protective-stop-at-depth-m=0.002, "
                          "partition-after-probes=1, freeze-at-depth-m=0.0015")
+    ap.add_argument("--netft", action="store_true", help="also serve a simulated ATI Net F/T box (UDP, RDT, "
+                    f"1 kHz) on the same address, port {RDT_PORT} + --port-offset (robot.simnetft)")
+    ap.add_argument("--netft-sensor-pose", type=lambda s: [float(v) for v in s.split(",")],
+                    default=list(SIM_SENSOR_POSE_FLANGE), help="the simulated Net F/T sensor's pose on the flange "
+                    "x,y,z,rx,ry,rz (m, rad)")
     ap.add_argument("--host", default="127.0.0.1", help="loopback address to bind (127.x.x.x only)")
     ap.add_argument("--port-offset", type=int, default=0, help="add to every port (ur_rtde itself needs 0)")
     ap.add_argument("--log-level", default="INFO")
@@ -513,6 +556,19 @@ def main(argv=None) -> int:
         if f.on_controller:
             ctl.schedule(f)
     ctl.port = ArmPort(ctl.arm)
+    box = None
+    if a.netft:                       # stepped with the arm: 2 records per 2 ms cycle, in real time
+        try:
+            box = ctl.box = attach_box(ctl.arm, faults=faults, host=a.host, port=RDT_PORT + a.port_offset,
+                                       sensor=a.sensor, seed=a.seed, sensor_pose_flange=a.netft_sensor_pose,
+                                       records_per_step=2)
+        except OSError as e:
+            ctl.close_listeners()
+            print(f"SIMCONTROLLER PORTS UNAVAILABLE: cannot bind {a.host}:{RDT_PORT + a.port_offset} (Net F/T, "
+                  f"UDP): {e.strerror}", flush=True)
+            return 3
+    elif any(f.on_ft for f in faults):
+        ap.error("--inject: an ft-* fault needs --netft")
     log.info("physics ready in %.1f s (scene %s, sensor %s)", time.perf_counter() - t0, a.scene, a.sensor)
     done = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: done.set())
@@ -525,6 +581,8 @@ def main(argv=None) -> int:
     while not done.wait(0.2) and not ctl.stop_event.is_set():
         pass
     ctl.shutdown()
+    if box is not None:
+        box.close()
     return 4 if ctl.failed else 0
 
 

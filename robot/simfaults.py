@@ -18,6 +18,12 @@ Controller faults (the simulated controller only, robot.simcontroller fires them
   program-stop      the program is stopped as from the dashboard or the pendant's stop button
   remote-off        the pendant is switched to local control (programs from the network refused; X = 1: also
                     stop the running program, as an operator taking over would)
+External sensor faults (the simulated Net F/T box only, robot.simnetft fires them; ``--ft netft``):
+  ft-silent         the box sends nothing for X seconds of simulated time (none: for good)
+  ft-status         the box reports status word X (default 1) from then on
+  ft-loss           a fraction X (default 0.9) of its records is lost on the way from then on
+  ft-spike          X newtons along the tissue normal on its reading for 10 ms (beyond its range: saturated)
+  ft-freeze         the box repeats its last reading from then on (sequence advancing, status 0: a stuck box)
 """
 from __future__ import annotations
 
@@ -27,6 +33,7 @@ from dataclasses import dataclass
 ARM_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",
               "force-spike": "force_spike", "nan": "nan", "stall": "stall"}
 CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
+FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike", "ft-freeze")
 TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
@@ -35,7 +42,7 @@ AT_REST_S = 0.05               # into a rest (the driver zeroes the sensor at re
 
 @dataclass(frozen=True)
 class FaultSpec:
-    kind: str                  # a key of ARM_FAULTS or one of CONTROLLER_FAULTS
+    kind: str                  # a key of ARM_FAULTS or one of CONTROLLER_FAULTS or FT_FAULTS
     trigger: str               # "s" | "depth-m" | "probes"
     value: float               # the time (s), depth (m) or number of probes
     x: float | None = None     # the kind's parameter (N, s, ...), if given
@@ -43,6 +50,15 @@ class FaultSpec:
     @property
     def on_controller(self) -> bool:
         return self.kind in CONTROLLER_FAULTS
+
+    @property
+    def on_ft(self) -> bool:
+        """A fault of the simulated external F/T box (robot.simnetft)."""
+        return self.kind in FT_FAULTS
+
+    @property
+    def on_arm(self) -> bool:
+        return self.kind in ARM_FAULTS
 
     def text(self) -> str:
         name = next(k for k, v in TRIGGERS.items() if v == self.trigger)
@@ -63,7 +79,7 @@ def parse(spec: str) -> FaultSpec:
     v, _, x = val.partition(":")
     try:
         value, xv = float(v), (float(x) if x else None)
-        ok = (kind in ARM_FAULTS or kind in CONTROLLER_FAULTS) and trig is not None and math.isfinite(value) and \
+        ok = (kind in ARM_FAULTS or kind in CONTROLLER_FAULTS or kind in FT_FAULTS) and trig is not None and math.isfinite(value) and \
             (xv is None or math.isfinite(xv))
         if ok and TRIGGERS[trig] == "probes":
             ok = value >= 1 and value == int(value)
@@ -71,7 +87,7 @@ def parse(spec: str) -> FaultSpec:
         ok = False
     if not ok:
         raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X] or KIND-after-probes=N[:X] "
-                         f"(N >= 1; or KIND:T[:X]), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS])}; "
+                         f"(N >= 1; or KIND:T[:X]), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
                          f"see robot.simfaults")
     return FaultSpec(kind, TRIGGERS[trig], value, xv)
 
@@ -119,6 +135,8 @@ def inject_arm(arm, f: FaultSpec) -> None:
     """Schedule an arm fault on a robot.sim.ArmModel."""
     if f.on_controller:
         raise ValueError(f"fault {f.text()!r} needs the simulated controller (palpate-cell --sim controller)")
+    if f.on_ft:
+        raise ValueError(f"fault {f.text()!r} is the simulated Net F/T box's (--ft netft; robot.simnetft)")
     kind = ARM_FAULTS[f.kind]
     x = f.x
     kw = {"magnitude_n": float(x or 0.0), "duration_s": float(x or 0.01) if kind == "nan" else 0.01,

@@ -74,17 +74,22 @@ class ControllerProcess:
 
 def start_controller(scene=None, sensor="nano17", seed=0, inject=(), force="fem", tissue_pose=None, q0=None,
                      mesh_m=None, host="127.0.0.1", log_path=None, ready_timeout_s=60.0,
-                     tool=None) -> ControllerProcess:
+                     tool=None, netft_sensor_pose=None) -> ControllerProcess:
     """Start a simulated controller on ``host`` (loopback) in a child process; return when its ports accept.
     ``host="auto"``: the first loopback address whose ports are free (see ``loopback_candidates``); connect the
-    clients to ``.host`` of the result. Raises PortsUnavailable if the ports are taken (on every candidate)."""
+    clients to ``.host`` of the result. Raises PortsUnavailable if the ports are taken (on every candidate).
+    ``netft_sensor_pose``: also serve a simulated Net F/T box there (UDP port robot.rdt.RDT_PORT), its sensor mounted
+    at that pose on the flange."""
     args = (["--scene", str(scene)] if scene is not None else []) + ["--sensor", sensor, "--seed", str(seed),
                                                                       "--force", force]
     for spec in inject:
         args += ["--inject", spec]
     if mesh_m:
         args += ["--mesh-m", repr(float(mesh_m))]
-    for flag, vec in (("--tissue-pose", tissue_pose), ("--q0", q0), ("--tool", tool)):
+    if netft_sensor_pose is not None:
+        args.append("--netft")
+    for flag, vec in (("--tissue-pose", tissue_pose), ("--q0", q0), ("--tool", tool),
+                      ("--netft-sensor-pose", netft_sensor_pose)):
         if vec is not None:
             args.append(f"{flag}=" + ",".join(repr(float(v)) for v in vec))   # '=': values may start with '-'
     err = None

@@ -23,6 +23,7 @@ from planner.tasks import Runner, load_piece, run_pieces
 
 ROOT = Path(__file__).resolve().parents[1]
 TRIALS, HEALTHY = 2, 1
+BUDGET = 20        # probes per trial: the coarse raster and one round (the comparisons need rows, not accuracy)
 
 
 def _square(shared, x):
@@ -83,7 +84,7 @@ def test_pieces_resume_from_disk_and_are_never_overwritten(tmp_path):
 @pytest.fixture(scope="module")
 def small_study():
     sur = load_surrogate(load("paper").prior(), build=False)
-    trials = study_trials(sur.W, TRIALS, HEALTHY, seed=7)
+    trials = study_trials(sur.W, TRIALS, HEALTHY, seed=7, budget=BUDGET)
     return sur, trials, run_accuracy(sur, trials, Runner(progress=False))
 
 
@@ -131,7 +132,8 @@ def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_
                                       stderr=subprocess.STDOUT))
         out = tmp_path / "study"
         assert main(["study", "accuracy", "--out", str(out), "--scheduler", addr, "--trials", str(TRIALS),
-                     "--healthy", str(HEALTHY), "--seed", "7", "--no-progress"]) == 0
+                     "--healthy", str(HEALTHY), "--seed", "7", "--budget-probes", str(BUDGET),
+                     "--no-progress"]) == 0
     finally:
         for p in reversed(procs):
             p.terminate()

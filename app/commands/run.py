@@ -8,6 +8,8 @@ and nothing else. The truth is written into result.json only after localization,
 The truth may differ from the belief beyond its stones (issue 14): ``--prior PRIOR`` plans and localizes on another
 scene's prior (a ``--plan`` carries its own), and the truth scene file's ``[truth]`` table or the ``--truth-*``
 options (robot/truth.py: registration error, relaxation, sensor bias and drift) reach only the simulated arm.
+The force comes from the UR's wrist sensor (``--ft rtde``) or an ATI Net F/T box (``--ft netft:HOST``; with a
+simulated arm ``--ft netft``, a simulated box): app/ftoptions.py, issue 18.
 
 Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
 no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
@@ -28,6 +30,7 @@ from pathlib import Path
 from app.cell import print_preflight, read_confirmation, sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
+from app.ftoptions import add_ft_options, check_ft, controller_pose, inmemory_source, linked_source
 from app.options import (
     MAX_TOTAL_PROBES,
     MAX_WAYPOINTS,
@@ -100,6 +103,7 @@ def add_parser(sub) -> None:
     p.add_argument("--out", required=True, help="output directory (a re-run with the same options resumes)")
     p.add_argument("--fresh", action="store_true",
                    help="start afresh: move the files of a previous run in --out into OUT/previous-<UTC time>/")
+    add_ft_options(p, sim_help="with the simulated arm")
     p.add_argument("--no-figure", action="store_true")
     p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
@@ -131,8 +135,8 @@ def _runner(get_interfaces, out: Path, stats: dict):
         if all(p.index in latest and latest[p.index].status in ("ok", "force_limit") for p in plan.probes):
             recs = [latest[p.index] for p in plan.probes]      # measured before: replay, the arm is not needed
         else:
-            c, r = get_interfaces(plan)
-            rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None)
+            c, r, fs = get_interfaces(plan)
+            rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None, force_source=fs)
             stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
             stats["reports"].append(rep.to_dict())
             if rep.status != "ok":
@@ -145,9 +149,11 @@ def _runner(get_interfaces, out: Path, stats: dict):
 
 
 def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holder: dict | None = None,
-                 conditions: TruthConditions | None = None):
+                 conditions: TruthConditions | None = None, ft=None, cleanup: contextlib.ExitStack | None = None):
     """The simulated arm holding the TRUE scene and its conditions (in this closure only); created at the first
-    plan. ``holder["arm"]`` gets the arm (for its force-model range report, never its truth)."""
+    plan. ``holder["arm"]`` gets the arm (for its force-model range report, never its truth). ``ft``: the run's
+    options when the force comes from a simulated Net F/T box (app.ftoptions; None: the wrist sensor); its source
+    is closed by ``cleanup``."""
     arm = {}
 
     def interfaces(plan):
@@ -155,39 +161,48 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holde
             a = build_truth_arm(truth, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
                                 tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose,
                                 conditions=conditions)
-            arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a))
+            arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a), fs=None)
+            if ft is not None:
+                arm["fs"], _ = inmemory_source(ft, a, arm["c"], plan.frames.tcp_offset)
+                if cleanup is not None:
+                    cleanup.callback(arm["fs"].close)
             if holder is not None:
                 holder["arm"] = a
-        return arm["c"], arm["r"]
+        return arm["c"], arm["r"], arm["fs"]
     return _runner(interfaces, out, stats)
 
 
-def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStack):
+def _link(link: dict, host: str, plan, stats: dict, cleanup: contextlib.ExitStack, ft, ft_host=None) -> tuple:
+    """Connect ur_rtde to ``host`` once (and the force source: ``ft`` the run's options, app.ftoptions); closed by
+    ``cleanup``."""
+    if "c" not in link:
+        link["c"], link["r"] = connect(host)
+        cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
+        link["fs"] = linked_source(ft, link["c"], link["r"], plan.frames.tcp_offset, ft_host)
+        cleanup.callback(link["fs"].close)
+    return link["c"], link["r"], link["fs"]
+
+
+def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStack, ft=None):
     """A real UR controller at ``host``, over ur_rtde (no truth: only the prior scene exists)."""
     link = {}
-
-    def interfaces(plan):
-        if "c" not in link:
-            link["c"], link["r"] = connect(host)
-            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
-        return link["c"], link["r"]
-    return _runner(interfaces, out, stats)
+    return _runner(lambda plan: _link(link, host, plan, stats, cleanup, ft), out, stats)
 
 
 def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, stats: dict,
-                        cleanup: contextlib.ExitStack):
-    """The simulated UR controller (robot.simcontroller, a child process holding the TRUE scene), driven through the
-    real ur_rtde client; started at the first plan, stopped when the run ends."""
+                        cleanup: contextlib.ExitStack, ft=None):
+    """The simulated UR controller (robot.simcontroller, a child process holding the TRUE scene; with ``--ft netft``
+    serving a simulated Net F/T box too), driven through the real ur_rtde client; started at the first plan, stopped
+    when the run ends."""
     link = {}
 
     def interfaces(plan):
-        if "c" not in link:
-            ctl = cleanup.enter_context(start_controller(
+        if "ctl" not in link:
+            link["ctl"] = cleanup.enter_context(start_controller(
                 scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
-                tool=plan.frames.tcp_offset, host="auto", log_path=out / "simcontroller.log"))
-            link["c"], link["r"] = connect(ctl.host)
-            cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
-        return link["c"], link["r"]
+                tool=plan.frames.tcp_offset, host="auto", log_path=out / "simcontroller.log",
+                netft_sensor_pose=controller_pose(ft)))
+        return _link(link, link["ctl"].host, plan, stats, cleanup, ft, link["ctl"].host)
     return _runner(interfaces, out, stats)
 
 
@@ -229,7 +244,9 @@ def _run_options(args, scene, cond: TruthConditions | None = None) -> dict:
             "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
             "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
             "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
-            "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy}
+            "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
+            **({"ft": args.ft.text} if args.ft.kind != "rtde" else {})}     # absent for the wrist sensor: older
+                                                                            # runs resume
 
 
 def _previous_options(out: Path) -> dict | None:
@@ -273,6 +290,7 @@ def run(args) -> int:
     scene = load_scene(args.scene)
     belief = load_scene(args.prior, "--prior").prior() if args.prior else None
     cond = truth_conditions(args)
+    check_ft(args, sim=not args.host, real_host=bool(args.host))
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
@@ -343,18 +361,21 @@ def run(args) -> int:
         print_preflight(preflight(plan0, done_indices(out) if resume else set()), where)
         if not args.yes and not read_confirmation():
             raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
-        execute = arm_executor(args.host, out, stats, cleanup)
+        execute = arm_executor(args.host, out, stats, cleanup, ft=args)
         truth = None
     elif args.sim == "controller":
         where = f"simulated UR controller over ur_rtde (sensor {args.sensor}, seed {args.seed}; real time)"
         truth = scene
         execute = controller_executor(args.scene, sensor=args.sensor, seed=args.seed, out=out, stats=stats,
-                                      cleanup=cleanup)
+                                      cleanup=cleanup, ft=args)
     else:
         where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
         truth = scene
         execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm,
-                               conditions=cond)
+                               conditions=cond, ft=args if args.ft.kind == "netft" else None, cleanup=cleanup)
+    if args.ft.kind == "netft":
+        where += (f"; force from the Net F/T box ({args.ft.host or 'simulated'}), which the UR's own force "
+                  f"protection does not see: the driver's force limit is the only guard on it")
     # ---- OUT: from here on files are written (never deleted: --fresh moves them aside)
     if args.fresh:
         moved = move_aside(out) if _holds_run(out) else None
