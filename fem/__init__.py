@@ -24,6 +24,20 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   export      VTU export (meshio): write_vtu, write_result_vtu
   plots       figures (matplotlib), not imported here
   cache       historical names of the disk-cache entry points (mesh_for, mesh_key, surface_key, stats, ...)
+
+3D (issue 15; a tissue with length_m), imported explicitly (not re-exported here):
+  elements3d  P1/P2 tetrahedra, quadrature (degree 5 for curved P2 elements)
+  mesh3d      Mesh3D and gmsh meshing of a block with spherical stones (mesh_block, mesh_scene3d)
+  scene_mesh3d  a 3D scene's checked mesh from the disk cache or gmsh: mesh_for3d
+  assembly3d  vectorized 3D stiffness assembly
+  model3d     Model3D (rigid stones with 6 DOFs), fixed_bottom (u_z = 0, rigid modes removed minimally)
+  stress3d    3D nodal stress recovery
+  results3d   SurfaceMap (top-face stress map, its peak), UniformResult3D
+  uniform3d   load A in 3D: solve_uniform3d
+  condense    Schur condensation onto contact DOFs and a sparse Cholesky (CHOLMOD via cvxopt; SuperLU fallback)
+  contact3d   load B in 3D: SurfaceModel3D, surface_model3d (memory + disk cache), check_waypoint3d
+  export3d    VTU export of tetrahedral meshes
+  plots3d     3D figures (matplotlib), not imported here
 """
 from core.lazy import lazy_exports
 

@@ -89,6 +89,16 @@ def _load_b_fixed(model: Model) -> np.ndarray:
     return model.reduced_index(np.concatenate([2 * mesh.bottom + 1, [2 * mesh.bottom[0]]]))
 
 
+def condensed_displacements(model, fac, F: np.ndarray) -> np.ndarray:
+    """Full displacement vectors (k columns) for downward nodal forces F (n_c, k) on the condensed DOFs of a Schur
+    factorization ``fac`` (SchurFactor or fem.condense.CholmodSchur) of ``model``."""
+    rhs = np.zeros((len(fac.free), F.shape[1]))
+    rhs[fac.c] = -F
+    Y = np.zeros((model.n_dofs, F.shape[1]))
+    Y[fac.free] = fac.solve(rhs)
+    return model.P @ Y
+
+
 class SchurFactor:
     """K_ff factorized with the contact DOFs ordered last, so that the trailing block of L U is the Schur
     complement S = K_cc - K_ci K_ii^-1 K_ic and the condensed compliance is exactly S^-1: no multi-right-hand-side
@@ -211,11 +221,7 @@ class SurfaceModel:
     # -- fields from contact forces (one back-substitution per waypoint, batched when many) ----------------------
     def displacements(self, F_top: np.ndarray) -> np.ndarray:
         """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes."""
-        rhs = np.zeros((len(self.fac.free), F_top.shape[1]))
-        rhs[self.fac.c] = -F_top
-        Y = np.zeros((self.model.n_dofs, F_top.shape[1]))
-        Y[self.fac.free] = self.fac.solve(rhs)
-        return self.model.P @ Y
+        return condensed_displacements(self.model, self.fac, F_top)
 
     def _band(self) -> tuple[np.ndarray, np.ndarray, object, object]:
         """(band nodes, their Poisson ratios, recovery operators on the full displacements: band, top)."""
@@ -382,6 +388,22 @@ def _half_width(xs: np.ndarray, active: np.ndarray) -> float:
 STONE_LAYER_MAX = 0.75
 
 
+def check_depth(scene, depth_m: float) -> None:
+    """ValueError unless depth_m lies in [0, STRAIN_MAX * height] and, for a round tip (a cylinder in 2D, a sphere
+    in 3D), below its radius."""
+    H = scene.tissue.height_m
+    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
+        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
+    R = scene.indenter.radius_m
+    if scene.indenter.shape in ("cylinder", "sphere") and depth_m >= R:
+        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
+                         f"tip's sides, which this contact model does not represent")
+    if depth_m > STRAIN_MAX * H:
+        raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
+                         f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
+                         f"{STRAIN_WARN:.0%})")
+
+
 def check_waypoint(scene, x_m: float, depth_m: float) -> None:
     """ValueError unless (x_m, depth_m) is a waypoint the contact model covers: x_m on the surface, depth in
     [0, STRAIN_MAX * height] (the linear model's range), for a cylinder below the tip radius, and for every stone
@@ -389,17 +411,8 @@ def check_waypoint(scene, x_m: float, depth_m: float) -> None:
     tissue layer above it."""
     if not (isinstance(x_m, (int, float)) and math.isfinite(x_m)) or not (0.0 <= x_m <= scene.tissue.width_m):
         raise ValueError(f"x_m={x_m!r} must lie on the surface [0, {scene.tissue.width_m}] m")
-    H = scene.tissue.height_m
-    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
-        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
+    check_depth(scene, depth_m)
     R = scene.indenter.radius_m
-    if scene.indenter.shape == "cylinder" and depth_m >= R:
-        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
-                         f"tip's sides, which this contact model does not represent")
-    if depth_m > STRAIN_MAX * H:
-        raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
-                         f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
-                         f"{STRAIN_WARN:.0%})")
     for i, s in enumerate(scene.stones):
         layer = s.depth_m - s.radius_m
         if abs(s.x_m - x_m) < R + s.radius_m and depth_m > STONE_LAYER_MAX * layer:
@@ -409,11 +422,12 @@ def check_waypoint(scene, x_m: float, depth_m: float) -> None:
                              f"against the stone, which the linear model does not represent")
 
 
-def _surface_spec(scene, options: dict) -> dict:
+def _surface_spec(scene, options: dict, code: str | None = None) -> dict:
     """What a SurfaceModel's operators depend on: the scene's content without what cannot change them (a tip fem
-    treats as rigid shares the rigid tip's entry: fem.tip.contact_scene), the options, the code version."""
+    treats as rigid shares the rigid tip's entry: fem.tip.contact_scene), the options, the code version (``code``,
+    default fem.scene_mesh.code_version(); fem.contact3d gives its own)."""
     tip = {k: options[k] for k in ("rigid_tip", "tip_tolerance") if k in options}
-    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code_version()}
+    return {"scene": contact_scene(scene, **tip).key(), "options": options, "code": code or code_version()}
 
 
 def surface_key(scene, options: dict) -> str:

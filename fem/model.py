@@ -115,7 +115,9 @@ class Model:
 class Factored:
     """K_ff factorized once; solves for any prescribed values on the fixed DOFs and any load on the free DOFs."""
 
-    def __init__(self, model: Model, fixed: np.ndarray):
+    def __init__(self, model: Model, fixed: np.ndarray, factorize=None):
+        """factorize(K_ff) -> an object with ``solve(rhs)`` (default: SuperLU with a symmetric ordering; the 3D
+        model passes CHOLMOD, fem.condense.factorize_spd)."""
         self.model = model
         n = model.n_dofs
         self.fixed = np.unique(fixed)
@@ -126,9 +128,11 @@ class Factored:
         K = model.K
         Kff = K[self.free][:, self.free].tocsc()
         self.Kfp = K[self.free][:, self.fixed].tocsc()
-        # Symmetric fill-reducing ordering: K_ff is SPD, so no pivoting is needed.
-        self.lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                            options={"SymmetricMode": True})
+        if factorize is not None:
+            self.lu = factorize(Kff)
+        else:   # symmetric fill-reducing ordering: K_ff is SPD, so no pivoting is needed
+            self.lu = spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                options={"SymmetricMode": True})
 
     def solve(self, prescribed: np.ndarray | None = None, load: np.ndarray | None = None) -> np.ndarray:
         """Reduced displacement vector (n_red,) for fixed values ``prescribed`` and a reduced load vector."""

@@ -1,7 +1,13 @@
-"""Scenes: the tissue section, the stones in it, the probe tip and analysis options.
+"""Scenes: the tissue section (or block), the stones in it, the probe tip and analysis options.
 
 All quantities are SI (m, Pa). The 2D section lies in the x-y plane: x from the left edge (0 .. width_m),
 y up from the bottom edge (0 .. height_m). A stone's ``depth_m`` is the depth of its centre below the top surface.
+
+3D (issue 15): a tissue with ``length_m`` is a block x in [0, width_m], y in [0, length_m], z up from the bottom
+face (0 .. height_m); its stones are spheres placed by ``x_m``, ``y_m`` and ``depth_m``; its tip is a ``sphere`` (or
+a circular ``flat`` punch) of radius ``radius_m``. ``analysis.patch_m`` is the side of the centred square of the top
+face that is probed (graded finer and condensed for contact; None: the whole face). A 2D scene has none of these
+fields (its dict, TOML and cache keys are unchanged).
 
 A scene plays two roles in a simulated run (see docs/architecture.md, "Truth and belief"): the simulator holds the full scene
 (the truth), the planner and the localizer hold ``scene.prior()`` — the same tissue with its stones removed.
@@ -27,6 +33,7 @@ class Tissue:
     height_m: float = 0.050
     youngs_pa: float = 2500.0
     poisson: float = 0.4
+    length_m: float | None = None    # 3D: the block's extent along y (None: a 2D plane section)
 
 
 @dataclass(frozen=True)
@@ -36,6 +43,7 @@ class Stone:
     diameter_m: float
     youngs_pa: float = 5.0e9
     poisson: float = 0.3
+    y_m: float | None = None         # 3D: the sphere's centre along y (None in a 2D scene)
 
     @property
     def radius_m(self) -> float:
@@ -44,7 +52,7 @@ class Stone:
 
 @dataclass(frozen=True)
 class Indenter:
-    shape: str = "cylinder"          # "cylinder" (circle of radius_m) or "flat" (punch of half-width radius_m)
+    shape: str = "cylinder"          # 2D: "cylinder" or "flat" (half-width radius_m); 3D: "sphere" or "flat" (disk)
     radius_m: float = 0.005
     youngs_pa: float | None = None   # None: rigid tip
     poisson: float = 0.3
@@ -59,6 +67,8 @@ class Analysis:
     surface_refine: float = 4.0      # size at the top surface = mesh_size_m / surface_refine
     top_displacement_m: float = 0.005  # load A: the whole top edge moved down by this much
     formulation: str = "displacement"  # "displacement" (P1/P2) or "mixed" (Taylor-Hood P2/P1 u-p, locking-free)
+    patch_m: float | None = None     # 3D: side of the centred probed square of the top face (None: the whole face)
+    grade: float | None = None       # 3D: element size growth per unit distance from the patch and stones (None: 0.5)
 
 
 @dataclass(frozen=True)
@@ -73,6 +83,11 @@ class Scene:
         object.__setattr__(self, "stones", tuple(self.stones))
         validate(self)
 
+    @property
+    def is_3d(self) -> bool:
+        """A block (tissue.length_m given), not a plane section."""
+        return self.tissue.length_m is not None
+
     def prior(self) -> Scene:
         """What a surgeon knows before probing: the tissue, no stones."""
         return dataclasses.replace(self, name=f"{self.name}-prior", stones=())
@@ -84,10 +99,10 @@ class Scene:
         return dataclasses.replace(self, stones=tuple(stones))
 
     def to_dict(self) -> dict:
-        d = {"name": self.name, "tissue": dataclasses.asdict(self.tissue),
-             "stone": [dataclasses.asdict(s) for s in self.stones],
-             "indenter": {k: v for k, v in dataclasses.asdict(self.indenter).items() if v is not None},
-             "analysis": dataclasses.asdict(self.analysis)}
+        def given(obj) -> dict:     # None = not given (a 2D scene's dict has no 3D key)
+            return {k: v for k, v in dataclasses.asdict(obj).items() if v is not None}
+        d = {"name": self.name, "tissue": given(self.tissue), "stone": [given(s) for s in self.stones],
+             "indenter": given(self.indenter), "analysis": given(self.analysis)}
         return d
 
     def key(self) -> str:
@@ -164,13 +179,31 @@ def validate(scene: Scene) -> None:
     _check_length("tissue.height_m", t.height_m)
     _check_modulus("tissue.youngs_pa", t.youngs_pa)
     _check_poisson("tissue.poisson", t.poisson)
+    if t.length_m is not None:
+        _check_length("tissue.length_m", t.length_m)
+        _validate_stones_3d(scene)
+    else:
+        _validate_stones_2d(scene)
+    _validate_indenter(scene)
+    _validate_analysis(scene)
+
+
+def _check_stone_material(w: str, s: Stone) -> None:
+    _check_length(f"{w}.diameter_m", s.diameter_m)
+    _check_modulus(f"{w}.youngs_pa", s.youngs_pa)
+    _check_poisson(f"{w}.poisson", s.poisson)
+
+
+def _validate_stones_2d(scene: Scene) -> None:
+    t = scene.tissue
     for i, s in enumerate(scene.stones):
         w = f"stone[{i}]"
         for name in ("x_m", "depth_m"):
             _check_positive(f"{w}.{name}", getattr(s, name))
-        _check_length(f"{w}.diameter_m", s.diameter_m)
-        _check_modulus(f"{w}.youngs_pa", s.youngs_pa)
-        _check_poisson(f"{w}.poisson", s.poisson)
+        if s.y_m is not None:
+            raise SceneError(f"{w}.y_m = {s.y_m!r} places a sphere in a 3D block, but the tissue has no length_m "
+                             f"(a 2D section): give tissue.length_m for a 3D scene, or drop y_m")
+        _check_stone_material(w, s)
         r = s.radius_m
         if s.x_m - r <= 0 or s.x_m + r >= t.width_m:
             raise SceneError(f"{w} (x_m={s.x_m}, diameter_m={s.diameter_m}) leaves the tissue sideways "
@@ -182,17 +215,55 @@ def validate(scene: Scene) -> None:
             o = scene.stones[j]
             if math.hypot(s.x_m - o.x_m, s.depth_m - o.depth_m) <= r + o.radius_m:
                 raise SceneError(f"{w} touches or overlaps stone[{j}]")
-    ind = scene.indenter
-    if ind.shape not in ("cylinder", "flat"):
-        raise SceneError(f"indenter.shape must be 'cylinder' or 'flat', got {ind.shape!r}")
+
+
+def _validate_stones_3d(scene: Scene) -> None:
+    t = scene.tissue
+    for i, s in enumerate(scene.stones):
+        w = f"stone[{i}]"
+        if s.y_m is None:
+            raise SceneError(f"{w}.y_m is missing: a 3D scene (tissue.length_m = {t.length_m!r}) places each "
+                             f"sphere by x_m, y_m and depth_m (no default y_m is assumed)")
+        for name in ("x_m", "y_m", "depth_m"):
+            _check_positive(f"{w}.{name}", getattr(s, name))
+        _check_stone_material(w, s)
+        r = s.radius_m
+        for name, lo_hi, extent in (("x_m", s.x_m, "width_m"), ("y_m", s.y_m, "length_m")):
+            size = getattr(t, extent)
+            if lo_hi - r <= 0 or lo_hi + r >= size:
+                raise SceneError(f"{w} ({name}={lo_hi}, diameter_m={s.diameter_m}) leaves the tissue sideways "
+                                 f"({extent}={size})")
+        if s.depth_m - r <= 0 or s.depth_m + r >= t.height_m:
+            raise SceneError(f"{w} (depth_m={s.depth_m}, diameter_m={s.diameter_m}) leaves the tissue through "
+                             f"the top or bottom (height_m={t.height_m})")
+        for j in range(i):
+            o = scene.stones[j]
+            if math.dist((s.x_m, s.y_m, s.depth_m), (o.x_m, o.y_m, o.depth_m)) <= r + o.radius_m:
+                raise SceneError(f"{w} touches or overlaps stone[{j}]")
+
+
+def _validate_indenter(scene: Scene) -> None:
+    t, ind = scene.tissue, scene.indenter
+    shapes = ("sphere", "flat") if scene.is_3d else ("cylinder", "flat")
+    if ind.shape not in shapes:
+        kind = (f"a 3D scene (tissue.length_m = {t.length_m!r})" if scene.is_3d
+                else "a 2D scene (no tissue.length_m)")
+        raise SceneError(f"indenter.shape must be {' or '.join(map(repr, shapes))} in {kind}, got {ind.shape!r}")
     _check_length("indenter.radius_m", ind.radius_m)
     if ind.radius_m > t.width_m / 2:
         raise SceneError(f"indenter.radius_m = {ind.radius_m!r} must be at most half the tissue width "
                          f"({t.width_m / 2:g} m): a wider tip does not fit on the surface")
+    if scene.is_3d and ind.radius_m > t.length_m / 2:
+        raise SceneError(f"indenter.radius_m = {ind.radius_m!r} must be at most half the tissue length "
+                         f"({t.length_m / 2:g} m): a wider tip does not fit on the surface")
     _check_length("indenter.thickness_m", ind.thickness_m)
     if ind.youngs_pa is not None:
         _check_modulus("indenter.youngs_pa", ind.youngs_pa)
     _check_poisson("indenter.poisson", ind.poisson)
+
+
+def _validate_analysis(scene: Scene) -> None:
+    t = scene.tissue
     a = scene.analysis
     if a.plane not in ("strain", "stress"):
         raise SceneError(f"analysis.plane must be 'strain' or 'stress', got {a.plane!r}")
@@ -220,6 +291,27 @@ def validate(scene: Scene) -> None:
                          f"({t.height_m:g} m): the linear model allows at most {STRAIN_MAX:.0%} "
                          f"(top_displacement_m <= {STRAIN_MAX * t.height_m:.4g} m; it is stated for up to "
                          f"{STRAIN_WARN:.0%})")
+    if scene.is_3d:
+        if a.plane != "strain":
+            raise SceneError(f"analysis.plane = {a.plane!r} is 2D only (a 3D block has no plane assumption): drop it")
+        if a.formulation != "displacement":
+            raise SceneError(f"analysis.formulation = {a.formulation!r} is 2D only; a 3D scene uses "
+                             f"'displacement' (P1/P2 tetrahedra)")
+        if a.mesh_size_m > t.length_m / 2:
+            raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m} is larger than half the tissue length "
+                             f"({t.length_m / 2:g} m)")
+        if a.patch_m is not None:
+            _check_length("analysis.patch_m", a.patch_m)
+            if a.patch_m > min(t.width_m, t.length_m):
+                raise SceneError(f"analysis.patch_m = {a.patch_m!r} is wider than the top face "
+                                 f"({min(t.width_m, t.length_m):g} m, the smaller of width_m and length_m)")
+        if a.grade is not None:
+            _check_range("analysis.grade", a.grade, 0.05, 2.0, "",
+                         " (the element size's growth per unit distance from the probed patch and the stones)")
+    elif a.patch_m is not None or a.grade is not None:
+        which = "patch_m" if a.patch_m is not None else "grade"
+        raise SceneError(f"analysis.{which} = {getattr(a, which)!r} applies to a 3D block (its probed patch and "
+                         f"grading); a 2D scene (no tissue.length_m) has none: drop it or give tissue.length_m")
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -331,6 +423,27 @@ BUILTIN = {
     "paper-deep": lambda: _paper("paper-deep", depth_m=0.040, diameter_m=0.010),
     "healthy": lambda: Scene(name="healthy", indenter=Indenter(youngs_pa=60.0e6)),
 }
+
+# 3D (issue 15): a 70 x 70 x 50 mm block, the study's tissue and stone, a spherical 5 mm tip of 60 MPa; the probed
+# patch is the central 50 x 50 mm (a 40 x 40 mm raster plus the tip radius on each side). The mesh options are those
+# of the convergence table in README (bench/bench_3d.py).
+BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.012, surface_refine=8.0, patch_m=0.050, grade=0.25)
+
+
+def _block3d(name: str, stone: bool = True, x_m: float = 0.035, y_m: float = 0.035, depth_m: float = 0.025,
+             diameter_m: float = 0.015) -> Scene:
+    stones = (Stone(x_m=x_m, y_m=y_m, depth_m=depth_m, diameter_m=diameter_m),) if stone else ()
+    return Scene(name=name, tissue=Tissue(length_m=0.070), stones=stones,
+                 indenter=Indenter(shape="sphere", radius_m=0.005, youngs_pa=60.0e6), analysis=BLOCK3D_ANALYSIS)
+
+
+BUILTIN.update({
+    "block3d": lambda: _block3d("block3d"),
+    "block3d-healthy": lambda: _block3d("block3d-healthy", stone=False),
+    "block3d-left": lambda: _block3d("block3d-left", x_m=0.020),          # stone moved in x
+    "block3d-front": lambda: _block3d("block3d-front", y_m=0.020),        # stone moved in y
+    "block3d-deep": lambda: _block3d("block3d-deep", depth_m=0.040, diameter_m=0.010),
+})
 
 
 def load(spec: str | Path | Scene) -> Scene:

@@ -26,14 +26,19 @@ _SOURCES = ("scene_mesh.py", "mesh.py", "assembly.py", "elements.py", "model.py"
             "stress.py", "guards.py")
 
 
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
+def sources_version(sources: tuple[str, ...], tag: str) -> str:
+    """A hash of fem's source files ``sources``, gmsh's version and ``tag``: a code version for cache keys."""
     try:
         gv = metadata.version("gmsh")
     except metadata.PackageNotFoundError:
         gv = "?"
     here = Path(__file__).resolve().parent
-    return diskcache.files_digest([here / name for name in _SOURCES], f"format {FORMAT}; gmsh {gv}")
+    return diskcache.files_digest([here / name for name in sources], f"{tag}; gmsh {gv}")
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    return sources_version(_SOURCES, f"format {FORMAT}")
 
 
 # Size caps, checked from the scene before gmsh runs (issue 13: a 1e-5 m mesh or a 1000 m tissue hung the machine).

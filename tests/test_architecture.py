@@ -27,8 +27,9 @@ ALLOWED = {
 ROBOT_FEM_USERS = {"robot.simarm"}
 # imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
-           "fem.export", "planner.plots_plan", "planner.plots_run", "planner.plots_accuracy", "importlib.metadata",
-           "distributed", "scipy.sparse")   # scipy.sparse: a cached model predicts with numpy alone (issue 19)
+           "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "planner.plots_plan", "planner.plots_run",
+           "planner.plots_accuracy", "importlib.metadata", "distributed",
+           "scipy.sparse")   # scipy.sparse: a cached model predicts with numpy alone (issue 19)
 
 
 def modules() -> dict[str, Path]:

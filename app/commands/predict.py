@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import sim3d
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import (
@@ -53,6 +54,9 @@ EPILOG = """examples:
   palpate predict paper --waypoints 100 --plots out/ --json out/predict.json
   palpate predict paper-left --waypoints 50 --depth-m 0.003 --compare healthy
   palpate predict my_kidney.toml --waypoints 200 --margin-m 0.008 --mesh-size-m 0.003
+  palpate predict block3d --grid 10x10 --depth-m 0.003 --plots out/ --json out/predict3d.json
+3D (--grid): the same keys plus y_m (waypoints.y_m, max_von_mises_at_y_m, peak_ratio.y_m), contact_radius_m in
+place of half_width_m and no force_n_per_m; figure fig3d_predict.png (force, max stress and contrast maps).
 JSON (--json): waypoints {x_m, force_n, force_n_per_m, max_von_mises_pa, max_von_mises_at_x_m,
 max_von_mises_at_depth_m, half_width_m}, reference {the same}, ratio [force ratio per waypoint],
 ratio_von_mises [...], peak_ratio {x_m (sub-waypoint fit), ratio, x_max_sample_m}, peak_ratio_von_mises {...},
@@ -72,6 +76,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f"keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
     p.add_argument("--compare", metavar="SCENE", default="prior",
                    help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML, or 'none'")
+    p.add_argument("--grid", metavar="NXxNY",
+                   help="3D scenes: an NX x NY grid of waypoints over the probed patch less the tip radius "
+                        "(default 10x10); 2D scenes use --waypoints")
     p.add_argument("--force-only", action="store_true", help="skip the stresses (forces only: much faster)")
     p.add_argument("--json", metavar="PATH", help="write the machine-readable result here ('-': stdout)")
     p.add_argument("--plots", metavar="DIR", help=f"write {FIGURE} into DIR")
@@ -160,6 +167,11 @@ def run(args) -> int:
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")
     sc, ref = _scenes(args)
+    if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
+        return sim3d.run_predict(args, sc, ref)
+    if args.grid is not None:
+        raise UsageError(f"--grid {args.grid}: scene {sc.name!r} is a 2D section (no tissue.length_m); use "
+                         f"--waypoints N")
     try:
         xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)
         check_waypoint(sc, float(xs[0]), args.depth_m)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from app.commands import sim3d
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
@@ -54,14 +55,21 @@ EXAMPLES = """examples:
   palpate simulate paper --load uniform --plots out/ --json out/paper.json --vtu out/paper.vtu
   palpate simulate my_kidney.toml --order 1 --mesh-size-m 0.001 --compare paper paper-deep --plots out/
   palpate simulate paper --load indent --x-m 0.035 --depth-m 0.004 --plots out/ --json out/indent.json
-  palpate simulate healthy --load indent --x-m 0.02 --depth-m 0.003 --indenter-radius-m 0.0025"""
+  palpate simulate healthy --load indent --x-m 0.02 --depth-m 0.003 --indenter-radius-m 0.0025
+  palpate simulate block3d --load indent --x-m 0.035 --y-m 0.035 --depth-m 0.003 --plots out/ --vtu out/b.vtu
+  palpate simulate block3d --load uniform --plots out/ --json out/block3d.json
+
+3D scenes (tissue.length_m given: block3d, ...): --load uniform reports the von Mises map over the top face and its
+peak (x_m, y_m); --load indent needs --x-m, --y-m and --depth-m; figures fig3d_*.png (top-face maps and a section
+through the stone or the tip), VTU with tetrahedra."""
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("simulate", help="one FEM analysis of a scene (load A: uniform top displacement; load B: --load indent)",
                        description=HELP, epilog=EXAMPLES, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
-                                                  "healthy) or a TOML file")
+                                                  "healthy; 3D: block3d, block3d-healthy, block3d-left, "
+                                                  "block3d-front, block3d-deep) or a TOML file")
     p.add_argument("--load", choices=("uniform", "indent"), default="uniform",
                    help="uniform: the whole top edge moved down by analysis.top_displacement_m (default); "
                         "indent: a probe tip pressed in at --x-m")
@@ -81,6 +89,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     i = p.add_argument_group("indentation (--load indent)")
     i.add_argument("--x-m", "--x0-m", dest="x_m", type=finite_float,
                    help="tip position along the top surface, from the left edge (m); --x0-m is its former name")
+    i.add_argument("--y-m", "--y0-m", dest="y_m", type=finite_float,
+                   help="3D scenes: tip position across the top face, from the front face (m)")
     i.add_argument("--depth-m", type=finite_float, help="indentation depth below the undeformed surface (m)")
     i.add_argument("--indenter-radius-m", type=positive_float, help="tip radius (m; default: the scene's [indenter])")
     p.set_defaults(func=run)
@@ -93,6 +103,14 @@ def run(args) -> int:
     check_output_file(args.vtu, "--vtu")
     if args.vtu and not args.vtu.lower().endswith(".vtu"):
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
+    sc = _scene(args)
+    if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
+        if args.indenter_radius_m is not None:
+            sc = dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, radius_m=args.indenter_radius_m))
+        return sim3d.run_simulate(args, sc, _rigid(args))
+    if args.y_m is not None:
+        raise UsageError(f"--y-m {args.y_m:g}: scene {sc.name!r} is a 2D section (no tissue.length_m); --y-m "
+                         f"places the tip on a 3D block's top face")
     if args.load == "indent":
         return _run_indent(args)
     return _run_uniform(args)

@@ -1,0 +1,257 @@
+"""`palpate simulate` and `palpate predict` for 3D scenes (a tissue with length_m: fem.uniform3d, fem.contact3d).
+
+simulate --load uniform: the top face moved down; the von Mises map over the top face and its peak (x_m, y_m).
+simulate --load indent: the spherical (or flat) tip pressed --depth-m in at (--x-m, --y-m): force, contact radius,
+maximum von Mises under the tip. predict --grid NXxNY: force and maximum stress over a grid of waypoints spanning the
+probed patch (less the tip radius), against the reference scene (default: the prior), and their ratio (contrast).
+JSON keys as in 2D plus y_m. Figures: maps over the top face, a section through the stone; VTU export.
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from app.commands.output import write_json
+from app.errors import UsageError
+from fem.contact3d import check_waypoint3d, surface_model3d
+from fem.mesh3d import patch_bounds
+from fem.results3d import SurfaceMap, quadratic_peak
+from fem.stress3d import components3d, recovery_operator3d
+from fem.uniform3d import solve_uniform3d
+
+FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
+FIG_INDENT = ("fig3d_indent_surface.png", "fig3d_indent_section.png")
+FIG_PREDICT = "fig3d_predict.png"
+BATCH = 50             # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
+
+
+def _mesh_dict(mesh, model) -> dict:
+    return {"nodes": int(mesh.n_nodes), "elements": int(len(mesh.tets)), "order": int(mesh.order),
+            "dofs": int(model.n_dofs), "dofs_full": int(mesh.n_dofs)}
+
+
+def _nodal(model, u) -> dict:
+    nodal = components3d((recovery_operator3d(model) @ u).reshape(-1, 6))
+    eps = (recovery_operator3d(model, strain=True) @ u).reshape(-1, 6)
+    nodal.update({k: eps[:, i] for i, k in enumerate(("exx", "eyy", "ezz", "gyz", "gxz", "gxy"))})
+    return nodal
+
+
+def _section_y(sc, default_y: float) -> float:
+    return sc.stones[0].y_m if sc.stones else default_y
+
+
+def run_simulate(args, sc, rigid) -> int:
+    if args.compare is not None:
+        raise UsageError("--compare is for 2D scenes; for a 3D scene use `palpate predict SCENE --grid NXxNY`")
+    if args.load == "indent":
+        return _indent(args, sc, rigid)
+    t0 = time.perf_counter()
+    res = solve_uniform3d(sc, full_field=bool(args.plots or args.vtu), rigid_stones=rigid)
+    mesh = res.model.mesh
+    xp, yp, vp = res.surface.peak()
+    out = {"scene": sc.name, "load": "uniform", "analysis": dataclasses.asdict(sc.analysis),
+           "rigid_stones": [bool(r) for r in res.model.rigid], **res.surface.to_dict(),
+           "reaction_n": res.reaction_n, "force_n": res.reaction_n, "mesh": _mesh_dict(mesh, res.model),
+           "timings_s": dict(res.timings_s), "files": {}}
+    if args.vtu:
+        from fem.export3d import write_vtu3d
+        out["files"]["vtu"] = str(write_vtu3d(args.vtu, mesh, res.u, point_data=res.nodal))
+    if args.plots:
+        from fem import plots3d
+        a = sc.analysis
+        tag = (f"{sc.name}: top moved down {a.top_displacement_m * 1e3:g} mm, P{a.order} tetrahedra, "
+               f"h = {a.mesh_size_m * 1e3:g} mm")
+        d = Path(args.plots)
+        out["files"]["surface"] = str(plots3d.surface_maps(
+            d / FIG_UNIFORM[0], sc, res.surface.x_m, res.surface.y_m,
+            {"von_mises_pa": res.surface.fields["von_mises_pa"], "szz_pa": res.surface.fields["szz_pa"]},
+            f"Top-face stress - {tag}", peak=(xp, yp)))
+        ys = _section_y(sc, sc.tissue.length_m / 2)
+        out["files"]["section"] = str(plots3d.section(d / FIG_UNIFORM[1], sc, mesh, res.nodal["von_mises_pa"], ys,
+                                                      "von Mises (Pa)", f"Section y = {ys * 1e3:g} mm - {tag}"))
+    out["timings_s"]["total_s"] = time.perf_counter() - t0
+    stream = sys.stderr if args.json == "-" else sys.stdout
+    print(f"scene {sc.name} (3D): load uniform (top down {sc.analysis.top_displacement_m * 1e3:g} mm), "
+          f"P{sc.analysis.order}; {out['mesh']['nodes']} nodes, {out['mesh']['elements']} tetrahedra, "
+          f"{out['mesh']['dofs']} DOFs\n  peak von Mises on the top face: {vp:.2f} Pa at x = {xp * 1e3:.2f} mm, "
+          f"y = {yp * 1e3:.2f} mm\n  reaction: {res.reaction_n:.5g} N\n  time: {out['timings_s']['total_s']:.2f} s"
+          + "".join(f"\n  wrote {k}: {f}" for k, f in out["files"].items()), file=stream)
+    write_json(args.json, out)
+    return 0
+
+
+def _indent(args, sc, rigid) -> int:
+    if args.x_m is None or args.y_m is None or args.depth_m is None:
+        print("palpate simulate: --load indent on a 3D scene needs --x-m X, --y-m Y and --depth-m D (tip position "
+              "on the top face and indentation depth, m)", file=sys.stderr)
+        return 2
+    try:
+        check_waypoint3d(sc, args.x_m, args.y_m, args.depth_m)
+    except ValueError as e:
+        print(f"palpate simulate: --x-m {args.x_m:g} / --y-m {args.y_m:g} / --depth-m {args.depth_m:g}: {e}",
+              file=sys.stderr)
+        return 2
+    t0 = time.perf_counter()
+    m = surface_model3d(sc, rigid_stones=rigid)
+    t1 = time.perf_counter()
+    r = m.indent(args.x_m, args.y_m, args.depth_m)
+    t2 = time.perf_counter()
+    model, mesh = m.model, m.mesh
+    u = m.full_field(args.x_m, args.y_m, args.depth_m)
+    top = mesh.top
+    surf = SurfaceMap(mesh.nodes[top, 0], mesh.nodes[top, 1],
+                      components3d((recovery_operator3d(model, top) @ u).reshape(-1, 6)))
+    out = {"scene": sc.name, "load": "indent", **r.to_dict(), "indenter": dataclasses.asdict(sc.indenter),
+           "analysis": dataclasses.asdict(sc.analysis), "rigid_stones": [bool(x) for x in model.rigid],
+           **surf.to_dict(), "mesh": {**_mesh_dict(mesh, model), "contact_candidates": int(len(m.patch))},
+           "timings_s": {**m.timings_s, "model_s": t1 - t0, "indent_s": t2 - t1}, "files": {}}
+    nodal = _nodal(model, u) if (args.plots or args.vtu) else None
+    if args.vtu:
+        from fem.export3d import write_vtu3d
+        out["files"]["vtu"] = str(write_vtu3d(args.vtu, mesh, u, point_data=nodal))
+    if args.plots:
+        from fem import plots3d
+        d = Path(args.plots)
+        R = sc.indenter.radius_m
+        tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at ({r.x_m * 1e3:g}, {r.y_m * 1e3:g}) mm, "
+               f"depth {r.depth_m * 1e3:g} mm, F = {r.force_n:.4g} N")
+        out["files"]["surface"] = str(plots3d.surface_maps(
+            d / FIG_INDENT[0], sc, surf.x_m, surf.y_m,
+            {"von_mises_pa": surf.fields["von_mises_pa"], "uz_m": u[2::3][top]}, tag))
+        out["files"]["section"] = str(plots3d.section(d / FIG_INDENT[1], sc, mesh, nodal["von_mises_pa"], r.y_m,
+                                                      "von Mises (Pa)", f"Section y = {r.y_m * 1e3:g} mm - {tag}"))
+    out["timings_s"]["total_s"] = time.perf_counter() - t0
+    stream = sys.stderr if args.json == "-" else sys.stdout
+    print(f"scene {sc.name} (3D): load indent ({sc.indenter.shape} tip, R = {sc.indenter.radius_m * 1e3:g} mm) at "
+          f"x = {r.x_m * 1e3:g} mm, y = {r.y_m * 1e3:g} mm, depth {r.depth_m * 1e3:g} mm; P{sc.analysis.order}, "
+          f"{out['mesh']['dofs']} DOFs, {len(m.patch)} patch nodes\n  force: {r.force_n:.5g} N\n"
+          f"  contact radius {r.contact_radius_m * 1e3:.3f} mm, {int((r.nodal_force_n > 0).sum())} nodes in contact\n"
+          f"  max von Mises {r.max_von_mises_pa:.4g} Pa at ({r.max_von_mises_at_m[0] * 1e3:.2f}, "
+          f"{r.max_von_mises_at_m[1] * 1e3:.2f}) mm, {r.max_von_mises_at_m[2] * 1e3:.2f} mm deep\n  tip: {r.tip_note}\n"
+          "  time: " + ", ".join(f"{k[:-2]} {v:.3f} s" for k, v in out["timings_s"].items() if isinstance(v, float))
+          + "".join(f"\n  wrote {k}: {f}" for k, f in out["files"].items()), file=stream)
+    write_json(args.json, out)
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------- predict
+
+def parse_grid(text: str) -> tuple[int, int]:
+    """'NXxNY' -> (nx, ny), each 1..200; UsageError naming --grid otherwise."""
+    parts = str(text).lower().split("x")
+    try:
+        nx, ny = (int(p) for p in parts)
+    except ValueError:
+        raise UsageError(f"--grid {text!r}: give NXxNY, e.g. 10x10") from None
+    if not (1 <= nx <= 200 and 1 <= ny <= 200):
+        raise UsageError(f"--grid {text!r}: NX and NY must lie in 1..200")
+    return nx, ny
+
+
+def grid(sc, nx: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
+    """Waypoint coordinates spanning the probed patch less the tip radius (the centre for a count of 1)."""
+    x0, x1, y0, y1 = patch_bounds(sc.tissue.width_m, sc.tissue.length_m, sc.analysis.patch_m)
+    R = sc.indenter.radius_m
+
+    def axis(lo, hi, n):
+        return np.array([0.5 * (lo + hi)]) if n == 1 else np.linspace(lo + R, hi - R, n)
+    return axis(x0, x1, nx), axis(y0, y1, ny)
+
+
+def _predict(sc, xs, ys, depth_m, stresses: bool) -> dict:
+    t0 = time.perf_counter()
+    m = surface_model3d(sc)
+    t1 = time.perf_counter()
+    pts = [(float(x), float(y), depth_m) for y in ys for x in xs]
+    rows = []
+    for k in range(0, len(pts), BATCH):          # one batched solve per BATCH waypoints (their stress fields)
+        rows += m.indent_many(pts[k:k + BATCH], stresses=stresses)
+    t2 = time.perf_counter()
+    n = len(rows)
+    return {"x_m": [r.x_m for r in rows], "y_m": [r.y_m for r in rows], "force_n": [r.force_n for r in rows],
+            "max_von_mises_pa": [r.max_von_mises_pa for r in rows] if stresses else None,
+            "max_von_mises_at_x_m": [r.max_von_mises_at_m[0] for r in rows] if stresses else None,
+            "max_von_mises_at_y_m": [r.max_von_mises_at_m[1] for r in rows] if stresses else None,
+            "max_von_mises_at_depth_m": [r.max_von_mises_at_m[2] for r in rows] if stresses else None,
+            "contact_radius_m": [r.contact_radius_m for r in rows], "tip_note": m.tip_note,
+            "mesh": {"nodes": int(m.mesh.n_nodes), "elements": int(len(m.mesh.tets)),
+                     "contact_candidates": int(len(m.patch))},
+            "timings_s": {"setup_s": t1 - t0, "predict_s": t2 - t1, "per_waypoint_s": (t2 - t1) / n}}
+
+
+def _peak(w: dict, ratio: np.ndarray) -> dict:
+    x, y = np.asarray(w["x_m"]), np.asarray(w["y_m"])
+    i = int(np.argmax(ratio))
+    if len(ratio) >= 13:
+        xp, yp, rp = quadratic_peak(x, y, ratio)
+    else:
+        xp, yp, rp = float(x[i]), float(y[i]), float(ratio[i])
+    return {"x_m": xp, "y_m": yp, "ratio": rp, "index": i, "x_max_sample_m": float(x[i]),
+            "y_max_sample_m": float(y[i])}
+
+
+def run_predict(args, sc, ref) -> int:
+    t0 = time.perf_counter()
+    nx, ny = parse_grid(args.grid or "10x10")
+    xs, ys = grid(sc, nx, ny)
+    try:
+        if not args.depth_m > 0:
+            raise ValueError(f"--depth-m must be positive, got {args.depth_m}")
+        for x in (xs[0], xs[-1]):
+            for y in (ys[0], ys[-1]):
+                check_waypoint3d(sc, float(x), float(y), args.depth_m)
+    except ValueError as e:
+        print(f"palpate predict: {e}", file=sys.stderr)
+        return 2
+    stresses = not args.force_only
+    main = _predict(sc, xs, ys, args.depth_m, stresses)
+    out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "grid": [nx, ny],
+           "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
+           "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}
+    maps = {"force_n": np.reshape(main["force_n"], (ny, nx))}
+    if stresses:
+        maps["max_von_mises_pa"] = np.reshape(main["max_von_mises_pa"], (ny, nx))
+    if ref is not None:
+        rd = _predict(ref, xs, ys, args.depth_m, stresses)
+        out["reference_scene"], out["reference"] = ref.name, rd
+        ratio = np.asarray(main["force_n"]) / np.asarray(rd["force_n"])
+        out["ratio"] = ratio.tolist()
+        out["peak_ratio"] = _peak(main, ratio)
+        maps["force ratio (contrast)"] = ratio.reshape(ny, nx)
+        if stresses:
+            rs = np.asarray(main["max_von_mises_pa"]) / np.asarray(rd["max_von_mises_pa"])
+            out["ratio_von_mises"] = rs.tolist()
+            out["peak_ratio_von_mises"] = _peak(main, rs)
+    if args.plots:
+        from fem import plots3d
+        title = (f"{sc.name}: {sc.indenter.shape} tip R = {sc.indenter.radius_m * 1e3:g} mm pressed "
+                 f"{args.depth_m * 1e3:g} mm on a {nx} x {ny} grid" + (f", against {ref.name}" if ref else ""))
+        out["files"]["predict"] = str(plots3d.grid_maps(Path(args.plots) / FIG_PREDICT, sc, xs, ys, maps, title))
+    t = dict(main["timings_s"])
+    if ref is not None:
+        t.update({"reference_setup_s": out["reference"]["timings_s"]["setup_s"],
+                  "reference_predict_s": out["reference"]["timings_s"]["predict_s"]})
+    t["total_s"] = time.perf_counter() - t0
+    out["timings_s"] = t
+    f = np.asarray(main["force_n"])
+    lines = [f"scene {sc.name} (3D): {nx} x {ny} waypoints over x {xs[0] * 1e3:g}..{xs[-1] * 1e3:g} mm, y "
+             f"{ys[0] * 1e3:g}..{ys[-1] * 1e3:g} mm, depth {args.depth_m * 1e3:g} mm ({sc.indenter.shape} tip R = "
+             f"{sc.indenter.radius_m * 1e3:g} mm)",
+             f"  force: {f.min():.4g} .. {f.max():.4g} N"]
+    if "peak_ratio" in out:
+        p = out["peak_ratio"]
+        lines.append(f"  vs {out['reference_scene']}: force ratio peaks at {p['ratio']:.4f} at x = "
+                     f"{p['x_m'] * 1e3:.1f} mm, y = {p['y_m'] * 1e3:.1f} mm")
+    if sc.stones:
+        lines.append("  stones at " + ", ".join(f"({s.x_m * 1e3:g}, {s.y_m * 1e3:g}) mm" for s in sc.stones))
+    lines.append(f"  time: setup {t['setup_s']:.2f} s, {nx * ny} waypoints {t['predict_s']:.3f} s "
+                 f"({t['per_waypoint_s'] * 1e3:.2f} ms each); total {t['total_s']:.2f} s")
+    lines += [f"  wrote {k}: {v}" for k, v in out["files"].items()]
+    print("\n".join(lines), file=sys.stderr if args.json == "-" else sys.stdout)
+    write_json(args.json, out)
+    return 0

@@ -1,0 +1,295 @@
+"""Benchmarks of fem in 3D (issue 15): numbers printed and written, not timed tests.
+
+    python bench/bench_3d.py convergence [--out bench-out] [--levels p2-2.0 p2-1.5 ...]
+    python bench/bench_3d.py waypoints   [--out bench-out]       # block3d, 100 waypoints, set-up, cache, memory
+    python bench/bench_3d.py hertz       [--out bench-out]       # rigid sphere on a block 20 R wide
+    python bench/bench_3d.py solvers     [--out bench-out]       # SuperLU vs CHOLMOD Schur condensation
+    python bench/bench_3d.py table       [--out bench-out]       # markdown from the JSON lines written above
+
+Every configuration runs in its own process (``one``), so its peak resident memory (ru_maxrss) is its own; each
+appends one JSON line to OUT/bench_3d_<kind>.jsonl. Wall times on this shared 2-core machine vary with the other
+sessions' load: the load average at the start of each run is recorded next to its times.
+
+convergence: block3d (stone 15 mm at 25 mm depth under (35, 35) mm; spherical tip R = 5 mm) at several meshes (P1,
+P2; top-patch size h_top = mesh_size_m / surface_refine), the forces at the benchmark's 100 waypoints (a 10 x 10
+grid over the central 40 x 40 mm, depth 3 mm) and the load A peak; errors against the finest mesh run.
+waypoints: the default block3d mesh: set-up (mesh, assemble, factor + condense, with CHOLMOD's parts), the disk
+cache's store and reload (a fresh process), per-waypoint force-only and with-stresses times, peak memory.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+LEVELS = {   # name: (order, mesh_size_m, surface_refine)
+    "p1-1.25": (1, 0.010, 8.0), "p1-0.83": (1, 0.010, 12.0),
+    "p2-2.0": (2, 0.012, 6.0), "p2-1.5": (2, 0.012, 8.0), "p2-1.25": (2, 0.010, 8.0), "p2-1.0": (2, 0.010, 10.0),
+    "p2-0.83": (2, 0.010, 12.0),
+}
+GRADES = {"g25": 0.25, "g35": 0.35}   # a level name with a suffix -g25 uses analysis.grade = 0.25
+DEPTH_M = 0.003
+
+
+def _rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+
+
+def _grid():
+    xs = np.linspace(0.015, 0.055, 10)
+    return [(float(x), float(y)) for y in xs for x in xs]
+
+
+def one_convergence(level: str) -> dict:
+    from fem.contact3d import SurfaceModel3D
+    from fem.model3d import build_model3d
+    from fem.scene import load
+    from fem.scene_mesh3d import mesh_for3d
+    from fem.uniform3d import solve_uniform3d
+    base, _, g = level.partition("-g")
+    order, size, refine = LEVELS[base]
+    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine,
+                                        grade=GRADES[f"g{g}"] if g else None)
+    t0 = time.perf_counter()
+    mesh = mesh_for3d(sc, use=False)
+    t1 = time.perf_counter()
+    model = build_model3d(sc, mesh=mesh)
+    t2 = time.perf_counter()
+    sm = SurfaceModel3D(sc, model=model)
+    t3 = time.perf_counter()
+    forces, ts = [], []
+    for x, y in _grid():
+        s = time.perf_counter()
+        forces.append(sm.force_n(x, y, DEPTH_M))
+        ts.append(time.perf_counter() - s)
+    la = solve_uniform3d(sc, model=model, full_field=False)
+    xp, yp, vp = la.surface.peak()
+    return {"level": level, "order": order, "mesh_size_m": size, "surface_refine": refine,
+            "grade": sc.analysis.grade or 0.5,
+            "h_top_m": size / refine, "nodes": int(mesh.n_nodes), "tets": int(len(mesh.tets)),
+            "dofs": int(model.n_dofs), "patch_nodes": int(len(sm.patch)), "forces_n": forces,
+            "force_centre_n": sm.force_n(0.035, 0.035, DEPTH_M), "load_a_peak": [xp, yp, vp],
+            "mesh_s": t1 - t0, "assemble_s": t2 - t1, "condense_s": t3 - t2,
+            "condense_parts_s": sm.timings_s.get("condense_parts_s", {}),
+            "per_waypoint_median_s": float(np.median(ts)), "peak_rss_gb": _rss_gb(), "load_avg": os.getloadavg()[0]}
+
+
+def one_waypoints(cache_dir: str, phase: str) -> dict:
+    """phase "build": cold set-up and store; "reload": a fresh process restoring from the disk cache."""
+    os.environ["PALPATE_CACHE_DIR"] = cache_dir
+    from fem.contact3d import surface_model3d
+    from fem.scene import load
+    sc = load("block3d")
+    t0 = time.perf_counter()
+    sm = surface_model3d(sc, cache=True)
+    t1 = time.perf_counter()
+    out = {"phase": phase, "setup_or_reload_s": t1 - t0, "timings_s": sm.timings_s, "patch_nodes": int(len(sm.patch)),
+           "load_avg": os.getloadavg()[0]}
+    if phase == "build":
+        return {**out, "peak_rss_gb": _rss_gb()}
+    grid = _grid()
+    forces, tf = [], []
+    for x, y in grid:
+        s = time.perf_counter()
+        forces.append(sm.force_n(x, y, DEPTH_M))
+        tf.append(time.perf_counter() - s)
+    s = time.perf_counter()
+    sm.indent(0.035, 0.035, DEPTH_M)
+    first_stress_s = time.perf_counter() - s        # assembles the model and factorizes K once
+    tsx = []
+    for x, y in grid[:20]:
+        s = time.perf_counter()
+        sm.indent(x, y, DEPTH_M, stresses=True)
+        tsx.append(time.perf_counter() - s)
+    s = time.perf_counter()
+    sm.indent_many([(x, y, DEPTH_M) for x, y in grid], stresses=True)
+    batched = time.perf_counter() - s
+    return {**out, "forces_n": forces, "force_only_ms": {"median": 1e3 * float(np.median(tf)),
+                                                          "max": 1e3 * float(np.max(tf))},
+            "with_stresses_ms": {"median": 1e3 * float(np.median(tsx)), "max": 1e3 * float(np.max(tsx))},
+            "with_stresses_batched_100_ms_each": 1e3 * batched / len(grid),
+            "first_stress_query_s": first_stress_s, "peak_rss_gb": _rss_gb()}
+
+
+def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05, H_over_W: float = 0.5,
+              grade: float = 0.5) -> dict:
+    from scipy.optimize import brentq
+
+    from fem.contact3d import SurfaceModel3D
+    from fem.mesh3d import mesh_block
+    from fem.scene import Analysis, Indenter, Scene, Tissue
+    R, E, nu = 0.005, 2500.0, 0.4
+    W, H, d = W_over_R * R, H_over_W * W_over_R * R, d_over_R * R
+    a = np.sqrt(R * d)
+    fine = R * fine_over_R
+    sc = Scene(name="hertz", tissue=Tissue(width_m=W, length_m=W, height_m=H, youngs_pa=E, poisson=nu),
+               indenter=Indenter(shape="sphere", radius_m=R),
+               analysis=Analysis(order=2, mesh_size_m=H / 4, surface_refine=H / 4 / (4 * fine), patch_m=2.2 * R,
+                                 top_displacement_m=0.0))
+    t0 = time.perf_counter()
+    mesh = mesh_block(W, W, H, [], H / 4, H / 4 / (4 * fine), 2, patch_m=2.2 * R, focus=(W / 2, W / 2, fine, 1.5 * a),
+                      grade=grade)
+    sm = SurfaceModel3D(sc, mesh=mesh)
+    r = sm.indent(W / 2, W / 2, d, stresses=False)
+    Es = E / (1 - nu ** 2)
+    F_hertz = 4 / 3 * Es * np.sqrt(R) * d ** 1.5
+    a_s = brentq(lambda x: x / 2 * np.log((R + x) / (R - x)) - d, 1e-12, 0.999 * R)
+    F_sneddon = Es / 2 * ((a_s ** 2 + R ** 2) * np.log((R + a_s) / (R - a_s)) - 2 * a_s * R)
+    return {"fine_over_R": fine_over_R, "W_over_R": W_over_R, "H_over_R": H_over_W * W_over_R, "d_over_R": d_over_R,
+            "grade": grade,
+            "nodes": int(mesh.n_nodes), "dofs": int(sm.model.n_dofs), "patch_nodes": int(len(sm.patch)),
+            "force_n": r.force_n, "hertz_n": F_hertz, "sneddon_sphere_n": F_sneddon,
+            "err_hertz": r.force_n / F_hertz - 1, "err_sneddon": r.force_n / F_sneddon - 1,
+            "contact_radius_m": r.contact_radius_m, "hertz_radius_m": a, "sneddon_radius_m": a_s,
+            "time_s": time.perf_counter() - t0, "peak_rss_gb": _rss_gb(), "load_avg": os.getloadavg()[0]}
+
+
+def one_solver(method: str, level: str) -> dict:
+    from fem.condense import schur
+    from fem.contact3d import patch_nodes
+    from fem.model3d import build_model3d, fixed_bottom
+    from fem.scene import load
+    from fem.scene_mesh3d import mesh_for3d
+    order, size, refine = LEVELS[level]
+    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine)
+    model = build_model3d(sc, mesh=mesh_for3d(sc, use=False))
+    fixed = np.unique(fixed_bottom(model))
+    free = np.setdiff1d(np.arange(model.n_dofs), fixed)
+    contact = model.reduced_index(3 * patch_nodes(model.mesh, sc.analysis.patch_m) + 2)
+    r0 = _rss_gb()
+    t0 = time.perf_counter()
+    f = schur(model.K, free, contact, method)
+    t = time.perf_counter() - t0
+    C = f.compliance
+    return {"method": method, "level": level, "dofs": int(model.n_dofs), "patch_nodes": int(len(contact)),
+            "condense_s": t, "peak_rss_gb": _rss_gb(), "rss_before_gb": r0, "trace_C": float(np.trace(C)),
+            "parts_s": getattr(f, "timings_s", {}), "load_avg": os.getloadavg()[0]}
+
+
+def _spawn(out: Path, kind: str, *args: str) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "one", kind, *args]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.run(cmd, capture_output=True, text=True, env=env)
+    if p.returncode != 0:
+        print(p.stderr[-3000:], file=sys.stderr)
+        raise SystemExit(f"{kind} {args} failed")
+    row = json.loads(p.stdout.strip().splitlines()[-1])
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / f"bench_3d_{kind}.jsonl", "a") as f:
+        f.write(json.dumps(row) + "\n")
+    brief = {k: v for k, v in row.items() if not isinstance(v, list)}
+    print(json.dumps(brief), flush=True)
+    return row
+
+
+def _read(out: Path, kind: str) -> list[dict]:
+    p = out / f"bench_3d_{kind}.jsonl"
+    return [json.loads(line) for line in p.read_text().splitlines() if line.strip()] if p.exists() else []
+
+
+def table(out: Path) -> str:
+    """Markdown tables from the JSON lines (the last run of each configuration)."""
+    lines = []
+    conv = {r["level"]: r for r in _read(out, "convergence")}
+    if conv:
+        ref = min(conv.values(), key=lambda r: (-r["order"], r.get("grade", 0.5), r["h_top_m"]))   # finest bulk first
+        F_ref = np.asarray(ref["forces_n"])
+        lines += [f"block3d, 100 waypoints (10 x 10 over the central 40 x 40 mm, depth 3 mm); reference: "
+                  f"{ref['level']} (P{ref['order']}, h_top = {ref['h_top_m'] * 1e3:g} mm)", "",
+                  "| mesh | h_top (mm) | grade | DOFs | patch nodes | max force error | centre force (N) | load A peak (Pa) "
+                  "| set-up (s): mesh + assemble + condense | ms / waypoint | peak memory (GB) | load avg |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for r in sorted(conv.values(), key=lambda r: (r["order"], -r["h_top_m"], -r.get("grade", 0.5))):
+            err = np.max(np.abs(np.asarray(r["forces_n"]) / F_ref - 1))
+            lines.append(f"| P{r['order']} {r['level']} | {r['h_top_m'] * 1e3:.3g} | {r.get('grade', 0.5):g} | {r['dofs']} | {r['patch_nodes']} | "
+                         f"{err:.2%} | {r['force_centre_n']:.5g} | {r['load_a_peak'][2]:.4g} | "
+                         f"{r['mesh_s']:.1f} + {r['assemble_s']:.1f} + {r['condense_s']:.1f} | "
+                         f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} | {r['load_avg']:.1f} |")
+        lines.append("")
+    way = _read(out, "waypoints")
+    if way:
+        b = [r for r in way if r["phase"] == "build"][-1]
+        rl = [r for r in way if r["phase"] == "reload"][-1]
+        lines += ["block3d default mesh, benchmark:", "",
+                  f"- set-up (cold, no cache): {b['setup_or_reload_s']:.1f} s: {json.dumps(b['timings_s'])}; peak "
+                  f"memory {b['peak_rss_gb']:.2f} GB (load avg {b['load_avg']:.1f})",
+                  f"- reload from the disk cache (fresh process): {rl['setup_or_reload_s']:.3f} s",
+                  f"- per waypoint, force only: median {rl['force_only_ms']['median']:.2f} ms, max "
+                  f"{rl['force_only_ms']['max']:.2f} ms",
+                  f"- per waypoint with stresses: median {rl['with_stresses_ms']['median']:.1f} ms, max "
+                  f"{rl['with_stresses_ms']['max']:.1f} ms (after a one-time {rl['first_stress_query_s']:.1f} s: "
+                  f"assembly + factorization for the fields); batched (100 waypoints, one solve): "
+                  f"{rl.get('with_stresses_batched_100_ms_each', float('nan')):.1f} ms each",
+                  f"- peak memory of the reload + 200 queries process: {rl['peak_rss_gb']:.2f} GB"]
+        if conv:
+            err = np.max(np.abs(np.asarray(rl["forces_n"]) / F_ref - 1))
+            lines.append(f"- force error against {ref['level']}: max over the 100 waypoints {err:.2%}")
+        lines.append("")
+    hz = _read(out, "hertz")
+    if hz:
+        lines += ["Hertz, rigid sphere R = 5 mm on a block W wide and H deep (P2, focused refinement):", "",
+                  "| W / R | H / R | grade | h under the tip / R | d / R | DOFs | F / F_Hertz - 1 | "
+                  "F / F_sphere(Sneddon) - 1 | a / sqrt(R d) | time (s) |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for r in hz:
+            lines.append(f"| {r['W_over_R']:g} | {r['H_over_R']:g} | {r.get('grade', 0.5):g} | "
+                         f"{r['fine_over_R']:g} | {r['d_over_R']:g} | {r['dofs']} | {r['err_hertz']:+.2%} | "
+                         f"{r['err_sneddon']:+.2%} | {r['contact_radius_m'] / r['hertz_radius_m']:.3f} | {r['time_s']:.1f} |")
+        lines.append("")
+    sol = _read(out, "solver")
+    if sol:
+        lines += ["Condensation onto the probed patch, same model:", "",
+                  "| method | mesh | DOFs | patch nodes | time (s) | peak memory (GB) | parts | load avg |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in sol:
+            lines.append(f"| {r['method']} | {r['level']} | {r['dofs']} | {r['patch_nodes']} | {r['condense_s']:.1f} | "
+                         f"{r['peak_rss_gb']:.2f} | {json.dumps({k: round(v, 1) for k, v in r['parts_s'].items()})} | "
+                         f"{r['load_avg']:.1f} |")
+    text = "\n".join(lines) + "\n"
+    (out / "bench_3d.md").write_text(text)
+    return text
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=("convergence", "waypoints", "hertz", "solvers", "table", "one"))
+    ap.add_argument("rest", nargs="*")
+    ap.add_argument("--out", default=str(ROOT / "bench-out"))
+    ap.add_argument("--levels", nargs="*", default=list(LEVELS), help="LEVELS names, optionally with -g25 / -g35")
+    a = ap.parse_args(argv)
+    out = Path(a.out)
+    if a.what == "one":
+        kind, *args = a.rest
+        fn = {"convergence": lambda: one_convergence(args[0]),
+              "waypoints": lambda: one_waypoints(args[0], args[1]),
+              "hertz": lambda: one_hertz(*map(float, args)),
+              "solver": lambda: one_solver(args[0], args[1])}[kind]
+        print(json.dumps(fn()))
+        return 0
+    if a.what == "convergence":
+        for level in a.levels:
+            _spawn(out, "convergence", level)
+    elif a.what == "waypoints":
+        with tempfile.TemporaryDirectory() as d:
+            _spawn(out, "waypoints", d, "build")
+            _spawn(out, "waypoints", d, "reload")
+    elif a.what == "hertz":
+        _spawn(out, "hertz", *(a.rest or ["0.05"]))
+    elif a.what == "solvers":
+        for method in ("cholmod", "superlu"):
+            _spawn(out, "solver", method, (a.rest or ["p2-2.0"])[0])
+    print(table(out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

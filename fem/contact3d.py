@@ -1,0 +1,322 @@
+"""Load B in 3D: frictionless contact of a spherical (or flat circular) tip with the top face, fast per waypoint.
+
+Bottom face u_z = 0 with the rigid-body modes removed minimally (fem.model3d.fixed_bottom), sides and top
+traction-free except where the tip presses. Small-strain, small-sliding contact: the tip moves straight down, the gap
+at a top node is measured vertically at the node's undeformed (x, y).
+
+As in 2D (fem.contact), per scene: the model is factorized once with the vertical DOFs of the probed patch's top
+nodes ordered last (fem.contact.SchurFactor), so the trailing block of the factors is the Schur complement on them
+and the condensed compliance C (patch-node downward displacement per downward nodal force) is its inverse. A
+waypoint (x, y, depth) is then the LCP  gap = q + C_ww f >= 0, f >= 0, gap . f = 0  over the patch nodes under the
+tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from one
+back-substitution with the contact forces.
+
+A tip fem treats as rigid (fem.tip.treated_as_rigid: no modulus, or its Hertz relative compliance below
+TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid; an elastic tip in 3D is not modelled (refused).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import diskcache
+from .condense import schur
+from .contact import STONE_LAYER_MAX, _surface_spec, check_depth, condensed_displacements
+from .guards import check_finite
+from .lcp import solve_lcp
+from .mesh3d import Mesh3D, patch_bounds
+from .model3d import Model3D, build_model3d, fixed_bottom
+from .scene import SceneError
+from .scene_mesh3d import code_version3d, mesh_for3d
+from .stress3d import components3d, recovery_operator3d
+from .tip import TIP_TOLERANCE, treated_as_rigid
+
+# The contact model keeps a dense compliance of the patch's top nodes (8 n^2 bytes): 16000 nodes are 2 GB.
+MAX_PATCH_NODES = 16_000
+
+
+@dataclass
+class IndentResult3D:
+    x_m: float
+    y_m: float
+    depth_m: float
+    force_n: float
+    max_von_mises_pa: float
+    max_von_mises_at_m: tuple[float, float, float]   # (x_m, y_m, depth below the surface in m) of the maximum
+    contact_radius_m: float     # the contact's mean radius (edge midway between the contact and the next free node)
+    contact_x_m: np.ndarray     # patch nodes under the tip's footprint
+    contact_y_m: np.ndarray
+    pressure_pa: np.ndarray     # contact pressure there (-sigma_zz at the surface, >= 0; zeros without stresses)
+    nodal_force_n: np.ndarray   # consistent nodal contact forces there
+    gap_m: np.ndarray           # gaps there (0 where in contact)
+    rigid_tip: bool
+    tip_note: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready values (keys as in 2D plus y_m); NonFiniteResultError if any is NaN or infinite."""
+        x, y, dz = self.max_von_mises_at_m
+        return check_finite({
+            "x_m": self.x_m, "y_m": self.y_m, "depth_m": self.depth_m, "force_n": self.force_n,
+            "max_von_mises_pa": self.max_von_mises_pa, "max_von_mises_at": {"x_m": x, "y_m": y, "depth_m": dz},
+            "contact_radius_m": self.contact_radius_m, "rigid_tip": self.rigid_tip, "tip_note": self.tip_note,
+            "contact": {"x_m": self.contact_x_m.tolist(), "y_m": self.contact_y_m.tolist(),
+                        "pressure_pa": self.pressure_pa.tolist(), "gap_m": self.gap_m.tolist(),
+                        "nodal_force_n": self.nodal_force_n.tolist()}},
+            f"indentation at x_m={self.x_m}, y_m={self.y_m}, depth_m={self.depth_m}")
+
+
+def tip_profile3d(indenter, x_m: float, y_m: float, depth_m: float, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Height of the tip's lower surface above the undeformed top face at (x, y) (inf where the tip is absent)."""
+    r2 = (x - x_m) ** 2 + (y - y_m) ** 2
+    R = indenter.radius_m
+    out = np.full(len(x), np.inf)
+    inside = r2 <= R * R
+    if indenter.shape == "sphere":
+        out[inside] = -depth_m + (R - np.sqrt(np.maximum(R * R - r2[inside], 0.0)))
+    else:  # flat circular punch of radius R
+        out[inside] = -depth_m
+    return out
+
+
+def check_waypoint3d(scene, x_m: float, y_m: float, depth_m: float) -> None:
+    """ValueError unless (x_m, y_m, depth_m) is a waypoint the 3D contact model covers: the tip's footprint (a disk
+    of the tip radius) on the probed patch, depth in [0, STRAIN_MAX * height], for a sphere below its radius, and
+    for every stone under the footprint at most STONE_LAYER_MAX times the tissue layer above it."""
+    t, a, ind = scene.tissue, scene.analysis, scene.indenter
+    R = ind.radius_m
+    x0, x1, y0, y1 = patch_bounds(t.width_m, t.length_m, a.patch_m)
+    for name, v, lo, hi in (("x_m", x_m, x0, x1), ("y_m", y_m, y0, y1)):
+        if not (isinstance(v, (int, float)) and math.isfinite(v)) or not (lo + R - 1e-12 <= v <= hi - R + 1e-12):
+            raise ValueError(f"{name}={v!r} must lie in [{lo + R:.6g}, {hi - R:.6g}] m: the tip's footprint (radius "
+                             f"{R:g} m) must stay on the probed patch [{lo:.6g}, {hi:.6g}] m (analysis.patch_m = "
+                             f"{a.patch_m})")
+    check_depth(scene, depth_m)
+    for i, s in enumerate(scene.stones):
+        layer = s.depth_m - s.radius_m
+        if math.hypot(s.x_m - x_m, s.y_m - y_m) < R + s.radius_m and depth_m > STONE_LAYER_MAX * layer:
+            raise ValueError(f"depth_m={depth_m} at (x_m={x_m}, y_m={y_m}): stone[{i}] under the tip lies "
+                             f"{layer * 1e3:.3g} mm below the surface; the indentation must stay within "
+                             f"{STONE_LAYER_MAX:.0%} of that layer (depth_m <= {STONE_LAYER_MAX * layer:.4g} m)")
+
+
+def patch_nodes(mesh, patch_m: float | None) -> np.ndarray:
+    """Top-face node indices on the probed patch (all top nodes when patch_m is None)."""
+    x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, patch_m)
+    tol = 1e-9 * max(mesh.width_m, mesh.length_m)
+    p = mesh.nodes[mesh.top]
+    on = (p[:, 0] >= x0 - tol) & (p[:, 0] <= x1 + tol) & (p[:, 1] >= y0 - tol) & (p[:, 1] <= y1 + tol)
+    return mesh.top[on]
+
+
+class SurfaceModel3D:
+    """A 3D scene's condensed probed-patch response: build once, then ``indent`` any waypoint in milliseconds.
+
+    stress_band_m: depth below the surface (and horizontal reach from the tip axis) over which the maximum von
+    Mises stress is searched (default 2 R). compliance: restored from disk (``from_arrays``); K is then factorized
+    only when fields are asked for."""
+
+    def __init__(self, scene, model: Model3D | None = None, rigid_tip: str | bool = "auto",
+                 tip_tolerance: float = TIP_TOLERANCE, stress_band_m: float | None = None,
+                 rigid_stones: str | bool = "auto", solver: str = "auto", *, compliance: np.ndarray | None = None,
+                 mesh: Mesh3D | None = None):
+        t0 = time.perf_counter()
+        if not scene.is_3d:
+            raise SceneError(f"scene {scene.name!r} is 2D (no tissue.length_m): use fem.contact.SurfaceModel")
+        self.scene = scene
+        if not treated_as_rigid(scene, rigid_tip, tip_tolerance):
+            raise SceneError(f"indenter.youngs_pa = {scene.indenter.youngs_pa!r}: an elastic tip is not modelled in "
+                             f"3D; fem treats a tip as rigid when its relative compliance (Hertz) is below "
+                             f"{tip_tolerance:g}: give no youngs_pa (rigid) or a stiffer tip")
+        self.rigid_tip = True
+        self.tip_note = ("rigid tip (no modulus given)" if scene.indenter.youngs_pa is None else
+                         "tip treated as rigid: its deformation changes the force by a relative amount below "
+                         f"{tip_tolerance:g} (Hertz estimate)")
+        self._rigid_stones, self._solver = rigid_stones, solver
+        self._model = model if compliance is None else None     # restored: the model is built when fields are asked
+        if compliance is None and model is None:
+            self._model = build_model3d(scene, mesh=mesh, rigid_stones=rigid_stones)
+        self.mesh = self._model.mesh if self._model is not None else (mesh if mesh is not None else model.mesh)
+        t1 = time.perf_counter()
+        self.patch = patch_nodes(self.mesh, scene.analysis.patch_m)
+        if len(self.patch) > MAX_PATCH_NODES:
+            raise SceneError(f"scene {scene.name!r}: the probed patch has {len(self.patch)} top nodes (a dense "
+                             f"{8 * len(self.patch) ** 2 / 1e9:.3g} GB compliance), above {MAX_PATCH_NODES}: "
+                             f"lower analysis.patch_m or analysis.surface_refine")
+        self.xy = self.mesh.nodes[self.patch, :2]
+        self._fac = None
+        self._band = None
+        if compliance is None:
+            compliance = self.fac.compliance
+        if not np.all(np.isfinite(compliance)):
+            raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
+        self.C = compliance
+        self.band_m = stress_band_m if stress_band_m is not None else 2 * scene.indenter.radius_m
+        self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
+        if self._fac is not None and hasattr(self._fac, "timings_s"):
+            self.timings_s["condense_parts_s"] = dict(self._fac.timings_s)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        return {"C": self.C}
+
+    @classmethod
+    def from_arrays(cls, scene, arrays: dict[str, np.ndarray], mesh: Mesh3D, **options) -> SurfaceModel3D:
+        """The SurfaceModel3D of ``scene`` on ``mesh`` with the compliance ``to_arrays`` wrote (no assembly, no
+        factorization until fields are asked for); ValueError if it does not fit the mesh."""
+        C = arrays["C"]
+        n = len(patch_nodes(mesh, scene.analysis.patch_m))
+        if C.shape != (n, n) or not np.all(np.isfinite(C)):
+            raise ValueError(f"compliance of shape {C.shape}, expected ({n}, {n}) and finite")
+        return cls(scene, mesh=mesh, compliance=C, **options)
+
+    @property
+    def model(self) -> Model3D:
+        """The assembled model (built on first use when the compliance came from the disk cache)."""
+        if self._model is None:
+            self._model = build_model3d(self.scene, mesh=self.mesh, rigid_stones=self._rigid_stones)
+        return self._model
+
+    @property
+    def fac(self):
+        """The condensing factorization (fem.condense.schur; made on first use after a cache restore)."""
+        if self._fac is None:
+            model = self.model
+            fixed = np.unique(fixed_bottom(model))
+            free = np.setdiff1d(np.arange(model.n_dofs), fixed)
+            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver)
+        return self._fac
+
+    # -- one waypoint --------------------------------------------------------------------------------------------
+    def _window(self, x_m: float, y_m: float) -> np.ndarray:
+        R = self.scene.indenter.radius_m
+        return np.flatnonzero((self.xy[:, 0] - x_m) ** 2 + (self.xy[:, 1] - y_m) ** 2 <= R * R)
+
+    def contact_forces(self, x_m: float, y_m: float, depth_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(window patch-node indices, downward nodal forces (N), gaps (m)) for one waypoint."""
+        check_waypoint3d(self.scene, x_m, y_m, depth_m)
+        idx = self._window(x_m, y_m)
+        q = tip_profile3d(self.scene.indenter, x_m, y_m, depth_m, self.xy[idx, 0], self.xy[idx, 1])
+        if depth_m == 0.0 or not np.any(q < 0):
+            return idx, np.zeros(len(idx)), q
+        return (idx, *self._solve_window(idx, q))
+
+    def _solve_window(self, idx: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The exact LCP over the window, solved on the nodes the tip overlaps (q < 0) first: a node with q >= 0 is
+        out of contact whenever the compliance couples it non-negatively to the contact nodes (a downward push
+        lowers the surface around it). The complementarity conditions are then checked on every window node and
+        the whole window is solved when any fails. Warm start: the nodes overlapped by more than half the deepest
+        overlap (Hertz: a^2 = R d is where the sphere's overlap is d / 2)."""
+        inner = np.flatnonzero(q < 0)
+        r = solve_lcp(self.C[np.ix_(idx[inner], idx[inner])], q[inner], start=q[inner] < 0.5 * q.min())
+        z = np.zeros(len(idx))
+        z[inner] = r.z
+        act = inner[r.z > 0]
+        w = q + self.C[np.ix_(idx, idx[act])] @ z[act]
+        if np.all(w >= -1e-12 * np.abs(q).max()):
+            w[inner] = r.w
+            return z, w
+        full = solve_lcp(self.C[np.ix_(idx, idx)], q, start=z > 0)
+        return full.z, full.w
+
+    def force_n(self, x_m: float, y_m: float, depth_m: float) -> float:
+        return check_finite(float(self.contact_forces(x_m, y_m, depth_m)[1].sum()),
+                            f"scene {self.scene.name!r}: force at x_m={x_m}, y_m={y_m}, depth_m={depth_m}")
+
+    def displacements(self, F_patch: np.ndarray) -> np.ndarray:
+        """Full displacement vectors (3N, k) for downward nodal forces F_patch (n_patch, k) on the patch nodes."""
+        return condensed_displacements(self.model, self.fac, F_patch)
+
+    def _band_op(self):
+        """(nodes, recovery operator) for every node within band_m below the probed patch (grown by band_m
+        sideways): built once, then each waypoint takes the rows of the nodes under its tip."""
+        if self._band is None:
+            mesh, b = self.mesh, self.band_m
+            x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, self.scene.analysis.patch_m)
+            X = mesh.nodes
+            nodes = np.flatnonzero((X[:, 2] >= mesh.height_m - b - 1e-12) & (X[:, 0] >= x0 - b) & (X[:, 0] <= x1 + b)
+                                   & (X[:, 1] >= y0 - b) & (X[:, 1] <= y1 + b))
+            pos = np.full(mesh.n_nodes, -1)
+            pos[nodes] = np.arange(len(nodes))
+            self._band = (nodes, pos, recovery_operator3d(self.model, nodes).tocsr())
+        return self._band
+
+    def indent(self, x_m: float, y_m: float, depth_m: float, stresses: bool = True) -> IndentResult3D:
+        return self.indent_many([(x_m, y_m, depth_m)], stresses=stresses)[0]
+
+    def indent_many(self, waypoints, stresses: bool = True) -> list[IndentResult3D]:
+        """Several waypoints (x_m, y_m, depth_m); their displacement fields come from one batched solve."""
+        pts = [tuple(float(v) for v in w) for w in waypoints]
+        sols = [self.contact_forces(*p) for p in pts]
+        U = None
+        if stresses and any(f.any() for _, f, _ in sols):
+            F = np.zeros((len(self.patch), len(sols)))
+            for k, (idx, f, _) in enumerate(sols):
+                F[idx, k] = f
+            U = self.displacements(F)
+            nodes, pos, Rb = self._band_op()
+        out = []
+        mesh, X, b = self.mesh, self.mesh.nodes, self.band_m
+        for k, ((idx, f, gap), (x_m, y_m, depth_m)) in enumerate(zip(sols, pts)):
+            active = f > 0
+            vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
+            if U is not None and active.any():
+                near = nodes[(np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)]
+                s = components3d(_stress_at(Rb, pos[near], U[:, k]))
+                j = int(np.argmax(s["von_mises_pa"]))
+                vm_max = float(s["von_mises_pa"][j])
+                at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
+                st = components3d(_stress_at(Rb, pos[self.patch[idx]], U[:, k]))
+                pressure = np.where(active, np.maximum(-st["szz_pa"], 0.0), 0.0)
+            out.append(IndentResult3D(
+                x_m=x_m, y_m=y_m, depth_m=depth_m,
+                force_n=check_finite(float(f.sum()), f"scene {self.scene.name!r}: force"),
+                max_von_mises_pa=vm_max, max_von_mises_at_m=at,
+                contact_radius_m=_contact_radius(self.xy[idx], (x_m, y_m), active), contact_x_m=self.xy[idx, 0],
+                contact_y_m=self.xy[idx, 1], pressure_pa=pressure, nodal_force_n=f, gap_m=gap,
+                rigid_tip=self.rigid_tip, tip_note=self.tip_note))
+        return out
+
+    def full_field(self, x_m: float, y_m: float, depth_m: float) -> np.ndarray:
+        """Full displacement vector (3N,) for one waypoint: one more back-substitution."""
+        idx, f, _ = self.contact_forces(x_m, y_m, depth_m)
+        F = np.zeros((len(self.patch), 1))
+        F[idx, 0] = f
+        return check_finite(self.displacements(F)[:, 0], f"scene {self.scene.name!r}: displacements")
+
+
+def _stress_at(R, node_pos: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """(n, 6) stresses at the nodes in rows ``node_pos`` of the recovery operator R, for displacement u."""
+    return (R[(6 * node_pos[:, None] + np.arange(6)).ravel()] @ u).reshape(-1, 6)
+
+
+def _contact_radius(xy: np.ndarray, centre, active: np.ndarray) -> float:
+    """The mean contact radius: midway between the farthest contact node and the nearest free node beyond it."""
+    if not active.any():
+        return 0.0
+    r = np.hypot(xy[:, 0] - centre[0], xy[:, 1] - centre[1])
+    inner = r[active].max()
+    beyond = r[~active & (r > inner)]
+    return float(0.5 * (inner + beyond.min())) if len(beyond) else float(inner)
+
+
+def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> SurfaceModel3D:
+    """A SurfaceModel3D restored from the disk cache (its compliance; the model is assembled only when fields are
+    asked for), else built and stored."""
+    mesh = mesh_for3d(scene, use=use)
+    return diskcache.load_or_build(
+        "surface3d", _surface_spec(scene, options, code_version3d()), build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
+        to_arrays=SurfaceModel3D.to_arrays,
+        from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use)
+
+
+_CACHE: dict[tuple, SurfaceModel3D] = {}
+
+
+def surface_model3d(scene, cache: bool | None = None, **options) -> SurfaceModel3D:
+    """The SurfaceModel3D of a scene, built once per scene content and options (in memory), kept on disk."""
+    key = (scene.key(), tuple(sorted(options.items())))
+    if key not in _CACHE:
+        _CACHE[key] = load_or_build_surface3d(scene, options, use=cache)
+    return _CACHE[key]

@@ -1,0 +1,59 @@
+"""3D stress and strain recovery at nodes, as sparse linear operators on the displacement vector.
+
+As fem.stress in 2D: each element evaluates its own strain at its nodes; a node takes the mean over the elements
+of its primary region (tissue before stones), so a node on a stone's surface reports the tissue-side stress.
+Components in the Voigt order of fem.assembly3d: [sxx, syy, szz, syz, sxz, sxy].
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .assembly3d import element_dofs3d, gradients3d, strain_matrices3d
+from .elements3d import nodes_ref
+
+NAMES = ("sxx_pa", "syy_pa", "szz_pa", "syz_pa", "sxz_pa", "sxy_pa")
+
+
+def primary_region(mesh) -> np.ndarray:
+    """(N,) the lowest region number among each node's elements (0 = tissue wins on a stone's surface)."""
+    primary = np.full(mesh.n_nodes, np.iinfo(np.int64).max)
+    np.minimum.at(primary, mesh.tets.ravel(), np.repeat(mesh.region, mesh.tets.shape[1]))
+    return primary
+
+
+def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = False) -> sp.csr_matrix:
+    """Sparse (6 n, 3N) operator: full displacement -> the six stress (or strain) components at ``nodes`` (all
+    nodes when None), row 6 i + k for the i-th requested node."""
+    mesh = model.mesh
+    nodes = np.arange(mesh.n_nodes) if nodes is None else np.asarray(nodes)
+    primary = primary_region(mesh)
+    want = np.full(mesh.n_nodes, -1)
+    want[nodes] = np.arange(len(nodes))
+    hit = (want[mesh.tets] >= 0) & (mesh.region[:, None] == primary[mesh.tets])
+    els = np.flatnonzero(hit.any(axis=1))
+    G, _ = gradients3d(mesh, nodes_ref(mesh.order), els)       # (m, nen, nen, 3): at each local node
+    B = strain_matrices3d(G)                                   # (m, nen, 6, ne)
+    if not strain:
+        B = np.einsum("mkl,maln->makn", model.D[els], B)
+    h = hit[els]
+    count = np.zeros(mesh.n_nodes)
+    np.add.at(count, mesh.tets[els][h], 1.0)
+    row_node = want[mesh.tets[els]]
+    scale = np.where(h, 1.0 / np.maximum(count[mesh.tets[els]], 1), 0.0)
+    dofs = element_dofs3d(mesh)[els]
+    m, nen, _, ne = B.shape
+    rows = np.broadcast_to(6 * row_node[:, :, None, None] + np.arange(6)[None, None, :, None], (m, nen, 6, ne))
+    cols = np.broadcast_to(dofs[:, None, None, :], (m, nen, 6, ne))
+    keep = np.broadcast_to(h[:, :, None, None], (m, nen, 6, ne))
+    vals = B * scale[:, :, None, None]
+    return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(6 * len(nodes), mesh.n_dofs))
+
+
+def components3d(s6: np.ndarray) -> dict[str, np.ndarray]:
+    """From stacked Voigt stresses (..., 6) to named components and von Mises (Pa)."""
+    sxx, syy, szz, syz, sxz, sxy = (s6[..., k] for k in range(6))
+    vm = np.sqrt(0.5 * ((sxx - syy) ** 2 + (syy - szz) ** 2 + (szz - sxx) ** 2) + 3.0 * (syz ** 2 + sxz ** 2 + sxy ** 2))
+    out = {name: s6[..., k] for k, name in enumerate(NAMES)}
+    out["von_mises_pa"] = vm
+    return out
