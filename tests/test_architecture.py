@@ -10,6 +10,8 @@ imports and imports inside functions count.
 from __future__ import annotations
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -29,7 +31,8 @@ ROBOT_FEM_USERS = {"robot.simarm"}
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
            "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "planner.plots_plan", "planner.plots_run",
            "planner.plots_accuracy", "importlib.metadata", "distributed",
-           "scipy.sparse")   # scipy.sparse: a cached model predicts with numpy alone (issue 19)
+           "scipy.sparse", "app.commands.sim3d")   # scipy.sparse: a cached model predicts with numpy alone (issue
+# 19); app.commands.sim3d: the 3D path (scipy.linalg, CHOLMOD) loaded for a 3D scene only
 
 
 def modules() -> dict[str, Path]:
@@ -150,3 +153,12 @@ def test_a_subcommand_that_fails_to_import_is_an_error_not_a_silent_omission(mon
     for name in cli.COMMANDS:
         if name != "nosuch":
             assert cli.build_parser(name)._subparsers is not None      # every real subcommand imports
+
+
+def test_predict_and_simulate_start_without_scipy():
+    """Start-up (issue 19): the 2D commands' modules load neither scipy nor the 3D path at import; fem imports
+    scipy when a model is assembled or factorized (a cached scene predicts with numpy alone: test_influence)."""
+    code = ("import sys, app.commands.predict, app.commands.simulate; "
+            "print(sorted({k.split('.')[0] for k in sys.modules} & {'scipy', 'cvxopt', 'matplotlib', 'casadi'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]"

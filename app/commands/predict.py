@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 
-from app.commands import sim3d
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import (
@@ -168,6 +167,7 @@ def run(args) -> int:
         raise UsageError("--plots needs the stresses (drop --force-only)")
     sc, ref = _scenes(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
+        from app.commands import sim3d  # the 3D path (scipy.linalg, CHOLMOD): loaded for a 3D scene only
         return sim3d.run_predict(args, sc, ref)
     if args.grid is not None:
         raise UsageError(f"--grid {args.grid}: scene {sc.name!r} is a 2D section (no tissue.length_m); use "

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from app.commands import sim3d
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
@@ -107,6 +106,7 @@ def run(args) -> int:
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         if args.indenter_radius_m is not None:
             sc = dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, radius_m=args.indenter_radius_m))
+        from app.commands import sim3d  # the 3D path (scipy.linalg, CHOLMOD): loaded for a 3D scene only
         return sim3d.run_simulate(args, sc, _rigid(args))
     if args.y_m is not None:
         raise UsageError(f"--y-m {args.y_m:g}: scene {sc.name!r} is a 2D section (no tissue.length_m); --y-m "
