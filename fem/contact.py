@@ -462,6 +462,19 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
 _CACHE: dict[tuple, SurfaceModel] = {}
 
 
+def cached_keys() -> set:
+    """The in-memory cache's keys now (for ``forget_except``)."""
+    return set(_CACHE)
+
+
+def forget_except(keys: set) -> None:
+    """Drop the in-memory surface models not among ``keys`` (one-off scenes, e.g. a study's simulated truths:
+    hundreds of MB otherwise)."""
+    for k in list(_CACHE):
+        if k not in keys:
+            del _CACHE[k]
+
+
 def surface_model(scene, cache: bool | None = None, **options) -> SurfaceModel:
     """The SurfaceModel of a scene, built once per scene content and options (in-memory cache), and kept on disk
     keyed by the scene's content (fem.diskcache; cache=None follows $PALPATE_CACHE, False: memory only)."""

@@ -210,3 +210,26 @@ def test_the_study_arm_continues_the_force_where_fem_refuses_the_indentation():
         m.force_n(0.0436, 0.004)
     assert f(0.0436, 0.003) == m.force_n(0.0436, 0.003)
     assert f(0.0436, 0.003) < f(0.0436, 0.004) < 2 * f(0.0436, 0.003)
+
+
+def test_mismatch_study_runs_whole_truths_and_resumes(tmp_path):
+    """`palpate study mismatch`: every trial a whole simulated run on a truth unlike the prior; the report is
+    written; a re-run reads the finished trials back (nothing re-run, nothing overwritten)."""
+    args = ["study", "mismatch", "--out", str(tmp_path), "--trials", "1", "--healthy", "1", "--budget-probes",
+            "15", "--workers", "1", "--no-progress"]
+    assert main(args) == 0
+    with open(tmp_path / "mismatch.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["stone"] for r in rows] == ["True", "False"] and all(r["rc"] == "0" for r in rows)
+    summary = json.loads((tmp_path / "mismatch.json").read_text())
+    assert summary["stones"] == 1 and summary["healthy"] == 1 and summary["failed_runs"] == 0
+    runs = sorted(tmp_path.glob("pieces/mismatch-*/runs/trial-*/run/result.json"))
+    assert len(runs) == 2
+    truth = (runs[0].parent.parent / "truth.toml").read_text()
+    assert "[truth]" in truth and "surface_offset_m" in truth                # the truth is not the prior
+    pieces = sorted(tmp_path.glob("pieces/mismatch-*/trial-*.json"))
+    stamps = [p.stat().st_mtime_ns for p in pieces + runs]
+    assert main(args) == 0
+    assert [p.stat().st_mtime_ns for p in pieces + runs] == stamps
+    with open(tmp_path / "mismatch.csv") as f:
+        assert list(csv.DictReader(f)) == rows

@@ -19,6 +19,10 @@ from pathlib import Path
 
 from app.commands.output import write_json
 from app.errors import UsageError
+from app.mismatch import Shared, make_plan
+from app.mismatch import run_trial as run_mismatch_trial
+from app.mismatch import study_trials as mismatch_trials
+from app.mismatch_report import write_report as write_mismatch
 from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float
 from fem.sweep import sweep_piece
 from fem.sweep import write_results as write_sweep
@@ -29,8 +33,10 @@ from planner.detect_study import write_report as write_detect
 from planner.surrogate import load_surrogate
 from planner.tasks import Runner, run_pieces
 
-STUDIES = {  # mismatch (issue 14) is not here: it is being built in parallel
+STUDIES = {
     "accuracy": "localization and adaptive refinement over random stones against even rasters (planner.accuracy)",
+    "mismatch": "whole simulated runs on truths unlike the prior: modulus, Poisson, thickness, surface, relaxation "
+                "(app.mismatch)",
     "detect": "predicted detection rate against Monte-Carlo rasters, stones near the margin (planner.detect_study)",
     "sweep": "random valid scenes under load A and B: no NaN, residuals, contact checks (fem.sweep)",
 }
@@ -42,6 +48,9 @@ studies:
 
   accuracy writes accuracy.csv (one row per trial and method), accuracy.json (summary by method),
   accuracy_ratio.json (equal-accuracy ratios), accuracy.md (the tables) and accuracy.png.
+  mismatch writes mismatch.csv (one row per trial), mismatch.json (summary), mismatch.md and mismatch.png; every
+           run's files in pieces/mismatch-*/runs/ (100 stones + 40 healthy, --quick 20 + 10; budget 25 probes; the
+           truths' one-off models are cached under DIR/cache unless $PALPATE_CACHE_DIR says otherwise).
   detect   writes detect.json, detect.csv, detect.md and detect.png (9 stones x 150 rasters; --quick 4 x 40).
   sweep    writes sweep.json, sweep.csv and sweep.md (300 scenes, --quick 40); exit 1 if any scene fails.
 
@@ -52,7 +61,8 @@ worker tcp://HOST:8786 --nthreads 1` on each machine, palpate installed on all; 
 examples:
   palpate study accuracy --out study/ --quick              20 stones + 10 healthy scenes, LocalCluster
   palpate study accuracy --out study/ --workers 1          serial (same numbers)
-  palpate study accuracy --out study/ --scheduler tcp://10.0.0.5:8786"""
+  palpate study accuracy --out study/ --scheduler tcp://10.0.0.5:8786
+  palpate study mismatch --out mm/ --quick --workers 2     the truth is not the belief: 30 whole runs"""
 
 ADDRESS = re.compile(r"^(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
 
@@ -78,13 +88,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
     where.add_argument("--scheduler", type=scheduler_address, metavar="ADDRESS",
                        help="an existing dask scheduler, tcp://HOST:PORT")
     p.add_argument("--scene", default="paper", help="the tissue (its prior is used; default paper)")
-    p.add_argument("--trials", type=int_range(1, 100000), help="accuracy: random stones (default 100, --quick 20)")
+    p.add_argument("--trials", type=int_range(1, 100000),
+                   help="accuracy, mismatch: random stones (default 100, --quick 20)")
     p.add_argument("--runs", type=int_range(1, 100000), help="detect: rasters per stone (default 150, --quick 40)")
     p.add_argument("--scenes", type=int_range(1, 100000), help="sweep: random scenes (default 300, --quick 40)")
-    p.add_argument("--healthy", type=int_range(0, 100000), help="accuracy: healthy scenes (default 40, --quick 10)")
+    p.add_argument("--healthy", type=int_range(0, 100000),
+                   help="accuracy, mismatch: healthy scenes (default 40, --quick 10)")
     p.add_argument("--seed", type=int_range(0, 2 ** 31), default=1, help="the study's seed (default 1)")
     p.add_argument("--sensor", default="nano17", choices=["nano17", "ur5e-builtin"])
-    p.add_argument("--budget-probes", type=int_range(15, 10000), default=45)
+    p.add_argument("--budget-probes", type=int_range(15, 10000),
+                   help="probes per trial (default: accuracy 45, mismatch 25)")
     p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="also write the summary here ('-': standard output)")
@@ -113,7 +126,8 @@ def run(args) -> int:
     out = Path(args.out)
     scene = load_scene(args.scene, "--scene")
     runner = runner_of(args)
-    study = {"accuracy": run_accuracy_study, "detect": run_detect_study, "sweep": run_sweep_study}[args.study]
+    study = {"accuracy": run_accuracy_study, "mismatch": run_mismatch_study, "detect": run_detect_study,
+             "sweep": run_sweep_study}[args.study]
     summary = study(args, scene, runner, out)
     write_json(args.json, summary)
     return 1 if summary.get("failures") else 0
@@ -160,9 +174,37 @@ def run_detect_study(args, scene, runner: Runner, out: Path) -> dict:
     return {"study": "detect", "elapsed_s": elapsed, "where": runner.describe(), "cases": rows}
 
 
+def run_mismatch_study(args, scene, runner: Runner, out: Path) -> dict:
+    stones = args.trials if args.trials is not None else (20 if args.quick else 100)
+    healthy = args.healthy if args.healthy is not None else (10 if args.quick else 40)
+    budget = args.budget_probes or 25
+    prior = scene.prior()
+    options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "budget": budget}
+    store = pieces_dir(out, "mismatch", options)
+    store.mkdir(parents=True, exist_ok=True)
+    os.environ.setdefault("PALPATE_CACHE_DIR", str(out / "cache"))   # the truths' one-off models stay out of ~
+    sur = load_surrogate(prior, runner=runner)
+    coarse_x = make_plan(prior, store / "plan.json")
+    shared = Shared(prior=prior, sur=sur, plan_path=str(store / "plan.json"), runs_dir=str(store / "runs"),
+                    coarse_x_m=coarse_x)
+    trials = mismatch_trials(prior, sur, stones, healthy, budget, args.seed)
+    _say(f"mismatch: {stones} stones + {healthy} healthy truths on {runner.describe()}; pieces and runs in {store}")
+    t0 = time.perf_counter()
+    rows = _run(runner, lambda: run_pieces(run_mismatch_trial, shared, trials, [t.name for t in trials],
+                                           runner=runner, store=store, desc="mismatch trials"))
+    elapsed = time.perf_counter() - t0
+    cmd = (f"palpate study mismatch --trials {stones} --healthy {healthy} --budget-probes {budget} "
+           f"--seed {args.seed}")
+    print(write_mismatch(out, rows, cmd))
+    _say(f"mismatch: {len(trials)} trials in {elapsed:.0f} s; results in {out}")
+    return {"study": "mismatch", "stones": stones, "healthy": healthy, "elapsed_s": elapsed,
+            "where": runner.describe(), "summary": json.loads((out / "mismatch.json").read_text())}
+
+
 def run_accuracy_study(args, scene, runner: Runner, out: Path) -> dict:
     trials = args.trials if args.trials is not None else (20 if args.quick else 100)
     healthy = args.healthy if args.healthy is not None else (10 if args.quick else 40)
+    args.budget_probes = args.budget_probes or 45
     prior = scene.prior()
     options = {"scene": prior.key(), "trials": trials, "healthy": healthy, "seed": args.seed, "sensor": args.sensor,
                "budget": args.budget_probes, "target_m": args.target_uncertainty_m}
