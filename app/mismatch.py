@@ -139,6 +139,9 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             rc = palpate(["run", str(d / "truth.toml"), "--plan", shared.plan_path, "--sim", "--seed", str(t.seed),
                           "--budget-probes", str(t.budget), "--no-figure", "--out", str(d / "run")])
+    except Exception as e:  # noqa: BLE001 - a run that fails is a study's finding: counted, and the study goes on
+        rc = -1
+        err.write(f"\n{type(e).__name__}: {e}")
     finally:
         forget_except(keep)                                 # the truth's one-off models
     row = {"trial": t.index, "seed": t.seed, "rc": rc, "wall_s": time.perf_counter() - t0, **t.mismatch,

@@ -277,12 +277,14 @@ def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n
             return resid(np.concatenate([[p[0], math.log(s), p[1]], p[2:]]))
         D0 = float(np.clip(q[2], lo[2], hi[2]))
         dlo, dhi = max(lo[2], 2 * (d - math.exp(hi[1]))), min(hi[2], 2 * (d - math.exp(lo[1])))
-        if dhi <= dlo:
+        if dhi - dlo <= 2e-6:          # the diameter has (next to) no room at this depth
             prof.append(np.inf)
             continue
-        sol = least_squares(r, np.concatenate([[q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6))], q[3:]]),
-                            bounds=(np.concatenate([[lo[0], dlo], nlo]), np.concatenate([[hi[0], dhi], nhi])),
-                            diff_step=1e-4, max_nfev=200)
+        lb, ub = np.concatenate([[lo[0], dlo], nlo]), np.concatenate([[hi[0], dhi], nhi])
+        x0 = np.concatenate([[q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6))], q[3:]])
+        # the fit's optimum may sit on (or, by round-off, a hair beyond) a bound that this depth's box moved: start
+        # inside (found by the mismatch study: "Initial guess is outside of provided bounds")
+        sol = least_squares(r, np.clip(x0, lb, ub), bounds=(lb, ub), diff_step=1e-4, max_nfev=200)
         prof.append(2 * sol.cost)
     prof = np.array(prof)
     base = min(chi2_min, prof.min())
