@@ -36,6 +36,8 @@ LR_THRESHOLD = 20.0          # detection threshold on chi2_0 - chi2_1 (see modul
 MODEL_REL_ERR = 0.01         # surrogate interpolation error, relative to the contrast (measured: max 1.4 %, RMS 0.12 %)
 MODEL_ABS_ERR_N = 2e-4       # and an absolute floor (N)
 
+MIN_MEASUREMENTS = 4          # usable probes a localization needs (a stone has 3 parameters)
+
 
 @dataclass
 class Measurements:
@@ -326,8 +328,8 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     (default); False: the prior's tissue and the nominal surface are taken as true (only the drift is fitted)."""
     if prior.stones:
         raise ValueError("localize() takes the prior scene (no stones): the localizer must not see the truth")
-    if len(meas) < 4:
-        raise ValueError(f"need at least 4 probe measurements, got {len(meas)}")
+    if len(meas) < MIN_MEASUREMENTS:
+        raise ValueError(f"need at least {MIN_MEASUREMENTS} probe measurements, got {len(meas)}")
     if surrogate is None:
         surrogate = load_surrogate(prior)
     fw = _Forward(prior, meas, surrogate, nuisance)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planner.localize import Localization, Measurements, localize
+from planner.localize import MIN_MEASUREMENTS, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import prior_and_thickness_slope
 
@@ -144,6 +144,12 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
                                       statuses=("ok", "force_limit"))
         used += len(x)
         meas = m if meas is None else meas.concat(m)
+        if len(meas) < MIN_MEASUREMENTS:        # every probe failed or read a force no tissue gives
+            loc = Localization(detected=False, lr=float("nan"), lr_threshold=float("nan"))
+            reason = (f"too few usable measurements: {len(meas)} of {used} probes (the others failed or read forces "
+                      f"no tissue gives: see probes.jsonl's status, reason and implausible)")
+            say(f"round {k}: {len(x)} probes ({used} in all): {reason}")
+            break
         loc = localize(prior, meas, surrogate)
         dep = [p.depth_m for p in plan.probes] if plan is not None else list(m.depth_m)
         rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.to_dict(), plan,

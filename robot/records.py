@@ -213,11 +213,19 @@ def implausibility(rec: ProbeRecord) -> str | None:
     if rec.force_baseline_n is not None:
         var += (rec.force_baseline_std_n or std) ** 2 / max(rec.n_samples_baseline, 1)
     sigma = math.sqrt(var)
-    expect = pred * (d / d_plan) ** 1.5
+    # Where contact was felt bounds the true indentation (the registered surface may be off by millimetres,
+    # issue 14): felt below the nominal surface, the tissue was indented at least d - contact_depth_m; felt above it,
+    # up to d - contact_depth_m. The low check takes the smallest indentation, the high check the largest.
+    c = rec.contact_depth_m
+    d_low = d - c if c is not None and 0 < c < d else d
+    d_high = d - c if c is not None and c < 0 else d
+    expect = pred * (d_low / d_plan) ** 1.5
     lo, hi = PLAUSIBLE_FORCE_RATIO
     if f < lo * expect - PLAUSIBLE_SIGMAS * sigma:
-        return (f"force {f:.4g} N at {d * 1e3:.2f} mm is below {lo:g} x the prior's {expect:.4g} N by more than "
-                f"{PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (sensor offset, sign or the wrong sensor?)")
+        return (f"force {f:.4g} N at {d_low * 1e3:.2f} mm of indentation is below {lo:g} x the prior's "
+                f"{expect:.4g} N by more than {PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (sensor offset, "
+                f"sign or the wrong sensor?)")
+    expect = pred * (d_high / d_plan) ** 1.5
     if f > hi * expect + PLAUSIBLE_SIGMAS * sigma:
         return (f"force {f:.4g} N at {d * 1e3:.2f} mm is above {hi:g} x the prior's {expect:.4g} N by more than "
                 f"{PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (collision, sensor spike?)")

@@ -262,3 +262,36 @@ def test_implausible_forces_are_flagged_and_kept_out_of_localization():
     recs[2].implausible = implausibility(rec(2, -2.34, std=1.75))
     m = Measurements.from_records(recs)
     assert len(m) == 4 and 2 not in m.index.tolist()
+
+
+def test_plausibility_counts_from_where_contact_was_felt():
+    """A surface registered 2 mm too high (issue 14): contact felt at 2.83 mm of a 3 mm indentation, 11 mN where the
+    prior expects 68 mN at 3 mm. Measured from the contact, the tissue was indented only 0.17 mm: plausible (the
+    mismatch study's trial 75 lost every probe to this check). With no contact felt, the same force is flagged; felt
+    above the nominal surface, the high check allows for the deeper indentation."""
+    from core.contracts import ProbeRecord, ProbeStatus
+    from robot.records import implausibility
+
+    def rec(f, contact_m):
+        return ProbeRecord(index=0, x_m=0.03, status=ProbeStatus.OK, depth_planned_m=0.003, depth_reached_m=0.003,
+                           contact_depth_m=contact_m, force_mean_n=f, force_std_n=0.003, n_samples=250,
+                           force_baseline_n=0.0, force_baseline_std_n=0.003, n_samples_baseline=2000,
+                           force_predicted_prior_n=0.068)
+    assert implausibility(rec(0.011, 0.00283)) is None
+    assert "below" in implausibility(rec(0.011, None))
+    assert "above" in implausibility(rec(1.5, None))
+    assert implausibility(rec(1.5, -0.0045)) is None            # 7.5 mm of real indentation: 1.5 N is tissue
+
+
+def test_a_run_with_too_few_usable_probes_ends_without_an_estimate():
+    """Every probe failed (or read no tissue): the adaptive loop stops with the reason instead of localizing on
+    nothing (the mismatch study found `palpate run` ending in a traceback there)."""
+    from core.contracts import ProbeRecord, ProbeStatus
+    from fem.scene import load
+    from planner.refine import adaptive
+
+    def execute(x, k):
+        return [ProbeRecord(index=i, x_m=float(v), status=ProbeStatus.FAULT, reason="test") for i, v in enumerate(x)]
+    res = adaptive(load("paper").prior(), execute, coarse_x_m=np.linspace(0.01, 0.06, 6))
+    assert res.localization.detected is False and res.probes_used == 6
+    assert res.stop_reason.startswith("too few usable measurements: 0 of 6 probes")

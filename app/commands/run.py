@@ -43,7 +43,7 @@ from app.options import (
 )
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
-from planner.localize import Localization, localize
+from planner.localize import MIN_MEASUREMENTS, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster, replan
 from planner.refine import adaptive, describe, renumber
@@ -428,7 +428,10 @@ def run(args) -> int:
               "strategy": args.strategy}
     if res is not None:
         # the final estimate once more, with the depth's profile-likelihood interval (prior + measurements only)
-        loc = res.localization = localize(prior, res.measurements, sur, profile=True)
+        if res.measurements is not None and len(res.measurements) >= MIN_MEASUREMENTS:
+            loc = res.localization = localize(prior, res.measurements, sur, profile=True)
+        else:
+            loc = res.localization
         result.update(loc.to_dict())
         result.update({"probes_used": res.probes_used, "stop_reason": res.stop_reason,
                        "rounds": [{"index": r.index, "n_probes": r.n_probes, "x_m": r.x_m, "depth_m": r.depth_m,
