@@ -86,9 +86,10 @@ def test_palpate_ft_reads_a_box_at_an_address(tmp_path):
     stepper.start()
     out = tmp_path / "ft.json"
     try:
-        code = cli.main(["ft", "--ft", "netft:127.0.0.1", "--ft-port", str(port), "--ft-counts-per-force",
+        # the spelling: --netft HOST --port PORT --seconds S (= --ft netft:HOST --ft-port --duration-s)
+        code = cli.main(["ft", "--netft", "127.0.0.1", "--port", str(port), "--ft-counts-per-force",
                          "1e6", "--ft-counts-per-torque", "1e6", "--ft-range-n", "35", "--ft-range-nm", "0.25",
-                         "--duration-s", "0.3", "--json", str(out)])
+                         "--seconds", "0.3", "--json", str(out)])
     finally:
         stop.set()
         stepper.join()

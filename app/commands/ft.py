@@ -17,7 +17,7 @@ import numpy as np
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.ftoptions import FtChoice, add_ft_options, real_config, sim_config
-from app.options import check_output_file, float_range
+from app.options import check_output_file, float_range, int_range
 from core.contracts import SENSORS
 from robot.netft import NetFtReader, SensorFault
 from robot.sim import ArmModel
@@ -28,9 +28,13 @@ def add_parser(sub) -> None:
     p = sub.add_parser("ft", help="read an ATI Net F/T box for a while: rate, lost records, mean and noise per axis",
                        description=__doc__.split("\n\n")[0],
                        epilog="examples:\n  palpate ft --ft netft:192.168.1.1 --ft-range-n 25 --ft-range-nm 0.25\n"
+                              "  palpate ft --netft 192.168.1.1 --seconds 5 --json ft.json\n"
                               "  palpate ft --ft netft            (a simulated box on loopback)")
     add_ft_options(p, sim_help="on loopback")
-    p.add_argument("--duration-s", type=float_range(0.0, 600.0, unit="s"), default=2.0,
+    p.add_argument("--netft", metavar="HOST", help="the box at HOST: the same as --ft netft:HOST")
+    p.add_argument("--port", dest="ft_port", type=int_range(1, 65535), metavar="PORT",
+                   help="the same as --ft-port (default 49152)")
+    p.add_argument("--duration-s", "--seconds", type=float_range(0.0, 600.0, unit="s"), default=2.0,
                    help="how long to read (default 2 s)")
     p.add_argument("--sensor", default="nano17", choices=list(SENSORS), help="the simulated box's sensor preset")
     p.add_argument("--seed", type=int, default=0)
@@ -39,6 +43,13 @@ def add_parser(sub) -> None:
 
 
 def _check(args) -> None:
+    if args.netft is not None:
+        host = args.netft.strip()
+        if not host:
+            raise UsageError("--netft: give the box's host name or address, e.g. --netft 192.168.1.1")
+        if args.ft.kind != "rtde" and args.ft.host != host:
+            raise UsageError(f"--netft {host} and --ft {args.ft.text}: give one of them")
+        args.ft = FtChoice("netft", host)
     ft: FtChoice = args.ft
     if ft.kind != "netft":
         raise UsageError(f"--ft {ft.text}: palpate ft reads a Net F/T box: give --ft netft:HOST (or --ft netft for "
