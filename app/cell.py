@@ -325,6 +325,11 @@ def _linked_session(started, plan: Plan, args, out: Path, cfg: DriverConfig, hos
             end_session(c, r, clean)
 
 
+CRASH_LOST_PROBE_NOTE = ("a probe in progress when the client crashed has no record unless the driver wrote it "
+                         "first: its samples were in the crashed process; the completed probes are on disk and a "
+                         "resume presses the lost one again")
+
+
 def _crash_report(out: Path, err: ChildDied, program_stopped: bool | None = None) -> RunReport:
     """The run's report when the link's process died: what its driver wrote to run.json, with the crash as the
     fault (the fault the driver was handling, if any, is kept beside it)."""
@@ -337,7 +342,8 @@ def _crash_report(out: Path, err: ChildDied, program_stopped: bool | None = None
              "stopped": False, "retracted": False,
              "notes": ["no command could be sent after the crash; the last command was a bounded moveL (target no "
                        "deeper than the planned depth) and the controller's RTDE watchdog, no longer kicked, stops "
-                       "the program and the motion; check the arm on the pendant before resuming"]
+                       "the program and the motion; check the arm on the pendant before resuming",
+                       CRASH_LOST_PROBE_NOTE]
              + ([f"the driver was handling: {earlier.get('kind')}: {earlier.get('message')}"] if earlier else [])
              + ({True: ["the control program was then stopped through the dashboard"],
                  False: ["the dashboard did not answer: stop the program on the pendant"]}.get(program_stopped, []))}

@@ -12,6 +12,7 @@ import pytest
 
 pytest.importorskip("rtde_control")
 
+from app.cell import CRASH_LOST_PROBE_NOTE  # noqa: E402
 from app.faultdrill import (  # noqa: E402
     DRILL_BOUND_S,
     DRILL_PROBE_SPEED_M_S,
@@ -52,7 +53,15 @@ def test_drill_ends_safe_with_records_kept(name, tmp_path, scene_path):
     assert f"FAULT {res.fault['kind']}" in res.stdout
     # every completed probe and the interrupted one on disk, each index once
     assert all(len(v) == 1 for v in res.statuses.values()), res.statuses
-    assert res.statuses == {**{i: ["ok"] for i in range(drill.interrupted)}, drill.interrupted: ["fault"]}
+    done = {i: ["ok"] for i in range(drill.interrupted)}
+    if res.fault["kind"] == "client_crashed" and drill.interrupted not in res.statuses:
+        # ur_rtde itself crashed (SIGSEGV in its own reconnect) before the driver could write the interrupted probe:
+        # its samples died with the process, which run.json says; the completed probes are all on disk, and the
+        # motion stopped (the controller's watchdog, then the dashboard's stop)
+        assert res.statuses == done and CRASH_LOST_PROBE_NOTE in res.fault["notes"], (res.statuses, res.fault)
+        assert res.final_state is not None and not res.final_state["moving"], res.final_state
+        return
+    assert res.statuses == {**done, drill.interrupted: ["fault"]}
     assert res.raw_samples > 0                                        # the interrupted probe's samples are kept
     # the fault was seen, and soon: the driver's fault carries the controller time of its last reading (for a silent
     # link that is the last packet before the fault, a period or two before it)
