@@ -18,6 +18,25 @@ from .stress import components, nodal_poisson, recovery_operator
 RESIDUAL_WARN = 1e-6
 
 
+def solve_prescribed(scene, model, fixed: np.ndarray, values: np.ndarray):
+    """Load A's solve, 2D or 3D: the reduced DOFs ``fixed`` held at ``values``. (factorization, reduced and full
+    displacements, K u, relative residual): refused when not finite, a warning when the relative residual exceeds RESIDUAL_WARN."""
+    fac = model.partition(fixed)
+    pres = np.zeros(len(fac.fixed))
+    pres[np.searchsorted(fac.fixed, fixed)] = values
+    u_red = fac.solve(pres)
+    u = fac.full(u_red)
+    if not np.all(np.isfinite(u)):
+        raise FloatingPointError(f"load A on scene {scene.name!r}: the solve produced non-finite displacements")
+    Ku = model.K @ u_red
+    residual = float(np.linalg.norm(Ku[fac.free]) / max(np.linalg.norm(fac.Kfp @ pres), 1e-300))
+    if residual > RESIDUAL_WARN:
+        warnings.warn(f"load A on scene {scene.name!r}: relative residual {residual:.1e} > {RESIDUAL_WARN:g}: the "
+                      f"solution has lost accuracy to round-off (an elastic stone far stiffer than tissue? use "
+                      f"rigid_stones='auto')", stacklevel=3)
+    return fac, u_red, u, Ku, residual
+
+
 def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
                   rigid_stones: str | bool = "auto") -> UniformResult:
     if scene.analysis.formulation == "mixed":         # locking-free u-p (fem.mixed)
@@ -32,21 +51,8 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
     fixed_full = np.concatenate([2 * top + 1, 2 * bot + 1, [2 * corner]])
     values = np.concatenate([np.full(len(top), -scene.analysis.top_displacement_m), np.zeros(len(bot) + 1)])
     fixed = model.reduced_index(fixed_full)
-    fac = model.partition(fixed)
-    order = np.searchsorted(fac.fixed, fixed)
-    pres = np.zeros(len(fac.fixed))
-    pres[order] = values
-    u_red = fac.solve(pres)
-    u = fac.full(u_red)
-    if not np.all(np.isfinite(u)):
-        raise FloatingPointError(f"load A on scene {scene.name!r}: the solve produced non-finite displacements")
+    fac, u_red, u, Ku, residual = solve_prescribed(scene, model, fixed, values)
     t2 = time.perf_counter()
-    Ku = model.K @ u_red
-    residual = float(np.linalg.norm(Ku[fac.free]) / max(np.linalg.norm(fac.Kfp @ pres), 1e-300))
-    if residual > RESIDUAL_WARN:
-        warnings.warn(f"load A on scene {scene.name!r}: relative residual {residual:.1e} > {RESIDUAL_WARN:g}: the "
-                      f"solution has lost accuracy to round-off (an elastic stone far stiffer than tissue? use "
-                      f"rigid_stones='auto')", stacklevel=2)
     reaction = -Ku[model.reduced_index(2 * top + 1)].sum()
     plane = model.plane
     R = recovery_operator(model, top)

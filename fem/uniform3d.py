@@ -3,7 +3,6 @@ u_z = 0 with the rigid-body modes removed minimally (fem.model3d.fixed_bottom); 
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
 
@@ -11,8 +10,7 @@ from .guards import check_finite
 from .model3d import Model3D, build_model3d, fixed_bottom
 from .results3d import SurfaceMap, UniformResult3D
 from .stress3d import components3d, recovery_operator3d
-
-RESIDUAL_WARN = 1e-6
+from .uniform import solve_prescribed
 
 
 def solve_uniform3d(scene, model: Model3D | None = None, full_field: bool = True,
@@ -26,19 +24,8 @@ def solve_uniform3d(scene, model: Model3D | None = None, full_field: bool = True
     top_z = model.reduced_index(3 * top + 2)
     fixed = np.concatenate([top_z, base])
     values = np.concatenate([np.full(len(top), -scene.analysis.top_displacement_m), np.zeros(len(base))])
-    fac = model.partition(fixed)
-    pres = np.zeros(len(fac.fixed))
-    pres[np.searchsorted(fac.fixed, fixed)] = values
-    u_red = fac.solve(pres)
-    u = fac.full(u_red)
-    if not np.all(np.isfinite(u)):
-        raise FloatingPointError(f"load A on scene {scene.name!r}: the solve produced non-finite displacements")
+    fac, u_red, u, Ku, residual = solve_prescribed(scene, model, fixed, values)
     t2 = time.perf_counter()
-    Ku = model.K @ u_red
-    residual = float(np.linalg.norm(Ku[fac.free]) / max(np.linalg.norm(fac.Kfp @ pres), 1e-300))
-    if residual > RESIDUAL_WARN:
-        warnings.warn(f"load A on scene {scene.name!r}: relative residual {residual:.1e} > {RESIDUAL_WARN:g}",
-                      stacklevel=2)
     reaction = -Ku[top_z].sum()
     surf = components3d((recovery_operator3d(model, top) @ u).reshape(-1, 6))
     nodal = None
