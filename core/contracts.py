@@ -95,6 +95,7 @@ class Probe:
     q_indent_rad: list[float]
     t_start_s: float = 0.0               # planned start time from the beginning of the run
     duration_s: float = 0.0              # planned time for this probe (move in, descend, dwell, retract)
+    y_m: float = 0.0                     # tissue frame, along a 3D block's length (0 on a 2D section's plane)
 
 
 @dataclass
@@ -215,6 +216,8 @@ class Plan:
         tis = self.scene.get("tissue", {})
         width = tis.get("width_m", math.inf) if isinstance(tis, dict) else math.inf
         width = float(width) if _is_num(width) and math.isfinite(width) and width > 0 else math.inf
+        length = tis.get("length_m") if isinstance(tis, dict) else None      # a 3D block; None: a 2D section
+        length = float(length) if _is_num(length) and math.isfinite(length) and length > 0 else None
         number("limits.force_limit_n", L.force_limit_n, hi=HARD_FORCE_LIMIT_N,
                allowed=f"(0, {HARD_FORCE_LIMIT_N:g}] N (the hard cap)")
         number("limits.depth_limit_m", L.depth_limit_m, hi=min(tip, HARD_DEPTH_LIMIT_M), hi_open=tip <= HARD_DEPTH_LIMIT_M,
@@ -254,6 +257,12 @@ class Plan:
             w = f"probes[{k}]"
             number(f"{w}.x_m", p.x_m, lo=0.0, lo_open=False, hi=width,
                    allowed=f"[0, {width:g}] m (on the tissue's top surface, scene.tissue.width_m)")
+            if length is None:
+                number(f"{w}.y_m", p.y_m, lo=0.0, lo_open=False, hi=0.0,
+                       allowed="0 (a 2D section's probes lie in its plane; scene.tissue.length_m makes a 3D block)")
+            else:
+                number(f"{w}.y_m", p.y_m, lo=0.0, lo_open=False, hi=length,
+                       allowed=f"[0, {length:g}] m (on the block's top face, scene.tissue.length_m)")
             number(f"{w}.depth_m", p.depth_m, hi=L.depth_limit_m,
                    allowed=f"(0, limits.depth_limit_m = {L.depth_limit_m:g}] m, below the tip radius {tip:g} m")
             if p.depth_m >= tip:
@@ -347,6 +356,8 @@ class ProbeRecord:
     depth_target_m: float | None = None          # planned indentation capped at the depth limit
     depth_reached_m: float | None = None         # mean indentation over the dwell (or the last descent samples)
     contact_x_m: float | None = None             # tissue-frame x of the tip over the dwell
+    y_m: float = 0.0                             # planned tissue-frame y (3D block; 0 on a 2D section)
+    contact_y_m: float | None = None             # tissue-frame y of the tip over the dwell
     contact_depth_m: float | None = None         # indentation at which contact was first felt
     force_mean_n: float | None = None            # mean contact force over the dwell
     force_std_n: float | None = None

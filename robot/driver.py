@@ -162,7 +162,7 @@ class _Samples:
         self.rows.append(row)
 
     def arrays(self) -> dict:
-        cols = ["time_s", "tcp_pose", "wrench", "force_n", "depth_m", "x_m", "phase"]
+        cols = ["time_s", "tcp_pose", "wrench", "force_n", "depth_m", "x_m", "phase", "y_m"]
         if not self.rows:
             return {c: np.zeros((0, 6) if c in ("tcp_pose", "wrench") else 0) for c in cols}
         return {c: np.array([r[i] for r in self.rows], dtype=float) for i, c in enumerate(cols)}
@@ -266,13 +266,13 @@ class Driver(Recovery):
                                 " while the receive interface still reports a connection (a silent link: a network "
                                 "partition or a frozen controller)"))
         self.last_ts = self.ts = float(ts)
-        x, depth = self.tf.x_depth(pose)
+        x, y, depth = self.tf.xy_depth(pose)
         f = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) if ok_w \
             else float("nan")
         if ok_w:
             self.filt.append(f)
         filt = sum(self.filt) / len(self.filt) if self.filt else float("nan")
-        self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase)
+        self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase, y)
         return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
 
     def _check_wrist(self, w) -> None:
@@ -511,7 +511,7 @@ class Driver(Recovery):
                     current = p
                     self.samples = _Samples()       # a fault before the probe starts keeps none of the last one's
                     if p.index in bad:
-                        rep.records.append(log.write_probe(ProbeRecord(index=p.index, x_m=p.x_m,
+                        rep.records.append(log.write_probe(ProbeRecord(index=p.index, x_m=p.x_m, y_m=p.y_m,
                                                                        status=ProbeStatus.REJECTED,
                                                                        reason=bad[p.index])))
                         rep.n_rejected += 1

@@ -137,9 +137,9 @@ def done_indices(out_dir: str | Path) -> set[int]:
 
 
 def read_measurements(out_dir: str | Path, statuses=MEASURED) -> list[ProbeRecord]:
-    """For the localizer: the latest record per probe index with a usable, plausible measurement, sorted by x_m."""
+    """For the localizer: the latest record per probe index with a usable, plausible measurement, sorted by (x_m, y_m)."""
     recs = [r for r in latest_by_index(out_dir).values() if r.status in statuses and r.implausible is None]
-    return sorted(recs, key=lambda r: r.x_m)
+    return sorted(recs, key=lambda r: (r.x_m, r.y_m))
 
 
 def load_raw(out_dir: str | Path, record: ProbeRecord) -> dict:
@@ -176,10 +176,11 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
     dwell = np.flatnonzero((ph == DWELL) & np.isfinite(f))
     fifth = len(dwell) // 5
     rec = ProbeRecord(
-        index=p.index, x_m=p.x_m, status=status, depth_planned_m=p.depth_m,
+        index=p.index, x_m=p.x_m, y_m=p.y_m, status=status, depth_planned_m=p.depth_m,
         depth_target_m=min(p.depth_m, depth_limit_m),
         depth_reached_m=num(float(np.mean(raw["depth_m"][sel]))) if sel.any() else None,
         contact_x_m=num(float(np.mean(raw["x_m"][sel]))) if sel.any() else None,
+        contact_y_m=num(float(np.mean(raw["y_m"][sel]))) if sel.any() and "y_m" in raw else None,
         contact_depth_m=num(contact.get("depth")),
         force_mean_n=num(float(np.mean(f[fin]))) if fin.any() else None,
         force_std_n=num(float(np.std(f[fin]))) if fin.any() else None,

@@ -57,6 +57,7 @@ class SafetyLimits:
     tissue_pose_base: tuple
     width_m: float
     tip_radius_m: float = DEFAULT_TIP_RADIUS_M
+    length_m: float = 0.0                  # a 3D block's extent along tissue y; 0: a 2D section (probes at y = 0)
 
     @staticmethod
     def from_plan(plan) -> "SafetyLimits":
@@ -67,6 +68,8 @@ class SafetyLimits:
         # limit then applies at every x, not only over a guessed tissue
         tissue = plan.scene.get("tissue", {}) if isinstance(plan.scene, dict) else {}
         width = float(tissue.get("width_m", math.inf)) if isinstance(tissue, dict) else math.inf
+        length = tissue.get("length_m") if isinstance(tissue, dict) else None
+        length = float(length) if isinstance(length, (int, float)) and not isinstance(length, bool) else 0.0
         tip = _tip_radius(plan)
         return SafetyLimits(
             box_min=lo, box_max=hi,
@@ -76,7 +79,8 @@ class SafetyLimits:
             tool_speed_m_s=min(lim.max_tool_speed_m_s, HARD_TOOL_SPEED_M_S),
             probe_speed_m_s=min(mo.probe_speed_m_s, lim.max_tool_speed_m_s, HARD_PROBE_SPEED_M_S),
             accel_m_s2=min(max(mo.approach_accel_m_s2, mo.probe_accel_m_s2), HARD_ACCEL_M_S2),
-            tissue_pose_base=tuple(plan.frames.tissue_pose_base), width_m=width, tip_radius_m=tip)
+            tissue_pose_base=tuple(plan.frames.tissue_pose_base), width_m=width, tip_radius_m=tip,
+            length_m=length if math.isfinite(length) and length > 0 else 0.0)
 
 
 def _tip_radius(plan) -> float:
@@ -101,6 +105,11 @@ class TissueFrame:
     def x_depth(self, pose) -> tuple[float, float]:
         p = self.local(pose)
         return float(p[0]), float(-p[2])
+
+    def xy_depth(self, pose) -> tuple[float, float, float]:
+        """(x_m, y_m, depth_m) of a pose's position in the tissue frame."""
+        p = self.local(pose)
+        return float(p[0]), float(p[1]), float(-p[2])
 
     def tilt(self, pose) -> float:
         """Angle between the tool z axis and the inward normal (rad)."""
@@ -174,6 +183,8 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             why = "duplicate index"
         elif not (0 <= p.x_m <= lim.width_m):
             why = f"x_m {p.x_m} outside the tissue [0, {lim.width_m}]"
+        elif not (0 <= p.y_m <= lim.length_m):
+            why = f"y_m {p.y_m} outside the tissue [0, {lim.length_m}]"
         elif not (0 < p.depth_m < lim.tip_radius_m):
             why = f"depth_m {p.depth_m} outside (0, tip radius {lim.tip_radius_m}) m"
         elif not (0 < p.depth_m <= lim.depth_limit_m):
@@ -183,10 +194,9 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
         else:
             for name, pose, want in (("approach_pose", p.approach_pose, -mo.approach_height_m),
                                      ("indent_pose", p.indent_pose, p.depth_m)):
-                x, d = tf.x_depth(pose)
-                y = float(tf.local(pose)[1])
-                if max(abs(x - p.x_m), abs(d - want), abs(y)) > POSE_TOL_M or tf.tilt(pose) > MAX_TILT_RAD:
-                    why = f"{name} does not match x_m/depth_m/approach height in the tissue frame"
+                x, y, d = tf.xy_depth(pose)
+                if max(abs(x - p.x_m), abs(d - want), abs(y - p.y_m)) > POSE_TOL_M or tf.tilt(pose) > MAX_TILT_RAD:
+                    why = f"{name} does not match x_m/y_m/depth_m/approach height in the tissue frame"
                     break
                 try:
                     check_pose(lim, tf, pose, mo.probe_speed_m_s, min(mo.probe_accel_m_s2, lim.accel_m_s2))
