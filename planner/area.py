@@ -223,9 +223,12 @@ def travel_lower_bound_m(points_m) -> float:
     p = np.asarray(points_m, dtype=float).reshape(-1, 2)
     if len(p) < 2:
         return 0.0
-    d = np.linalg.norm(p[:, None] - p[None], axis=2)
-    d[np.diag_indices(len(p))] = np.inf
-    return float((len(p) - 1) * d.min())
+    best = np.inf
+    for i in range(0, len(p), 256):          # in blocks: (256, N) distances at a time
+        d = np.linalg.norm(p[i:i + 256, None] - p[None], axis=2)
+        d[np.arange(len(d)), np.arange(i, i + len(d))] = np.inf
+        best = min(best, float(d.min()))
+    return float((len(p) - 1) * best)
 
 
 def check_positions(scene, positions_m, option: str = "positions") -> np.ndarray:
