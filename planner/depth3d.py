@@ -41,6 +41,7 @@ class ContactDepths3D:
         self.xy = model.xy
         self.rtol_force = rtol_force
         self.n_lcp = 0
+        self.n_fallback = 0         # LCPs the block pivoting left to fem.lcp.solve_lcp
         self._last = None           # (contact radius, depth) of the last waypoint's answer: the next one's start
 
     def _window(self, x_m: float, y_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -58,10 +59,17 @@ class ContactDepths3D:
         if depth_m <= 0.0 or not np.any(q < 0):
             return 0.0, np.zeros(len(h), bool), 0.0
         self.n_lcp += 1
-        r = solve_lcp(Cw, q, start=start & (q < 0) if start.any() else q < 0.5 * q.min())
-        A = r.z > 0
-        slope = float(np.linalg.solve(Cw[np.ix_(A, A)], np.ones(int(A.sum()))).sum()) if A.any() else 0.0
-        return float(r.z.sum()), A, slope
+        A = start & (q < 0) if start.any() else q < 0.5 * q.min()
+        out = _lcp_block_pivoting(Cw, q, A)
+        if out is None:                       # no certified answer in a few block pivots: fem's own solver
+            self.n_fallback += 1
+            r = solve_lcp(Cw, q, start=A)
+            A = r.z > 0
+            z = r.z
+            slope = float(np.linalg.solve(Cw[np.ix_(A, A)], np.ones(int(A.sum()))).sum()) if A.any() else 0.0
+        else:
+            z, A, slope = out
+        return float(z.sum()), A, slope
 
     def force_n(self, x_m: float, y_m: float, depth_m: float) -> float:
         """fem's contact force at (x, y, depth), N (the same LCP, solved on the whole window)."""
@@ -106,3 +114,29 @@ class ContactDepths3D:
         if A_lo is not None and A_lo.any():
             self._last = (float(np.sqrt(r2[A_lo].max())) + 1e-12, lo)
         return lo, f_lo
+
+
+def _lcp_block_pivoting(M: np.ndarray, q: np.ndarray, A: np.ndarray, max_pivots: int = 12):
+    """The LCP  w = q + M z >= 0, z >= 0, z.w = 0  (M symmetric positive definite) by block principal pivoting from
+    the contact set ``A``: solve M_AA z_A = -q_A, then drop every node of A with z <= 0 and add every node outside
+    with w < 0, until neither is left. Returns (z, A, 1' M_AA^-1 1) once certified (z_A > 0, w >= -tol elsewhere,
+    w_A = 0 by construction: the LCP's unique solution, to fem.lcp's tolerance), or None after ``max_pivots`` (block
+    pivoting may cycle; the caller then uses fem.lcp's finite active-set method)."""
+    tol = 1e-12 * max(float(np.abs(q).max(initial=0.0)), 1e-300)
+    n = len(q)
+    A = A.copy()
+    for _ in range(max_pivots):
+        ia = np.flatnonzero(A)
+        z = np.zeros(n)
+        s = 0.0
+        if len(ia):
+            sol = np.linalg.solve(M[np.ix_(ia, ia)], np.column_stack([-q[ia], np.ones(len(ia))]))
+            z[ia] = sol[:, 0]
+            s = float(sol[:, 1].sum())
+        w = q + M[:, ia] @ z[ia]
+        drop = A & (z <= 0)
+        add = ~A & (w < -tol)
+        if not drop.any() and not add.any():
+            return z, A, s
+        A = (A & ~drop) | add
+    return None

@@ -69,10 +69,10 @@ class Margins:
 class RasterNLP:
     """The IPOPT solver for rasters of ``n`` waypoints (parametric: targets in the bounds, normal/TCP/seed in p).
 
-    ``mapped=False``: the whole problem as one SX graph (the 2D planner's; fastest per solve, but its build grows
-    with n: ~1.4 s for 100 waypoints, ~6 s for 400). ``mapped=True``: the same problem with one waypoint's
-    constraints and costs as an SX Function ``map``-ped over the n waypoints inside an MX graph: the build is nearly
-    independent of n (~0.3 s for 400), a solve ~2.5x slower, the solution the same to ~1e-15 rad (same iterates:
+    ``mapped=False``: the whole problem as one SX graph (the 2D planner's; its build grows with n: ~1.4 s for 100
+    waypoints, ~6 s for 400). ``mapped=True``: the same problem with one waypoint's constraints, cost and their
+    derivatives as SX Functions ``map``-ped over the n waypoints inside an MX graph: the build is nearly independent
+    of n (~0.05 s for 400), a solve as fast, the solution the same to ~1e-15 rad (same iterates:
     bench/bench_planner3d.py compares both). The 3D area planner uses it."""
 
     def __init__(self, n: int, mapped: bool = False):
@@ -105,7 +105,10 @@ class RasterNLP:
 
     def _build_mapped(self, n: int) -> None:
         """The same variables, parameters, constraints (in the same order) and objective, built from one waypoint's
-        SX Function mapped over all n."""
+        SX Functions mapped over all n: its constraints and cost, their 15 x 12 Jacobian and the 12 x 12 Hessian of
+        its Lagrangian, handed to IPOPT as block-diagonal matrices (``jac_g``, ``hess_lag``: CasADi's own derivative
+        of a map is several times slower to evaluate), plus the objective's constant quadratic part (the pull to the
+        seed and the moves between neighbours)."""
         fk = kin.fk_function()
         qa, qi = ca.SX.sym("qa", 6), ca.SX.sym("qi", 6)
         n_in, t_tcp = ca.SX.sym("n_in", 3), ca.SX.sym("T_tcp", 16)
@@ -115,16 +118,40 @@ class RasterNLP:
         ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
         g = ca.vertcat(Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
                        kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi))
-        one = ca.Function("waypoint", [qa, qi, n_in, t_tcp], [g, 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)])
+        jk = 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
+        qq, ng = ca.vertcat(qa, qi), g.numel()
+        sigma, lam = ca.SX.sym("sigma"), ca.SX.sym("lam", ng)
+        one = ca.Function("waypoint", [qa, qi, n_in, t_tcp], [g, jk])
+        one_jac = ca.Function("waypoint_jac", [qa, qi, n_in, t_tcp], [ca.jacobian(g, qq)])
+        one_hess = ca.Function("waypoint_hess", [qa, qi, n_in, t_tcp, sigma, lam],
+                               [ca.hessian(sigma * jk + ca.dot(lam, g), qq)[0]])
+
         w = ca.MX.sym("w", 12 * n)
         n_in_m, t_tcp_m, q_ref = ca.MX.sym("n_in", 3), ca.MX.sym("T_tcp", 16), ca.MX.sym("q_ref", 12 * n)
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng * n)
         W = ca.reshape(w, 12, n)                  # column k = [qa_k, qi_k]
-        G, Jk = one.map(n, "serial")(W[:6, :], W[6:, :], n_in_m, t_tcp_m)
+        args = (W[:6, :], W[6:, :], n_in_m, t_tcp_m)
+        G, Jk = one.map(n, "serial")(*args)
         J = W_REG * ca.sumsqr(w - q_ref) + ca.sum2(Jk)
         if n > 1:
             J += ca.sumsqr(W[:6, 1:] - W[:6, :-1])
         p = ca.vertcat(n_in_m, t_tcp_m, q_ref)
-        self.solver = ca.nlpsol(f"raster{n}m", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vec(G)}, IPOPT_OPTIONS)
+        jac = ca.diagcat(*ca.horzsplit(one_jac.map(n, "serial")(*args), 12))
+        hess = ca.diagcat(*ca.horzsplit(one_hess.map(n, "serial")(*args, lam_f, ca.reshape(lam_g, ng, n)), 12))
+        # Hessian of the constant quadratic part: 2 W_REG I + 2 D'D, D the differences qa_{k+1} - qa_k
+        diag = np.full(12 * n, 2 * W_REG)
+        qa_idx = (12 * np.arange(n)[:, None] + np.arange(6)[None, :])          # (n, 6) entries of the qa_k
+        diag[qa_idx] += 2.0 * ((np.arange(n) > 0).astype(float) + (np.arange(n) + 1 < n))[:, None]
+        a = qa_idx[:-1].ravel()
+        rows = np.concatenate([np.arange(12 * n), a, a + 12]).tolist()       # each entry once (no duplicates)
+        cols = np.concatenate([np.arange(12 * n), a + 12, a]).tolist()
+        vals = np.concatenate([diag, np.full(2 * len(a), -2.0)])
+        quad = ca.DM.triplet(rows, cols, ca.DM(vals), 12 * n, 12 * n)
+        opts = dict(IPOPT_OPTIONS)
+        opts["jac_g"] = ca.Function("nlp_jac_g", [w, p], [ca.vec(G), jac], ["x", "p"], ["g", "jac_g_x"])
+        opts["hess_lag"] = ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [ca.triu(lam_f * quad + hess)],
+                                       ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        self.solver = ca.nlpsol(f"raster{n}m", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vec(G)}, opts)
 
     def solve(self, q_seed: np.ndarray, tg: Targets, tcp_offset, branch, margins: Margins,
               tilt_tol_rad: float) -> tuple[np.ndarray, dict]:
