@@ -33,7 +33,7 @@ from core.contracts import (
     PlanError,
     PlanOptions,
 )
-from planner.area import default_block_pose
+from planner.area import Region, default_block_pose, default_region, grid_positions
 from planner.plan import DEFAULT_GRID, plan_raster
 from planner.raster import default_tissue_pose, interval_positions
 
@@ -224,7 +224,6 @@ def run(args) -> int:
 
 def _plan_area(scene, args, margin_m, limits, motion, frames, options):
     """A 3D block's area raster; the waypoint count is checked before fem is asked anything."""
-    from planner.area import Region, default_region, grid_positions
     region = (Region.rectangle(*args.region) if args.region is not None else
               Region.polygon(args.polygon) if args.polygon is not None else None)
     grid = args.grid if (args.grid is not None or args.spacing_m is not None) else DEFAULT_GRID
