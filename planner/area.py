@@ -8,9 +8,10 @@ centre may go anywhere in the patch shrunk by the tip radius (``probe_bounds``).
 that square here, before fem is asked anything, and refused with a PlanError naming the option.
 
 Order: boustrophedon (serpentine rows: every other row reversed), its rows along x or along y, whichever gives the
-shorter tool travel (the rows along the finer spacing). On a full grid that is optimal: every move is one grid step,
-and no order can do with fewer than N - 1 moves of at least the smallest spacing (``travel_lower_bound_m``); on a
-polygon whose rows are broken (a concave region) a row may end far from the next one's start.
+shorter tool travel (the rows along the finer spacing). On a full grid that is optimal: every move is one grid step
+and only the ny - 1 row changes take the coarser one, which any order needs to reach every row; with equal spacings
+it meets the simple bound (N - 1) x the smallest distance (``travel_lower_bound_m``, reported with every raster). On
+a polygon whose rows are broken (a concave region) a row may end far from the next one's start.
 """
 from __future__ import annotations
 
@@ -65,8 +66,6 @@ class Region:
         if v.ndim != 2 or v.shape[1] != 2 or len(v) < 3 or not np.all(np.isfinite(v)):
             raise PlanError(f"{option}: a polygon needs at least 3 finite (x, y) vertices in m, got "
                             f"{np.asarray(vertices_m).tolist()}")
-        if abs(_area(v)) <= 1e-12:
-            raise PlanError(f"{option} {v.tolist()}: the polygon has no area")
         k = len(v)
         for i in range(k):
             for j in range(i + 1, k):
@@ -75,6 +74,8 @@ class Region:
                 if _segments_cross(v[i], v[(i + 1) % k], v[j], v[(j + 1) % k]):
                     raise PlanError(f"{option} {v.tolist()}: edges {i} and {j} cross (give the vertices in order "
                                     f"around the polygon)")
+        if abs(_area(v)) <= 1e-12:
+            raise PlanError(f"{option} {v.tolist()}: the polygon has no area")
         return Region(tuple(map(tuple, v.tolist())), option)
 
     @property
