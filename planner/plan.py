@@ -66,6 +66,17 @@ class Margins:
         return np.array([self.shoulder_m, self.elbow, self.wrist])
 
 
+def _waypoint_terms(fk, qa, qi, n_in, T_tcp) -> tuple[list, object]:
+    """One waypoint's constraint pieces (TCP positions, tool-axis cosines, approach/indent x-axis cosine, branch
+    indicators; in the bounds' order) and its cost (down-and-up travel and the tilt penalty), as SX."""
+    Ta, pwa = fk(qa, T_tcp)
+    Ti, pwi = fk(qi, T_tcp)
+    ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
+    g = [Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
+         kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi)]
+    return g, 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
+
+
 class RasterNLP:
     """The IPOPT solver for rasters of ``n`` waypoints (parametric: targets in the bounds, normal/TCP/seed in p).
 
@@ -92,12 +103,9 @@ class RasterNLP:
         g = []
         for k in range(n):
             qa, qi = w[12 * k:12 * k + 6], w[12 * k + 6:12 * k + 12]
-            Ta, pwa = fk(qa, T_tcp)
-            Ti, pwi = fk(qi, T_tcp)
-            ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
-            g += [Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
-                  kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi)]
-            J += 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
+            gk, jk = _waypoint_terms(fk, qa, qi, n_in, T_tcp)
+            g += gk
+            J += jk
             if k + 1 < n:
                 J += ca.sumsqr(w[12 * (k + 1):12 * (k + 1) + 6] - qa)
         self.solver = ca.nlpsol(f"raster{n}", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}, IPOPT_OPTIONS)
@@ -109,16 +117,10 @@ class RasterNLP:
         its Lagrangian, handed to IPOPT as block-diagonal matrices (``jac_g``, ``hess_lag``: CasADi's own derivative
         of a map is several times slower to evaluate), plus the objective's constant quadratic part (the pull to the
         seed and the moves between neighbours)."""
-        fk = kin.fk_function()
         qa, qi = ca.SX.sym("qa", 6), ca.SX.sym("qi", 6)
         n_in, t_tcp = ca.SX.sym("n_in", 3), ca.SX.sym("T_tcp", 16)
-        T_tcp = ca.reshape(t_tcp, 4, 4)
-        Ta, pwa = fk(qa, T_tcp)
-        Ti, pwi = fk(qi, T_tcp)
-        ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
-        g = ca.vertcat(Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
-                       kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi))
-        jk = 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
+        gk, jk = _waypoint_terms(kin.fk_function(), qa, qi, n_in, ca.reshape(t_tcp, 4, 4))
+        g = ca.vertcat(*gk)
         qq, ng = ca.vertcat(qa, qi), g.numel()
         sigma, lam = ca.SX.sym("sigma"), ca.SX.sym("lam", ng)
         one = ca.Function("waypoint", [qa, qi, n_in, t_tcp], [g, jk])

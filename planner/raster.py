@@ -3,7 +3,9 @@ per-waypoint indentation depth chosen from a force prediction.
 
 2D section: the raster is a line of waypoints along the top surface (tissue-frame x), ``margin_m`` from both side
 edges. Depths come from a force model ``force_n(x_m, depth_m) -> float`` (fem's ``surface_model(prior).force_n``;
-any callable that is 0 at depth 0 and increases with depth) for the *prior* (stone-free) tissue.
+any callable that is 0 at depth 0 and increases with depth) for the *prior* (stone-free) tissue. On a 3D block the
+positions are (x_m, y_m) (planner.area) and the force model ``force_n(x_m, y_m, depth_m)``; ``choose_depths`` takes
+either, and a fast exact depth search for fem's 3D model (planner.depth3d).
 """
 from __future__ import annotations
 
