@@ -153,6 +153,7 @@ def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
             "prior": args.prior, "truth_conditions": None if cond is None or cond.ideal else cond.to_dict(),
             "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
             "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
+            **({"grid": list(args.grid)} if getattr(args, "grid", None) and not args.plan else {}),
             "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
             "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
             **({"ft": args.ft.text} if args.ft.kind != "rtde" else {})}     # absent for the wrist sensor: older

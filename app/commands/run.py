@@ -36,6 +36,7 @@ from app.options import (
     check_output_dir,
     check_output_file,
     finite_float,
+    grid_counts,
     int_range,
     load_scene,
     positive_float,
@@ -59,6 +60,10 @@ from planner.refine import adaptive, describe
 from planner.surrogate import load_surrogate
 from robot.records import done_indices
 from robot.truth import DEFAULT_RELAXATION
+
+DEFAULT_GRID3D = (6, 6)        # 3D: the coarse grid, refinement rounds and budget
+DEFAULT_REFINE3D = 12
+DEFAULT_BUDGET3D = 84
 
 
 def add_parser(sub) -> None:
@@ -93,12 +98,16 @@ def add_parser(sub) -> None:
     p.add_argument("--sensor", default="nano17", choices=list(SENSORS),
                    help="simulated sensor preset (default nano17)")
     p.add_argument("--seed", type=int, default=0, help="simulated sensor noise seed")
-    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), default=15,
-                   help=f"coarse raster waypoints, 2..{MAX_WAYPOINTS} (default 15)")
-    p.add_argument("--refine-waypoints", type=int_range(1, MAX_WAYPOINTS), default=10,
-                   help="waypoints per refinement round (default 10)")
-    p.add_argument("--budget-probes", type=int_range(2, MAX_TOTAL_PROBES), default=45,
-                   help="probe budget over all rounds, at least the coarse raster's waypoints (default 45)")
+    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS),
+                   help=f"2D: coarse raster waypoints, 2..{MAX_WAYPOINTS} (default 15)")
+    p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
+                   help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
+                        f"{DEFAULT_GRID3D[0]}x{DEFAULT_GRID3D[1]})")
+    p.add_argument("--refine-waypoints", type=int_range(1, MAX_WAYPOINTS),
+                   help=f"waypoints per refinement round (default 2D 10, 3D {DEFAULT_REFINE3D})")
+    p.add_argument("--budget-probes", type=int_range(2, MAX_TOTAL_PROBES),
+                   help="probe budget over all rounds, at least the coarse raster's waypoints (default 2D 45, 3D "
+                        f"{DEFAULT_BUDGET3D})")
     p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4,
                    help="stop refining when the 1-sigma x and depth uncertainties are below this (default 0.5 mm)")
     p.add_argument("--strategy", choices=["design", "raster"], default="design",
@@ -111,6 +120,27 @@ def add_parser(sub) -> None:
     p.add_argument("--no-figure", action="store_true")
     p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
+
+
+def _dimension_defaults(args, scene, prior) -> bool:
+    """Fill the raster options a user left out with the defaults of the scene's dimension; refuse the other
+    dimension's options. True for a 3D block."""
+    three_d = bool(prior.is_3d)
+    if scene.is_3d != three_d:
+        raise UsageError(f"--prior/--plan: the belief ({prior.name}) is "
+                         f"{'a 3D block' if three_d else 'a 2D section'} but the scene {args.scene} is not")
+    if three_d and args.waypoints is not None:
+        raise UsageError(f"--waypoints {args.waypoints}: a 3D block's coarse raster is a grid: give --grid NXxNY")
+    if not three_d and args.grid is not None:
+        raise UsageError(f"--grid {args.grid[0]}x{args.grid[1]}: a grid is for a 3D block; {args.scene} is a 2D "
+                         f"section: give --waypoints N")
+    if three_d:
+        args.grid = args.grid or DEFAULT_GRID3D
+    else:
+        args.waypoints = args.waypoints or 15
+    args.refine_waypoints = args.refine_waypoints or (DEFAULT_REFINE3D if three_d else 10)
+    args.budget_probes = args.budget_probes or (DEFAULT_BUDGET3D if three_d else 45)
+    return three_d
 
 
 def _say(msg: str) -> None:
@@ -145,7 +175,9 @@ def run(args) -> int:
     else:
         prior = belief if belief is not None else scene.prior()
         plan0 = None
-    n_coarse = len(plan0.probes) if plan0 is not None else args.waypoints
+    three_d = _dimension_defaults(args, scene, prior)
+    n_coarse = len(plan0.probes) if plan0 is not None else (
+        args.grid[0] * args.grid[1] if three_d else args.waypoints)
     if args.budget_probes < n_coarse:
         raise UsageError(f"--budget-probes {args.budget_probes} must be at least the coarse raster's {n_coarse} "
                          f"waypoints")
@@ -157,8 +189,13 @@ def run(args) -> int:
         except (UsageError, ValueError) as e:
             raise UsageError(f"--out {out}: cannot resume: {e}; use --fresh or another --out") from None
         plan0 = saved
-        _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
-    elif plan0 is None:
+        if not three_d:
+            _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+    if three_d:       # the 3D flow (loaded for a block only: the 2D commands never import the 3D path)
+        from app.commands.run3d import RunContext, run_block
+        return run_block(args, RunContext(t_wall=t_wall, out=out, scene=scene, prior=prior, plan0=plan0, cond=cond,
+                                          opts=opts, resume=resume))
+    if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
