@@ -21,6 +21,7 @@ detectability analysis (planner.detect3d) of the coarse grid for that stone, whi
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,9 +35,9 @@ from planner.accuracy import FastArm
 from planner.area import Region, area_raster, probe_bounds
 from planner.detect3d import p_detect3d
 from planner.detectability import probe_sigma_n, probe_tau_s
-from planner.localize import Measurements
+from planner.localize import DRIFT_SIGMA_N_PER_S, Measurements
 from planner.localize3d import localize3d
-from planner.refine3d import adaptive3d, coarse_depths
+from planner.refine3d import SHALLOW_FRACTION, adaptive3d, coarse_depths
 from planner.surrogate3d import stone_model3d
 from planner.tasks import Runner, run_pieces
 
@@ -154,7 +155,59 @@ def trial3d(prior, sur, stone, sensor: str, seed: int, budget: int, target_m: fl
         d = coarse_depths(np.full(len(xy), DEPTH_M))
         m = Measurements.from_records(fast.execute3d(xy, d), Motion())
         row(f"grid-{g[0]}x{g[1]}", localize3d(prior, m, sur), len(xy), {"p_detect_pred": predicted(xy, d)})
+    if stone is not None:         # the best any placement could do, for the adaptive run's probe count
+        P = prior_model.force_n(stone.x_m, stone.y_m, DEPTH_M)
+        rows[0]["oracle_gain"] = oracle_gain(sur, (stone.x_m, stone.y_m, stone.depth_m, stone.diameter_m),
+                                             probe_bounds(prior), P, sig, res.probes_used)
     return rows
+
+
+def _jacobian(sur, stone, xy, d, P, tau) -> np.ndarray:
+    """d force / d (x, y, depth, diameter, log scale, drift rate) at the TRUE stone, per probe (N x 6, N)."""
+    th = np.array(stone, float)
+    C = sur.contrast(xy[:, 0], xy[:, 1], d, *th)
+    cols = []
+    for i in range(4):
+        h = np.zeros(4)
+        h[i] = 2e-5
+        cols.append((sur.contrast(xy[:, 0], xy[:, 1], d, *(th + h)) - sur.contrast(xy[:, 0], xy[:, 1], d, *(th - h)))
+                    / 4e-5)
+    return np.c_[np.array(cols).T, P + C, np.full(len(xy), tau)]
+
+
+def oracle_gain(sur, stone, region, P: float, sigma_n: float, n: int) -> float:
+    """How many times more probes an even grid (``n`` of them, the coarse grid's two depths) needs than the best
+    placement for the same var(x) + var(y) + var(depth): a Cramer-Rao comparison at the TRUE stone (an oracle no
+    adaptive scheme can beat). The placement is the greedy A-optimal one over a 1 mm grid of the region at the two
+    depths (sequential, not the exact optimum: a lower bound on the best gain), started from the coarse 6 x 6 grid
+    (what any run measures first), with the localizer's prior on the drift."""
+    k = max(int(round(math.sqrt(n))), 2)
+    x0, x1, y0, y1 = region
+    g = np.array([(x, y) for x in np.linspace(x0, x1, k) for y in np.linspace(y0, y1, k)])
+    d_even = coarse_depths(np.full(len(g), DEPTH_M))
+    prior_prec = np.diag([0, 0, 0, 0, 0, sigma_n ** 2 / DRIFT_SIGMA_N_PER_S ** 2])
+
+    def var_xyz(M):
+        return float(np.trace(np.linalg.inv(M + 1e-18 * np.eye(6))[:3, :3]))
+    tau = float(probe_tau_s(Motion(), DEPTH_M))
+    J_even = _jacobian(sur, stone, g, d_even, P * (d_even / DEPTH_M) ** 1.5, tau)
+    v_even = var_xyz(J_even.T @ J_even + prior_prec)
+    c = coarse_depths(np.full(36, DEPTH_M))
+    g6 = np.array([(x, y) for x in np.linspace(x0, x1, 6) for y in np.linspace(y0, y1, 6)])
+    M = _jacobian(sur, stone, g6, c, P * (c / DEPTH_M) ** 1.5, tau)
+    M = M.T @ M + prior_prec
+    gx, gy = np.meshgrid(np.arange(x0, x1 + 1e-12, 1e-3), np.arange(y0, y1 + 1e-12, 1e-3), indexing="ij")
+    cand = np.c_[gx.ravel(), gy.ravel()]
+    Jc = np.vstack([_jacobian(sur, stone, cand, np.full(len(cand), dd), P * (dd / DEPTH_M) ** 1.5, tau)
+                    for dd in (DEPTH_M, SHALLOW_FRACTION * DEPTH_M)])
+    Fi = np.linalg.inv(M)
+    for _ in range(max(n - 36, 0)):
+        G = Jc @ Fi
+        gain = np.sum(G[:, :3] ** 2, axis=1) / (1.0 + np.sum(G * Jc, axis=1))
+        j = int(np.argmax(gain))
+        v = Fi @ Jc[j]
+        Fi = Fi - np.outer(v, v) / (1.0 + Jc[j] @ v)
+    return float(v_even / np.trace(Fi[:3, :3]))
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,8 @@ Per method over the stones: the fraction detected, the median lateral (in-plane)
 their 68 % / 95 % interval coverage, the median probes; detection inside the detectability envelope (stones the
 coarse grid's analysis gives p_detect >= 0.9: planner.detect3d) against the 95 % target; false alarms over the
 healthy blocks. The probes an even grid needs for the adaptive run's medians: the smallest grid whose median lateral
-and depth errors are both at most the adaptive run's, as a ratio to the adaptive run's median probes.
+and depth errors are both at most the adaptive run's, as a ratio to the adaptive run's median probes; and the
+Cramer-Rao comparison of the best placement against an even grid (planner.accuracy3d.oracle_gain).
 """
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ def summarise(rows: list[dict]) -> dict:
         out["even_grid_for_adaptive_medians"] = (
             {"method": need[0], "probes": need[1], "ratio_to_adaptive": need[1] / a["median_probes"]} if need else
             {"method": None, "probes_more_than": largest, "ratio_to_adaptive_more_than": largest / a["median_probes"]})
+        out["oracle_gain_median"] = _median([r.get("oracle_gain") for r in rows if r["method"] == "adaptive"])
         out["targets"] = TARGETS
         out["met"] = {"lateral": a["median_lateral_error_m"] < TARGETS["lateral_m"],
                       "depth": a["median_depth_error_m"] < TARGETS["depth_m"],
@@ -105,6 +107,10 @@ def write_report(out: Path, rows: list[dict], command: str, elapsed_s: float, wh
                           if e.get("method") else
                           f"none of the grids (more than {e['probes_more_than']:.0f} probes, "
                           f"> {e['ratio_to_adaptive_more_than']:.2f}x)"))]
+    if "oracle_gain_median" in s:
+        lines += ["", f"Cramer-Rao: the best placement (greedy A-optimal at the TRUE stone, the adaptive run's probe "
+                      f"count) needs {_fmt(s['oracle_gain_median'], 1, 2)}x fewer probes than an even grid for the same "
+                      f"var(x) + var(y) + var(depth) (median over the stones; planner.accuracy3d.oracle_gain)"]
     if "met" in s:
         lines += ["", "targets (adaptive): " + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in s["met"].items())]
     (out / "accuracy3d.md").write_text("\n".join(lines) + "\n")
