@@ -81,6 +81,45 @@ def int_range(lo: int, hi: int | None = None):
     return parse
 
 
+def grid_counts(s: str) -> tuple[int, int]:
+    """``NXxNY``: waypoints along x and y of an area raster, each >= 1, at most MAX_WAYPOINTS in all."""
+    parts = s.lower().split("x")
+    try:
+        nx, ny = (int(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be NXxNY (two integers, e.g. 10x10), got {s!r}") from None
+    if nx < 1 or ny < 1 or nx * ny > MAX_WAYPOINTS:
+        raise argparse.ArgumentTypeError(f"must be NXxNY with both counts >= 1 and NX*NY <= {MAX_WAYPOINTS}, "
+                                         f"got {s!r}")
+    return nx, ny
+
+
+def float_list(n: int | None = None, what: str = "numbers"):
+    """Comma-separated finite floats (exactly ``n`` when given)."""
+    def parse(s: str) -> list[float]:
+        try:
+            v = [float(t) for t in s.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {what}, comma-separated, got {s!r}") from None
+        if not all(math.isfinite(x) for x in v) or (n is not None and len(v) != n):
+            raise argparse.ArgumentTypeError(f"must be {what}: {n or 'some'} finite numbers, comma-separated, "
+                                             f"got {s!r}")
+        return v
+    parse.__name__ = "list"
+    return parse
+
+
+def polygon_vertices(s: str) -> list[tuple[float, float]]:
+    """``"x,y;x,y;..."``: at least 3 finite (x, y) vertices in m."""
+    try:
+        v = [tuple(float(t) for t in pair.split(",")) for pair in s.strip().strip(";").split(";")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be vertices \"x,y;x,y;...\" in m, got {s!r}") from None
+    if len(v) < 3 or any(len(p) != 2 or not all(math.isfinite(c) for c in p) for p in v):
+        raise argparse.ArgumentTypeError(f"must be at least 3 vertices \"x,y;x,y;x,y\" (finite, m), got {s!r}")
+    return v
+
+
 # ---------------------------------------------------------------------------------------------- output paths
 
 def _writable_parent(path: Path, option: str, shown=None) -> None:

@@ -138,7 +138,11 @@ def mesh_block(width_m: float, length_m: float, height_m: float, stones: list[tu
                 f.setNumbers(d, "SurfacesList", stone_surfs)
                 f.setNumber(d, "Sampling", 60)
                 th = f.add("Threshold")
-                smin = min(2 * fine, size_m)
+                # at most the smallest stone's radius on its surface (about 6 elements round a great circle): a
+                # coarser sphere left gmsh's surface mesher with degenerate triangles, and it crashed (segfault) on a
+                # 5 mm stone meshed at 8 mm
+                r_min = min([r for *_, r in stones] + [r for *_, r in cylinders_y])
+                smin = min(2 * fine, size_m, r_min)
                 f.setNumber(th, "InField", d)
                 f.setNumber(th, "SizeMin", smin)
                 f.setNumber(th, "SizeMax", size_m)

@@ -74,20 +74,23 @@ class FastArm:
         self.count = 0
 
     def execute(self, x_m, k=0, depth_m=DEPTH_M):
-        s, recs = self.sp, []
-        for x in np.asarray(x_m, float):
-            tau = float(probe_tau_s(self.mo, depth_m))
-            t_base = 0.5 * self.nb * 0.002                      # from zeroing to the baseline's middle
-            zero_err = self.rng.normal(0, s.noise_std_n / math.sqrt(50))
-            base = self.rng.normal(0, s.noise_std_n / math.sqrt(self.nb)) - zero_err + self.drift * t_base
-            dwell = (self.f(float(x), depth_m) + self.rng.normal(0, s.noise_std_n / math.sqrt(self.n)) - zero_err
-                     + self.drift * (t_base + tau))
-            std = s.noise_std_n * (1 + self.rng.normal(0, 1 / math.sqrt(2 * self.n)))
-            recs.append(ProbeRecord(index=self.count, x_m=float(x), depth_reached_m=depth_m, status=ProbeStatus.OK,
-                                    force_mean_n=dwell, force_std_n=abs(std), n_samples=self.n,
-                                    force_baseline_n=base, n_samples_baseline=self.nb, baseline_to_dwell_s=tau))
-            self.count += 1
-        return recs
+        return [self.record(lambda x=float(x): self.f(x, depth_m), float(x), depth_m) for x in np.asarray(x_m, float)]
+
+    def record(self, true_force, x_m: float, depth_m: float, y_m: float = 0.0) -> ProbeRecord:
+        """One probe's record at (x_m, y_m) pressed ``depth_m`` deep; ``true_force()`` gives the true force."""
+        s = self.sp
+        tau = float(probe_tau_s(self.mo, depth_m))
+        t_base = 0.5 * self.nb * 0.002                      # from zeroing to the baseline's middle
+        zero_err = self.rng.normal(0, s.noise_std_n / math.sqrt(50))
+        base = self.rng.normal(0, s.noise_std_n / math.sqrt(self.nb)) - zero_err + self.drift * t_base
+        dwell = (true_force() + self.rng.normal(0, s.noise_std_n / math.sqrt(self.n)) - zero_err
+                 + self.drift * (t_base + tau))
+        std = s.noise_std_n * (1 + self.rng.normal(0, 1 / math.sqrt(2 * self.n)))
+        rec = ProbeRecord(index=self.count, x_m=x_m, y_m=y_m, depth_reached_m=depth_m, status=ProbeStatus.OK,
+                          force_mean_n=dwell, force_std_n=abs(std), n_samples=self.n, force_baseline_n=base,
+                          n_samples_baseline=self.nb, baseline_to_dwell_s=tau)
+        self.count += 1
+        return rec
 
 
 class _Loc:

@@ -53,14 +53,17 @@ class Measurements:
     onset_threshold_n: np.ndarray | None = None   # the force threshold that contact was felt at; NaN
     dwell_start_n: np.ndarray | None = None   # force over the first / last fifth of the dwell (relaxation); NaN
     dwell_end_n: np.ndarray | None = None
+    y_m: np.ndarray | None = None             # tip position along a 3D block's length at the dwell (0: a 2D section)
 
     OPTIONAL = ("onset_m", "onset_threshold_n", "dwell_start_n", "dwell_end_n")
-    FIELDS = ("x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index") + OPTIONAL
+    FIELDS = ("x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index") + OPTIONAL + ("y_m",)
 
     def __post_init__(self):
         for k in self.OPTIONAL:
             if getattr(self, k) is None:
                 setattr(self, k, np.full(len(self.x_m), np.nan))
+        if self.y_m is None:
+            self.y_m = np.zeros(len(self.x_m))
 
     def __len__(self):
         return len(self.x_m)
@@ -96,13 +99,14 @@ class Measurements:
 
             def opt(v, minus=0.0):
                 return float("nan") if v is None else float(v) - minus
+            y = r.contact_y_m if r.contact_y_m is not None else r.y_m
             rows.append((float(x), d, f - base, sig, tau, int(r.index), opt(r.contact_depth_m),
                          opt(r.contact_threshold_n), opt(getattr(r, "force_dwell_start_n", None), base),
-                         opt(getattr(r, "force_dwell_end_n", None), base)))
+                         opt(getattr(r, "force_dwell_end_n", None), base), float(y)))
         rows.sort(key=lambda t: t[:6])
-        a = np.array(rows, dtype=float).reshape(-1, 10)
+        a = np.array(rows, dtype=float).reshape(-1, 11)
         return Measurements(a[:, 0], a[:, 1], a[:, 2], np.maximum(a[:, 3], 1e-5), a[:, 4], a[:, 5].astype(int),
-                            a[:, 6], a[:, 7], a[:, 8], a[:, 9])
+                            a[:, 6], a[:, 7], a[:, 8], a[:, 9], a[:, 10])
 
     def concat(self, other: "Measurements") -> "Measurements":
         parts = [np.concatenate([getattr(self, k), getattr(other, k)]) for k in self.FIELDS]

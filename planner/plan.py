@@ -31,8 +31,11 @@ import numpy as np
 from core import ur5e
 from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
 from fem.contact import surface_model
+from fem.contact3d import surface_model3d
 from fem.scene import from_dict, load
+from planner import area
 from planner import kinematics as kin
+from planner.depth3d import ContactDepths3D
 from planner.raster import (
     Targets,
     choose_depths,
@@ -42,9 +45,14 @@ from planner.raster import (
 )
 from planner.timing import raster_timing
 
+DEFAULT_GRID = (7, 7)    # a 3D block's raster when neither a grid nor a spacing is given
 W_REG = 1e-3     # pull towards the seed [1/rad^2]
 W_TILT = 100.0   # penalty on 1 - cos(tilt) ~ tilt^2/2: tilt is spent only where it buys real joint travel
 POS_TOL_M = 1e-6
+IPOPT_OPTIONS = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-10,
+                 "ipopt.constr_viol_tol": 1e-10, "ipopt.mu_init": 1e-4, "ipopt.max_iter": 200,
+                 "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
+                 "ipopt.warm_start_mult_bound_push": 1e-9}
 
 
 @dataclass
@@ -58,12 +66,33 @@ class Margins:
         return np.array([self.shoulder_m, self.elbow, self.wrist])
 
 
-class RasterNLP:
-    """The IPOPT solver for rasters of ``n`` waypoints (parametric: targets in the bounds, normal/TCP/seed in p)."""
+def _waypoint_terms(fk, qa, qi, n_in, T_tcp) -> tuple[list, object]:
+    """One waypoint's constraint pieces (TCP positions, tool-axis cosines, approach/indent x-axis cosine, branch
+    indicators; in the bounds' order) and its cost (down-and-up travel and the tilt penalty), as SX."""
+    Ta, pwa = fk(qa, T_tcp)
+    Ti, pwi = fk(qi, T_tcp)
+    ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
+    g = [Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
+         kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi)]
+    return g, 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
 
-    def __init__(self, n: int):
+
+class RasterNLP:
+    """The IPOPT solver for rasters of ``n`` waypoints (parametric: targets in the bounds, normal/TCP/seed in p).
+
+    ``mapped=False``: the whole problem as one SX graph (the 2D planner's; its build grows with n: ~1.4 s for 100
+    waypoints, ~6 s for 400). ``mapped=True``: the same problem with one waypoint's constraints, cost and their
+    derivatives as SX Functions ``map``-ped over the n waypoints inside an MX graph: the build is nearly independent
+    of n (~0.05 s for 400), a solve as fast, the solution the same to ~1e-15 rad (same iterates:
+    bench/bench_planner3d.py compares both). The 3D area planner uses it."""
+
+    def __init__(self, n: int, mapped: bool = False):
         t0 = time.perf_counter()
-        self.n = n
+        self.n, self.mapped = n, mapped
+        if mapped:
+            self._build_mapped(n)
+            self.build_s = time.perf_counter() - t0
+            return
         fk = kin.fk_function()
         w = ca.SX.sym("w", 12 * n)               # [qa_0, qi_0, qa_1, qi_1, ...]
         n_in = ca.SX.sym("n_in", 3)
@@ -74,20 +103,57 @@ class RasterNLP:
         g = []
         for k in range(n):
             qa, qi = w[12 * k:12 * k + 6], w[12 * k + 6:12 * k + 12]
-            Ta, pwa = fk(qa, T_tcp)
-            Ti, pwi = fk(qi, T_tcp)
-            ca_, ci = ca.dot(Ta[:3, 2], n_in), ca.dot(Ti[:3, 2], n_in)
-            g += [Ta[:3, 3], Ti[:3, 3], ca_, ci, ca.dot(Ta[:3, 0], Ti[:3, 0]),
-                  kin.branch_indicators_sx(qa, pwa), kin.branch_indicators_sx(qi, pwi)]
-            J += 2 * ca.sumsqr(qi - qa) + W_TILT * (2 - ca_ - ci)
+            gk, jk = _waypoint_terms(fk, qa, qi, n_in, T_tcp)
+            g += gk
+            J += jk
             if k + 1 < n:
                 J += ca.sumsqr(w[12 * (k + 1):12 * (k + 1) + 6] - qa)
-        opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes", "ipopt.tol": 1e-10,
-                "ipopt.constr_viol_tol": 1e-10, "ipopt.mu_init": 1e-4, "ipopt.max_iter": 200,
-                "ipopt.warm_start_init_point": "yes", "ipopt.warm_start_bound_push": 1e-9,
-                "ipopt.warm_start_mult_bound_push": 1e-9}
-        self.solver = ca.nlpsol(f"raster{n}", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}, opts)
+        self.solver = ca.nlpsol(f"raster{n}", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vertcat(*g)}, IPOPT_OPTIONS)
         self.build_s = time.perf_counter() - t0
+
+    def _build_mapped(self, n: int) -> None:
+        """The same variables, parameters, constraints (in the same order) and objective, built from one waypoint's
+        SX Functions mapped over all n: its constraints and cost, their 15 x 12 Jacobian and the 12 x 12 Hessian of
+        its Lagrangian, handed to IPOPT as block-diagonal matrices (``jac_g``, ``hess_lag``: CasADi's own derivative
+        of a map is several times slower to evaluate), plus the objective's constant quadratic part (the pull to the
+        seed and the moves between neighbours)."""
+        qa, qi = ca.SX.sym("qa", 6), ca.SX.sym("qi", 6)
+        n_in, t_tcp = ca.SX.sym("n_in", 3), ca.SX.sym("T_tcp", 16)
+        gk, jk = _waypoint_terms(kin.fk_function(), qa, qi, n_in, ca.reshape(t_tcp, 4, 4))
+        g = ca.vertcat(*gk)
+        qq, ng = ca.vertcat(qa, qi), g.numel()
+        sigma, lam = ca.SX.sym("sigma"), ca.SX.sym("lam", ng)
+        one = ca.Function("waypoint", [qa, qi, n_in, t_tcp], [g, jk])
+        one_jac = ca.Function("waypoint_jac", [qa, qi, n_in, t_tcp], [ca.jacobian(g, qq)])
+        one_hess = ca.Function("waypoint_hess", [qa, qi, n_in, t_tcp, sigma, lam],
+                               [ca.hessian(sigma * jk + ca.dot(lam, g), qq)[0]])
+
+        w = ca.MX.sym("w", 12 * n)
+        n_in_m, t_tcp_m, q_ref = ca.MX.sym("n_in", 3), ca.MX.sym("T_tcp", 16), ca.MX.sym("q_ref", 12 * n)
+        lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng * n)
+        W = ca.reshape(w, 12, n)                  # column k = [qa_k, qi_k]
+        args = (W[:6, :], W[6:, :], n_in_m, t_tcp_m)
+        G, Jk = one.map(n, "serial")(*args)
+        J = W_REG * ca.sumsqr(w - q_ref) + ca.sum2(Jk)
+        if n > 1:
+            J += ca.sumsqr(W[:6, 1:] - W[:6, :-1])
+        p = ca.vertcat(n_in_m, t_tcp_m, q_ref)
+        jac = ca.diagcat(*ca.horzsplit(one_jac.map(n, "serial")(*args), 12))
+        hess = ca.diagcat(*ca.horzsplit(one_hess.map(n, "serial")(*args, lam_f, ca.reshape(lam_g, ng, n)), 12))
+        # Hessian of the constant quadratic part: 2 W_REG I + 2 D'D, D the differences qa_{k+1} - qa_k
+        diag = np.full(12 * n, 2 * W_REG)
+        qa_idx = (12 * np.arange(n)[:, None] + np.arange(6)[None, :])          # (n, 6) entries of the qa_k
+        diag[qa_idx] += 2.0 * ((np.arange(n) > 0).astype(float) + (np.arange(n) + 1 < n))[:, None]
+        a = qa_idx[:-1].ravel()
+        rows = np.concatenate([np.arange(12 * n), a, a + 12]).tolist()       # each entry once (no duplicates)
+        cols = np.concatenate([np.arange(12 * n), a + 12, a]).tolist()
+        vals = np.concatenate([diag, np.full(2 * len(a), -2.0)])
+        quad = ca.DM.triplet(rows, cols, ca.DM(vals), 12 * n, 12 * n)
+        opts = dict(IPOPT_OPTIONS)
+        opts["jac_g"] = ca.Function("nlp_jac_g", [w, p], [ca.vec(G), jac], ["x", "p"], ["g", "jac_g_x"])
+        opts["hess_lag"] = ca.Function("nlp_hess_l", [w, p, lam_f, lam_g], [ca.triu(lam_f * quad + hess)],
+                                       ["x", "p", "lam_f", "lam_g"], ["triu_hess_gamma_x_x"])
+        self.solver = ca.nlpsol(f"raster{n}m", "ipopt", {"x": w, "p": p, "f": J, "g": ca.vec(G)}, opts)
 
     def solve(self, q_seed: np.ndarray, tg: Targets, tcp_offset, branch, margins: Margins,
               tilt_tol_rad: float) -> tuple[np.ndarray, dict]:
@@ -115,14 +181,14 @@ class RasterNLP:
         return np.array(r["x"]).reshape(n, 2, 6), info
 
 
-_CACHE: dict[int, RasterNLP] = {}
+_CACHE: dict[tuple[int, bool], RasterNLP] = {}
 
 
-def nlp_for(n: int) -> RasterNLP:
+def nlp_for(n: int, mapped: bool = False) -> RasterNLP:
     """The solver for ``n`` waypoints, built on first use (see ``build_s``) and cached for the process."""
-    if n not in _CACHE:
-        _CACHE[n] = RasterNLP(n)
-    return _CACHE[n]
+    if (n, mapped) not in _CACHE:
+        _CACHE[n, mapped] = RasterNLP(n, mapped)
+    return _CACHE[n, mapped]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -249,8 +315,9 @@ def margin_failure_message(chk: Check, margins: Margins) -> str:
 
 
 def solve_raster(tg: Targets, tissue_x, tcp_offset, *, branch=ur5e.DEFAULT_BRANCH, margins: Margins | None = None,
-                 tilt_tol_rad: float = math.radians(0.5)) -> tuple[np.ndarray, dict]:
-    """Seed from the closed form, then solve the NLP. Returns ((n, 2, 6) joints, info). Raises PlanError."""
+                 tilt_tol_rad: float = math.radians(0.5), mapped: bool = False) -> tuple[np.ndarray, dict]:
+    """Seed from the closed form, then solve the NLP (``mapped``: see RasterNLP). Returns ((n, 2, 6) joints, info).
+    Raises PlanError."""
     margins = margins or Margins()
     t0 = time.perf_counter()
     Q0, yaw = seed_configurations(tg, tissue_x, tcp_offset, branch)
@@ -258,10 +325,15 @@ def solve_raster(tg: Targets, tissue_x, tcp_offset, *, branch=ur5e.DEFAULT_BRANC
     chk0 = check_configurations(Q0, tg, tcp_offset, branch, margins)
     if not chk0.margins_ok:
         raise PlanError("the raster cannot keep the singularity margins: " + margin_failure_message(chk0, margins))
-    nlp = nlp_for(len(Q0))
+    t0 = time.perf_counter()
+    cached = (len(Q0), mapped) in _CACHE
+    nlp = nlp_for(len(Q0), mapped)
+    get_s = time.perf_counter() - t0
     Q, info = nlp.solve(Q0, tg, tcp_offset, branch, margins, tilt_tol_rad)
     chk = check_configurations(Q, tg, tcp_offset, branch, margins)
     info.update(seed_s=seed_s, build_s=nlp.build_s, seed_yaw_rad=yaw, used="nlp")
+    if mapped:
+        info.update(nlp="mapped", built_now=not cached, build_now_s=get_s)
     if not chk.ok(tilt_tol_rad):
         # the seed is feasible by construction (exact alignment, margins checked): never hand out a broken plan
         info["used"] = "seed"
@@ -289,19 +361,27 @@ def default_force_model(prior):
 MIN_NORMAL_UP = 0.5     # the tissue's outward normal within 60 deg of the base's +z: tissue lying on a table
 
 
-def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | None = None, margin_m: float = 0.005,
-                x_positions_m=None, depth_m=None, force_n=None, limits=None, motion=None, frames=None,
-                options: PlanOptions | None = None, margins: Margins | None = None, joint_limits=None):
+def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | None = None,
+                margin_m: float | None = None, x_positions_m=None, depth_m=None, force_n=None, limits=None,
+                motion=None, frames=None, options: PlanOptions | None = None, margins: Margins | None = None,
+                joint_limits=None, positions_m=None, grid: tuple[int, int] | None = None, region=None, polygon=None):
     """Plan a probing raster over the top surface of ``scene``'s prior (its stones are dropped before anything else).
 
-    Waypoints: ``x_positions_m`` (tissue-frame x, e.g. a finer set over an interval for adaptive refinement: see
-    ``raster.interval_positions``), else ``n_waypoints`` or ``spacing_m`` with ``margin_m`` from the edges
-    (default 15 waypoints). Depths: ``depth_m`` (a number or one per waypoint) if given, else chosen per waypoint from
-    ``force_n(x_m, depth_m)`` (default: fem's surface model of the prior) as the deepest probe whose predicted force
-    stays within ``force_fraction * limits.force_limit_n`` and ``limits.depth_limit_m``.
+    2D section: waypoints ``x_positions_m`` (tissue-frame x, e.g. a finer set over an interval for adaptive
+    refinement: see ``raster.interval_positions``), else ``n_waypoints`` or ``spacing_m`` with ``margin_m`` (default
+    0.005 m) from the edges (default 15 waypoints).
+    3D block (``tissue.length_m`` set): waypoints ``positions_m`` ((N, 2) tissue-frame (x, y), probed in that order),
+    else a grid (``grid`` = (nx, ny), default 7 x 7, or ``spacing_m``) over ``region`` ((x0, y0, x1, y1)) or
+    ``polygon`` ((K, 2) vertices) or, by default, fem's probed patch minus ``margin_m`` (default: the tip radius), in
+    serpentine order (planner.area). Every position's tip footprint must lie on fem's probed patch.
+    Depths: ``depth_m`` (a number or one per waypoint) if given, else chosen per waypoint from ``force_n(x_m,
+    depth_m)`` (3D: ``force_n(x_m, y_m, depth_m)``; default: fem's surface model of the prior, in 3D solved exactly
+    and fast by planner.depth3d) as the deepest probe whose predicted force stays within ``force_fraction *
+    limits.force_limit_n`` and ``limits.depth_limit_m``.
     ``options`` (core.contracts.PlanOptions): IK branch, tilt tolerance, force fraction, minimum depth.
-    Frames default to the tissue lying on the arm's table 0.40 m in front of the base (raster.default_tissue_pose).
-    Returns a core.contracts.Plan; raises PlanError with a message naming what to change."""
+    Frames default to the tissue lying on the arm's table 0.40 m in front of the base (raster.default_tissue_pose,
+    area.default_block_pose: the block's middle there). Returns a core.contracts.Plan; raises PlanError with a
+    message naming what to change."""
 
     t_all = time.perf_counter()
     prior = _prior(scene)
@@ -311,7 +391,11 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     options = options or PlanOptions()
     branch, tilt_tol_rad = tuple(options.branch), options.tilt_tol_rad
     force_fraction, min_depth_m = options.force_fraction, options.min_depth_m
-    frames = frames or Frames(tissue_pose_base=default_tissue_pose(tis.width_m, tis.height_m))
+    if prior.is_3d:
+        default_pose = area.default_block_pose(tis.width_m, tis.length_m, tis.height_m)
+    else:
+        default_pose = default_tissue_pose(tis.width_m, tis.height_m)
+    frames = frames or Frames(tissue_pose_base=default_pose)
     normal = ur5e.pose_to_T(frames.tissue_pose_base)[:3, 2]
     if normal[2] < MIN_NORMAL_UP:
         raise PlanError(f"--tissue-pose {list(frames.tissue_pose_base)}: the tissue's surface normal points "
@@ -322,39 +406,76 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
         if not (0 < v <= limits.max_tool_speed_m_s):
             raise PlanError(f"motion.{name} = {v} m/s must lie in (0, limits.max_tool_speed_m_s = "
                                 f"{limits.max_tool_speed_m_s}]")
-    if x_positions_m is not None:
-        x = np.asarray(x_positions_m, dtype=float).reshape(-1)
-        if x.size == 0 or np.any(x < 0) or np.any(x > tis.width_m):
-            raise PlanError(f"x positions must be non-empty and lie on the surface [0, {tis.width_m}] m")
+    raster_notes = None
+    if prior.is_3d:
+        for name, v in (("x_positions_m", x_positions_m), ("n_waypoints (--waypoints)", n_waypoints)):
+            if v is not None:
+                raise PlanError(f"{name} is for a 2D section; scene {prior.name!r} is a 3D block: give positions_m "
+                                f"((N, 2) x, y), a grid (--grid NXxNY) or a spacing (--spacing-m)")
+        if positions_m is not None:
+            if grid is not None or spacing_m is not None or region is not None or polygon is not None:
+                raise PlanError("give either positions_m or a grid/spacing over a region, not both")
+            P = area.check_positions(prior, positions_m, option="positions_m")
+        else:
+            if region is not None and polygon is not None:
+                raise PlanError("give either --region or --polygon, not both")
+            reg = (area.Region.rectangle(*region) if region is not None else
+                   area.Region.polygon(polygon) if polygon is not None else None)
+            if grid is None and spacing_m is None:
+                grid = DEFAULT_GRID
+            ar = area.area_raster(prior, region=reg, grid=grid, spacing_m=spacing_m, margin_m=margin_m)
+            P, raster_notes = ar.positions_m, ar.to_dict()
+        x, y = P[:, 0].copy(), P[:, 1].copy()
+        where = P
     else:
-        if n_waypoints is None and spacing_m is None:
-            n_waypoints = 15
-        x = raster_positions(tis.width_m, n=n_waypoints, spacing_m=spacing_m, margin_m=margin_m)
+        for name, v in (("positions_m", positions_m), ("grid (--grid)", grid), ("region (--region)", region),
+                        ("polygon (--polygon)", polygon)):
+            if v is not None:
+                raise PlanError(f"{name} is for a 3D block; scene {prior.name!r} is a 2D section (no "
+                                f"tissue.length_m): give x positions, --waypoints or --spacing-m")
+        if x_positions_m is not None:
+            x = np.asarray(x_positions_m, dtype=float).reshape(-1)
+            if x.size == 0 or np.any(x < 0) or np.any(x > tis.width_m):
+                raise PlanError(f"x positions must be non-empty and lie on the surface [0, {tis.width_m}] m")
+        else:
+            if n_waypoints is None and spacing_m is None:
+                n_waypoints = 15
+            x = raster_positions(tis.width_m, n=n_waypoints, spacing_m=spacing_m,
+                                 margin_m=0.005 if margin_m is None else margin_m)
+        y, where = None, x
 
     tissue_x = ur5e.pose_to_T(frames.tissue_pose_base)[:3, 0]
+    depth_for = None
     if force_n is None:
         # fail fast, before fem builds its model (~1-5 s): every waypoint reachable down to the depth limit
         seed_configurations(targets(x, np.full(x.shape, limits.depth_limit_m), frames.tissue_pose_base,
-                                    motion.approach_height_m), tissue_x, frames.tcp_offset, branch)
-        force_n = default_force_model(prior)
+                                    motion.approach_height_m, y_m=y), tissue_x, frames.tcp_offset, branch)
+        if prior.is_3d:
+            solver = ContactDepths3D(surface_model3d(prior))
+            force_n, depth_for = solver.force_n, solver.depth_for
+        else:
+            force_n = default_force_model(prior)
 
     t0 = time.perf_counter()
     if depth_m is not None:
         d = np.broadcast_to(np.asarray(depth_m, dtype=float), x.shape).copy()
         if np.any(d <= 0) or np.any(d > limits.depth_limit_m):
             raise PlanError(f"depths must lie in (0, --depth-limit-m = {limits.depth_limit_m}] m")
-        f = np.array([force_n(float(a), float(b)) for a, b in zip(x, d)])
+        if y is None:
+            f = np.array([force_n(float(a), float(b)) for a, b in zip(x, d)])
+        else:
+            f = np.array([force_n(float(a), float(c), float(b)) for a, c, b in zip(x, y, d)])
         if f.max() > limits.force_limit_n:
             raise PlanError(f"the fixed depth gives a predicted force of {f.max():.3g} N, above the force "
                                 f"limit {limits.force_limit_n} N: lower --depth-m or raise --force-limit-n")
         limited_by, target_n = ["fixed"] * len(x), None
     else:
-        dc = choose_depths(force_n, x, force_limit_n=limits.force_limit_n, depth_limit_m=limits.depth_limit_m,
-                           force_fraction=force_fraction, min_depth_m=min_depth_m)
+        dc = choose_depths(force_n, where, force_limit_n=limits.force_limit_n, depth_limit_m=limits.depth_limit_m,
+                           force_fraction=force_fraction, min_depth_m=min_depth_m, depth_for=depth_for)
         d, f, limited_by, target_n = dc.depth_m, dc.force_n, dc.limited_by, dc.target_force_n
     depth_s = time.perf_counter() - t0
 
-    tg = targets(x, d, frames.tissue_pose_base, motion.approach_height_m)
+    tg = targets(x, d, frames.tissue_pose_base, motion.approach_height_m, y_m=y)
     lo, hi = np.asarray(limits.workspace_min_m), np.asarray(limits.workspace_max_m)
     for k, pts in enumerate(zip(tg.approach_m, tg.indent_m)):
         for p in pts:
@@ -363,7 +484,8 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
                                     f"{lo.tolist()}..{hi.tolist()} m (limits.workspace_min_m/max_m): move the tissue "
                                     f"(--tissue-pose)")
     Q, info = solve_raster(tg, tissue_x, frames.tcp_offset, branch=branch, margins=margins,
-                           tilt_tol_rad=tilt_tol_rad)
+                           tilt_tol_rad=tilt_tol_rad, mapped=prior.is_3d)
+    t_timing = time.perf_counter()
     tm = raster_timing(tg.approach_m, tg.indent_m, Q[:, 0], Q[:, 1], motion, joint_limits)
     probes, prev = [], None
     T_all = kin.fk_batch(Q.reshape(-1, 6), frames.tcp_offset)[0].reshape(len(x), 2, 4, 4)
@@ -371,16 +493,26 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
         pa = ur5e.T_to_pose(T_all[k, 0], near=prev)
         pi = ur5e.T_to_pose(T_all[k, 1], near=pa)
         prev = pa
+        extra = {} if y is None else {"y_m": float(y[k])}
         probes.append(Probe(index=k, x_m=float(x[k]), depth_m=float(d[k]), predicted_force_n=float(f[k]),
                             approach_pose=pa, indent_pose=pi,
                             q_approach_rad=Q[k, 0].tolist(), q_indent_rad=Q[k, 1].tolist(),
-                            t_start_s=tm.t_start_s[k], duration_s=tm.duration_s[k]))
+                            t_start_s=tm.t_start_s[k], duration_s=tm.duration_s[k], **extra))
     notes = {"planner": "casadi-ipopt raster v1", "target_force_n": target_n, "depth_limited_by": limited_by, "solver": info, "timing": tm.to_dict(),
              "times_s": {"depth_choice": depth_s, "seed": info["seed_s"], "solve": info["solve_s"],
                          "build_once": info["build_s"], "total": time.perf_counter() - t_all}}
+    if prior.is_3d:
+        notes["times_s"].update(nlp_build_now=info["build_now_s"], timing_poses=time.perf_counter() - t_timing)
+        notes["raster"] = raster_notes or {"positions": "given (positions_m)", "n": len(x),
+                                           "travel_m": area.travel_m(where)}
+        if depth_for is not None:
+            notes["depth_method"] = {"method": "parametric LCP on fem's condensed patch compliance (exact forces)",
+                                     "lcp_solves": solver.n_lcp}
     plan = Plan(scene=prior.to_dict(), frames=frames, limits=limits, motion=motion, options=options, probes=probes,
                 total_time_s=tm.total_s, notes=notes)
     plan.check()
+    if prior.is_3d:
+        notes["times_s"]["total"] = time.perf_counter() - t_all
     return plan
 
 
@@ -390,10 +522,20 @@ def plan_prior(plan: Plan):
 
 
 def replan(plan, x_positions_m, *, force_n=None, **overrides):
-    """A new plan over ``x_positions_m`` (tissue-frame x; e.g. ``raster.interval_positions(lo, hi, n=11)`` around a
-    suspected stone) with everything else taken from ``plan``: its prior scene, frames, limits, motion and options.
-    ``overrides`` go to ``plan_raster``."""
+    """A new plan over new positions with everything else taken from ``plan``: its prior scene, frames, limits,
+    motion and options. A 2D plan takes (N,) tissue-frame x (e.g. ``raster.interval_positions(lo, hi, n=11)`` around a
+    suspected stone); a 3D plan (N, 2) tissue-frame (x, y), probed in the order given (what adaptive refinement
+    over an area calls). ``overrides`` go to ``plan_raster``."""
     prior = plan_prior(plan)
     kw = dict(frames=plan.frames, limits=plan.limits, motion=plan.motion, options=plan.options)
     kw.update(overrides)
+    if prior.is_3d:
+        P = np.asarray(x_positions_m, dtype=float)
+        if P.ndim != 2 or P.shape[1:] != (2,):
+            raise PlanError(f"a 3D plan (scene {prior.name!r}) is re-planned over (N, 2) tissue-frame (x, y) "
+                            f"positions, got an array of shape {P.shape}")
+        return plan_raster(prior, positions_m=P, force_n=force_n, **kw)
+    if np.ndim(x_positions_m) > 1 and np.shape(x_positions_m)[1:] != (1,):
+        raise PlanError(f"a 2D plan (scene {prior.name!r}) is re-planned over (N,) tissue-frame x positions, got an "
+                        f"array of shape {np.shape(x_positions_m)}")
     return plan_raster(prior, x_positions_m=x_positions_m, force_n=force_n, **kw)

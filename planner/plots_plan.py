@@ -1,5 +1,5 @@
-"""Figures of a plan (matplotlib, Agg): the raster over the section with the predicted force, and the joint
-trajectories over the planned time."""
+"""Figures of a plan (matplotlib, Agg): the raster over the section with the predicted force (a 3D block: the area
+raster from above, in probing order), and the joint trajectories over the planned time."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -83,7 +83,61 @@ def plot_joints(plan, path) -> Path:
     return path
 
 
+def plot_area(plan, path) -> Path:
+    """A 3D plan from above (tissue frame, mm): the block's top face, fem's probed patch, the raster's region and
+    the waypoints in probing order (the path between them, start and end marked), coloured by predicted force
+    (left) and by planned depth (right)."""
+    sc = plan.scene
+    t, R = sc["tissue"], sc.get("indenter", {}).get("radius_m", 0.005) * 1e3
+    w, L = t["width_m"] * 1e3, t["length_m"] * 1e3
+    patch = sc.get("analysis", {}).get("patch_m")
+    x = np.array([p.x_m for p in plan.probes]) * 1e3
+    y = np.array([p.y_m for p in plan.probes]) * 1e3
+    d = np.array([p.depth_m for p in plan.probes]) * 1e3
+    f = np.array([p.predicted_force_n for p in plan.probes])
+    r = plan.notes.get("raster", {})
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5.6))
+    for ax, val, label, cmap, lim in ((axes[0], f, "predicted force on the prior tissue [N] (scale: 0 to the limit)",
+                                       "viridis", (0.0, plan.limits.force_limit_n)),
+                                      (axes[1], d, "planned depth [mm]", "magma", (None, None))):
+        ax.add_patch(plt.Rectangle((0, 0), w, L, fc="#f3d9d0", ec="k", lw=1, label="top face"))
+        if patch:
+            p = patch * 1e3
+            ax.add_patch(plt.Rectangle((0.5 * (w - p), 0.5 * (L - p)), p, p, fc="none", ec="0.3", ls="--", lw=1,
+                                       label="probed patch (fem)"))
+            ax.add_patch(plt.Rectangle((0.5 * (w - p) + R, 0.5 * (L - p) + R), p - 2 * R, p - 2 * R, fc="none",
+                                       ec="0.5", ls=":", lw=1, label="tip centre allowed"))
+        if r.get("region_m"):
+            v = np.array(r["region_m"]) * 1e3
+            ax.add_patch(plt.Polygon(v, closed=True, fc="none", ec="C3", lw=1.2, label="region"))
+        ax.plot(x, y, "-", color="0.35", lw=0.7, zorder=2)
+        sc_ = ax.scatter(x, y, c=val, cmap=cmap, s=max(8.0, 1600.0 / max(len(x), 1)), zorder=3, edgecolors="none",
+                         vmin=lim[0], vmax=lim[1])
+        ax.plot(x[0], y[0], "o", mfc="none", mec="g", ms=11, mew=2, zorder=4, label="first probe")
+        ax.plot(x[-1], y[-1], "s", mfc="none", mec="k", ms=11, mew=2, zorder=4, label="last probe")
+        if len(x) > 1:
+            ax.annotate("", xy=(x[1], y[1]), xytext=(x[0], y[0]), zorder=5,
+                        arrowprops=dict(arrowstyle="->", color="g", lw=1.5))
+        fig.colorbar(sc_, ax=ax, label=label, shrink=0.85)
+        ax.set(xlim=(-2, w + 2), ylim=(-2, L + 2), aspect="equal", xlabel="x [mm] (tissue frame)",
+               ylabel="y [mm]")
+    axes[0].legend(loc="upper left", fontsize=7, framealpha=0.85)
+    order = r.get("order", "as given")
+    travel = f", travel {r['travel_m'] * 1e3:.0f} mm" if "travel_m" in r else ""
+    fig.suptitle(f"{sc['name']}: {len(x)} probes, order {order}{travel}, force limit "
+                 f"{plan.limits.force_limit_n:g} N, depth limit {plan.limits.depth_limit_m * 1e3:g} mm; "
+                 f"execution ~{plan.total_time_s:.0f} s", fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def plot_plan(plan, out_dir) -> list[Path]:
+    """The plan's figures: a 2D section's raster or a 3D block's area raster, and the joint targets over time."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if plan.scene.get("tissue", {}).get("length_m") is not None:
+        return [plot_area(plan, out / "plan_area.png"), plot_joints(plan, out / "plan_joints.png")]
     return [plot_raster(plan, out / "plan_raster.png"), plot_joints(plan, out / "plan_joints.png")]

@@ -3,7 +3,9 @@ per-waypoint indentation depth chosen from a force prediction.
 
 2D section: the raster is a line of waypoints along the top surface (tissue-frame x), ``margin_m`` from both side
 edges. Depths come from a force model ``force_n(x_m, depth_m) -> float`` (fem's ``surface_model(prior).force_n``;
-any callable that is 0 at depth 0 and increases with depth) for the *prior* (stone-free) tissue.
+any callable that is 0 at depth 0 and increases with depth) for the *prior* (stone-free) tissue. On a 3D block the
+positions are (x_m, y_m) (planner.area) and the force model ``force_n(x_m, y_m, depth_m)``; ``choose_depths`` takes
+either, and a fast exact depth search for fem's 3D model (planner.depth3d).
 """
 from __future__ import annotations
 
@@ -61,13 +63,16 @@ class Targets:
 
 
 def targets(x_m: Sequence[float], depth_m: Sequence[float], tissue_pose_base: Sequence[float],
-            approach_height_m: float) -> Targets:
-    """Section points (x, top) -> base frame. Tissue frame: (x_m, 0, 0) is the surface point, +z outward."""
+            approach_height_m: float, y_m: Sequence[float] | None = None) -> Targets:
+    """Surface points -> base frame. Tissue frame: (x_m, y_m, 0) is the surface point (y_m = 0 on a 2D section; a 3D
+    block's top face otherwise), +z outward."""
     T = pose_to_T(tissue_pose_base)
     R, o = T[:3, :3], T[:3, 3]
     x = np.asarray(x_m, dtype=float)
     d = np.asarray(depth_m, dtype=float)
     surf = o[None, :] + x[:, None] * R[:, 0][None, :]
+    if y_m is not None:
+        surf = surf + np.asarray(y_m, dtype=float)[:, None] * R[:, 1][None, :]
     z_out = R[:, 2]
     return Targets(approach_m=surf + approach_height_m * z_out, indent_m=surf - d[:, None] * z_out,
                    normal_in=-z_out.copy())
@@ -120,12 +125,18 @@ class DepthChoice:
     limited_by: list[str]    # per waypoint: "depth" (depth limit reached first) or "force"
 
 
-def choose_depths(force_n: Callable[[float, float], float], x_m: Sequence[float], *, force_limit_n: float,
-                  depth_limit_m: float, force_fraction: float = 0.5, min_depth_m: float = 0.001) -> DepthChoice:
+def choose_depths(force_n: Callable[..., float], x_m: Sequence, *, force_limit_n: float,
+                  depth_limit_m: float, force_fraction: float = 0.5, min_depth_m: float = 0.001,
+                  depth_for: Callable | None = None) -> DepthChoice:
     """Per waypoint: as deep as the limits allow (a deeper probe feels a buried stone more), i.e. the depth where the
     prior's predicted force reaches ``force_fraction * force_limit_n``, capped at ``depth_limit_m``. The fraction
     leaves head-room for stiffer-than-predicted tissue (a stone raises the force; the driver stops at the limit).
-    Refuses when even ``min_depth_m`` (the shallowest useful probe) would exceed the force budget."""
+    Refuses when even ``min_depth_m`` (the shallowest useful probe) would exceed the force budget.
+
+    Positions: ``x_m`` on a 2D section (``force_n(x_m, depth_m)``), or (x_m, y_m) pairs on a 3D block
+    (``force_n(x_m, y_m, depth_m)``). ``depth_for(position, target_n, depth_max_m, guess_m) -> (depth_m, force_n)``
+    replaces the generic search (``depth_for_force``) when given, e.g. depth3d.ContactDepths3D.depth_for; it must
+    return a force that is exact at its depth and at most the target."""
     if depth_limit_m <= 0 or force_limit_n <= 0:
         raise PlanError("--force-limit-n and --depth-limit-m must be positive")
     if not (0 < force_fraction <= 1):
@@ -137,14 +148,21 @@ def choose_depths(force_n: Callable[[float, float], float], x_m: Sequence[float]
     depths, forces, why = [], [], []
     guess = None
     for x in x_m:
-        d, f = depth_for_force(force_n, float(x), target, depth_limit_m, guess_m=guess)
+        at = (float(x),) if np.ndim(x) == 0 else tuple(float(v) for v in x)
+        if depth_for is not None:
+            d, f = depth_for(at, target, depth_limit_m, guess)
+        elif len(at) == 1:
+            d, f = depth_for_force(force_n, at[0], target, depth_limit_m, guess_m=guess)
+        else:
+            d, f = depth_for_force(lambda _, dd, at=at: force_n(*at, dd), at[0], target, depth_limit_m, guess_m=guess)
         if d < min_depth_m:  # (if d >= min_depth, monotonicity already puts min_depth within the budget)
-            f_min = float(force_n(float(x), min_depth_m))
+            f_min = float(force_n(*at, min_depth_m))
             if f_min > target:
                 need = f_min / force_fraction
+                where = " ".join(f"{k} = {v * 1e3:.1f} mm," for k, v in zip("xy", at))[:-1]
                 raise PlanError(
                     f"force limit {force_limit_n:g} N is too low: the prior tissue is predicted to push back "
-                    f"{f_min:.3g} N at the smallest useful depth {min_depth_m * 1e3:.2f} mm (x = {x * 1e3:.1f} mm), "
+                    f"{f_min:.3g} N at the smallest useful depth {min_depth_m * 1e3:.2f} mm ({where}), "
                     f"above the planning budget {force_fraction:g} x {force_limit_n:g} N = {target:.3g} N. Raise "
                     f"--force-limit-n to at least {need:.3g} N, raise --force-fraction, or lower --min-depth-m.")
             d, f = min_depth_m, f_min   # within the search tolerance of the root

@@ -35,7 +35,6 @@ class PriorResponse:
     def __init__(self, prior, x_m):
         R = prior.indenter.radius_m
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(MAX_FRAC * R), N_NODES)
-        self.step = self.logd[1] - self.logd[0]
         W = prior.tissue.width_m
         x = np.clip(np.asarray(x_m, float), 0.0, W)
         tabs = []
@@ -62,27 +61,35 @@ class PriorResponse:
 
     def force_n(self, depth_m, eta: float = 0.0) -> np.ndarray:
         """The prior's force at each probe's true indentation ``depth_m`` (0 where it is not in contact)."""
-        d = np.asarray(depth_m, float)
-        rows = self._rows(eta)
-        u = (np.log(np.maximum(d, 1e-7)) - self.logd[0]) / self.step
-        i = np.clip(np.floor(u).astype(int), 0, N_NODES - 2)
-        w = u - i                                            # outside [0, 1] at the ends: linear extrapolation
-        n = np.arange(len(d))
-        lf = (1 - w) * rows[n, i] + w * rows[n, i + 1]
-        return np.where(d > 0, np.exp(lf), 0.0)
+        return loglog_force(self._rows(eta), self.logd, depth_m)
 
     def depth_at_force_m(self, force_n, eta: float = 0.0, idx=None) -> np.ndarray:
         """The indentation at which each probe's (or probe ``idx``'s) prior force reaches ``force_n`` (the inverse
         of ``force_n``)."""
         rows = self._rows(eta)
-        if idx is not None:
-            rows = rows[idx]
-        lf = np.log(np.maximum(np.asarray(force_n, float), 1e-12))
-        k = np.clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, N_NODES - 2)     # rows rise with depth
-        n = np.arange(len(lf))
-        t = (lf - rows[n, k]) / (rows[n, k + 1] - rows[n, k])
-        out = self.logd[k] + t * self.step
-        return np.exp(out)
+        return loglog_depth(rows if idx is None else rows[idx], self.logd, force_n)
+
+
+def loglog_force(rows: np.ndarray, logd: np.ndarray, depth_m) -> np.ndarray:
+    """Force at ``depth_m`` (one per row) from rows of log force on the even log-depth nodes ``logd``: linear in
+    (log depth, log force), extrapolated the same way beyond the nodes; 0 where the depth is not positive."""
+    d = np.asarray(depth_m, float)
+    step = logd[1] - logd[0]
+    u = (np.log(np.maximum(d, 1e-7)) - logd[0]) / step
+    i = np.clip(np.floor(u).astype(int), 0, len(logd) - 2)
+    w = u - i                                            # outside [0, 1] at the ends: linear extrapolation
+    n = np.arange(len(d))
+    lf = (1 - w) * rows[n, i] + w * rows[n, i + 1]
+    return np.where(d > 0, np.exp(lf), 0.0)
+
+
+def loglog_depth(rows: np.ndarray, logd: np.ndarray, force_n) -> np.ndarray:
+    """The inverse of ``loglog_force``: the depth at which each row's force reaches ``force_n`` (rows rise)."""
+    lf = np.log(np.maximum(np.asarray(force_n, float), 1e-12))
+    k = np.clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, len(logd) - 2)
+    n = np.arange(len(lf))
+    t = (lf - rows[n, k]) / (rows[n, k + 1] - rows[n, k])
+    return np.exp(logd[k] + t * (logd[1] - logd[0]))
 
 
 def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarray]:

@@ -60,17 +60,23 @@ class ArmModel:
     the tissue; ``sensor`` a preset name or Sensor; ``q0`` start joints; ``latency_s`` delay of readings;
     ``safety_force_n`` contact force that triggers a protective stop (the controller's own limit);
     ``surface_height_m(x_m)`` how far the TRUE surface lies above the nominal one (robot.truth: registration error;
-    None: on it); ``relaxation`` a robot.truth.Relaxation (None: elastic tissue).
+    None: on it); ``relaxation`` a robot.truth.Relaxation (None: elastic tissue). ``length_m``: a 3D block's extent
+    along the tissue frame's y (``force_model(x_m, y_m, depth_m)``, contact over 0 <= y <= length); None: a 2D
+    section (``force_model(x_m, depth_m)``, the same force at every y).
     """
 
     def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
                  sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
                  latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None, surface_height_m=None,
-                 relaxation=None):
-        f = force_model or (lambda x, d: 0.0)
+                 relaxation=None, length_m: float | None = None):
+        self.length_m = length_m
+        f = force_model or ((lambda x, y, d: 0.0) if length_m is not None else (lambda x, d: 0.0))
         self.surface_height_m = surface_height_m
         self.relaxation = relaxation
-        self.force_model = CachedForce(f) if cache else f
+        if cache:
+            self.force_model = CachedForce(f, three_d=length_m is not None)
+        else:
+            self.force_model = (lambda x, d, y=0.0: f(x, y, d)) if length_m is not None else f
         self.T_tissue = ur5e.pose_to_T(tissue_pose_base)
         self.n_base = self.T_tissue[:3, 2].copy()
         self.width_m = width_m
@@ -126,23 +132,33 @@ class ArmModel:
             self._q_stale = False
         return self.q.copy()
 
-    def tip_in_tissue(self) -> tuple[float, float]:
-        """(x_m, depth_m) of the probe's physical tip (``tool_offset``) in the tissue frame; depth > 0 below the
+    def tip_xyz(self) -> tuple[float, float, float]:
+        """(x_m, y_m, depth_m) of the probe's physical tip (``tool_offset``) in the tissue frame; depth > 0 below the
         undeformed surface."""
         T_tip = self.T_tcp
         if self.tool_offset != self.tcp_offset:
             T_tip = self.T_tcp @ self._tcp_inv @ self._T_tool
         p = self.T_tissue[:3, :3].T @ (T_tip[:3, 3] - self.T_tissue[:3, 3])
-        return float(p[0]), float(-p[2])
+        return float(p[0]), float(p[1]), float(-p[2])
+
+    def tip_in_tissue(self) -> tuple[float, float]:
+        """(x_m, depth_m) of the probe's physical tip in the tissue frame (``tip_xyz`` without y)."""
+        x, _, d = self.tip_xyz()
+        return x, d
 
     def elastic_force_n(self) -> float:
         """The tissue's elastic force at the tip now (the indentation below the TRUE surface)."""
-        x, d = self.tip_in_tissue()
+        x, y, d = self.tip_xyz()
         if self.surface_height_m is not None:
             d += self.surface_height_m(x)
         if d <= 0 or not (-1e-6 <= x <= self.width_m + 1e-6):   # 1 um: round-off at the edges is not a jump
             return 0.0
-        return float(self.force_model(min(max(x, 0.0), self.width_m), d))
+        x = min(max(x, 0.0), self.width_m)
+        if self.length_m is None:
+            return float(self.force_model(x, d))
+        if not (-1e-6 <= y <= self.length_m + 1e-6):
+            return 0.0
+        return float(self.force_model(x, d, min(max(y, 0.0), self.length_m)))
 
     def contact_force_n(self) -> float:
         fe = self.elastic_force_n()

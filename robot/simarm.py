@@ -15,6 +15,8 @@ import numpy as np
 from core import ur5e
 from core.contracts import Frames
 from fem.contact import surface_model
+from fem.contact3d import surface_model3d
+from fem.mesh3d import patch_bounds
 from fem.scene import Scene, load
 from robot.sim import ArmModel
 from robot.simfaults import inject_arm, parse
@@ -25,13 +27,33 @@ START_CLEARANCE_M = 0.02      # the arm starts this far above the first approach
 STANDIN_WIDTH_M = 0.07        # the stand-in force model's tissue width
 
 
+class TruthRangeError(RuntimeError):
+    """The simulated tip pressed where the truth's fem model does not reach (a 3D block's probed patch): the
+    simulator cannot say what tissue there would push back with."""
+
+
 def truth_force(truth: Scene | str, mesh_m: float | None = None):
-    """(force_n(x_m, depth_m), width_m) of the TRUE scene from fem (zero outside the tissue's top surface)."""
+    """(force_n(x_m, depth_m), width_m) of the TRUE scene from fem (zero outside the tissue's top surface); for a 3D
+    block force_n(x_m, y_m, depth_m) over its probed patch (TruthRangeError elsewhere on the block)."""
     sc = truth if isinstance(truth, Scene) else load(truth)
     if mesh_m:
         sc = sc.with_analysis(mesh_size_m=mesh_m)
-    model = surface_model(sc)
     width, height = sc.tissue.width_m, sc.tissue.height_m
+    if sc.is_3d:
+        model3 = surface_model3d(sc)
+        length, R = sc.tissue.length_m, sc.indenter.radius_m
+        x0, x1, y0, y1 = patch_bounds(width, length, sc.analysis.patch_m)
+
+        def force3(x_m: float, y_m: float, depth_m: float) -> float:
+            if not (0.0 <= x_m <= width and 0.0 <= y_m <= length and 0.0 < depth_m < height):
+                return 0.0
+            if not (x0 + R - 1e-9 <= x_m <= x1 - R + 1e-9 and y0 + R - 1e-9 <= y_m <= y1 - R + 1e-9):
+                raise TruthRangeError(f"the simulated tip pressed at (x, y) = ({x_m * 1e3:.2f}, {y_m * 1e3:.2f}) mm, "
+                                      f"outside the truth's fem patch (analysis.patch_m = {sc.analysis.patch_m} m "
+                                      f"less the tip radius): plan inside it")
+            return model3.force_n(x_m, y_m, depth_m)
+        return force3, width
+    model = surface_model(sc)
 
     def force_n(x_m: float, depth_m: float) -> float:
         return model.force_n(x_m, depth_m) if 0.0 <= x_m <= width and 0.0 < depth_m < height else 0.0
@@ -58,8 +80,11 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     TOML ``truth`` (ideal for anything else)."""
     cond = conditions_of(truth) if conditions is None else conditions
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
+    length = None
     if force == "fem":
-        f, width = truth_force(truth, mesh_m)
+        sc = load(truth)
+        f, width = truth_force(sc, mesh_m)
+        length = sc.tissue.length_m
     elif force == "standin":
         f, width = standin_force_model(), STANDIN_WIDTH_M
     else:
@@ -67,6 +92,8 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     if q0 is None:
         q0 = start_configuration(tissue_pose, width, tcp_offset, start_above_pose)
     kw = {} if tcp_offset is None else {"tcp_offset": list(tcp_offset)}
+    if length is not None:
+        kw["length_m"] = length
     if tool_offset is not None:            # the probe as mounted (default: the TCP the arm starts with)
         kw["tool_offset"] = list(tool_offset)
     if cond.surface_offset_m or cond.surface_tilt_rad:

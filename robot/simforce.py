@@ -13,39 +13,45 @@ import math
 
 
 class CachedForce:
-    """Lazy grid cache of an expensive ``force_model(x_m, depth_m)``; linear interpolation in depth."""
+    """Lazy grid cache of an expensive ``force_model(x_m, depth_m)`` (a 2D section) or, with ``three_d``,
+    ``force_model(x_m, y_m, depth_m)`` (a 3D block: y snapped like x); linear interpolation in depth."""
 
-    def __init__(self, force_model, x_grid_m: float = 1e-5, depth_grid_m: float = 1e-4):
-        self.f, self.hx, self.hd = force_model, x_grid_m, depth_grid_m
-        self.nodes: dict[tuple[int, int], float] = {}
+    def __init__(self, force_model, x_grid_m: float = 1e-5, depth_grid_m: float = 1e-4, three_d: bool = False):
+        self.f, self.hx, self.hd, self.three_d = force_model, x_grid_m, depth_grid_m, three_d
+        self.nodes: dict[tuple[int, int, int], float] = {}
         self.extrapolated = 0        # nodes the model refused (out of its range), linearly extrapolated
         # calls whose depth lies at or beyond the first node the model refused at that x (not one grid step of
         # extrapolation towards the range's edge, but a force the model cannot give): reported, never silent
         self.beyond_range = 0
         self.deepest_beyond_range_m = 0.0
-        self._refused_from: dict[int, int] = {}     # ix -> first depth node the model refused
+        self._refused_from: dict[tuple[int, int], int] = {}   # (ix, iy) -> first depth node the model refused
 
-    def _node(self, ix: int, idp: int) -> float:
-        v = self.nodes.get((ix, idp))
+    def _eval(self, ix: int, iy: int, depth_m: float) -> float:
+        if self.three_d:
+            return float(self.f(ix * self.hx, iy * self.hx, depth_m))
+        return float(self.f(ix * self.hx, depth_m))
+
+    def _node(self, ix: int, iy: int, idp: int) -> float:
+        v = self.nodes.get((ix, iy, idp))
         if v is None:
             try:
-                v = 0.0 if idp <= 0 else float(self.f(ix * self.hx, idp * self.hd))
+                v = 0.0 if idp <= 0 else self._eval(ix, iy, idp * self.hd)
             except ValueError:   # beyond the model's range (fem: depth >= tip radius): continue linearly
-                self._refused_from[ix] = min(idp, self._refused_from.get(ix, idp))
-                v = 2 * self._node(ix, idp - 1) - self._node(ix, idp - 2) if idp >= 2 else 0.0
+                self._refused_from[(ix, iy)] = min(idp, self._refused_from.get((ix, iy), idp))
+                v = 2 * self._node(ix, iy, idp - 1) - self._node(ix, iy, idp - 2) if idp >= 2 else 0.0
                 self.extrapolated += 1
-            self.nodes[(ix, idp)] = v
+            self.nodes[(ix, iy, idp)] = v
         return v
 
-    def __call__(self, x_m: float, depth_m: float) -> float:
+    def __call__(self, x_m: float, depth_m: float, y_m: float = 0.0) -> float:
         if depth_m <= 0:
             return 0.0
-        ix = int(round(x_m / self.hx))
+        ix, iy = int(round(x_m / self.hx)), (int(round(y_m / self.hx)) if self.three_d else 0)
         u = depth_m / self.hd
         i = int(math.floor(u))
         w = u - i
-        f = (1 - w) * self._node(ix, i) + w * self._node(ix, i + 1)
-        if ix in self._refused_from and u >= self._refused_from[ix]:
+        f = (1 - w) * self._node(ix, iy, i) + w * self._node(ix, iy, i + 1)
+        if (ix, iy) in self._refused_from and u >= self._refused_from[(ix, iy)]:
             self.beyond_range += 1
             self.deepest_beyond_range_m = max(self.deepest_beyond_range_m, depth_m)
         return f

@@ -386,3 +386,16 @@ def test_block3d_model_builds_its_rigid_stone(monkeypatch):
     assert m.rigid == [True]
     stone_nodes = np.unique(m.mesh.tets[m.mesh.region == 1])
     assert m.n_dofs == 3 * (m.mesh.n_nodes - len(stone_nodes)) + 6
+
+
+def test_a_stone_smaller_than_the_bulk_size_meshes():
+    """A 5 mm stone in a block meshed at 16 mm (a surrogate-table candidate): the stone's surface is meshed at most
+    at its radius. At the bulk's refined size (8 mm) gmsh's surface mesher crashed the process (segfault)."""
+    mesh = mesh_block(0.04, 0.04, 0.035, [(0.02, 0.02, 0.035 - 0.00683, 0.0025)], size_m=0.016, surface_refine=4.0,
+                      order=2, patch_m=0.03, grade=0.5)
+    on = mesh.region > 0
+    assert on.any() and (~on).any()
+    stone_nodes = np.unique(mesh.tets[on])
+    r = np.linalg.norm(mesh.nodes[stone_nodes] - np.array([0.02, 0.02, 0.035 - 0.00683]), axis=1)
+    assert r.max() <= 0.0025 * (1 + 1e-9)                   # the stone's elements lie inside its sphere
+    assert r.max() >= 0.0025 * (1 - 1e-6)                   # and reach its surface

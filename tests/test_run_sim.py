@@ -83,7 +83,7 @@ def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):
         assert prior.stones == () and prior.name.endswith("-prior")
         assert type(meas) is Measurements
         assert set(vars(meas)) == {"x_m", "depth_m", "force_n", "sigma_n", "tau_s", "index", "onset_m",
-                                   "onset_threshold_n", "dwell_start_n", "dwell_end_n"}
+                                   "onset_threshold_n", "dwell_start_n", "dwell_end_n", "y_m"}
 
 
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):

@@ -14,9 +14,12 @@ from app.options import (
     check_output_dir,
     check_output_file,
     finite_float,
+    float_list,
     float_range,
+    grid_counts,
     int_range,
     load_scene,
+    polygon_vertices,
     positive_float,
 )
 from core.contracts import (
@@ -30,7 +33,8 @@ from core.contracts import (
     PlanError,
     PlanOptions,
 )
-from planner.plan import plan_raster
+from planner.area import Region, default_block_pose, default_region, grid_positions
+from planner.plan import DEFAULT_GRID, plan_raster
 from planner.raster import default_tissue_pose, interval_positions
 
 LIM, MOT, OPT = Limits(), Motion(), PlanOptions()      # the defaults, defined once in core.contracts
@@ -48,7 +52,13 @@ Finally every move is timed under the UR joint and tool speed/acceleration limit
 Frames: poses are ur_rtde's [x, y, z, rx, ry, rz] (m, rotation vector) of the TCP in the base frame. The tissue
 frame has its origin at the top-left corner of the section, x along the width, z the outward normal of the top
 surface; --tissue-pose gives it in the base frame (default: the section lying on the arm's table, width along
-base y, centred 0.40 m in front of the base: 0.40 -W/2 H 0 0 pi/2)."""
+base y, centred 0.40 m in front of the base: 0.40 -W/2 H 0 0 pi/2).
+
+A 3D block (a scene with tissue.length_m) is probed over an area of its top face: a grid (--grid NXxNY, default
+7x7, or --spacing-m) over a rectangle (--region x0,y0,x1,y1; default fem's probed patch, analysis.patch_m, minus
+--margin-m, default the tip radius) or any polygon (--polygon "x,y;x,y;..."), in the tissue frame (y along the
+block's length), visited in serpentine rows. Every probe's footprint must stay on the probed patch. Default pose:
+the block's middle 0.40 m in front of the base (0.40+L/2 -W/2 H 0 0 pi/2; tissue y along base -x)."""
 
 EPILOG = """examples:
   palpate plan paper --out plan.json --plots out/                 15 waypoints, 5 mm margins, fem depths
@@ -56,6 +66,9 @@ EPILOG = """examples:
   palpate plan paper --out fine.json --x-min-m 0.030 --x-max-m 0.040 --waypoints 11   refine an interval
   palpate plan paper --out plan.json --force-limit-n 0.5 --depth-limit-m 0.006
   palpate plan scene.toml --out plan.json --tissue-pose 0.45 -0.035 0.08 0 0 1.5708 --tcp-offset 0 0 0.12 0 0 0
+  palpate plan block3d --out plan.json --grid 10x10 --plots out/  3D: 100 probes over the probed patch
+  palpate plan block3d --out plan.json --grid 8x8 --region 0.02,0.02,0.05,0.04
+  palpate plan block3d --out plan.json --spacing-m 0.004 --polygon "0.02,0.02;0.05,0.02;0.035,0.05"
 exit status: 0 planned, 2 infeasible request (the message names the option to change)."""
 
 
@@ -64,14 +77,23 @@ def add_parser(subparsers) -> None:
                               epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", help="built-in scene name or TOML file (stones are ignored: the planner sees the prior)")
     p.add_argument("--out", required=True, metavar="PATH", help="plan file to write (JSON, versioned)")
-    p.add_argument("--plots", metavar="DIR", help="write plan_raster.png and plan_joints.png here")
+    p.add_argument("--plots", metavar="DIR", help="write plan_raster.png (3D: plan_area.png) and plan_joints.png here")
     p.add_argument("--json", metavar="PATH", help="machine-readable summary (timings, solver status, ranges)")
     r = p.add_argument_group("raster (tissue frame x, along the top surface)")
     g = r.add_mutually_exclusive_group()
     g.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), metavar="N",
                    help=f"number of waypoints, ends included, 2..{MAX_WAYPOINTS} (default 15)")
     g.add_argument("--spacing-m", type=positive_float, metavar="S", help="waypoint spacing instead of a count")
-    r.add_argument("--margin-m", type=finite_float, default=0.005, help="keep this far from the side edges (default 0.005)")
+    g.add_argument("--grid", type=grid_counts, metavar="NXxNY",
+                   help=f"3D: an NX x NY grid over the region, ends included (default {DEFAULT_GRID[0]}x{DEFAULT_GRID[1]})")
+    r.add_argument("--margin-m", type=finite_float, default=None,
+                   help="keep this far from the side edges (default 0.005; 3D: from the probed patch's edges, "
+                        "default the tip radius)")
+    a3 = r.add_mutually_exclusive_group()
+    a3.add_argument("--region", type=float_list(4, "x0,y0,x1,y1 in m"), metavar="X0,Y0,X1,Y1",
+                    help="3D: raster this rectangle of the top face (tissue frame, m)")
+    a3.add_argument("--polygon", type=polygon_vertices, metavar="\"X,Y;X,Y;...\"",
+                    help="3D: raster this polygon of the top face (tissue-frame vertices, m)")
     r.add_argument("--x-min-m", type=finite_float, help="raster only [x-min, x-max] (adaptive refinement); overrides margins")
     r.add_argument("--x-max-m", type=finite_float, help="see --x-min-m")
     d = p.add_argument_group("depth and force")
@@ -117,20 +139,40 @@ def run(args) -> int:
     if not args.min_depth_m <= args.depth_limit_m:
         raise UsageError(f"--min-depth-m {args.min_depth_m:g} must be at most --depth-limit-m "
                          f"{args.depth_limit_m:g} m")
-    if args.spacing_m is not None:
-        lo = args.x_min_m if args.x_min_m is not None else args.margin_m
-        hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - args.margin_m
+    is_3d = scene.is_3d
+    if is_3d:
+        for opt, v in (("--waypoints", args.waypoints), ("--x-min-m", args.x_min_m), ("--x-max-m", args.x_max_m)):
+            if v is not None:
+                raise UsageError(f"{opt} is for a 2D section; {scene.name!r} is a 3D block: give --grid NXxNY or "
+                                 f"--spacing-m, and --region or --polygon")
+    else:
+        for opt, v in (("--grid", args.grid), ("--region", args.region), ("--polygon", args.polygon)):
+            if v is not None:
+                raise UsageError(f"{opt} is for a 3D block; {scene.name!r} is a 2D section (no tissue.length_m): "
+                                 f"give --waypoints or --spacing-m")
+    margin_m = 0.005 if (args.margin_m is None and not is_3d) else args.margin_m
+    if args.spacing_m is not None and not is_3d:
+        lo = args.x_min_m if args.x_min_m is not None else margin_m
+        hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
         n = int(math.floor((hi - lo) / args.spacing_m + 1e-9)) + 1 if hi > lo else 0
         if not 2 <= n <= MAX_WAYPOINTS:
             raise UsageError(f"--spacing-m {args.spacing_m:g} gives {n} waypoints over [{lo:g}, {hi:g}] m; "
                              f"allowed: 2..{MAX_WAYPOINTS}")
+    if args.spacing_m is not None and is_3d:
+        t = scene.tissue
+        n_max = (math.floor(t.width_m / args.spacing_m + 1e-9) + 1) * (math.floor(t.length_m / args.spacing_m + 1e-9) + 1)
+        if n_max > 4 * MAX_WAYPOINTS:      # a cheap bound before the grid is made; the exact count is checked below
+            raise UsageError(f"--spacing-m {args.spacing_m:g} gives up to {n_max} waypoints over the top face; "
+                             f"allowed: at most {MAX_WAYPOINTS}")
     limits = Limits(force_limit_n=args.force_limit_n, depth_limit_m=args.depth_limit_m)
     motion = Motion(approach_height_m=args.approach_height_m, approach_speed_m_s=args.approach_speed_m_s,
                     probe_speed_m_s=args.probe_speed_m_s, dwell_s=args.dwell_s)
     frames = None
     if args.tissue_pose or args.tcp_offset:
         t = scene.tissue
-        frames = Frames(tissue_pose_base=list(args.tissue_pose or default_tissue_pose(t.width_m, t.height_m)),
+        pose = (default_block_pose(t.width_m, t.length_m, t.height_m) if is_3d
+                else default_tissue_pose(t.width_m, t.height_m))
+        frames = Frames(tissue_pose_base=list(args.tissue_pose or pose),
                         tcp_offset=list(args.tcp_offset or Frames().tcp_offset))
     try:
         branch = tuple(int(s) for s in args.branch.split(","))
@@ -138,17 +180,21 @@ def run(args) -> int:
             raise ValueError
     except ValueError:
         raise UsageError(f"--branch must be three signs like 1,1,-1, got {args.branch!r}") from None
+    options = PlanOptions(branch=list(branch), tilt_tol_rad=math.radians(args.tilt_tol_deg),
+                          force_fraction=args.force_fraction, min_depth_m=args.min_depth_m)
     try:
-        x = None
-        if args.x_min_m is not None or args.x_max_m is not None:
-            lo = args.x_min_m if args.x_min_m is not None else args.margin_m
-            hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - args.margin_m
-            n = args.waypoints if (args.waypoints or args.spacing_m) else 11
-            x = interval_positions(lo, hi, n=None if args.spacing_m else n, spacing_m=args.spacing_m)
-        plan = plan_raster(scene, n_waypoints=args.waypoints, spacing_m=args.spacing_m, margin_m=args.margin_m,
-                           x_positions_m=x, depth_m=args.depth_m, limits=limits, motion=motion, frames=frames,
-                           options=PlanOptions(branch=list(branch), tilt_tol_rad=math.radians(args.tilt_tol_deg),
-                                               force_fraction=args.force_fraction, min_depth_m=args.min_depth_m))
+        if is_3d:
+            plan = _plan_area(scene, args, margin_m, limits, motion, frames, options)
+        else:
+            x = None
+            if args.x_min_m is not None or args.x_max_m is not None:
+                lo = args.x_min_m if args.x_min_m is not None else margin_m
+                hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
+                n = args.waypoints if (args.waypoints or args.spacing_m) else 11
+                x = interval_positions(lo, hi, n=None if args.spacing_m else n, spacing_m=args.spacing_m)
+            plan = plan_raster(scene, n_waypoints=args.waypoints, spacing_m=args.spacing_m, margin_m=margin_m,
+                               x_positions_m=x, depth_m=args.depth_m, limits=limits, motion=motion, frames=frames,
+                               options=options)
     except (PlanError, ValueError) as e:
         raise UsageError(f"cannot plan: {e}") from None
     out = Path(args.out)
@@ -166,9 +212,30 @@ def run(args) -> int:
           f"{s['predicted_force_n']['max']:.3g} N (limit {limits.force_limit_n:g} N), "
           f"execution ~{plan.total_time_s:.1f} s; IPOPT {sv['status']} in {sv['iterations']} iterations, "
           f"{sv['solve_s'] * 1e3:.0f} ms -> {out}")
+    if is_3d:
+        r = plan.notes["raster"]
+        print(f"raster: {r['order']}, tool travel between probes {r['travel_m'] * 1e3:.0f} mm (row-major "
+              f"{r['travel_row_major_m'] * 1e3:.0f} mm, no order below {r['travel_lower_bound_m'] * 1e3:.0f} mm); "
+              f"planning took {plan.notes['times_s']['total']:.2f} s")
     for f in figs:
         print(f"figure: {f}")
     return 0
+
+
+def _plan_area(scene, args, margin_m, limits, motion, frames, options):
+    """A 3D block's area raster; the waypoint count is checked before fem is asked anything."""
+    region = (Region.rectangle(*args.region) if args.region is not None else
+              Region.polygon(args.polygon) if args.polygon is not None else None)
+    grid = args.grid if (args.grid is not None or args.spacing_m is not None) else DEFAULT_GRID
+    prior = scene.prior()
+    n = len(grid_positions(region or default_region(prior, margin_m), grid=grid if args.spacing_m is None else None,
+                           spacing_m=args.spacing_m)[0])
+    if n > MAX_WAYPOINTS:
+        raise UsageError(f"--spacing-m {args.spacing_m:g} gives {n} waypoints over the region; allowed: at most "
+                         f"{MAX_WAYPOINTS}")
+    return plan_raster(prior, grid=grid if args.spacing_m is None else None, spacing_m=args.spacing_m,
+                       margin_m=margin_m, region=args.region, polygon=args.polygon, depth_m=args.depth_m,
+                       limits=limits, motion=motion, frames=frames, options=options)
 
 
 def summary(plan, out, figs) -> dict:
@@ -177,6 +244,7 @@ def summary(plan, out, figs) -> dict:
     sv = plan.notes["solver"]
     return {"plan": str(out), "version": plan.version, "scene": plan.scene["name"], "n_probes": len(plan.probes),
             "x_m": [p.x_m for p in plan.probes],
+            **({"y_m": [p.y_m for p in plan.probes], "raster": plan.notes["raster"]} if "raster" in plan.notes else {}),
             "depth_m": {"min": float(d.min()), "max": float(d.max())},
             "predicted_force_n": {"min": float(np.nanmin(f)), "max": float(np.nanmax(f))},
             "force_limit_n": plan.limits.force_limit_n, "depth_limit_m": plan.limits.depth_limit_m,

@@ -27,10 +27,13 @@ from app.options import check_output_dir, check_output_file, int_range, load_sce
 from fem.sweep import sweep_piece
 from fem.sweep import write_results as write_sweep
 from planner.accuracy import run_accuracy, study_trials
+from planner.accuracy3d import run_accuracy3d, study_prior, study_trials3d
+from planner.accuracy3d_report import write_report as write_accuracy3d
 from planner.accuracy_report import write_report
 from planner.detect_study import run_detect, study_cases
 from planner.detect_study import write_report as write_detect
 from planner.surrogate import load_surrogate
+from planner.surrogate3d import load_surrogate3d
 from planner.tasks import Runner, run_pieces
 
 STUDIES = {
@@ -39,6 +42,8 @@ STUDIES = {
                 "(app.mismatch)",
     "detect": "predicted detection rate against Monte-Carlo rasters, stones near the margin (planner.detect_study)",
     "sweep": "random valid scenes under load A and B: no NaN, residuals, contact checks (fem.sweep)",
+    "accuracy3d": "3D: random spherical stones and healthy blocks, adaptive refinement against even grids "
+                  "(planner.accuracy3d; scene block3d)",
 }
 
 HELP = """Studies of the localizer, on dask.distributed. Outputs (JSON, CSV, markdown, figures) go into --out.
@@ -53,6 +58,8 @@ studies:
            truths' one-off models are cached under DIR/cache unless $PALPATE_CACHE_DIR says otherwise).
   detect   writes detect.json, detect.csv, detect.md and detect.png (9 stones x 150 rasters; --quick 4 x 40).
   sweep    writes sweep.json, sweep.csv and sweep.md (300 scenes, --quick 40); exit 1 if any scene fails.
+  accuracy3d writes accuracy3d.csv, accuracy3d.json, accuracy3d.md and accuracy3d.png (50 stones + 20 healthy
+           blocks, --quick 10 + 5; budget 84 probes: a 6 x 6 grid and rounds of 12).
 
 where it runs: --workers 1 (serial, this process), --workers N (a dask LocalCluster of N processes on this machine;
 default: one per CPU) or --scheduler tcp://HOST:8786 (an existing cluster: `dask scheduler` on one machine, `dask
@@ -62,7 +69,8 @@ examples:
   palpate study accuracy --out study/ --quick              20 stones + 10 healthy scenes, LocalCluster
   palpate study accuracy --out study/ --workers 1          serial (same numbers)
   palpate study accuracy --out study/ --scheduler tcp://10.0.0.5:8786
-  palpate study mismatch --out mm/ --quick --workers 2     the truth is not the belief: 30 whole runs"""
+  palpate study mismatch --out mm/ --quick --workers 2     the truth is not the belief: 30 whole runs
+  palpate study accuracy3d --out s3d/ --workers 2          the 3D loop over 50 stones and 20 healthy blocks"""
 
 ADDRESS = re.compile(r"^(tcp|tls)://[A-Za-z0-9_.\-\[\]:]+:\d{1,5}$")
 
@@ -87,7 +95,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        help="1: serial; N > 1: a LocalCluster of N processes (default: one per CPU)")
     where.add_argument("--scheduler", type=scheduler_address, metavar="ADDRESS",
                        help="an existing dask scheduler, tcp://HOST:PORT")
-    p.add_argument("--scene", default="paper", help="the tissue (its prior is used; default paper)")
+    p.add_argument("--scene", help="the tissue (its prior is used; default paper, block3d for accuracy3d)")
     p.add_argument("--trials", type=int_range(1, 100000),
                    help="accuracy, mismatch: random stones (default 100, --quick 20)")
     p.add_argument("--runs", type=int_range(1, 100000), help="detect: rasters per stone (default 150, --quick 40)")
@@ -124,10 +132,15 @@ def run(args) -> int:
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json")
     out = Path(args.out)
-    scene = load_scene(args.scene, "--scene")
+    three_d = args.study == "accuracy3d"
+    scene = load_scene(args.scene or ("block3d" if three_d else "paper"), "--scene")
+    if scene.is_3d != three_d:
+        raise UsageError(f"--scene {args.scene}: the {args.study} study needs a "
+                         f"{'3D block (tissue.length_m)' if three_d else '2D section'}, this is "
+                         f"{'a 3D block' if scene.is_3d else 'a 2D section'}")
     runner = runner_of(args)
     study = {"accuracy": run_accuracy_study, "mismatch": run_mismatch_study, "detect": run_detect_study,
-             "sweep": run_sweep_study}[args.study]
+             "sweep": run_sweep_study, "accuracy3d": run_accuracy3d_study}[args.study]
     summary = study(args, scene, runner, out)
     write_json(args.json, summary)
     return 1 if summary.get("failures") else 0
@@ -222,3 +235,27 @@ def run_accuracy_study(args, scene, runner: Runner, out: Path) -> dict:
     _say(f"accuracy: {len(plan)} trials in {elapsed:.0f} s; results in {out}")
     return {"study": "accuracy", "trials": trials, "healthy": healthy, "elapsed_s": elapsed,
             "where": runner.describe(), "summary": json.loads((out / "accuracy.json").read_text())}
+
+
+def run_accuracy3d_study(args, scene, runner: Runner, out: Path) -> dict:
+    stones = args.trials if args.trials is not None else (10 if args.quick else 50)
+    healthy = args.healthy if args.healthy is not None else (5 if args.quick else 20)
+    budget = args.budget_probes or 84
+    prior = study_prior(scene.prior())
+    options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "sensor": args.sensor,
+               "budget": budget, "target_m": args.target_uncertainty_m}
+    store = pieces_dir(out, "accuracy3d", options)
+    sur = load_surrogate3d(prior, runner=runner)
+    trials = study_trials3d(prior, stones, healthy, sensor=args.sensor, budget=budget,
+                            target_m=args.target_uncertainty_m, seed=args.seed)
+    _say(f"accuracy3d: {stones} stones + {healthy} healthy blocks on {runner.describe()}; pieces in {store}")
+    t0 = time.perf_counter()
+    rows = _run(runner, lambda: run_accuracy3d(sur, prior, trials, runner=runner, store=store))
+    elapsed = time.perf_counter() - t0
+    cmd = (f"palpate study accuracy3d --scene {args.scene or 'block3d'} --trials {stones} --healthy {healthy} "
+           f"--budget-probes {budget} --seed {args.seed}")
+    lines = write_accuracy3d(out, rows, cmd, elapsed, runner.describe())
+    print("\n".join(lines))
+    _say(f"accuracy3d: {len(trials)} trials in {elapsed:.0f} s; results in {out}")
+    return {"study": "accuracy3d", "stones": stones, "healthy": healthy, "elapsed_s": elapsed,
+            "where": runner.describe(), "summary": json.loads((out / "accuracy3d.json").read_text())}

@@ -1,0 +1,172 @@
+"""The 3D flow of `palpate run` (a block scene, issue 16): a coarse grid over the probed area, probe, localize the
+stone in (x, y, depth) with its diameter, refine where the uncertainty shrinks most, report.
+
+Loaded by app.commands.run for a 3D scene only (the 2D commands never import the 3D path). The split between truth
+and belief is the 2D flow's (app.runexec): the executor holds the TRUE block inside its closure; this module hands
+the loop (planner.refine3d -> planner.localize3d) the prior block (stones removed) and the probe records only. The
+truth is written into result.json after localization, under ``sim``.
+"""
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from app.cell import sim_range_report
+from app.commands.output import write_json
+from app.errors import UsageError
+from app.runexec import RunAborted, choose_executor, new_stats, open_out
+from core.contracts import Limits, Plan, PlanError
+from planner.area import probe_bounds
+from planner.localize3d import Localization3D, surrogate_bounds
+from planner.plan import plan_raster, replan
+from planner.refine3d import adaptive3d, coarse_depths, describe3d
+from planner.surrogate3d import load_surrogate3d
+from robot.records import done_indices
+
+
+@dataclass
+class RunContext:
+    """What app.commands.run checked and decided before handing a 3D scene over (nothing written yet)."""
+    t_wall: float
+    out: Path
+    scene: object            # the scene argument (the TRUTH for a simulated arm)
+    prior: object            # the belief: a stone-free block
+    plan0: Plan | None       # the coarse plan (--plan, or saved in OUT when resuming)
+    cond: object             # robot.truth.TruthConditions (simulated arm) or None
+    opts: dict               # run_options.json
+    resume: bool
+
+
+def _say(msg: str) -> None:
+    print(f"palpate run: {msg}", file=sys.stderr, flush=True)
+
+
+def run_block(args, ctx: RunContext) -> int:
+    prior, out = ctx.prior, ctx.out
+    plan0 = ctx.plan0
+    if plan0 is None:
+        nx, ny = args.grid
+        _say(f"planning a {nx} x {ny} raster over the probed area of {prior.name}")
+        try:
+            full = plan_raster(prior, grid=(nx, ny))
+            plan0 = replan(full, [(p.x_m, p.y_m) for p in full.probes],
+                           depth_m=coarse_depths([p.depth_m for p in full.probes]))
+        except PlanError as e:
+            raise UsageError(f"--grid {nx}x{ny}: {e}") from None
+        except ValueError as e:          # fem refuses the planned indentation (e.g. a tip smaller than the limit)
+            raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e} (the default depth "
+                             f"limit is {full_limit_m():g} m; scene field indenter.radius_m must exceed it)") from None
+    where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
+    t0 = time.perf_counter()
+    sur = _table(prior, where_prior)
+    table_s = time.perf_counter() - t0
+    stats = new_stats()
+    sim_arm: dict = {}
+    cleanup = contextlib.ExitStack()
+    execute, where, truth = choose_executor(args, out, ctx.scene, ctx.cond, plan0, ctx.resume, stats, cleanup, sim_arm,
+                                            _say)
+    open_out(args, out, ctx.opts, _say)
+    if ctx.resume:
+        _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+    _say(f"probing on the {where}")
+    t_first: dict = {}
+    rounds_planned = {"n": 0}
+
+    def plan_round(xy):
+        k = rounds_planned["n"]
+        rounds_planned["n"] += 1
+        if k == 0:
+            return plan0
+        saved = out / f"plan_round{k}.json"
+        return Plan.load(saved) if saved.exists() else replan(plan0, xy)   # resume: the same round as before
+
+    def execute_timed(plan, k):
+        t_first.setdefault("probing_started_s", time.perf_counter() - ctx.t_wall)
+        return execute(plan, k)
+
+    status, fault, res = "ok", None, None
+    try:
+        res = adaptive3d(prior, execute_timed, coarse_xy_m=[(p.x_m, p.y_m) for p in plan0.probes],
+                         plan_round=plan_round, surrogate=sur, region=probe_bounds(prior),
+                         budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
+                         target_m=args.target_uncertainty_m, progress=_say)
+        stats["clean_end"] = True
+    except RunAborted as e:
+        status, fault = "fault", e.report.to_dict()
+        _say(str(e))
+    finally:
+        cleanup.close()
+    result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status, "dimension": 3}
+    if res is not None:
+        loc = res.localization
+        result.update(loc.to_dict())
+        result.update({"probes_used": res.probes_used, "stop_reason": res.stop_reason,
+                       "rounds": [{"index": r.index, "n_probes": r.n_probes, "xy_m": r.x_m, "depth_m": r.depth_m,
+                                   "localization": r.localization, "elapsed_s": r.elapsed_s} for r in res.rounds]})
+    else:
+        loc = Localization3D(detected=False, lr=float("nan"), lr_threshold=float("nan"))
+        result.update(loc.to_dict())
+        result.update({"probes_used": stats["n_probes"], "fault": fault})
+    result["time"] = {"wall_s": time.perf_counter() - ctx.t_wall, "surrogate_s": table_s, **t_first,
+                      "robot_s": stats["controller_s"], "planned_s": stats["planned_s"]}
+    result["surrogate"] = {"build_s": getattr(sur, "build_s", None),
+                           "bounds": {k: list(v) for k, v in _bounds(sur).items()},
+                           "rel_err": getattr(sur, "rel_err", None), "abs_err_n": getattr(sur, "abs_err_n", None)}
+    if truth is not None:        # comparison only, after the fact
+        st = [{"x_m": s.x_m, "y_m": s.y_m, "depth_m": s.depth_m, "diameter_m": s.diameter_m} for s in truth.stones]
+        result["sim"] = {"sensor": args.sensor, "seed": args.seed, "truth_stones": st,
+                         "truth_tissue": {"youngs_pa": truth.tissue.youngs_pa, "poisson": truth.tissue.poisson,
+                                          "height_m": truth.tissue.height_m,
+                                          "youngs_scale_to_prior": truth.tissue.youngs_pa / prior.tissue.youngs_pa},
+                         "truth_conditions": ctx.cond.to_dict() if ctx.cond is not None else None}
+        if st and res is not None and loc.detected:
+            e = {"x_m": loc.x_m - st[0]["x_m"], "y_m": loc.y_m - st[0]["y_m"],
+                 "depth_m": loc.depth_m - st[0]["depth_m"], "diameter_m": loc.diameter_m - st[0]["diameter_m"]}
+            e["lateral_m"] = math.hypot(e["x_m"], e["y_m"])
+            result["sim"]["error"] = e
+    if sim_arm.get("arm") is not None:
+        rr = sim_range_report(sim_arm["arm"])
+        if rr is not None:
+            result.setdefault("sim", {})["force_beyond_model_range"] = rr
+            _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
+                 f"{rr['deepest_m'] * 1e3:.2f} mm)")
+    (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
+    write_json(args.json, result)
+    if res is not None and not args.no_figure and res.measurements is not None:
+        from planner.plots_run3d import plot_run3d
+        plot_run3d(out / "fig_run.png", prior, loc, res.measurements, surrogate=sur,
+                   truth_stones=truth.stones if truth is not None else (), region=probe_bounds(prior),
+                   title=f"palpate run {args.scene}:\n{describe3d(loc)}")
+    print((("STONE " if loc.detected else "NO STONE ") + describe3d(loc) if res is not None else
+           f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+          + f"; {result['probes_used']} probes; results in {out}",
+          file=sys.stderr if args.json == "-" else sys.stdout)
+    return 0 if status == "ok" else 1
+
+
+def full_limit_m() -> float:
+    return Limits().depth_limit_m
+
+
+def _table(prior, where_prior: str):
+    """The prior's 3D surrogate (planner.surrogate3d): shipped or cached, else built now (with progress)."""
+    try:
+        try:
+            return load_surrogate3d(prior, build=False)
+        except FileNotFoundError:
+            _say("no 3D surrogate table for this tissue yet (planner/surrogate3d.py says which scene fields select "
+                 "one): building it now (one fem model per candidate stone: minutes)")
+            return load_surrogate3d(prior, build=True, progress=lambda n, total, s: _say(
+                f"surrogate table: {n} of {total} candidate stones, {s:.0f} s"))
+    except (RuntimeError, ArithmeticError, ValueError) as e:
+        raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                         f"sizes)") from None
+
+
+def _bounds(sur) -> dict:
+    return surrogate_bounds(sur)

@@ -1,0 +1,235 @@
+"""What `palpate run` is made of besides its belief side: the executors that turn a plan into probe records (the
+simulated arm holding the TRUE scene inside a closure, the simulated controller, a real UR controller), the options
+that decide a run's rounds and the resume rules over an output directory. Shared by the 2D flow
+(app.commands.run) and the 3D one (app.commands.run3d).
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+from pathlib import Path
+
+from app.cell import print_preflight, read_confirmation
+from app.errors import UsageError
+from app.ftoptions import controller_pose, inmemory_source, linked_source
+from planner.refine import renumber
+from robot.driver import preflight, run_plan
+from robot.link import connect, end_session
+from robot.records import done_indices, latest_by_index, move_aside
+from robot.sim import SimRTDEControl, SimRTDEReceive
+from robot.simarm import build_truth_arm
+from robot.simlaunch import start_controller
+from robot.truth import TruthConditions, TruthError, conditions_of
+
+
+class RunAborted(RuntimeError):
+    def __init__(self, report):
+        super().__init__(f"the arm run ended with status {report.status}: {report.fault or report.problems}")
+        self.report = report
+
+
+def _runner(get_interfaces, out: Path, stats: dict):
+    """execute(plan, round) over interfaces from ``get_interfaces(plan)``: renumbered probes, one probes.jsonl. A
+    round's plan is saved once (OUT/plan_round<k>.json, reused on resume); its records are the last record of each of
+    its indices in probes.jsonl, the ones measured by an earlier (interrupted) run of the same options included."""
+
+    def execute(plan, k):
+        renumber(plan, stats["next_index"])
+        path = out / f"plan_round{k}.json"
+        if not path.exists():
+            plan.save(path)
+        stats["next_index"] += len(plan.probes)
+        stats["planned_s"] += plan.total_time_s
+        latest = latest_by_index(out)
+        if all(p.index in latest and latest[p.index].status in ("ok", "force_limit") for p in plan.probes):
+            recs = [latest[p.index] for p in plan.probes]      # measured before: replay, the arm is not needed
+        else:
+            c, r, fs = get_interfaces(plan)
+            rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None, force_source=fs)
+            stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
+            stats["reports"].append(rep.to_dict())
+            if rep.status != "ok":
+                raise RunAborted(rep)
+            latest = latest_by_index(out)
+            recs = [latest[p.index] for p in plan.probes if p.index in latest]
+        stats["n_probes"] += sum(1 for rec in recs if rec.status in ("ok", "force_limit"))
+        return recs
+    return execute
+
+
+def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holder: dict | None = None,
+                 conditions: TruthConditions | None = None, ft=None, cleanup: contextlib.ExitStack | None = None):
+    """The simulated arm holding the TRUE scene and its conditions (in this closure only); created at the first
+    plan. ``holder["arm"]`` gets the arm (for its force-model range report, never its truth). ``ft``: the run's
+    options when the force comes from a simulated Net F/T box (app.ftoptions; None: the wrist sensor); its source
+    is closed by ``cleanup``."""
+    arm = {}
+
+    def interfaces(plan):
+        if "c" not in arm:
+            a = build_truth_arm(truth, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
+                                tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose,
+                                conditions=conditions)
+            arm.update(c=SimRTDEControl(a), r=SimRTDEReceive(a), fs=None)
+            if ft is not None:
+                arm["fs"], _ = inmemory_source(ft, a, arm["c"], plan.frames.tcp_offset)
+                if cleanup is not None:
+                    cleanup.callback(arm["fs"].close)
+            if holder is not None:
+                holder["arm"] = a
+        return arm["c"], arm["r"], arm["fs"]
+    return _runner(interfaces, out, stats)
+
+
+def _link(link: dict, host: str, plan, stats: dict, cleanup: contextlib.ExitStack, ft, ft_host=None) -> tuple:
+    """Connect ur_rtde to ``host`` once (and the force source: ``ft`` the run's options, app.ftoptions); closed by
+    ``cleanup``."""
+    if "c" not in link:
+        link["c"], link["r"] = connect(host)
+        cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
+        link["fs"] = linked_source(ft, link["c"], link["r"], plan.frames.tcp_offset, ft_host)
+        cleanup.callback(link["fs"].close)
+    return link["c"], link["r"], link["fs"]
+
+
+def arm_executor(host: str, out: Path, stats: dict, cleanup: contextlib.ExitStack, ft=None):
+    """A real UR controller at ``host``, over ur_rtde (no truth: only the prior scene exists)."""
+    link = {}
+    return _runner(lambda plan: _link(link, host, plan, stats, cleanup, ft), out, stats)
+
+
+def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, stats: dict,
+                        cleanup: contextlib.ExitStack, ft=None):
+    """The simulated UR controller (robot.simcontroller, a child process holding the TRUE scene; with ``--ft netft``
+    serving a simulated Net F/T box too), driven through the real ur_rtde client; started at the first plan, stopped
+    when the run ends."""
+    link = {}
+
+    def interfaces(plan):
+        if "ctl" not in link:
+            link["ctl"] = cleanup.enter_context(start_controller(
+                scene=scene_spec, sensor=sensor, seed=seed, tissue_pose=plan.frames.tissue_pose_base,
+                tool=plan.frames.tcp_offset, host="auto", log_path=out / "simcontroller.log",
+                netft_sensor_pose=controller_pose(ft)))
+        return _link(link, link["ctl"].host, plan, stats, cleanup, ft, link["ctl"].host)
+    return _runner(interfaces, out, stats)
+
+
+RUN_FILES = ("probes.jsonl", "raw", "run.json", "result.json", "run_options.json", "fig_run.png",
+             "simcontroller.log")
+
+
+def holds_run(out: Path) -> bool:
+    return out.is_dir() and any((out / n).exists() for n in RUN_FILES) or any(out.glob("plan_round*.json"))
+
+
+TRUTH_OPTIONS = {"truth_surface_offset_m": "surface_offset_m", "truth_surface_tilt_rad": "surface_tilt_rad",
+                 "truth_relaxation": "relaxation_fraction", "truth_relaxation_tau_s": "relaxation_tau_s",
+                 "truth_sensor_bias_n": "sensor_bias_n", "truth_sensor_drift_n_per_s": "sensor_drift_n_per_s"}
+
+
+def truth_conditions(args) -> TruthConditions | None:
+    """The simulated world's conditions: the truth scene file's [truth] table, overridden by --truth-* options.
+    None for a real arm. Refused (UsageError): --truth-* options without the in-memory simulated arm."""
+    given = {f: getattr(args, o) for o, f in TRUTH_OPTIONS.items() if getattr(args, o, None) is not None}
+    if given and (args.host or args.sim == "controller"):
+        opt = "--" + next(o for o, f in TRUTH_OPTIONS.items() if f in given).replace("_", "-")
+        raise UsageError(f"{opt}: the simulated truth's conditions are options of the in-memory simulated arm "
+                         f"(--sim); {'a real arm has no simulated truth' if args.host else 'for --sim controller put them in the scene file [truth] table'}")
+    if args.host:
+        return None
+    try:
+        return conditions_of(args.scene).replace(**given)
+    except TruthError as e:
+        opt = next((o for o, f in TRUTH_OPTIONS.items() if f in given and f in str(e)), None)
+        raise UsageError(f"--{opt.replace('_', '-')} {given[TRUTH_OPTIONS[opt]]}: {e}" if opt else str(e)) from None
+
+
+def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
+    """What decides the rounds of a run: a re-run resumes only with all of these equal."""
+    plan_sha = hashlib.sha256(Path(args.plan).read_bytes()).hexdigest() if args.plan else None
+    return {"scene": args.scene, "scene_key": scene.key(), "plan_sha256": plan_sha,
+            "prior": args.prior, "truth_conditions": None if cond is None or cond.ideal else cond.to_dict(),
+            "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
+            "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
+            **({"grid": list(args.grid)} if getattr(args, "grid", None) and not args.plan else {}),
+            "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
+            "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
+            **({"ft": args.ft.text} if args.ft.kind != "rtde" else {})}     # absent for the wrist sensor: older
+                                                                            # runs resume
+
+
+def _previous_options(out: Path) -> dict | None:
+    try:
+        d = json.loads((out / "run_options.json").read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as e:
+        raise UsageError(f"--out {out}: cannot read run_options.json of the run there ({e}); use --fresh (moves the "
+                         f"old files aside) or another --out") from None
+    return d if isinstance(d, dict) else {}
+
+
+def check_resume(out: Path, opts: dict, fresh: bool) -> bool:
+    """True if this run resumes the one in ``out``; raises UsageError if it may neither resume nor start."""
+    if fresh or not holds_run(out):
+        return False
+    prev = _previous_options(out)
+    if prev is None:
+        raise UsageError(f"--out {out} holds a run without run_options.json (an older palpate?): it cannot be "
+                         f"resumed safely; use --fresh (moves the old files to {out}/previous-<time>/) or another --out")
+    diff = [f"{k} was {prev.get(k)!r}, now {v!r}" for k, v in opts.items() if prev.get(k) != v]
+    if diff:
+        raise UsageError(f"--out {out} holds a run with other options ({'; '.join(diff)}): re-run with the same "
+                         f"options to resume, or use --fresh (moves the old files to {out}/previous-<time>/) or "
+                         f"another --out")
+    return True
+
+
+def new_stats() -> dict:
+    """What the executors count over a run's rounds."""
+    return {"clean_end": False, "n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
+
+
+def choose_executor(args, out: Path, scene, cond, plan0, resume: bool, stats: dict, cleanup: contextlib.ExitStack,
+                    sim_arm: dict, say) -> tuple:
+    """(execute, where, truth) for the run's arm: a real UR controller (after the pre-flight and the operator's
+    confirmation; no truth), the simulated controller or the in-memory simulated arm (the truth: ``scene``)."""
+    if args.host:
+        where = f"UR controller at {args.host}"
+        say("WARNING: this moves a real arm into tissue. Check the tissue pose, TCP, force limit "
+            f"{plan0.limits.force_limit_n} N and the emergency stop first.")
+        print_preflight(preflight(plan0, done_indices(out) if resume else set()), where)
+        if not args.yes and not read_confirmation():
+            raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
+        execute = arm_executor(args.host, out, stats, cleanup, ft=args)
+        truth = None
+    elif args.sim == "controller":
+        where = f"simulated UR controller over ur_rtde (sensor {args.sensor}, seed {args.seed}; real time)"
+        truth = scene
+        execute = controller_executor(args.scene, sensor=args.sensor, seed=args.seed, out=out, stats=stats,
+                                      cleanup=cleanup, ft=args)
+    else:
+        where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
+        truth = scene
+        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm,
+                               conditions=cond, ft=args if args.ft.kind == "netft" else None, cleanup=cleanup)
+    if args.ft.kind == "netft":
+        where += (f"; force from the Net F/T box ({args.ft.host or 'simulated'}), which the UR's own force "
+                  f"protection does not see: the driver's force limit is the only guard on it")
+    return execute, where, truth
+
+
+def open_out(args, out: Path, opts: dict, say) -> None:
+    """Create OUT (after every check passed): ``--fresh`` moves a previous run's files aside (never deletes them);
+    run_options.json is written once."""
+    if args.fresh:
+        moved = move_aside(out) if holds_run(out) else None
+        if moved is not None:
+            say(f"--fresh: the previous run's files are in {moved}")
+    out.mkdir(parents=True, exist_ok=True)
+    if not (out / "run_options.json").exists():
+        tmp = out / "run_options.json.tmp"
+        tmp.write_text(json.dumps(opts, indent=1))
+        tmp.replace(out / "run_options.json")

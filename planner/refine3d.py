@@ -1,0 +1,149 @@
+"""Adaptive refinement over an area: a coarse grid, then probes where they shrink the stone's uncertainty most,
+until the fit's 1-sigma uncertainties in x, y and depth are below a target or the probe budget is spent.
+
+As in 2D (planner.refine), every round is planned by the same CasADi planner within the same limits (``plan_round``:
+the coarse plan's ``replan`` over the new positions), executed by whatever ``execute(plan, round) -> records`` the
+caller hands in, and localized (planner.localize3d) from the prior block and *all* measurements so far; the loop
+never sees a true scene.
+
+Where to probe next: the ``n_refine`` positions on a 1 mm grid over the probed region (repeats allowed) that shrink
+var(x) + var(y) + var(depth) most, chosen greedily from the Fisher information of (x, y, depth, diameter, stiffness
+scale, drift offset) at the current estimate (surrogate derivatives by central differences; the prior's force, the
+scale's column, taken as its median over the probes so far: the block's prior force varies by under 2 % over the
+probed region). Without a detected estimate, an even grid around the contrast's peak (a weak candidate, LR above
+``WEAK_LR``) narrows in on it.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from planner.localize import Measurements
+from planner.localize3d import Localization3D, localize3d
+from planner.refine import WEAK_LR, AdaptiveResult, Round
+
+DESIGN_STEP_M = 1e-3
+SHALLOW_FRACTION = 0.6      # every other coarse probe this fraction of the planned depth (coarse_depths)
+
+
+def coarse_depths(depth_m) -> np.ndarray:
+    """The coarse raster's depths: the planned ones (deepest within the limits), every other probe (in probing order:
+    neighbours differ) pressed only ``SHALLOW_FRACTION`` of it. On a block the planned depth is the same everywhere,
+    so with one depth the tissue's stiffness scale and a sensor offset both scale or shift a flat force level and
+    cannot be told apart (only the drift's prior separates them: the fitted scale came out 0.80 on healthy tissue,
+    a stone's depth 1.2 mm too shallow, on a small test block); two depths give two force levels, whose ratio is the
+    prior's, which pins the scale (0.97-0.99 and a 0.5 mm depth error on the same trials)."""
+    d = np.asarray(depth_m, float).copy()
+    d[1::2] *= SHALLOW_FRACTION
+    return d
+
+
+def grid_around(cx: float, cy: float, half_m: float, n: int, region) -> np.ndarray:
+    """About ``n`` positions on an even square grid of half-width ``half_m`` around (cx, cy), inside ``region``
+    (x0, x1, y0, y1)."""
+    x0, x1, y0, y1 = region
+    k = max(int(math.ceil(math.sqrt(n))), 2)
+    xs = np.linspace(max(x0, cx - half_m), min(x1, cx + half_m), k)
+    ys = np.linspace(max(y0, cy - half_m), min(y1, cy + half_m), k)
+    g = np.array([(x, y) for x in xs for y in ys])
+    d = np.hypot(g[:, 0] - cx, g[:, 1] - cy)
+    return g[np.argsort(d, kind="stable")[:n]]
+
+
+def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogate, region,
+                       depth_m: float | None = None, step_m: float = DESIGN_STEP_M) -> np.ndarray:
+    """``n`` positions (n x 2) chosen one by one to shrink var(x) + var(y) + var(depth) of the estimate most (module
+    doc); an even grid around the peak without a detected, finite estimate."""
+    if not (loc.detected and all(map(math.isfinite, (loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m)))):
+        cx, cy = (loc.peak_x_m, loc.peak_y_m) if math.isfinite(loc.peak_x_m) else (
+            0.5 * (region[0] + region[1]), 0.5 * (region[2] + region[3]))
+        return grid_around(cx, cy, 8e-3, n, region)
+    d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
+    sig = float(np.median(meas.sigma_n))
+    th = np.array([loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m])
+    P = float(np.median(loc.prior_n)) if loc.prior_n is not None else 0.0
+
+    def jac(x, y, dd):
+        cols = [np.full(len(x), P) + surrogate.contrast(x, y, dd, *th)]
+        for i in range(4):
+            h = np.zeros(4)
+            h[i] = 2e-5
+            cols.append((surrogate.contrast(x, y, dd, *(th + h)) - surrogate.contrast(x, y, dd, *(th - h))) / 4e-5)
+        cols.append(np.full(len(x), 1e-3))        # drift offset, in mN
+        return np.array(cols).T
+    Je = jac(meas.x_m, meas.y_m, np.clip(meas.depth_m, surrogate.levels[0], surrogate.levels[-1])) / meas.sigma_n[:, None]
+    F = Je.T @ Je + 1e-12 * np.eye(Je.shape[1])
+    x0, x1, y0, y1 = region
+    gx, gy = np.meshgrid(np.arange(x0, x1 + 1e-12, step_m), np.arange(y0, y1 + 1e-12, step_m), indexing="ij")
+    cand = np.c_[gx.ravel(), gy.ravel()]
+    dd = float(np.clip(d, surrogate.levels[0], surrogate.levels[-1]))
+    Jc = jac(cand[:, 0], cand[:, 1], np.full(len(cand), dd)) / sig
+    Fi = np.linalg.inv(F)
+    want = np.array([1, 2, 3])                    # x, y, depth columns
+    out = []
+    for _ in range(n):
+        G = Jc @ Fi
+        gain = np.sum(G[:, want] ** 2, axis=1) / (1.0 + np.sum(G * Jc, axis=1))
+        k = int(np.argmax(gain))
+        out.append(cand[k])
+        g = Fi @ Jc[k]
+        Fi = Fi - np.outer(g, g) / (1.0 + Jc[k] @ g)
+    return np.array(out)
+
+
+def converged3d(loc: Localization3D, target_m: float) -> bool:
+    return bool(loc.detected and max(loc.sigma_x_m, loc.sigma_y_m, loc.sigma_depth_m) <= target_m
+                and not loc.at_bound)
+
+
+def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, budget_probes: int = 100,
+               n_refine: int = 16, target_m: float = 5e-4, progress=None, weak_lr: float = WEAK_LR) -> AdaptiveResult:
+    """Run the loop over a block. ``plan_round(xy (n x 2)) -> plan``; ``execute(plan, round_index) -> records``;
+    ``region`` (x0, x1, y0, y1): where refinement probes may go (the planner's probed area). ``prior`` has no
+    stones."""
+    if prior.stones:
+        raise ValueError("adaptive3d() takes the prior scene (no stones)")
+    say = progress or (lambda msg: None)
+    rounds, meas, loc = [], None, None
+    xy = np.asarray(coarse_xy_m, float).reshape(-1, 2)
+    used, k, reason = 0, 0, "budget"
+    while True:
+        t0 = time.perf_counter()
+        plan = plan_round(xy)
+        recs = execute(plan, k)
+        m = Measurements.from_records(recs, plan.motion, statuses=("ok", "force_limit"))
+        used += len(xy)
+        meas = m if meas is None else meas.concat(m)
+        if len(meas) < 6:
+            loc = Localization3D(detected=False, lr=float("nan"), lr_threshold=float("nan"))
+            reason = (f"too few usable measurements: {len(meas)} of {used} probes (see probes.jsonl's status, reason "
+                      f"and implausible)")
+            say(f"round {k}: {len(xy)} probes ({used} in all): {reason}")
+            break
+        loc = localize3d(prior, meas, surrogate)
+        rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
+                            len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
+        say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc))
+        if converged3d(loc, target_m):
+            reason = "target uncertainty reached"
+            break
+        if not loc.detected and loc.lr < weak_lr:
+            reason = "no stone (no candidate worth refining)"
+            break
+        n = min(n_refine, budget_probes - used)
+        if n < 4:
+            reason = "probe budget spent"
+            break
+        xy = design_positions3d(loc, meas, n, surrogate, region)
+        k += 1
+    return AdaptiveResult(loc, meas, rounds, used, reason)
+
+
+def describe3d(loc: Localization3D) -> str:
+    if not loc.detected:
+        return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.2f} mN)"
+    return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, y {loc.y_m * 1e3:.2f} +- "
+            f"{loc.sigma_y_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- {loc.sigma_depth_m * 1e3:.2f} mm, "
+            f"diameter {loc.diameter_m * 1e3:.2f} +- {loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})")

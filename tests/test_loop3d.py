@@ -1,0 +1,175 @@
+"""The 3D loop's parts on a small coarse block and a tiny surrogate table (seconds of fem): the prior block's force
+response, the 3D localizer (stone found from simulated measurements; nothing found in healthy tissue; it refuses a
+scene with stones), the coarse grid's two depths, the simulated arm pressing a block, the design of refinement
+probes, the detectability analysis, and `palpate run`'s refusals of the other dimension's options."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from core.contracts import Motion, sensor_spec
+from fem.contact3d import surface_model3d
+from fem.scene import Analysis, Indenter, Scene, Stone, Tissue
+from planner import surrogate3d as s3
+from planner.accuracy3d import FastArm3D
+from planner.area import probe_bounds
+from planner.detect3d import p_detect3d
+from planner.detectability import probe_sigma_n, probe_tau_s
+from planner.localize import Measurements
+from planner.localize3d import localize3d
+from planner.refine3d import SHALLOW_FRACTION, coarse_depths, design_positions3d, grid_around
+from planner.tasks import Runner
+from planner.tissue_response3d import PriorResponse3D
+from robot.sim import ArmModel
+
+BLOCK = Scene(name="loop3d-block", tissue=Tissue(width_m=0.030, length_m=0.030, height_m=0.020),
+              indenter=Indenter(shape="sphere", radius_m=0.004, youngs_pa=60.0e6),
+              analysis=Analysis(order=2, mesh_size_m=0.008, surface_refine=4.0, patch_m=0.024, grade=0.5))
+GRID = s3.Grid3D(s_m=(3e-3, 4.5e-3, 7e-3), diam_m=(5e-3, 7e-3), levels_m=(1e-3, 1.5e-3, 2e-3, 2.5e-3, 3e-3),
+                 dr_m=1e-3, r_max_m=0.030, n_angles=8, mesh_size_m=0.008, grade=0.5)
+STONE = Stone(x_m=0.014, y_m=0.016, depth_m=0.0085, diameter_m=0.006)
+DEPTH_M = 0.003
+
+
+@pytest.fixture(scope="module")
+def sur(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("PALPATE_CACHE_DIR", str(tmp_path_factory.mktemp("cache-loop3d")))
+    s3._MEM.clear()
+    yield s3.load_surrogate3d(BLOCK.prior(), runner=Runner(workers=1, progress=False), grid=GRID)
+    mp.undo()
+    s3._MEM.clear()
+
+
+def _grid(n: int) -> np.ndarray:
+    x0, x1, y0, y1 = probe_bounds(BLOCK)
+    g = np.linspace(x0, x1, n), np.linspace(y0, y1, n)
+    return np.array([(x, y) for x in g[0] for y in g[1]])
+
+
+def _measure(model, xy, depth_m, seed: int) -> Measurements:
+    arm = FastArm3D(lambda x, y, d: model.force_n(x, y, d), "nano17", np.random.default_rng(seed))
+    return Measurements.from_records(arm.execute3d(xy, depth_m), Motion())
+
+
+def test_prior_response_against_fem():
+    """Between the 16 depth nodes the log-log interpolation is within 0.7 % of direct 3D fem (fem's force has small
+    kinks in depth); anchored at a probe's depth it is exact there and within 0.5 % of fem 0.3 mm either side."""
+    prior = BLOCK.prior()
+    xy = _grid(3)[[0, 4, 7]]
+    m = surface_model3d(prior)
+    plain = PriorResponse3D(prior, xy[:, 0], xy[:, 1])
+    for d in (1.13e-3, 1.4e-3, 2.07e-3, 2.91e-3):
+        direct = np.array([m.force_n(float(x), float(y), d) for x, y in xy])
+        np.testing.assert_allclose(plain.force_n(np.full(3, d)), direct, rtol=7e-3)
+        np.testing.assert_allclose(plain.depth_at_force_m(direct), d, rtol=7e-3)
+    d0 = np.array([2.5e-3, 1.5e-3, 3.0e-3])
+    anchored = PriorResponse3D(prior, xy[:, 0], xy[:, 1], d0)
+    np.testing.assert_allclose(anchored.force_n(d0), [m.force_n(float(x), float(y), float(d))
+                                                      for (x, y), d in zip(xy, d0)], rtol=1e-12)
+    for h in (-3e-4, 3e-4):
+        direct = np.array([m.force_n(float(x), float(y), float(d + h)) for (x, y), d in zip(xy, d0)])
+        np.testing.assert_allclose(anchored.force_n(d0 + h), direct, rtol=5e-3)
+
+
+def test_localize3d_finds_the_stone_and_refuses_the_truth(sur):
+    """Simulated measurements (nano17 noise, drift) over a 6 x 6 grid at two depths: the stone is found within 1 mm
+    in the plane and its depth within 3 stated sigmas; the stiffness scale comes out near 1."""
+    truth = BLOCK.with_stones([STONE])
+    model = s3.stone_model3d(truth)
+    xy = _grid(6)
+    meas = _measure(model, xy, coarse_depths(np.full(len(xy), DEPTH_M)), seed=1)
+    loc = localize3d(BLOCK.prior(), meas, sur)
+    assert loc.detected and loc.lr > 50
+    assert math.hypot(loc.x_m - STONE.x_m, loc.y_m - STONE.y_m) < 1e-3
+    assert abs(loc.depth_m - STONE.depth_m) < 3 * loc.sigma_depth_m + 0.5e-3
+    assert abs(loc.nuisance["stiffness_scale"][0] - 1.0) < 0.05
+    assert loc.to_dict()["estimate"]["y_m"]["value"] == pytest.approx(loc.y_m)
+    with pytest.raises(ValueError, match="prior"):
+        localize3d(truth, meas, sur)
+
+
+@pytest.mark.parametrize("scale", [1.0, 1.25, 0.8])
+def test_healthy_block_gives_no_stone(sur, scale):
+    """Healthy tissue, also 25 % stiffer and 20 % softer than the prior: no stone, and the fitted stiffness scale
+    recovers the truth's within 3 %."""
+    prior = BLOCK.prior()
+    m = surface_model3d(prior)
+    xy = _grid(6)
+
+    class Scaled:
+        def force_n(self, x, y, d):
+            return scale * m.force_n(x, y, d)
+    meas = _measure(Scaled(), xy, coarse_depths(np.full(len(xy), DEPTH_M)), seed=2)
+    loc = localize3d(prior, meas, sur)
+    assert not loc.detected, loc.lr
+    assert loc.nuisance["fit"] == "no stone"
+    assert abs(loc.nuisance["stiffness_scale"][0] / scale - 1.0) < 0.03
+
+
+def test_coarse_depths_alternate():
+    d = coarse_depths(np.full(5, 0.004))
+    np.testing.assert_allclose(d, [0.004, 0.004 * SHALLOW_FRACTION, 0.004, 0.004 * SHALLOW_FRACTION, 0.004])
+
+
+def test_design_puts_probes_inside_the_region_and_near_the_stone(sur):
+    truth = BLOCK.with_stones([STONE])
+    xy = _grid(5)
+    meas = _measure(s3.stone_model3d(truth), xy, coarse_depths(np.full(len(xy), DEPTH_M)), seed=3)
+    loc = localize3d(BLOCK.prior(), meas, sur)
+    region = probe_bounds(BLOCK)
+    new = design_positions3d(loc, meas, 8, sur, region)
+    assert new.shape == (8, 2)
+    assert np.all((new[:, 0] >= region[0] - 1e-12) & (new[:, 0] <= region[1] + 1e-12))
+    assert np.all((new[:, 1] >= region[2] - 1e-12) & (new[:, 1] <= region[3] + 1e-12))
+    # the information about (x, y, depth) lives on the contrast's flanks and top: within 2.5 stone depths
+    assert np.all(np.hypot(new[:, 0] - loc.x_m, new[:, 1] - loc.y_m) < 2.5 * loc.depth_m)
+    g = grid_around(0.015, 0.015, 0.004, 9, region)
+    assert len(g) == 9 and np.abs(g - 0.015).max() <= 0.004 + 1e-12
+
+
+def test_detectability_rises_with_probes_and_falls_with_depth(sur):
+    prior = BLOCK.prior()
+    sig = probe_sigma_n(sensor_spec("nano17"))
+    P = surface_model3d(prior).force_n(0.015, 0.015, DEPTH_M)
+
+    def p(n, depth):
+        xy = _grid(n)
+        d = np.full(len(xy), DEPTH_M)
+        return p_detect3d((0.015, 0.015, depth, 0.005), x_m=xy[:, 0], y_m=xy[:, 1], depth_m=d, sigma_n=sig,
+                          surrogate=sur, prior_force_n=P, tau_s=probe_tau_s(Motion(), d))
+    assert p(6, 0.0075) > p(3, 0.0075)
+    assert p(4, 0.0075) > p(4, 0.0095)
+    assert 0.0 <= p(3, 0.0095) <= 1.0
+
+
+def test_simulated_arm_presses_a_block():
+    """The in-memory arm over a 3D block: its force at the tip is fem's at the tip's (x, y, depth) and zero off the
+    block (the tissue frame's y within [0, length])."""
+    prior = BLOCK.prior()
+    m = surface_model3d(prior)
+    pose = [0.40, -0.015, 0.020, 0.0, 0.0, math.pi / 2]
+    arm = ArmModel(lambda x, y, d: m.force_n(x, y, d), tissue_pose_base=pose, width_m=0.030, length_m=0.030,
+                   cache=False)
+    T = arm.T_tissue
+    for (x, y, d) in ((0.015, 0.016, 0.002), (0.012, 0.018, 0.003)):
+        p = T[:3, 3] + T[:3, :3] @ np.array([x, y, -d])
+        arm.T_tcp = np.eye(4)
+        arm.T_tcp[:3, 3] = p
+        assert arm.tip_xyz() == pytest.approx((x, y, d), abs=1e-12)
+        assert arm.elastic_force_n() == pytest.approx(m.force_n(x, y, d), rel=1e-12)
+    arm.T_tcp[:3, 3] = T[:3, 3] + T[:3, :3] @ np.array([0.015, 0.031, -0.002])
+    assert arm.elastic_force_n() == 0.0
+
+
+@pytest.mark.parametrize("argv, what", [(["run", "paper", "--grid", "4x4"], "--grid 4x4"),
+                                        (["run", "block3d", "--waypoints", "9"], "--waypoints 9"),
+                                        (["run", "block3d", "--prior", "healthy"], "--prior")])
+def test_run_refuses_the_other_dimensions_options(tmp_path, capsys, argv, what):
+    assert main(argv + ["--sim", "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and what in err[0]
+    assert not (tmp_path / "out").exists()
