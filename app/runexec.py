@@ -13,6 +13,8 @@ from pathlib import Path
 from app.cell import print_preflight, read_confirmation
 from app.errors import UsageError
 from app.ftoptions import controller_pose, inmemory_source, linked_source
+from core.contracts import Plan
+from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session
@@ -233,3 +235,19 @@ def open_out(args, out: Path, opts: dict, say) -> None:
         tmp = out / "run_options.json.tmp"
         tmp.write_text(json.dumps(opts, indent=1))
         tmp.replace(out / "run_options.json")
+
+
+def round_planner(plan0: Plan, out: Path):
+    """``plan_round(positions)`` for the refinement loop (planner.refine, planner.refine3d): round 0 is the coarse
+    plan; a later round's plan is the one saved in OUT (a resumed run repeats its rounds), else the coarse plan
+    re-planned over the positions (x, or (x, y) on a block) with its frames, limits, motion and options."""
+    count = {"k": 0}
+
+    def plan_round(positions):
+        k = count["k"]
+        count["k"] += 1
+        if k == 0:
+            return plan0
+        saved = out / f"plan_round{k}.json"
+        return Plan.load(saved) if saved.exists() else replan(plan0, positions)
+    return plan_round

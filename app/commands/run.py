@@ -48,6 +48,7 @@ from app.runexec import (
     choose_executor,
     new_stats,
     open_out,
+    round_planner,
     run_options,
     truth_conditions,
 )
@@ -55,7 +56,7 @@ from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
 from planner.localize import MIN_MEASUREMENTS, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
-from planner.plan import plan_prior, plan_raster, replan
+from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
 from planner.surrogate import load_surrogate
 from robot.records import done_indices
@@ -241,15 +242,7 @@ def run(args) -> int:
         t_first.setdefault("probing_started_s", time.perf_counter() - t_wall)
         return execute(plan_or_x, k)
 
-    rounds_planned = {"n": 0}
-
-    def plan_round(x):
-        k = rounds_planned["n"]
-        rounds_planned["n"] += 1
-        if k == 0:
-            return plan0
-        saved = out / f"plan_round{k}.json"
-        return Plan.load(saved) if saved.exists() else replan(plan0, x)   # resume: the same round as before
+    plan_round = round_planner(plan0, out)
 
     status, fault = "ok", None
     try:

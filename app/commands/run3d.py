@@ -19,7 +19,7 @@ from pathlib import Path
 from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
-from app.runexec import RunAborted, choose_executor, new_stats, open_out
+from app.runexec import RunAborted, choose_executor, new_stats, open_out, round_planner
 from core.contracts import Limits, Plan, PlanError
 from planner.area import probe_bounds
 from planner.localize3d import Localization3D, surrogate_bounds
@@ -75,15 +75,7 @@ def run_block(args, ctx: RunContext) -> int:
         _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
     _say(f"probing on the {where}")
     t_first: dict = {}
-    rounds_planned = {"n": 0}
-
-    def plan_round(xy):
-        k = rounds_planned["n"]
-        rounds_planned["n"] += 1
-        if k == 0:
-            return plan0
-        saved = out / f"plan_round{k}.json"
-        return Plan.load(saved) if saved.exists() else replan(plan0, xy)   # resume: the same round as before
+    plan_round = round_planner(plan0, out)
 
     def execute_timed(plan, k):
         t_first.setdefault("probing_started_s", time.perf_counter() - ctx.t_wall)
