@@ -198,15 +198,21 @@ def _extract(gmsh, vols_by_region: list[list[int]], order: int, width: float, le
 def straighten_inverted(mesh: Mesh3D) -> int:
     """Put the mid-edge nodes of curved P2 elements whose Jacobian is not positive everywhere (at their nodes and
     at the points of the degree-5 rule used for curved elements) back on their straight edges; returns how many.
-    A coarse mesh of a sphere folds a few such elements; their boundary then is a chord (as in 2D)."""
+    A coarse mesh of a sphere folds a few such elements; their boundary then is a chord (as in 2D). A mid-edge node
+    is shared: straightening one element can fold a neighbour on that edge, so this repeats until none is folded
+    (it ends: an element with all its edges straight is its valid linear tetrahedron)."""
     pts = np.vstack([quadrature(5)[0], nodes_ref(2)])
     dN = shape_grad(2, pts)
-    J = np.einsum("mai,qaj->mqij", mesh.nodes[mesh.tets], dN)
-    bad = np.flatnonzero(~(np.linalg.det(J).min(axis=1) > 0))
-    t = mesh.tets[bad]
-    for k, (a, b) in enumerate(EDGES):
-        mesh.nodes[t[:, 4 + k]] = 0.5 * (mesh.nodes[t[:, a]] + mesh.nodes[t[:, b]])
-    return len(bad)
+    done = np.zeros(len(mesh.tets), dtype=bool)
+    while True:
+        J = np.einsum("mai,qaj->mqij", mesh.nodes[mesh.tets], dN)
+        bad = np.flatnonzero(~(np.linalg.det(J).min(axis=1) > 0) & ~done)
+        if len(bad) == 0:
+            return int(done.sum())
+        done[bad] = True
+        t = mesh.tets[bad]
+        for k, (a, b) in enumerate(EDGES):
+            mesh.nodes[t[:, 4 + k]] = 0.5 * (mesh.nodes[t[:, a]] + mesh.nodes[t[:, b]])
 
 
 def mesh_scene3d(scene) -> Mesh3D:

@@ -46,6 +46,7 @@ GRIDS = ((6, 6), (8, 8), (10, 10), (12, 12))
 DEPTH_M = 0.004                 # the planner's depth on block3d (depth limit 4 mm; the force far below the limit)
 STONE_REGION_M = 0.030          # stones are centred over the middle 30 x 30 mm of the probed area
 STUDY_MESH = {"mesh_size_m": 0.016, "grade": 0.5}
+FAILED = "failed"                # the method of a trial that raised: its one row carries the error
 
 
 def study_prior(prior):
@@ -242,7 +243,10 @@ def run_trial3d(shared: dict, t: Trial3D) -> list[dict]:
     prior = shared["prior"]
     stone = None if t.stone is None else Stone(x_m=t.stone[0], y_m=t.stone[1], depth_m=t.stone[2],
                                                diameter_m=t.stone[3])
-    return trial3d(prior, shared["sur"], stone, t.sensor, seed=t.seed, budget=t.budget, target_m=t.target_m)
+    try:
+        return trial3d(prior, shared["sur"], stone, t.sensor, seed=t.seed, budget=t.budget, target_m=t.target_m)
+    except Exception as e:  # noqa: BLE001 - a trial that fails is a study's finding: counted, and the study goes on
+        return [{"seed": t.seed, "method": FAILED, "stone": t.stone is not None, "error": f"{type(e).__name__}: {e}"}]
 
 
 def run_accuracy3d(sur, prior, trials: list[Trial3D], runner: Runner = Runner(), store: Path | None = None) -> list[dict]:

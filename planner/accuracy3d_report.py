@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .accuracy3d import FAILED
+
 P_ENVELOPE = 0.9
 TARGETS = {"lateral_m": 1e-3, "depth_m": 1.5e-3, "detect_in_envelope": 0.95, "false_alarm": 0.05}
 
@@ -32,8 +34,10 @@ def _coverage(rows, err, sig, k) -> float:
 
 
 def summarise(rows: list[dict]) -> dict:
+    failed = [r for r in rows if r["method"] == FAILED]
+    rows = [r for r in rows if r["method"] != FAILED]
     methods = sorted({r["method"] for r in rows}, key=lambda m: (m != "adaptive", m))
-    out = {"methods": {}}
+    out = {"methods": {}, "failed_trials": len(failed), "failures": [r["error"] for r in failed]}
     for m in methods:
         st = [r for r in rows if r["method"] == m and "x_m" in r]
         he = [r for r in rows if r["method"] == m and "x_m" not in r]
@@ -111,6 +115,8 @@ def write_report(out: Path, rows: list[dict], command: str, elapsed_s: float, wh
         lines += ["", f"Cramer-Rao: the best placement (greedy A-optimal at the TRUE stone, the adaptive run's probe "
                       f"count) needs {_fmt(s['oracle_gain_median'], 1, 2)}x fewer probes than an even grid for the same "
                       f"var(x) + var(y) + var(depth) (median over the stones; planner.accuracy3d.oracle_gain)"]
+    if s["failed_trials"]:
+        lines += ["", f"{s['failed_trials']} trial(s) failed and are not counted above: " + "; ".join(s["failures"])]
     if "met" in s:
         lines += ["", "targets (adaptive): " + ", ".join(f"{k} {'met' if v else 'NOT met'}" for k, v in s["met"].items())]
     (out / "accuracy3d.md").write_text("\n".join(lines) + "\n")

@@ -50,7 +50,7 @@ import numpy as np
 
 from fem import diskcache
 from fem.contact3d import SurfaceModel3D, surface_model3d
-from fem.mesh3d import patch_bounds
+from fem.mesh3d import grade_of, patch_bounds
 from fem.model3d import build_model3d
 from fem.scene import Analysis, Indenter, Scene, SceneError, Stone, Tissue, from_dict, load
 from fem.scene_mesh3d import mesh_for3d
@@ -286,22 +286,44 @@ def build_table3d(prior: Scene, grid: Grid3D = Grid3D(), runner: Runner | None =
     run_pieces(_one_candidate, shared, cands, [f"cand-{i}-{j}" for i, j in idx], runner=runner, store=store,
                desc="surrogate3d candidates", on_result=arrived)
     _fill_invalid(table, valid, logs)
+    cal_s, factors = calibrate3d(prior, grid, table, valid, runner=runner, store=store,
+                                 progress=None if progress is None else
+                                 (lambda n, k, el: progress(len(cands) + n, len(cands) + k, el)))
+    return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "levels_m": lv,
+            "dr_m": np.array(grid.dr_m), "table": table, "valid": valid,
+            "cal_s_m": cal_s, "cal_factor": factors, "cal_mesh": own_mesh(prior),
+            "patch_xy_m": np.array(_probe_region(scene)), "youngs_ref_pa": np.array(scene.tissue.youngs_pa),
+            "height_m": np.array(scene.tissue.height_m), "build_s": np.array(time.perf_counter() - t0)}
+
+
+def own_mesh(prior: Scene) -> np.ndarray:
+    """(mesh_size_m, grade) of the prior's own mesh: what a table's calibration is for (the table scene keeps the
+    prior's surface refinement, patch and order, and replaces these two by the grid's)."""
+    a = prior.analysis
+    return np.array([a.mesh_size_m, grade_of(prior)], float)
+
+
+def calibrate3d(prior: Scene, grid: Grid3D, table: np.ndarray, valid: np.ndarray, runner: Runner | None = None,
+                store: Path | None = None, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """(cal_s_m, cal_factor): the grid's calibration candidates solved again on the prior's own mesh, and per
+    candidate and level the factor that turns the table's profile into that mesh's (``mesh_factor``). None to do
+    (empty arrays) when the prior's own mesh is the table's. ``progress(done, total, elapsed_s)``."""
+    runner = runner or Runner(workers=1, progress=progress is None)
+    if np.allclose(own_mesh(prior), [grid.mesh_size_m, grid.grade]):
+        return np.zeros(0), np.ones((0, len(grid.levels_m)))
     own = table_scene(prior, grid, prior.tissue.youngs_pa, own_mesh=True)
-    cal = [(i, j) for i, j in grid.cal_nodes if valid[i, j]] if own.analysis != scene.analysis else []
-    factors = np.ones((len(cal), len(lv)))
+    cal = [(i, j) for i, j in grid.cal_nodes if valid[i, j]]
+    factors = np.ones((len(cal), len(grid.levels_m)))
+    t0 = time.perf_counter()
 
     def calibrated(n, res):
         factors[n] = mesh_factor(np.array(res, float), table[cal[n]], grid.dr_m)
         if progress:
-            progress(len(cands) + n + 1, len(cands) + len(cal), time.perf_counter() - t0)
+            progress(n + 1, len(cal), time.perf_counter() - t0)
     run_pieces(_one_candidate, {"scene": own.to_dict(), "grid": grid.to_dict()},
                [(float(grid.s_m[i]), float(grid.diam_m[j])) for i, j in cal], [f"cal-{i}-{j}" for i, j in cal],
                runner=runner, store=store, desc="surrogate3d calibration", on_result=calibrated)
-    return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "levels_m": lv,
-            "dr_m": np.array(grid.dr_m), "table": table, "valid": valid,
-            "cal_s_m": np.array([grid.s_m[i] for i, _ in cal]).reshape(-1), "cal_factor": factors,
-            "patch_xy_m": np.array(_probe_region(scene)), "youngs_ref_pa": np.array(scene.tissue.youngs_pa),
-            "height_m": np.array(scene.tissue.height_m), "build_s": np.array(time.perf_counter() - t0)}
+    return np.array([grid.s_m[i] for i, _ in cal]).reshape(-1), factors
 
 
 def mesh_factor(own: np.ndarray, table: np.ndarray, dr: float, r_fit_m: float = 0.028) -> np.ndarray:
@@ -350,7 +372,10 @@ def _pad(T: np.ndarray, axis: int, even: bool = False) -> np.ndarray:
 class Surrogate3D:
     """The tabulated contrast (module doc). With a ``prior`` the table is scaled to the prior's tissue modulus."""
 
-    def __init__(self, data: dict, prior: Scene | None = None):
+    def __init__(self, data: dict, prior: Scene | None = None,
+                 calibration: tuple[np.ndarray, np.ndarray] | None = None):
+        """calibration: (cal_s_m, cal_factor) for the prior's own mesh (``calibration_for``); default: the data's
+        own (the mesh it was built for)."""
         self.data = data             # the arrays as read (what --ship writes)
         self.scale = float(prior.tissue.youngs_pa / float(data["youngs_ref_pa"])) if prior is not None else 1.0
         self.s = np.asarray(data["s_m"], float)
@@ -364,10 +389,11 @@ class Surrogate3D:
         self.rel_err = REL_ERR
         self.abs_err_n = ABS_ERR_N * self.scale
         T = np.asarray(data["table"], float) * self.scale
-        cal_s = np.asarray(data.get("cal_s_m", np.zeros(0)), float)
+        cal_s, cal_f = calibration or (data.get("cal_s_m", np.zeros(0)), data.get("cal_factor"))
+        cal_s = np.asarray(cal_s, float)
         if len(cal_s):             # the mesh factor, linear in log s between the calibration nodes (module doc)
             o = np.argsort(cal_s)
-            fac = np.asarray(data["cal_factor"], float)[o]
+            fac = np.asarray(cal_f, float)[o]
             self.mesh_factor = np.stack([np.interp(self.logs, np.log(cal_s[o]), fac[:, a])
                                          for a in range(len(self.levels))], axis=1)     # (n_s, levels)
             T = T * self.mesh_factor[:, None, :, None]
@@ -455,7 +481,7 @@ def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = N
     if prior.stones:
         raise ValueError("the surrogate is built on the prior scene (no stones); pass scene.prior()")
     path = cache_path(prior, grid)
-    mem_key = (str(path), prior.tissue.youngs_pa)
+    mem_key = (str(path), prior.tissue.youngs_pa, tuple(own_mesh(prior)))
     if mem_key in _MEM:
         return _MEM[mem_key]
     own = table_scene(prior, grid, prior.tissue.youngs_pa)
@@ -480,9 +506,34 @@ def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = N
         data["fingerprint"] = fingerprint(own) if fp is None else fp
         if diskcache.enabled():
             diskcache.write(path, data)
-    sur = Surrogate3D(data, prior)
+    sur = Surrogate3D(data, prior, calibration_for(prior, grid, data, build=build, runner=runner, progress=progress))
     _MEM[mem_key] = sur
     return sur
+
+
+def calibration_for(prior: Scene, grid: Grid3D, data: dict, build: bool = True, runner: Runner | None = None,
+                    progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """(cal_s_m, cal_factor) of a table for the prior's own mesh: none on the table's own mesh, the table's stored
+    one when it was built for this mesh (``cal_mesh``), else from the disk cache or solved now (``calibrate3d``: three
+    candidates on the prior's mesh, minutes) and cached. A table calibrated for one mesh is never applied to a scene
+    meshed otherwise. FileNotFoundError when it is missing and ``build`` is False."""
+    mine = own_mesh(prior)
+    if np.allclose(mine, [grid.mesh_size_m, grid.grade]):
+        return np.zeros(0), np.ones((0, len(grid.levels_m)))
+    if "cal_mesh" in data and np.allclose(data["cal_mesh"], mine):
+        return data["cal_s_m"], data["cal_factor"]
+    path = cache_path(prior, grid).with_name(f"{cache_path(prior, grid).stem}-cal-{mine[0]:.6g}-{mine[1]:.6g}.npz")
+    d = diskcache.read(path) if diskcache.enabled() else None
+    if d is None:
+        if not build:
+            raise FileNotFoundError(f"no 3D surrogate calibration for the mesh (mesh_size_m, grade) = {tuple(mine)}")
+        table = np.asarray(data["table"], float) * float(prior.tissue.youngs_pa / float(data["youngs_ref_pa"]))
+        cal_s, fac = calibrate3d(prior, grid, table, np.asarray(data["valid"], bool), runner=runner, progress=progress,
+                                 store=path.with_suffix(".parts") if diskcache.enabled() else None)
+        d = {"cal_s_m": cal_s, "cal_factor": fac}
+        if diskcache.enabled():
+            diskcache.write(path, d)
+    return d["cal_s_m"], d["cal_factor"]
 
 
 # -- measuring the error against direct fem ---------------------------------------------------------------------

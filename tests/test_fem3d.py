@@ -399,3 +399,14 @@ def test_a_stone_smaller_than_the_bulk_size_meshes():
     r = np.linalg.norm(mesh.nodes[stone_nodes] - np.array([0.02, 0.02, 0.035 - 0.00683]), axis=1)
     assert r.max() <= 0.0025 * (1 + 1e-9)                   # the stone's elements lie inside its sphere
     assert r.max() >= 0.0025 * (1 - 1e-6)                   # and reach its surface
+
+
+def test_straightening_folded_p2_elements_leaves_none_folded():
+    """A 7 mm stone on the 3D study's coarse mesh (a random stone of `palpate study accuracy3d`): straightening one
+    folded P2 element folded a neighbour sharing its edge, and the study stopped on 'inverted element(s)'. The
+    straightening repeats until every element is valid."""
+    from fem.scene_mesh3d import jacobians3d
+    mesh = mesh_block(0.07, 0.07, 0.05, [(0.031412728, 0.041758818, 0.05 - 0.025095319, 0.0070592124 / 2)],
+                      size_m=0.016, surface_refine=8.0, order=2, patch_m=0.05, grade=0.5)
+    assert mesh.straightened >= 2
+    assert np.all(jacobians3d(mesh) > 0)

@@ -119,3 +119,23 @@ def test_the_fingerprint_catches_a_changed_fem(table, monkeypatch, capsys):
     with pytest.raises(FileNotFoundError):
         s3.load_surrogate3d(BLOCK.prior(), build=False, grid=GRID)
     assert "fingerprint differs" in capsys.readouterr().err
+
+
+def test_a_calibration_is_applied_only_on_the_mesh_it_was_made_for(table, monkeypatch):
+    """The table's mesh needs none; another mesh gets its own (solved once, then cached), never another mesh's: the
+    shipped block3d table was calibrated on block3d's default mesh and applied, before this, to scenes on the table's
+    own mesh too (the tests' coarse block and the 3D study), scaling their contrast by 0.82-0.95 for nothing."""
+    sur, _, _ = table
+    assert np.all(sur.mesh_factor == 1.0)                                   # BLOCK is on GRID's mesh
+    grid = dataclasses.replace(GRID, cal_nodes=((1, 1),))
+    finer = dataclasses.replace(BLOCK, analysis=dataclasses.replace(BLOCK.analysis, mesh_size_m=0.006)).prior()
+    with pytest.raises(FileNotFoundError, match="calibration"):
+        s3.calibration_for(finer, grid, sur.data, build=False)
+    cal_s, fac = s3.calibration_for(finer, grid, sur.data, runner=Runner(workers=1, progress=False))
+    assert cal_s.tolist() == [grid.s_m[1]] and fac.shape == (1, len(grid.levels_m))
+    assert np.all(np.isfinite(fac)) and np.all(np.abs(fac - 1) < 0.3) and np.any(fac != 1.0)
+    monkeypatch.setattr(s3, "calibrate3d", lambda *a, **k: pytest.fail("solved again instead of read from the cache"))
+    again = s3.calibration_for(finer, grid, sur.data, build=False)
+    assert np.array_equal(again[1], fac)
+    stored = dict(sur.data, cal_mesh=s3.own_mesh(finer), cal_s_m=cal_s, cal_factor=2 * fac)
+    assert np.array_equal(s3.calibration_for(finer, grid, stored)[1], 2 * fac)   # built for this mesh: its own
