@@ -9,9 +9,12 @@ of that TRUE block gives the force; the measurement model of the 2D study (plann
 and the free-air baseline's white noise, the zeroing error, a random drift) gives the probe records; the belief side
 (planner.refine3d.adaptive3d -> planner.localize3d) sees only the prior and those records.
 
-Resolution: the study's prior and truths are solved on the surrogate table's mesh (``STUDY_ANALYSIS``: 8 s per
-truth instead of 50 s on block3d's default mesh); the prior and each truth are still different meshes (a stone
-changes the mesh), so the localizer meets the mesh ripple it meets in `palpate run` (about 0.1 mN).
+Resolution: the study's prior and truths are solved on the scene's own mesh (block3d's default: 15-25 s per truth
+here). The prior and each truth are different meshes (a stone changes the mesh), so the localizer meets the mesh
+ripple it meets in `palpate run`: about 0.05-0.1 mN on block3d's mesh. The surrogate table's coarse mesh (0.016 m,
+grade 0.5; 7 s per truth) is no truth for a study: its ripple, 0.2-0.6 mN against a 1.4 mN peak contrast of the
+paper's stone, put that stone 6.7 mm off (docs/loop3d.md); a coarse scene passed with ``--scene`` is studied on
+its own mesh all the same.
 
 Methods per stone: ``adaptive`` (a 6 x 6 coarse grid, every other probe shallower: planner.refine3d.coarse_depths,
 then refinement rounds of 12 until the target uncertainty or the budget) and ``grid-N`` even grids (6x6 ... 12x12,
@@ -45,13 +48,7 @@ COARSE = (6, 6)
 GRIDS = ((6, 6), (8, 8), (10, 10), (12, 12))
 DEPTH_M = 0.004                 # the planner's depth on block3d (depth limit 4 mm; the force far below the limit)
 STONE_REGION_M = 0.030          # stones are centred over the middle 30 x 30 mm of the probed area
-STUDY_MESH = {"mesh_size_m": 0.016, "grade": 0.5}
 FAILED = "failed"                # the method of a trial that raised: its one row carries the error
-
-
-def study_prior(prior):
-    """The study's prior: ``prior`` on the surrogate table's mesh (module doc)."""
-    return prior.with_analysis(**STUDY_MESH)
 
 
 def random_stone3d(rng, prior) -> Stone:

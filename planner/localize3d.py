@@ -148,6 +148,8 @@ def peak_estimate3d(x, y, c, radius_m: float = PEAK_RADIUS_M) -> tuple[float, fl
     the probes within ``radius_m`` of it with a positive contrast."""
     k = int(np.argmax(c))
     near = (np.hypot(x - x[k], y - y[k]) <= radius_m) & (c > 0)
+    if not near.any():            # no probe shows a positive contrast (healthy-looking tissue): the largest one
+        return float(x[k]), float(y[k]), float(c[k])
     w = c[near]
     return float(np.sum(w * x[near]) / np.sum(w)), float(np.sum(w * y[near]) / np.sum(w)), float(c[k])
 

@@ -173,3 +173,16 @@ def test_run_refuses_the_other_dimensions_options(tmp_path, capsys, argv, what):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and what in err[0]
     assert not (tmp_path / "out").exists()
+
+
+def test_peak_of_a_contrast_with_no_positive_probe_is_the_largest_probe():
+    """Healthy-looking tissue can give no positive contrast at all (the 3D study's random stone under a stiffer
+    patch of mesh): the peak is then the largest probe's own position, never a 0/0 that would reach the fit."""
+    from planner.localize3d import peak_estimate3d
+    x = np.array([0.01, 0.02, 0.03])
+    y = np.array([0.015, 0.015, 0.02])
+    c = np.array([-3e-4, -1e-4, -2e-4])
+    assert peak_estimate3d(x, y, c) == (0.02, 0.015, -1e-4)
+    c2 = np.array([-3e-4, 2e-4, 1e-4])          # two positive within 5 mm of the largest: their weighted centroid
+    px, py, pc = peak_estimate3d(x, y, c2, radius_m=0.02)
+    assert px == pytest.approx((2e-4 * 0.02 + 1e-4 * 0.03) / 3e-4) and pc == 2e-4

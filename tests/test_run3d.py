@@ -1,29 +1,29 @@
 """The whole 3D loop on the simulated arm: `palpate run BLOCK --sim` plans a grid over the probed area (CasADi),
 probes (robot.driver on the in-memory arm pressing the TRUE block, nano17 noise), localizes in (x, y, depth) from the
-prior block and the records only, refines once and reports.
+prior block and the records only, refines and reports.
 
-Short and coarse to fit CI: block3d's tissue and tip on the 3D surrogate table's mesh (tests/data/*-coarse.toml: 7 s
-per fem model instead of 50 s), a 6 x 6 grid and up to two refinement rounds of 12. The surrogate is the table shipped in
-planner/data for block3d (the same table: its key holds the table's own mesh, not the scene's), checked against
-today's fem by its fingerprint."""
+The truths are block3d's own (its default mesh, 15-25 s per fem model here): the scenes the issue names. The
+surrogate table's coarse mesh is no truth to test against: its mesh ripple (0.2-0.6 mN between a stone's mesh and
+the prior's) is half the paper stone's whole contrast (1.4 mN at 3 mm) and put that stone 6.7 mm off; on block3d's
+mesh the ripple is 0.05-0.1 mN (docs/loop3d.md). The surrogate is the table shipped in planner/data for block3d,
+checked against today's fem by its fingerprint."""
 from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.cli import main
 from robot.records import read_records
 
-DATA = Path(__file__).parent / "data"
-ARGS = ["--sim", "--grid", "6x6", "--budget-probes", "60", "--refine-waypoints", "12"]
+CHI2_2DOF_95 = 5.991          # the 95 % uncertainty ellipse of (x, y)
 
 
 @pytest.fixture(scope="module")
 def surrogate():
-    """The shipped table (planner/data). Rebuilding it takes ~10 min: rather than do that inside a test, fail and
+    """The shipped table (planner/data). Rebuilding it takes ~25 min: rather than do that inside a test, fail and
     say how."""
     from fem.scene import load
     from planner.surrogate3d import load_surrogate3d
@@ -34,19 +34,30 @@ def surrogate():
                     f"`python -m planner.surrogate3d block3d --ship` and commit planner/data/")
 
 
-def test_block_stone_is_found(tmp_path, surrogate):
-    """block3d (the paper's stone under the middle) with its truth on the coarse mesh: detected, within 5 mm in the
-    plane (measured 4.2 mm at 60 probes: the surrogate is calibrated to block3d's default mesh, and the coarse
-    truth's mesh noise is a systematic error the table does not know; on the default mesh the main job finds it
-    within 0.9 mm: README), depth within 3 stated sigmas + 1 mm; result.json carries y_m; the figure is written."""
-    assert main(["run", str(DATA / "block3d-coarse.toml"), *ARGS, "--out", str(tmp_path)]) == 0
-    r = json.loads((tmp_path / "result.json").read_text())
-    assert r["status"] == "ok" and r["detected"] is True and r["dimension"] == 3
+def _found(r: dict, x_m: float, y_m: float, depth_m: float) -> tuple[float, float]:
+    """(lateral error, squared Mahalanobis distance of (x, y) in the reported ellipse); asserts the depth lies within
+    3 stated sigmas."""
+    assert r["status"] == "ok" and r["detected"] is True and r["dimension"] == 3, r.get("evidence")
     est = r["estimate"]
-    assert math.hypot(est["x_m"]["value"] - 0.035, est["y_m"]["value"] - 0.035) < 5e-3, est
-    assert r["sim"]["error"]["lateral_m"] < 5e-3
-    assert abs(est["depth_m"]["value"] - 0.025) < 3 * est["depth_m"]["sigma"] + 1e-3, est
-    assert r["probes_used"] <= 60 and len(r["rounds"]) >= 2
+    dx, dy = est["x_m"]["value"] - x_m, est["y_m"]["value"] - y_m
+    sx, sy, c = est["x_m"]["sigma"], est["y_m"]["sigma"], est["corr_xy"]
+    cov = np.array([[sx * sx, c * sx * sy], [c * sx * sy, sy * sy]])
+    d2 = float(np.array([dx, dy]) @ np.linalg.solve(cov, [dx, dy]))
+    assert abs(est["depth_m"]["value"] - depth_m) < 3 * est["depth_m"]["sigma"], est
+    return math.hypot(dx, dy), d2
+
+
+def test_block3d_stone_is_found_within_1_mm(tmp_path, surrogate):
+    """`palpate run block3d --sim` (the paper's stone under the middle, 25 mm deep): found within 1 mm in the plane
+    (the issue's test; measured 0.90 mm after 84 probes, a 1.25-sigma miss of a +-0.75 / 0.69 mm estimate: the noise,
+    not a bias, sets it), inside its own 95 % ellipse, depth within 3 sigmas; result.json carries y_m; the
+    grid covers the area; the figure is written."""
+    assert main(["run", "block3d", "--sim", "--out", str(tmp_path)]) == 0
+    r = json.loads((tmp_path / "result.json").read_text())
+    lateral, d2 = _found(r, 0.035, 0.035, 0.025)
+    assert lateral < 1e-3 and d2 < CHI2_2DOF_95, r["estimate"]
+    assert r["sim"]["error"]["lateral_m"] == pytest.approx(lateral)
+    assert r["probes_used"] <= 84 and len(r["rounds"]) >= 2
     recs = read_records(tmp_path)
     assert len(recs) == r["probes_used"] and all(rec.status == "ok" for rec in recs)
     assert any(abs(rec.y_m - 0.035) > 0.01 for rec in recs)          # the grid covers the area, not a line
@@ -54,9 +65,18 @@ def test_block_stone_is_found(tmp_path, surrogate):
     assert (tmp_path / "fig_run.png").stat().st_size > 10_000
 
 
+def test_stone_off_the_centre_in_y_is_found_there(tmp_path, surrogate):
+    """block3d-front (the stone at y = 20 mm, 5 mm inside the probed area's edge, x = 35 mm): found there, within
+    1 mm in the plane (measured 0.74 mm) and inside its 95 % ellipse; not at the centre."""
+    assert main(["run", "block3d-front", "--sim", "--no-figure", "--out", str(tmp_path)]) == 0
+    r = json.loads((tmp_path / "result.json").read_text())
+    lateral, d2 = _found(r, 0.035, 0.020, 0.025)
+    assert lateral < 1e-3 and d2 < CHI2_2DOF_95, r["estimate"]
+
+
 def test_healthy_block_gives_no_stone_and_the_localizer_never_sees_the_truth(tmp_path, surrogate, monkeypatch):
-    """A healthy block: no stone. Every localization call gets the stone-free prior (a spy on the loop's
-    localizer)."""
+    """A healthy block whose true surface lies 0.8 mm above the registered one: no stone, the offset and the
+    stiffness scale recovered. Every localization call gets the stone-free prior (a spy on the loop's localizer)."""
     import planner.refine3d as refine3d
     seen = []
     real = refine3d.localize3d
@@ -65,10 +85,11 @@ def test_healthy_block_gives_no_stone_and_the_localizer_never_sees_the_truth(tmp
         seen.append(prior)
         return real(prior, meas, *a, **k)
     monkeypatch.setattr(refine3d, "localize3d", spy)
-    assert main(["run", str(DATA / "block3d-healthy-coarse.toml"), "--sim", "--grid", "5x5", "--no-figure",
-                 "--out", str(tmp_path)]) == 0
+    assert main(["run", "block3d-healthy", "--sim", "--grid", "5x5", "--no-figure", "--truth-surface-offset-m",
+                 "0.0008", "--out", str(tmp_path)]) == 0
     r = json.loads((tmp_path / "result.json").read_text())
     assert r["status"] == "ok" and r["detected"] is False, r["evidence"]
     assert r["nuisance"]["fit"] == "no stone"
-    assert abs(r["nuisance"]["stiffness_scale"]["value"] - 1.0) < 0.05
+    assert abs(r["nuisance"]["stiffness_scale"]["value"] - 1.0) < 0.02         # measured 1.004 +- 0.004
+    assert abs(r["nuisance"]["surface_offset_m"]["value"] - 0.0008) < 5e-5    # measured 0.800 +- 0.013 mm
     assert seen and all(p.stones == () for p in seen)

@@ -27,7 +27,7 @@ from app.options import check_output_dir, check_output_file, int_range, load_sce
 from fem.sweep import sweep_piece
 from fem.sweep import write_results as write_sweep
 from planner.accuracy import run_accuracy, study_trials
-from planner.accuracy3d import run_accuracy3d, study_prior, study_trials3d
+from planner.accuracy3d import run_accuracy3d, study_trials3d
 from planner.accuracy3d_report import write_report as write_accuracy3d
 from planner.accuracy_report import write_report
 from planner.detect_study import run_detect, study_cases
@@ -241,7 +241,7 @@ def run_accuracy3d_study(args, scene, runner: Runner, out: Path) -> dict:
     stones = args.trials if args.trials is not None else (10 if args.quick else 50)
     healthy = args.healthy if args.healthy is not None else (5 if args.quick else 20)
     budget = args.budget_probes or 84
-    prior = study_prior(scene.prior())
+    prior = scene.prior()
     options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "sensor": args.sensor,
                "budget": budget, "target_m": args.target_uncertainty_m}
     store = pieces_dir(out, "accuracy3d", options)
