@@ -2,7 +2,8 @@
 accuracy3d.md (the tables) and accuracy3d.png (errors against the stone's depth, and against probes used).
 
 Per method over the stones: the fraction detected, the median lateral (in-plane) and depth errors of the detected,
-their 68 % / 95 % interval coverage, the median probes; detection inside the detectability envelope (stones the
+their 68 % / 95 % interval coverage (x, y and depth), the median probes (over the stones; the healthy blocks'
+apart); detection inside the detectability envelope (stones the
 coarse grid's analysis gives p_detect >= 0.9: planner.detect3d) against the 95 % target; false alarms over the
 healthy blocks. The probes an even grid needs for the adaptive run's medians: the smallest grid whose median lateral
 and depth errors are both at most the adaptive run's, as a ratio to the adaptive run's median probes; and the
@@ -50,13 +51,15 @@ def summarise(rows: list[dict]) -> dict:
             "median_depth_error_m": _median([abs(r["err_depth_m"]) for r in det]),
             "median_diameter_error_m": _median([abs(r["err_diam_m"]) for r in det]),
             "coverage_x_68": _coverage(det, "err_x_m", "sigma_x_m", 1), "coverage_x_95": _coverage(det, "err_x_m", "sigma_x_m", 2),
+            "coverage_y_68": _coverage(det, "err_y_m", "sigma_y_m", 1), "coverage_y_95": _coverage(det, "err_y_m", "sigma_y_m", 2),
             "coverage_depth_68": _coverage(det, "err_depth_m", "sigma_depth_m", 1),
             "coverage_depth_95": _coverage(det, "err_depth_m", "sigma_depth_m", 2),
             "in_envelope": len(env), "detected_in_envelope": sum(r["detected"] for r in env),
             "detect_in_envelope_fraction": (sum(r["detected"] for r in env) / len(env)) if env else float("nan"),
             "false_alarms": sum(r["detected"] for r in he),
             "false_alarm_fraction": (sum(r["detected"] for r in he) / len(he)) if he else float("nan"),
-            "median_probes": _median([r["n_probes"] for r in st + he])}
+            "median_probes": _median([r["n_probes"] for r in st]),
+            "median_probes_healthy": _median([r["n_probes"] for r in he])}
     a = out["methods"].get("adaptive")
     if a:
         need = None
@@ -94,16 +97,18 @@ def write_report(out: Path, rows: list[dict], command: str, elapsed_s: float, wh
     (out / "accuracy3d.json").write_text(json.dumps(s, indent=1, default=lambda v: None))
     lines = [f"3D accuracy study: `{command}` ({elapsed_s:.0f} s, {where})", "",
              "| method | probes (median) | detected | lateral error (mm, median) | depth error (mm, median) | "
-             "diameter error (mm) | x in 1/2 sigma | depth in 1/2 sigma | detected in envelope | false alarms |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "diameter error (mm) | x in 1/2 sigma | y in 1/2 sigma | depth in 1/2 sigma | detected in envelope | "
+             "false alarms | probes on healthy blocks (median) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for m, v in s["methods"].items():
         lines.append(
             f"| {m} | {_fmt(v['median_probes'], 1, 0)} | {v['detected']}/{v['stones']} | "
             f"{_fmt(v['median_lateral_error_m'], 1e3)} | {_fmt(v['median_depth_error_m'], 1e3)} | "
             f"{_fmt(v['median_diameter_error_m'], 1e3)} | {_fmt(v['coverage_x_68'], 100, 0)} / "
-            f"{_fmt(v['coverage_x_95'], 100, 0)} % | {_fmt(v['coverage_depth_68'], 100, 0)} / "
+            f"{_fmt(v['coverage_x_95'], 100, 0)} % | {_fmt(v['coverage_y_68'], 100, 0)} / "
+            f"{_fmt(v['coverage_y_95'], 100, 0)} % | {_fmt(v['coverage_depth_68'], 100, 0)} / "
             f"{_fmt(v['coverage_depth_95'], 100, 0)} % | {v['detected_in_envelope']}/{v['in_envelope']} | "
-            f"{v['false_alarms']}/{v['healthy']} |")
+            f"{v['false_alarms']}/{v['healthy']} | {_fmt(v['median_probes_healthy'], 1, 0)} |")
     e = s.get("even_grid_for_adaptive_medians")
     if e:
         lines += ["", ("even grid reaching the adaptive run's medians: "

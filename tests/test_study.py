@@ -196,6 +196,12 @@ def test_sweep_study_scenes_are_seeded_per_scene(tmp_path):
     for i, r in enumerate(rows):
         assert _comparable([r]) == _comparable([alone[i]])          # (as JSON: NaN equals NaN)
     assert (out / "sweep.md").read_text().startswith("### Random-scene sweep (3 scenes)")
+    # a second invocation resumes (its report says how long the resumption took); each run's time is kept in the log
+    assert main(["study", "sweep", "--scenes", "3", "--seed", "5", "--workers", "1", "--no-progress",
+                 "--out", str(out)]) == 0
+    log = [json.loads(line) for line in (out / "runs.jsonl").read_text().splitlines()]
+    assert [r["study"] for r in log] == ["sweep", "sweep"] and all(r["wall_s"] >= r["elapsed_s"] >= 0 for r in log)
+    assert all(r["options"]["scenes"] == 3 and r["options"]["seed"] == 5 for r in log)
 
 
 def test_the_study_arm_continues_the_force_where_fem_refuses_the_indentation():

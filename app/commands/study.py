@@ -4,7 +4,7 @@ Each study is a list of independent pieces (planner.tasks) run serially (``--wor
 this machine (``--workers N``; the default: one worker per CPU) or on an existing dask cluster (``--scheduler
 ADDRESS``). The results equal a serial run's (every piece carries its own seed). Finished pieces are kept in
 ``DIR/pieces/<study>-<options hash>/`` and never overwritten: the same command resumes an interrupted study; other
-options start another set beside it.
+options start another set beside it. Each invocation appends a line to ``DIR/runs.jsonl`` (when, how long, where).
 """
 from __future__ import annotations
 
@@ -141,9 +141,24 @@ def run(args) -> int:
     runner = runner_of(args)
     study = {"accuracy": run_accuracy_study, "mismatch": run_mismatch_study, "detect": run_detect_study,
              "sweep": run_sweep_study, "accuracy3d": run_accuracy3d_study}[args.study]
+    t0 = time.time()
     summary = study(args, scene, runner, out)
+    _log_invocation(out, args, t0, summary)
     write_json(args.json, summary)
     return 1 if summary.get("failures") else 0
+
+
+def _log_invocation(out: Path, args, t0: float, summary: dict) -> None:
+    """One line per invocation appended to DIR/runs.jsonl (start time, wall time, where, the options): the
+    reports are rewritten by every invocation (a resumed study's says only how long the resumption took), the log
+    keeps each run's."""
+    options = {k: v for k, v in vars(args).items() if isinstance(v, (str, int, float, bool, type(None)))}
+    line = {"study": args.study, "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime(t0)),
+            "wall_s": round(time.time() - t0, 3), "elapsed_s": summary.get("elapsed_s"), "where": summary.get("where"),
+            "options": options}
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "runs.jsonl", "a") as fh:
+        fh.write(json.dumps(line) + "\n")
 
 
 def _run(runner: Runner, compute):
