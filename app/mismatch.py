@@ -17,7 +17,9 @@ surface up to 2 mm above the nominal one makes the true indentation reach the ti
 ends) with an 8 mN contact threshold (20 mN is never reached when the surface lies 2 mm below the nominal one).
 Each trial's records are also localized with the tissue taken as known (``nuisance=False``, the localizer before
 issue 14) for comparison; a stone is inside the detectability envelope when planner.detectability.p_detect (the
-coarse raster, nuisance projected out) is at least 0.9. Trials are drawn in the parent from one generator (the same
+coarse raster, nuisance projected out) is at least 0.9: ``p_detect`` on the prior as the planner sees it, and
+``p_detect_in_truth`` with the truth's modulus and surface (the judge's: a stone in tissue half as stiff gives half
+the contrast; the belief's envelope counts it as detectable all the same). Trials are drawn in the parent from one generator (the same
 study whoever runs it) and each run keeps its files in ``runs/trial-NNNN/``.
 """
 from __future__ import annotations
@@ -122,6 +124,31 @@ def truth_toml(prior, mm: dict, stone) -> str:
     return dump_toml(sc) + "\n[truth]\n" + "".join(f"{k} = {v!r}\n" for k, v in truth.items())
 
 
+class _Scaled:
+    """A surrogate whose contrast is ``k`` times another's (a rigid stone's contrast is proportional to E)."""
+
+    def __init__(self, sur, k: float):
+        self.sur, self.k = sur, k
+
+    def contrast(self, *a, **kw):
+        return self.k * np.asarray(self.sur.contrast(*a, **kw))
+
+
+def p_detect_in_truth(prior, sur, stone, mm: dict, coarse_x) -> float:
+    """The study's judge (it knows the truth; the localizer never calls this): the coarse raster's detection
+    probability for ``stone`` in the TRUE tissue as far as the prior's table can say it: the contrast scaled by the
+    true modulus, at the true indentation (the planned depth plus the true surface's height over the nominal one at
+    each probe: offset and tilt, as robot.truth places it). Poisson ratio and thickness stay the prior's (a table per
+    truth would cost minutes)."""
+    x = np.asarray(coarse_x, float)
+    W = prior.tissue.width_m
+    above = mm["surface_offset_m"] + (x - 0.5 * W) * math.tan(math.radians(mm["surface_tilt_deg"]))
+    dep = np.clip(PLAN_DEPTH_M + above, 0.2 * PLAN_DEPTH_M, None)
+    return p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=dep,
+                    sigma_n=probe_sigma_n(sensor_spec("nano17")), surrogate=_Scaled(sur, mm["youngs_scale"]),
+                    tau_s=probe_tau_s(Motion(), dep))
+
+
 def run_trial(shared: Shared, t: MismatchTrial) -> dict:
     """One trial's row (a module-level function: dask workers import it)."""
     prior, sur = shared.prior, shared.sur
@@ -164,6 +191,7 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
         row["p_detect"] = p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=coarse_x, depth_m=dep,
                                    sigma_n=probe_sigma_n(sensor_spec("nano17")), surrogate=sur,
                                    tau_s=probe_tau_s(Motion(), dep))
+        row["p_detect_truth"] = p_detect_in_truth(prior, sur, stone, t.mismatch, coarse_x)
         if r["detected"]:
             iv = est["depth_interval_m"]
             row.update(err_x_m=est["x_m"]["value"] - stone.x_m, err_depth_m=est["depth_m"]["value"] - stone.depth_m,

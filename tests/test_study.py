@@ -239,3 +239,30 @@ def test_mismatch_study_runs_whole_truths_and_resumes(tmp_path):
     assert [p.stat().st_mtime_ns for p in pieces + runs] == stamps
     with open(tmp_path / "mismatch.csv") as f:
         assert list(csv.DictReader(f)) == rows
+
+
+def test_mismatch_envelope_is_judged_in_the_true_tissue():
+    """The mismatch study's judge (app.mismatch.p_detect_in_truth): with no mismatch it equals the planner's own
+    detectability; a truth half as stiff (half the contrast, the same noise) makes a marginal stone less
+    detectable, one twice as stiff more; a surface 1 mm above the nominal one presses 1 mm deeper: more."""
+    import numpy as np
+
+    from app.mismatch import PLAN_DEPTH_M, p_detect_in_truth
+    from core.contracts import Motion, sensor_spec
+    from fem.scene import Stone, load
+    from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
+    from planner.surrogate import load_surrogate
+    prior = load("paper").prior()
+    sur = load_surrogate(prior)
+    x = np.linspace(0.01, 0.06, 15)
+    stone = Stone(x_m=0.033, depth_m=0.030, diameter_m=0.009)
+    none = {"youngs_scale": 1.0, "surface_offset_m": 0.0, "surface_tilt_deg": 0.0}
+    dep = np.full(len(x), PLAN_DEPTH_M)
+    belief = p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=dep,
+                      sigma_n=probe_sigma_n(sensor_spec("nano17")), surrogate=sur, tau_s=probe_tau_s(Motion(), dep))
+    p = {k: p_detect_in_truth(prior, sur, stone, {**none, **v}, x) for k, v in
+         {"same": {}, "soft": {"youngs_scale": 0.5}, "stiff": {"youngs_scale": 2.0},
+          "high": {"surface_offset_m": 0.001}}.items()}
+    assert p["same"] == pytest.approx(belief, rel=1e-12)
+    assert 0.02 < belief < 0.98, belief                 # a marginal stone: the comparisons below can show
+    assert p["soft"] < belief < p["stiff"] and p["high"] > belief, p
