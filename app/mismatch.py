@@ -49,6 +49,7 @@ from robot.records import read_records
 PLAN_DEPTH_M = 0.003
 CONTACT_THRESHOLD_N = 0.008
 PLAN_WAYPOINTS = 15
+DEPTH_CAP_TIP_RADII = 0.9         # the judge's true indentation is capped below the tip radius (p_detect_in_truth)
 RANGES = {"youngs_scale": (0.5, 2.0), "poisson": (0.35, 0.49), "thickness_scale": (0.9, 1.1),
           "surface_offset_m": (-0.002, 0.002), "surface_tilt_deg": (-3.0, 3.0), "relaxation_fraction": (0.2, 0.3),
           "relaxation_tau_s": (1.0, 4.0)}
@@ -138,12 +139,13 @@ def p_detect_in_truth(prior, sur, stone, mm: dict, coarse_x) -> float:
     """The study's judge (it knows the truth; the localizer never calls this): the coarse raster's detection
     probability for ``stone`` in the TRUE tissue as far as the prior's table can say it: the contrast scaled by the
     true modulus, at the true indentation (the planned depth plus the true surface's height over the nominal one at
-    each probe: offset and tilt, as robot.truth places it). Poisson ratio and thickness stay the prior's (a table per
-    truth would cost minutes)."""
+    each probe: offset and tilt, as robot.truth places it), capped at 0.9 tip radii (fem's contact model ends at the
+    tip radius; the simulator continues the force linearly beyond it). Poisson ratio and thickness stay the prior's
+    (a table per truth would cost minutes)."""
     x = np.asarray(coarse_x, float)
     W = prior.tissue.width_m
     above = mm["surface_offset_m"] + (x - 0.5 * W) * math.tan(math.radians(mm["surface_tilt_deg"]))
-    dep = np.clip(PLAN_DEPTH_M + above, 0.2 * PLAN_DEPTH_M, None)
+    dep = np.clip(PLAN_DEPTH_M + above, 0.2 * PLAN_DEPTH_M, DEPTH_CAP_TIP_RADII * prior.indenter.radius_m)
     return p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=dep,
                     sigma_n=probe_sigma_n(sensor_spec("nano17")), surrogate=_Scaled(sur, mm["youngs_scale"]),
                     tau_s=probe_tau_s(Motion(), dep))

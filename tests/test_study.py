@@ -266,3 +266,6 @@ def test_mismatch_envelope_is_judged_in_the_true_tissue():
     assert p["same"] == pytest.approx(belief, rel=1e-12)
     assert 0.02 < belief < 0.98, belief                 # a marginal stone: the comparisons below can show
     assert p["soft"] < belief < p["stiff"] and p["high"] > belief, p
+    # a surface 2 mm high and tilted 3 deg presses deeper than the tip radius at one end: capped, not an error
+    assert 0.0 <= p_detect_in_truth(prior, sur, stone, {**none, "surface_offset_m": 0.002, "surface_tilt_deg": 3.0},
+                                    x) <= 1.0
