@@ -3,7 +3,8 @@
     python bench/bench_3d.py convergence [--out bench-out] [--levels p2-2.0 p2-1.5 ...]
     python bench/bench_3d.py waypoints   [--out bench-out]       # block3d, 100 waypoints, set-up, cache, memory
     python bench/bench_3d.py hertz       [--out bench-out]       # rigid sphere on a block 20 R wide
-    python bench/bench_3d.py solvers     [--out bench-out]       # SuperLU vs CHOLMOD Schur condensation
+    python bench/bench_3d.py solvers [LEVEL [METHOD ...]] [--out bench-out]   # Schur condensation: CHOLMOD with
+                                     # METIS or AMD, SuperLU; the full solve against the backward sweep
     python bench/bench_3d.py table       [--out bench-out]       # markdown from the JSON lines written above
 
 Every configuration runs in its own process (``one``), so its peak resident memory (ru_maxrss) is its own; each
@@ -49,16 +50,22 @@ def _grid():
     return [(float(x), float(y)) for y in xs for x in xs]
 
 
-def one_convergence(level: str) -> dict:
-    from fem.contact3d import SurfaceModel3D
-    from fem.model3d import build_model3d
+def _level_scene(level: str):
+    """(block3d at LEVELS[level], order, mesh_size_m, surface_refine); a suffix -g25 sets analysis.grade."""
     from fem.scene import load
-    from fem.scene_mesh3d import mesh_for3d
-    from fem.uniform3d import solve_uniform3d
     base, _, g = level.partition("-g")
     order, size, refine = LEVELS[base]
     sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine,
                                         grade=GRADES[f"g{g}"] if g else None)
+    return sc, order, size, refine
+
+
+def one_convergence(level: str) -> dict:
+    from fem.contact3d import SurfaceModel3D
+    from fem.model3d import build_model3d
+    from fem.scene_mesh3d import mesh_for3d
+    from fem.uniform3d import solve_uniform3d
+    sc, order, size, refine = _level_scene(level)
     t0 = time.perf_counter()
     mesh = mesh_for3d(sc, use=False)
     t1 = time.perf_counter()
@@ -105,19 +112,38 @@ def one_waypoints(cache_dir: str, phase: str) -> dict:
     s = time.perf_counter()
     sm.indent(0.035, 0.035, DEPTH_M)
     first_stress_s = time.perf_counter() - s        # assembles the model and factorizes K once
-    tsx = []
-    for x, y in grid[:20]:
+    tsx, fast = [], []
+    for x, y in grid:
         s = time.perf_counter()
-        sm.indent(x, y, DEPTH_M, stresses=True)
+        fast.append(sm.indent(x, y, DEPTH_M, stresses=True))
         tsx.append(time.perf_counter() - s)
     s = time.perf_counter()
     sm.indent_many([(x, y, DEPTH_M) for x, y in grid], stresses=True)
     batched = time.perf_counter() - s
+    fac = sm.fac                               # the same waypoints by the full back-substitution (forward + back)
+    sm._fac = _FullSolveOnly(fac)
+    tfull, dvm = [], []
+    for (x, y), r in zip(grid[::5], fast[::5]):
+        s = time.perf_counter()
+        rf = sm.indent(x, y, DEPTH_M, stresses=True)
+        tfull.append(time.perf_counter() - s)
+        dvm.append(abs(r.max_von_mises_pa / rf.max_von_mises_pa - 1))
+    sm._fac = fac
     return {**out, "forces_n": forces, "force_only_ms": {"median": 1e3 * float(np.median(tf)),
                                                           "max": 1e3 * float(np.max(tf))},
             "with_stresses_ms": {"median": 1e3 * float(np.median(tsx)), "max": 1e3 * float(np.max(tsx))},
             "with_stresses_batched_100_ms_each": 1e3 * batched / len(grid),
+            "full_solve_path_ms": {"median": 1e3 * float(np.median(tfull)), "max": 1e3 * float(np.max(tfull)),
+                                   "n": len(tfull), "max_rel_diff_von_mises": float(max(dvm))},
+            "ordering": getattr(fac, "ordering", "superlu"),
             "first_stress_query_s": first_stress_s, "peak_rss_gb": _rss_gb()}
+
+
+class _FullSolveOnly:
+    """A condensing factorization seen without ``solve_contact``: stresses by the full back-substitution."""
+
+    def __init__(self, fac):
+        self.free, self.c, self.compliance, self.solve = fac.free, fac.c, fac.compliance, fac.solve
 
 
 def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05, H_over_W: float = 0.5,
@@ -154,25 +180,45 @@ def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05
 
 
 def one_solver(method: str, level: str) -> dict:
+    """method: superlu, cholmod (the default ordering), cholmod-amd or cholmod-metis."""
     from fem.condense import schur
     from fem.contact3d import patch_nodes
     from fem.model3d import build_model3d, fixed_bottom
-    from fem.scene import load
     from fem.scene_mesh3d import mesh_for3d
-    order, size, refine = LEVELS[level]
-    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine)
+    sc = _level_scene(level)[0]
     model = build_model3d(sc, mesh=mesh_for3d(sc, use=False))
     fixed = np.unique(fixed_bottom(model))
     free = np.setdiff1d(np.arange(model.n_dofs), fixed)
     contact = model.reduced_index(3 * patch_nodes(model.mesh, sc.analysis.patch_m) + 2)
     r0 = _rss_gb()
+    kind, _, ordering = method.partition("-")
     t0 = time.perf_counter()
-    f = schur(model.K, free, contact, method)
+    f = schur(model.K, free, contact, kind, ordering or "auto")
     t = time.perf_counter() - t0
     C = f.compliance
-    return {"method": method, "level": level, "dofs": int(model.n_dofs), "patch_nodes": int(len(contact)),
-            "condense_s": t, "peak_rss_gb": _rss_gb(), "rss_before_gb": r0, "trace_C": float(np.trace(C)),
-            "parts_s": getattr(f, "timings_s", {}), "load_avg": os.getloadavg()[0]}
+    row = {"method": method, "level": level, "dofs": int(model.n_dofs), "patch_nodes": int(len(contact)),
+           "condense_s": t, "peak_rss_gb": _rss_gb(), "rss_before_gb": r0, "trace_C": float(np.trace(C)),
+           "parts_s": getattr(f, "timings_s", {}), "load_avg": os.getloadavg()[0]}
+    if hasattr(f, "solve_contact"):            # one waypoint's displacements: full solve against backward sweep
+        rng = np.random.default_rng(0)
+        F = np.zeros((len(contact), 1))
+        F[rng.choice(len(contact), 300, replace=False)] = rng.random((300, 1))
+        rhs = np.zeros((len(free), 1))
+        rhs[f.c] = F
+        s = time.perf_counter()
+        f.solve(rhs[:, 0])
+        row["solve_factor_s"] = time.perf_counter() - s
+        full, back = [], []
+        for _ in range(9):
+            s = time.perf_counter()
+            u = f.solve(rhs)
+            full.append(time.perf_counter() - s)
+            s = time.perf_counter()
+            v = f.solve_contact(F)
+            back.append(time.perf_counter() - s)
+        row.update(full_solve_ms=1e3 * float(np.median(full)), backward_sweep_ms=1e3 * float(np.median(back)),
+                   max_rel_diff=float(np.abs(u - v).max() / np.abs(u).max()))
+    return row
 
 
 def _spawn(out: Path, kind: str, *args: str) -> dict:
@@ -285,8 +331,9 @@ def main(argv=None) -> int:
     elif a.what == "hertz":
         _spawn(out, "hertz", *(a.rest or ["0.05"]))
     elif a.what == "solvers":
-        for method in ("cholmod", "superlu"):
-            _spawn(out, "solver", method, (a.rest or ["p2-2.0"])[0])
+        level, *methods = a.rest or ["p2-2.0"]
+        for method in methods or ("cholmod-metis", "cholmod-amd", "superlu"):
+            _spawn(out, "solver", method, level)
     print(table(out))
     return 0
 

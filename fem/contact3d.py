@@ -262,13 +262,19 @@ class SurfaceModel3D:
             active = f > 0
             vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
             if U is not None and active.any():
-                near = nodes[(np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)]
-                s = components3d(_stress_at(Rb, pos[near], U[:, k]))
+                inside = (np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)
+                near = nodes[inside]
+                s6 = _stress_at(Rb, pos[near], U[:, k])
+                s = components3d(s6)
                 j = int(np.argmax(s["von_mises_pa"]))
                 vm_max = float(s["von_mises_pa"][j])
                 at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
-                st = components3d(_stress_at(Rb, pos[self.patch[idx]], U[:, k]))
-                pressure = np.where(active, np.maximum(-st["szz_pa"], 0.0), 0.0)
+                wpos = pos[self.patch[idx]]
+                if inside[wpos].all():                       # the window's patch nodes in the near box (R <= b):
+                    szz = s6[(np.cumsum(inside) - 1)[wpos], 2]   # their rows of the same recovery
+                else:
+                    szz = _stress_at(Rb, wpos, U[:, k])[:, 2]
+                pressure = np.where(active, np.maximum(-szz, 0.0), 0.0)
             out.append(IndentResult3D(
                 x_m=x_m, y_m=y_m, depth_m=depth_m,
                 force_n=check_finite(float(f.sum()), f"scene {self.scene.name!r}: force"),
