@@ -54,6 +54,8 @@ def interior_order(Kff, interior: np.ndarray, A=None, ordering: str = "auto") ->
     "auto" (METIS when pymetis is installed, else AMD)."""
     if ordering == "auto":
         ordering = "metis" if metis_available() else "amd"
+    if len(interior) < 3:                           # METIS divides by zero on an empty graph
+        return np.asarray(interior, dtype=np.int64)
     if ordering == "metis":
         import pymetis
         G = sp.csr_matrix(Kff)[interior][:, interior]
@@ -188,7 +190,8 @@ class CholmodSchur:
 
 
 class Cholesky:
-    """K = L L' by CHOLMOD (AMD ordering, supernodal) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
+    """K = L L' by CHOLMOD (supernodal; ordering as ``interior_order``: METIS when pymetis is installed, else
+    CHOLMOD's own AMD) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
 
     def __init__(self, K):
         import cvxopt
@@ -197,7 +200,10 @@ class Cholesky:
         A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
                             cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
         self._chm, self._cvx = chm, cvxopt
-        self._F = chm.symbolic(A)
+        if metis_available():
+            self._F = chm.symbolic(A, p=cvxopt.matrix(interior_order(K, np.arange(K.shape[0]), ordering="metis")))
+        else:
+            self._F = chm.symbolic(A)
         chm.numeric(A, self._F)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
