@@ -38,7 +38,7 @@ LEVELS = {   # name: (order, mesh_size_m, surface_refine)
     "p2-0.83": (2, 0.010, 12.0),
     "p2-2.0-10": (2, 0.010, 5.0), "p2-1.5-10": (2, 0.010, 20.0 / 3.0),   # the 10 mm bulk cap of p2-1.25, p2-1.0
 }
-GRADES = {"g25": 0.25, "g35": 0.35}   # a level name with a suffix -g25 uses analysis.grade = 0.25
+GRADES = {"g25": 0.25, "g35": 0.35, "g18": 0.18}   # a level name with a suffix -g25 uses analysis.grade = 0.25
 DEPTH_M = 0.003
 
 
@@ -243,6 +243,44 @@ def _read(out: Path, kind: str) -> list[dict]:
     return [json.loads(line) for line in p.read_text().splitlines() if line.strip()] if p.exists() else []
 
 
+def richardson(rows: list[dict], bulk_m: float = 0.010, grade: float = 0.25) -> list[str]:
+    """Markdown lines: the P2 runs at one bulk cap and grade, refined in h_top only; the observed order p from the
+    three finest (h1 > h2 > h3: (F1 - F2) / (F2 - F3) = (h1^p - h2^p) / (h2^p - h3^p), per waypoint, median),
+    the extrapolated forces F_inf = F3 + (F3 - F2) h3^p / (h2^p - h3^p), and every run's error against them."""
+    from scipy.optimize import brentq
+    seq = sorted((r for r in rows if r["order"] == 2 and r["mesh_size_m"] == bulk_m and r.get("grade") == grade),
+                 key=lambda r: -r["h_top_m"])
+    if len(seq) < 3:
+        return []
+    (h1, h2, h3), (F1, F2, F3) = ([r["h_top_m"] for r in seq[-3:]],
+                                  [np.asarray(r["forces_n"]) for r in seq[-3:]])
+    ratio = (F1 - F2) / (F2 - F3)
+
+    def order(q):
+        g = lambda p: (h1 ** p - h2 ** p) / (h2 ** p - h3 ** p) - q   # noqa: E731  (increasing in p)
+        return brentq(g, 0.05, 12.0) if g(0.05) < 0 < g(12.0) else np.nan
+    ps = np.array([order(q) for q in ratio])
+    monotone = np.isfinite(ps)
+    p = float(np.median(ps[monotone]))
+    F_inf = F3 + (F3 - F2) * h3 ** p / (h2 ** p - h3 ** p)
+    hs = ", ".join(f"{r['h_top_m'] * 1e3:g}" for r in seq)
+    c2, c3 = seq[-2]["force_centre_n"], seq[-1]["force_centre_n"]
+    centre = c3 + (c3 - c2) * h3 ** p / (h2 ** p - h3 ** p)
+    out = [f"Richardson, P2, grade {grade:g}, bulk cap {bulk_m * 1e3:g} mm, h_top {hs} mm: forces converge "
+           f"monotonically at "
+           f"{monotone.sum()} of {len(ps)} waypoints; observed order p = {p:.2f} (median; 10-90 %: "
+           f"{np.percentile(ps[monotone], 10):.2f}-{np.percentile(ps[monotone], 90):.2f}); "
+           f"extrapolated force at (35, 35) mm {centre:.6g} N", "",
+           "| mesh | h_top (mm) | bulk cap (mm) | DOFs | max error against F_inf (100 waypoints) | mean error | error at (35, 35) mm |",
+           "|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["order"], -r["h_top_m"], r["mesh_size_m"])):
+        if r["order"] == 2 and r.get("grade") == grade:
+            e = np.asarray(r["forces_n"]) / F_inf - 1
+            out.append(f"| {r['level']} | {r['h_top_m'] * 1e3:.3g} | {r['mesh_size_m'] * 1e3:g} | {r['dofs']} | "
+                       f"{np.abs(e).max():.2%} | {e.mean():+.2%} | {r['force_centre_n'] / centre - 1:+.2%} |")
+    return out + [""]
+
+
 def table(out: Path) -> str:
     """Markdown tables from the JSON lines (the last run of each configuration)."""
     lines = []
@@ -262,6 +300,7 @@ def table(out: Path) -> str:
                          f"{r['mesh_s']:.1f} + {r['assemble_s']:.1f} + {r['condense_s']:.1f} | "
                          f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} | {r['load_avg']:.1f} |")
         lines.append("")
+        lines += richardson(list(conv.values()))
     way = _read(out, "waypoints")
     if way:
         b = [r for r in way if r["phase"] == "build"][-1]

@@ -21,6 +21,7 @@ of a full solve, the same answer to round-off. Without cvxopt: fem.contact.Schur
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import time
 
 import numpy as np
@@ -45,6 +46,65 @@ def metis_available() -> bool:
     except ImportError:
         return False
     return True
+
+
+class _CholmodDirect:
+    """CHOLMOD's own cholmod_l_solve on a cvxopt factor, for many right-hand sides at once.
+
+    cvxopt's cholmod.solve loops over the columns (one memory-bound sweep through the factor per column); CHOLMOD
+    itself sweeps once for all of them with BLAS-3 on its supernodes. Reached through ctypes in the library cvxopt's
+    extension links (its factor capsule holds a cholmod_factor of the "long" interface). ``get()`` is None when any
+    of it is missing: callers then use cvxopt's solve."""
+
+    _instance: _CholmodDirect | None = None
+    _tried = False
+
+    class Dense(ctypes.Structure):        # cholmod_dense (CHOLMOD 2.x-5.x)
+        _fields_ = [("nrow", ctypes.c_size_t), ("ncol", ctypes.c_size_t), ("nzmax", ctypes.c_size_t),
+                    ("d", ctypes.c_size_t), ("x", ctypes.c_void_p), ("z", ctypes.c_void_p),
+                    ("xtype", ctypes.c_int), ("dtype", ctypes.c_int)]
+
+    def __init__(self):
+        import cvxopt.cholmod as chm
+        lib = ctypes.CDLL(chm.__file__)           # dlsym also searches the libraries it links (libcholmod)
+        lib.cholmod_l_solve.restype = ctypes.POINTER(self.Dense)
+        lib.cholmod_l_solve.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(self.Dense), ctypes.c_void_p]
+        lib.cholmod_l_free_dense.argtypes = [ctypes.POINTER(ctypes.POINTER(self.Dense)), ctypes.c_void_p]
+        self._common = ctypes.create_string_buffer(1 << 20)     # cholmod_common is a few kB; kept for the process
+        if lib.cholmod_l_start(self._common) != 1:
+            raise RuntimeError("cholmod_l_start failed")
+        self._lib = lib
+        self._capsule = ctypes.pythonapi.PyCapsule_GetPointer
+        self._capsule.restype = ctypes.c_void_p
+        self._capsule.argtypes = [ctypes.py_object, ctypes.c_char_p]
+
+    @classmethod
+    def get(cls) -> _CholmodDirect | None:
+        if not cls._tried:
+            cls._tried = True
+            try:
+                cls._instance = cls()
+            except (OSError, AttributeError, RuntimeError):
+                cls._instance = None
+        return cls._instance
+
+    def solve(self, F, Y: np.ndarray, sys: int) -> np.ndarray | None:
+        """X with (system sys) X = Y for a factor F of cvxopt.cholmod; None if F is not a real "long" factor."""
+        try:
+            L = self._capsule(F, b"CHOLMOD FACTOR D L")
+        except ValueError:
+            return None
+        Y = np.asfortranarray(Y, dtype=float)
+        n, k = Y.shape
+        B = self.Dense(n, k, n * k, n, Y.ctypes.data, None, 1, 0)           # CHOLMOD_REAL, CHOLMOD_DOUBLE
+        X = self._lib.cholmod_l_solve(sys, L, ctypes.byref(B), self._common)
+        if not X:
+            raise RuntimeError("cholmod_l_solve failed")
+        x = X.contents
+        buf = ctypes.cast(x.x, ctypes.POINTER(ctypes.c_double))
+        out = np.ctypeslib.as_array(buf, shape=(x.ncol * x.d,)).reshape(x.ncol, x.d)[:, :n].T.copy()
+        self._lib.cholmod_l_free_dense(ctypes.byref(X), self._common)
+        return out
 
 
 def interior_order(Kff, interior: np.ndarray, A=None, ordering: str = "auto") -> np.ndarray:
@@ -175,17 +235,22 @@ class CholmodSchur:
     def solve_contact(self, rhs_c: np.ndarray) -> np.ndarray:
         """K_ff^-1 rhs (n_free, k) for a right-hand side (n_c, k) on the contact DOFs (order of ``contact``), zero
         elsewhere: y_c = L_cc^-1 rhs_c from the kept dense inverse (only rhs_c's nonzero rows are read), then the
-        backward sweep L^T x = y through the sparse factor (CHOLMOD, sys = Lt), then x in the free numbering."""
+        backward sweep L^T x = y through the sparse factor (CHOLMOD, sys = Lt; several columns in one sweep,
+        ``_CholmodDirect``), then x in the free numbering."""
         F = self._factor()
         rhs_c = np.asarray(rhs_c, dtype=float).reshape(len(self.c), -1)
         n, nc, k = len(self.free), len(self.c), rhs_c.shape[1]
         nz = np.flatnonzero(np.any(rhs_c != 0, axis=1))
         Y = np.zeros((n, k), order="F")
         Y[n - nc:] = self._Linv[:, nz] @ rhs_c[nz]
-        B = self._cvx.matrix(Y)
-        self._chm.solve(F, B, sys=5)                              # L^T x = y, in the factor's (permuted) order
+        direct = _CholmodDirect.get() if k > 1 else None
+        Z = direct.solve(F, Y, sys=5) if direct is not None else None     # L^T x = y, in the factor's order
+        if Z is None:
+            B = self._cvx.matrix(Y)
+            self._chm.solve(F, B, sys=5)
+            Z = np.asarray(B)
         X = np.empty((n, k))
-        X[self.p] = np.asarray(B)
+        X[self.p] = Z
         return X
 
 

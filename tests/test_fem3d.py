@@ -308,7 +308,8 @@ class _FullSolveOnly:
 def test_stresses_by_the_backward_sweep_equal_the_full_solve(stone_scene, monkeypatch):
     """Stresses under the tip from the backward sweep alone (the forward sweep of patch forces touches only the
     trailing block) equal those of the full back-substitution to round-off: displacements, the maximum von Mises
-    and where it is, the contact pressures; a rigid stone in the model (its prolongation) included."""
+    and where it is, the contact pressures; a rigid stone in the model (its prolongation) included. Two waypoints
+    at once take CHOLMOD's multi-column sweep (fem.condense._CholmodDirect), one waypoint cvxopt's."""
     m = SurfaceModel3D(stone_scene)
     pts = [(0.015, 0.015, 0.0008), (0.0112, 0.0171, 0.0006)]
     fast = m.indent_many(pts)
