@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import threading
 import time
 
 import numpy as np
@@ -54,7 +55,8 @@ class _CholmodDirect:
     cvxopt's cholmod.solve loops over the columns (one memory-bound sweep through the factor per column); CHOLMOD
     itself sweeps once for all of them with BLAS-3 on its supernodes. Reached through ctypes in the library cvxopt's
     extension links (its factor capsule holds a cholmod_factor of the "long" interface). ``get()`` is None when any
-    of it is missing: callers then use cvxopt's solve."""
+    of it is missing: callers then use cvxopt's solve. ctypes releases the GIL, so calls share one cholmod_common
+    under a lock."""
 
     _instance: _CholmodDirect | None = None
     _tried = False
@@ -71,6 +73,7 @@ class _CholmodDirect:
         lib.cholmod_l_solve.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(self.Dense), ctypes.c_void_p]
         lib.cholmod_l_free_dense.argtypes = [ctypes.POINTER(ctypes.POINTER(self.Dense)), ctypes.c_void_p]
         self._common = ctypes.create_string_buffer(1 << 20)     # cholmod_common is a few kB; kept for the process
+        self._lock = threading.Lock()
         if lib.cholmod_l_start(self._common) != 1:
             raise RuntimeError("cholmod_l_start failed")
         self._lib = lib
@@ -97,13 +100,14 @@ class _CholmodDirect:
         Y = np.asfortranarray(Y, dtype=float)
         n, k = Y.shape
         B = self.Dense(n, k, n * k, n, Y.ctypes.data, None, 1, 0)           # CHOLMOD_REAL, CHOLMOD_DOUBLE
-        X = self._lib.cholmod_l_solve(sys, L, ctypes.byref(B), self._common)
-        if not X:
-            raise RuntimeError("cholmod_l_solve failed")
-        x = X.contents
-        buf = ctypes.cast(x.x, ctypes.POINTER(ctypes.c_double))
-        out = np.ctypeslib.as_array(buf, shape=(x.ncol * x.d,)).reshape(x.ncol, x.d)[:, :n].T.copy()
-        self._lib.cholmod_l_free_dense(ctypes.byref(X), self._common)
+        with self._lock:
+            X = self._lib.cholmod_l_solve(sys, L, ctypes.byref(B), self._common)
+            if not X:
+                raise RuntimeError("cholmod_l_solve failed")
+            x = X.contents
+            buf = ctypes.cast(x.x, ctypes.POINTER(ctypes.c_double))
+            out = np.ctypeslib.as_array(buf, shape=(x.ncol * x.d,)).reshape(x.ncol, x.d)[:, :n].T.copy()
+            self._lib.cholmod_l_free_dense(ctypes.byref(X), self._common)
         return out
 
 

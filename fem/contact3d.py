@@ -8,8 +8,9 @@ As in 2D (fem.contact), per scene: the model is factorized once with the vertica
 nodes ordered last (fem.contact.SchurFactor), so the trailing block of the factors is the Schur complement on them
 and the condensed compliance C (patch-node downward displacement per downward nodal force) is its inverse. A
 waypoint (x, y, depth) is then the LCP  gap = q + C_ww f >= 0, f >= 0, gap . f = 0  over the patch nodes under the
-tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from one
-back-substitution with the contact forces.
+tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from the contact
+forces by the backward sweep alone (fem.condense.CholmodSchur.solve_contact: forces on the patch, ordered last, leave
+the forward sweep to the dense trailing block), several waypoints in one sweep.
 
 A tip fem treats as rigid (fem.tip.treated_as_rigid: no modulus, or its Hertz relative compliance below
 TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid; an elastic tip in 3D is not modelled (refused).
