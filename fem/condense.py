@@ -147,11 +147,12 @@ class CholmodSchur:
     numbering, a subset of ``free``) last. ``compliance``: (n_c, n_c) = S^-1, in the order of ``contact``;
     ``solve``: K_ff^-1 rhs; ``solve_contact``: the same for a right-hand side on the contact DOFs only, by the
     backward sweep alone (the factorization for both is redone on first use, see the module docstring).
-    ``ordering``: the interior's, see ``interior_order``."""
+    ``ordering``: the interior's, see ``interior_order``; ``compliance=False`` skips forming it (None: a model whose
+    compliance came from the disk cache needs only the factor for its fields)."""
 
     _OPTIONS = {"supernodal": 2, "postorder": False, "nmethods": 1}
 
-    def __init__(self, K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto"):
+    def __init__(self, K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto", compliance: bool = True):
         import cvxopt
         import cvxopt.cholmod as chm
         self._cvx, self._chm = cvxopt, chm
@@ -197,13 +198,16 @@ class CholmodSchur:
         if info != 0:
             raise np.linalg.LinAlgError(f"dtrtri failed (info {info}): the Schur complement is not positive definite")
         self._Linv = Linv       # L_cc^-1 (Fortran order, zero above the diagonal), for solve_contact's columns
-        Cinv, info = sla.lapack.dlauum(Linv, lower=1, overwrite_c=0)    # L_cc^-T L_cc^-1 (lower triangle)
-        if info != 0:
-            raise np.linalg.LinAlgError(f"dlauum failed (info {info})")
-        C = np.tril(Cinv)
-        del Cinv, Linv
-        C += np.tril(C, -1).T
-        self.compliance = C
+        self.compliance = None
+        if compliance:
+            Cinv, info = sla.lapack.dlauum(Linv, lower=1, overwrite_c=0)    # L_cc^-T L_cc^-1 (lower triangle)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"dlauum failed (info {info})")
+            C = np.tril(Cinv)
+            del Cinv
+            C += np.tril(C, -1).T
+            self.compliance = C
+        del Linv
         self.free, self.c = free, c
         self.timings_s = {"order_s": t1 - t0, "factor_s": t2 - t1, "extract_s": t3 - t2,
                           "inverse_s": time.perf_counter() - t3}
@@ -289,12 +293,13 @@ def factorize_spd(K):
                      options={"SymmetricMode": True})
 
 
-def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto", ordering: str = "auto"):
+def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto", ordering: str = "auto",
+          compliance: bool = True):
     """The condensation of K_ff onto ``contact``: CholmodSchur ("cholmod", or "auto" when cvxopt is installed; its
-    interior ``ordering``, see ``interior_order``) or fem.contact.SchurFactor ("superlu"). Both have
-    ``compliance``, ``solve``, ``free`` and ``c``; CholmodSchur also ``solve_contact``."""
+    interior ``ordering``, see ``interior_order``; ``compliance=False``: not formed) or fem.contact.SchurFactor
+    ("superlu"). Both have ``compliance``, ``solve``, ``free`` and ``c``; CholmodSchur also ``solve_contact``."""
     if method == "cholmod" or (method == "auto" and available()):
-        return CholmodSchur(K, free, contact, ordering)
+        return CholmodSchur(K, free, contact, ordering, compliance)
     if method in ("superlu", "auto"):
         return SchurFactor(K, free, contact)
     raise ValueError(f"method must be 'auto', 'cholmod' or 'superlu', got {method!r}")

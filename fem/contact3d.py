@@ -186,7 +186,8 @@ class SurfaceModel3D:
             model = self.model
             fixed = np.unique(fixed_bottom(model))
             free = np.setdiff1d(np.arange(model.n_dofs), fixed)
-            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver)
+            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver,
+                              compliance=not hasattr(self, "C"))      # restored from disk: the factor only
         return self._fac
 
     # -- one waypoint --------------------------------------------------------------------------------------------

@@ -367,6 +367,8 @@ def test_cache_restores_the_compliance_bitwise(tmp_path, monkeypatch):
     assert b.force_n(0.015, 0.012, 0.0005) == a.force_n(0.015, 0.012, 0.0005)
     assert b.indent(0.015, 0.012, 0.0005).max_von_mises_pa == pytest.approx(
         a.indent(0.015, 0.012, 0.0005).max_von_mises_pa, rel=1e-9)
+    if condense.available():                        # fields after a restore: the factor, no second compliance
+        assert b.fac.compliance is None
 
 
 def test_bad_waypoints_refused():
