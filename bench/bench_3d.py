@@ -3,7 +3,8 @@
     python bench/bench_3d.py convergence [--out bench-out] [--levels p2-2.0 p2-1.5 ...]
     python bench/bench_3d.py waypoints   [--out bench-out]       # block3d, 100 waypoints, set-up, cache, memory
     python bench/bench_3d.py hertz       [--out bench-out]       # rigid sphere on a block 20 R wide
-    python bench/bench_3d.py solvers     [--out bench-out]       # SuperLU vs CHOLMOD Schur condensation
+    python bench/bench_3d.py solvers [LEVEL [METHOD ...]] [--out bench-out]   # Schur condensation: CHOLMOD with
+                                     # METIS or AMD, SuperLU; the full solve against the backward sweep
     python bench/bench_3d.py table       [--out bench-out]       # markdown from the JSON lines written above
 
 Every configuration runs in its own process (``one``), so its peak resident memory (ru_maxrss) is its own; each
@@ -35,8 +36,9 @@ LEVELS = {   # name: (order, mesh_size_m, surface_refine)
     "p1-1.25": (1, 0.010, 8.0), "p1-0.83": (1, 0.010, 12.0),
     "p2-2.0": (2, 0.012, 6.0), "p2-1.5": (2, 0.012, 8.0), "p2-1.25": (2, 0.010, 8.0), "p2-1.0": (2, 0.010, 10.0),
     "p2-0.83": (2, 0.010, 12.0),
+    "p2-2.0-10": (2, 0.010, 5.0), "p2-1.5-10": (2, 0.010, 20.0 / 3.0),   # the 10 mm bulk cap of p2-1.25, p2-1.0
 }
-GRADES = {"g25": 0.25, "g35": 0.35}   # a level name with a suffix -g25 uses analysis.grade = 0.25
+GRADES = {"g25": 0.25, "g35": 0.35, "g18": 0.18}   # a level name with a suffix -g25 uses analysis.grade = 0.25
 DEPTH_M = 0.003
 
 
@@ -49,16 +51,22 @@ def _grid():
     return [(float(x), float(y)) for y in xs for x in xs]
 
 
-def one_convergence(level: str) -> dict:
-    from fem.contact3d import SurfaceModel3D
-    from fem.model3d import build_model3d
+def _level_scene(level: str):
+    """(block3d at LEVELS[level], order, mesh_size_m, surface_refine); a suffix -g25 sets analysis.grade."""
     from fem.scene import load
-    from fem.scene_mesh3d import mesh_for3d
-    from fem.uniform3d import solve_uniform3d
     base, _, g = level.partition("-g")
     order, size, refine = LEVELS[base]
     sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine,
                                         grade=GRADES[f"g{g}"] if g else None)
+    return sc, order, size, refine
+
+
+def one_convergence(level: str) -> dict:
+    from fem.contact3d import SurfaceModel3D
+    from fem.model3d import build_model3d
+    from fem.scene_mesh3d import mesh_for3d
+    from fem.uniform3d import solve_uniform3d
+    sc, order, size, refine = _level_scene(level)
     t0 = time.perf_counter()
     mesh = mesh_for3d(sc, use=False)
     t1 = time.perf_counter()
@@ -105,19 +113,38 @@ def one_waypoints(cache_dir: str, phase: str) -> dict:
     s = time.perf_counter()
     sm.indent(0.035, 0.035, DEPTH_M)
     first_stress_s = time.perf_counter() - s        # assembles the model and factorizes K once
-    tsx = []
-    for x, y in grid[:20]:
+    tsx, fast = [], []
+    for x, y in grid:
         s = time.perf_counter()
-        sm.indent(x, y, DEPTH_M, stresses=True)
+        fast.append(sm.indent(x, y, DEPTH_M, stresses=True))
         tsx.append(time.perf_counter() - s)
     s = time.perf_counter()
     sm.indent_many([(x, y, DEPTH_M) for x, y in grid], stresses=True)
     batched = time.perf_counter() - s
+    fac = sm.fac                               # the same waypoints by the full back-substitution (forward + back)
+    sm._fac = _FullSolveOnly(fac)
+    tfull, dvm = [], []
+    for (x, y), r in zip(grid[::5], fast[::5]):
+        s = time.perf_counter()
+        rf = sm.indent(x, y, DEPTH_M, stresses=True)
+        tfull.append(time.perf_counter() - s)
+        dvm.append(abs(r.max_von_mises_pa / rf.max_von_mises_pa - 1))
+    sm._fac = fac
     return {**out, "forces_n": forces, "force_only_ms": {"median": 1e3 * float(np.median(tf)),
                                                           "max": 1e3 * float(np.max(tf))},
             "with_stresses_ms": {"median": 1e3 * float(np.median(tsx)), "max": 1e3 * float(np.max(tsx))},
             "with_stresses_batched_100_ms_each": 1e3 * batched / len(grid),
+            "full_solve_path_ms": {"median": 1e3 * float(np.median(tfull)), "max": 1e3 * float(np.max(tfull)),
+                                   "n": len(tfull), "max_rel_diff_von_mises": float(max(dvm))},
+            "ordering": getattr(fac, "ordering", "superlu"),
             "first_stress_query_s": first_stress_s, "peak_rss_gb": _rss_gb()}
+
+
+class _FullSolveOnly:
+    """A condensing factorization seen without ``solve_contact``: stresses by the full back-substitution."""
+
+    def __init__(self, fac):
+        self.free, self.c, self.compliance, self.solve = fac.free, fac.c, fac.compliance, fac.solve
 
 
 def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05, H_over_W: float = 0.5,
@@ -154,25 +181,45 @@ def one_hertz(fine_over_R: float, W_over_R: float = 20.0, d_over_R: float = 0.05
 
 
 def one_solver(method: str, level: str) -> dict:
+    """method: superlu, cholmod (the default ordering), cholmod-amd or cholmod-metis."""
     from fem.condense import schur
     from fem.contact3d import patch_nodes
     from fem.model3d import build_model3d, fixed_bottom
-    from fem.scene import load
     from fem.scene_mesh3d import mesh_for3d
-    order, size, refine = LEVELS[level]
-    sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine)
+    sc = _level_scene(level)[0]
     model = build_model3d(sc, mesh=mesh_for3d(sc, use=False))
     fixed = np.unique(fixed_bottom(model))
     free = np.setdiff1d(np.arange(model.n_dofs), fixed)
     contact = model.reduced_index(3 * patch_nodes(model.mesh, sc.analysis.patch_m) + 2)
     r0 = _rss_gb()
+    kind, _, ordering = method.partition("-")
     t0 = time.perf_counter()
-    f = schur(model.K, free, contact, method)
+    f = schur(model.K, free, contact, kind, ordering or "auto")
     t = time.perf_counter() - t0
     C = f.compliance
-    return {"method": method, "level": level, "dofs": int(model.n_dofs), "patch_nodes": int(len(contact)),
-            "condense_s": t, "peak_rss_gb": _rss_gb(), "rss_before_gb": r0, "trace_C": float(np.trace(C)),
-            "parts_s": getattr(f, "timings_s", {}), "load_avg": os.getloadavg()[0]}
+    row = {"method": method, "level": level, "dofs": int(model.n_dofs), "patch_nodes": int(len(contact)),
+           "condense_s": t, "peak_rss_gb": _rss_gb(), "rss_before_gb": r0, "trace_C": float(np.trace(C)),
+           "parts_s": getattr(f, "timings_s", {}), "load_avg": os.getloadavg()[0]}
+    if hasattr(f, "solve_contact"):            # one waypoint's displacements: full solve against backward sweep
+        rng = np.random.default_rng(0)
+        F = np.zeros((len(contact), 1))
+        F[rng.choice(len(contact), 300, replace=False)] = rng.random((300, 1))
+        rhs = np.zeros((len(free), 1))
+        rhs[f.c] = F
+        s = time.perf_counter()
+        f.solve(rhs[:, 0])
+        row["solve_factor_s"] = time.perf_counter() - s
+        full, back = [], []
+        for _ in range(9):
+            s = time.perf_counter()
+            u = f.solve(rhs)
+            full.append(time.perf_counter() - s)
+            s = time.perf_counter()
+            v = f.solve_contact(F)
+            back.append(time.perf_counter() - s)
+        row.update(full_solve_ms=1e3 * float(np.median(full)), backward_sweep_ms=1e3 * float(np.median(back)),
+                   max_rel_diff=float(np.abs(u - v).max() / np.abs(u).max()))
+    return row
 
 
 def _spawn(out: Path, kind: str, *args: str) -> dict:
@@ -196,6 +243,72 @@ def _read(out: Path, kind: str) -> list[dict]:
     return [json.loads(line) for line in p.read_text().splitlines() if line.strip()] if p.exists() else []
 
 
+def richardson(rows: list[dict], bulk_m: float = 0.010, grade: float = 0.25) -> list[str]:
+    """Markdown lines: the P2 runs at one bulk cap and grade, refined in h_top only; the observed order p from the
+    three finest (h1 > h2 > h3: (F1 - F2) / (F2 - F3) = (h1^p - h2^p) / (h2^p - h3^p), per waypoint, median),
+    the extrapolated forces F_inf = F3 + (F3 - F2) h3^p / (h2^p - h3^p), and every run's error against them."""
+    from scipy.optimize import brentq
+    seq = sorted((r for r in rows if r["order"] == 2 and r["mesh_size_m"] == bulk_m and r.get("grade") == grade),
+                 key=lambda r: -r["h_top_m"])
+    if len(seq) < 3:
+        return []
+    (h1, h2, h3), (F1, F2, F3) = ([r["h_top_m"] for r in seq[-3:]],
+                                  [np.asarray(r["forces_n"]) for r in seq[-3:]])
+    ratio = (F1 - F2) / (F2 - F3)
+
+    def order(q):
+        g = lambda p: (h1 ** p - h2 ** p) / (h2 ** p - h3 ** p) - q   # noqa: E731  (increasing in p)
+        return brentq(g, 0.05, 12.0) if g(0.05) < 0 < g(12.0) else np.nan
+    ps = np.array([order(q) for q in ratio])
+    monotone = np.isfinite(ps)
+    p = float(np.median(ps[monotone]))
+    F_inf = F3 + (F3 - F2) * h3 ** p / (h2 ** p - h3 ** p)
+    hs = ", ".join(f"{r['h_top_m'] * 1e3:g}" for r in seq)
+    c2, c3 = seq[-2]["force_centre_n"], seq[-1]["force_centre_n"]
+    centre = c3 + (c3 - c2) * h3 ** p / (h2 ** p - h3 ** p)
+    out = [f"Richardson, P2, grade {grade:g}, bulk cap {bulk_m * 1e3:g} mm, h_top {hs} mm: forces converge "
+           f"monotonically at "
+           f"{monotone.sum()} of {len(ps)} waypoints; observed order p = {p:.2f} (median; 10-90 %: "
+           f"{np.percentile(ps[monotone], 10):.2f}-{np.percentile(ps[monotone], 90):.2f}); "
+           f"extrapolated force at (35, 35) mm {centre:.6g} N", "",
+           "| mesh | h_top (mm) | bulk cap (mm) | DOFs | max error against F_inf (100 waypoints) | mean error | error at (35, 35) mm |",
+           "|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["order"], -r["h_top_m"], r["mesh_size_m"])):
+        if r["order"] == 2 and r.get("grade") == grade:
+            e = np.asarray(r["forces_n"]) / F_inf - 1
+            out.append(f"| {r['level']} | {r['h_top_m'] * 1e3:.3g} | {r['mesh_size_m'] * 1e3:g} | {r['dofs']} | "
+                       f"{np.abs(e).max():.2%} | {e.mean():+.2%} | {r['force_centre_n'] / centre - 1:+.2%} |")
+    return out + [""] + grading_effect(rows, seq[-1], bulk_m, grade)
+
+
+def grading_effect(rows: list[dict], finest: dict, bulk_m: float, grade: float) -> list[str]:
+    """Markdown lines: the force change from a finer bulk grading at equal h_top and cap, and the finest run
+    corrected by it (additive: F(h_min, g_fine) ~ F(h_min, g) + F(h, g_fine) - F(h, g) at the finest h run with
+    both); the default mesh's (p2-1.5-g25) error against that estimate."""
+    key = {(r["h_top_m"], r["mesh_size_m"], r.get("grade")): r for r in rows if r["order"] == 2}
+    pairs = sorted(((r, key[(r["h_top_m"], r["mesh_size_m"], grade)]) for r in rows
+                    if r["order"] == 2 and r["mesh_size_m"] == bulk_m and r.get("grade", 0.5) < grade
+                    and (r["h_top_m"], r["mesh_size_m"], grade) in key), key=lambda p: p[0]["h_top_m"])
+    default = next((r for r in rows if r["level"] == "p2-1.5-g25"), None)
+    if not pairs or default is None:
+        return []
+    out = ["| h_top (mm) | grade | DOFs | change from grade " f"{grade:g}: centre | mean over the 100 | max |",
+           "|---|---|---|---|---|---|"]
+    for fine, coarse in pairs:
+        d = np.asarray(fine["forces_n"]) / np.asarray(coarse["forces_n"]) - 1
+        out.append(f"| {fine['h_top_m'] * 1e3:.3g} | {fine['grade']:g} | {fine['dofs']} | "
+                   f"{fine['force_centre_n'] / coarse['force_centre_n'] - 1:+.2%} | {d.mean():+.2%} | "
+                   f"{d[np.argmax(np.abs(d))]:+.2%} |")
+    fine, coarse = pairs[0]
+    est = np.asarray(finest["forces_n"]) + np.asarray(fine["forces_n"]) - np.asarray(coarse["forces_n"])
+    est_c = finest["force_centre_n"] + fine["force_centre_n"] - coarse["force_centre_n"]
+    e = np.asarray(default["forces_n"]) / est - 1
+    return out + ["", f"Estimate of a finer answer: {finest['level']} plus the grading change at h_top = "
+                  f"{fine['h_top_m'] * 1e3:g} mm ({fine['level']} - {coarse['level']}): the default mesh "
+                  f"(p2-1.5-g25) is above it by {e.mean():+.2%} on average, {np.abs(e).max():.2%} at worst, "
+                  f"{default['force_centre_n'] / est_c - 1:+.2%} at (35, 35) mm.", ""]
+
+
 def table(out: Path) -> str:
     """Markdown tables from the JSON lines (the last run of each configuration)."""
     lines = []
@@ -215,6 +328,7 @@ def table(out: Path) -> str:
                          f"{r['mesh_s']:.1f} + {r['assemble_s']:.1f} + {r['condense_s']:.1f} | "
                          f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} | {r['load_avg']:.1f} |")
         lines.append("")
+        lines += richardson(list(conv.values()))
     way = _read(out, "waypoints")
     if way:
         b = [r for r in way if r["phase"] == "build"][-1]
@@ -228,8 +342,13 @@ def table(out: Path) -> str:
                   f"- per waypoint with stresses: median {rl['with_stresses_ms']['median']:.1f} ms, max "
                   f"{rl['with_stresses_ms']['max']:.1f} ms (after a one-time {rl['first_stress_query_s']:.1f} s: "
                   f"assembly + factorization for the fields); batched (100 waypoints, one solve): "
-                  f"{rl.get('with_stresses_batched_100_ms_each', float('nan')):.1f} ms each",
-                  f"- peak memory of the reload + 200 queries process: {rl['peak_rss_gb']:.2f} GB"]
+                  f"{rl.get('with_stresses_batched_100_ms_each', float('nan')):.1f} ms each"
+                  + (f"; the full back-substitution path on {rl['full_solve_path_ms']['n']} of them, same process: "
+                     f"median {rl['full_solve_path_ms']['median']:.1f} ms, max {rl['full_solve_path_ms']['max']:.1f} "
+                     f"ms, largest relative difference of the maximum von Mises "
+                     f"{rl['full_solve_path_ms']['max_rel_diff_von_mises']:.1e} (ordering: {rl['ordering']})"
+                     if "full_solve_path_ms" in rl else ""),
+                  f"- peak memory of the reload + 320 queries process: {rl['peak_rss_gb']:.2f} GB"]
         if conv:
             err = np.max(np.abs(np.asarray(rl["forces_n"]) / F_ref - 1))
             lines.append(f"- force error against {ref['level']}: max over the 100 waypoints {err:.2%}")
@@ -248,12 +367,14 @@ def table(out: Path) -> str:
     sol = _read(out, "solver")
     if sol:
         lines += ["Condensation onto the probed patch, same model:", "",
-                  "| method | mesh | DOFs | patch nodes | time (s) | peak memory (GB) | parts | load avg |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| method | mesh | DOFs | patch nodes | time (s) | peak memory (GB) | parts | one waypoint's "
+                  "displacements: full solve / backward sweep (ms) | load avg |",
+                  "|---|---|---|---|---|---|---|---|---|"]
         for r in sol:
+            sweep = (f"{r['full_solve_ms']:.1f} / {r['backward_sweep_ms']:.1f}" if "full_solve_ms" in r else "")
             lines.append(f"| {r['method']} | {r['level']} | {r['dofs']} | {r['patch_nodes']} | {r['condense_s']:.1f} | "
                          f"{r['peak_rss_gb']:.2f} | {json.dumps({k: round(v, 1) for k, v in r['parts_s'].items()})} | "
-                         f"{r['load_avg']:.1f} |")
+                         f"{sweep} | {r['load_avg']:.1f} |")
     text = "\n".join(lines) + "\n"
     (out / "bench_3d.md").write_text(text)
     return text
@@ -285,8 +406,9 @@ def main(argv=None) -> int:
     elif a.what == "hertz":
         _spawn(out, "hertz", *(a.rest or ["0.05"]))
     elif a.what == "solvers":
-        for method in ("cholmod", "superlu"):
-            _spawn(out, "solver", method, (a.rest or ["p2-2.0"])[0])
+        level, *methods = a.rest or ["p2-2.0"]
+        for method in methods or ("cholmod-metis", "cholmod-amd", "superlu"):
+            _spawn(out, "solver", method, level)
     print(table(out))
     return 0
 

@@ -2,16 +2,27 @@
 
 With P K_ff P^T = L L^T and the contact DOFs c last in P, the trailing diagonal block L_cc of L is the Cholesky
 factor of the Schur complement S = K_cc - K_ci K_ii^-1 K_ic, so the condensed compliance is C = S^-1 =
-L_cc^-T L_cc^-1 (LAPACK dpotri on L_cc): no multi-right-hand-side solve, whose cost (one sparse triangular sweep
-per contact DOF) dominated in both SuperLU and CHOLMOD on the 3D models (bench/bench_3d.py measures it).
+L_cc^-T L_cc^-1 (LAPACK dtrtri then dlauum on L_cc, i.e. dpotri keeping L_cc^-1): no multi-right-hand-side solve,
+whose cost (one sparse triangular sweep per contact DOF) dominated in both SuperLU and CHOLMOD on the 3D models
+(bench/bench_3d.py measures it).
 
-CHOLMOD (SuiteSparse, from the cvxopt wheel; supernodal, BLAS-3 on its dense fronts) with a fill-reducing AMD
-ordering of the interior and the contact DOFs appended; its postordering is switched off so the order is kept
-(checked). cvxopt hands the factor over by converting it to a simplicial one, so a fresh supernodal factorization is made
-(once, lazily) when back-substitutions are asked for (stress fields). Without cvxopt: fem.contact.SchurFactor (SuperLU).
+CHOLMOD (SuiteSparse, from the cvxopt wheel; supernodal, BLAS-3 on its dense fronts) with a fill-reducing ordering
+of the interior and the contact DOFs appended: METIS nested dissection (the ``pymetis`` wheel) when it is installed,
+else cvxopt's AMD (the wheel's CHOLMOD has no METIS). On block3d's default mesh nested dissection leaves 32 % less
+fill than AMD and factorizes several times faster (bench/bench_3d.py waypoints). CHOLMOD's postordering is switched
+off so the order is kept (checked). cvxopt hands the factor over by converting it to a simplicial one, so a fresh
+supernodal factorization is made (once, lazily) when back-substitutions are asked for (stress fields).
+
+Displacements for forces on the contact DOFs only (``solve_contact``): the forward sweep L y = P b of such a
+right-hand side touches only the trailing block (y is zero on the interior), so y_c = L_cc^-1 b_c is a dense
+product with the kept L_cc^-1 and only the backward sweep L^T x = y goes through the sparse factor: half the work
+of a full solve, the same answer to round-off. Without cvxopt: fem.contact.SchurFactor (SuperLU).
 """
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import threading
 import time
 
 import numpy as np
@@ -30,14 +41,119 @@ def available() -> bool:
     return True
 
 
+def metis_available() -> bool:
+    try:
+        import pymetis  # noqa: F401  (lazy: an optional compiled dependency)
+    except ImportError:
+        return False
+    return True
+
+
+class _CholmodDirect:
+    """CHOLMOD's own cholmod_l_solve on a cvxopt factor, for many right-hand sides at once.
+
+    cvxopt's cholmod.solve loops over the columns (one memory-bound sweep through the factor per column); CHOLMOD
+    itself sweeps once for all of them with BLAS-3 on its supernodes. Reached through ctypes in the library cvxopt's
+    extension links (its factor capsule holds a cholmod_factor of the "long" interface). ``get()`` is None when any
+    of it is missing: callers then use cvxopt's solve. ctypes releases the GIL, so calls share one cholmod_common
+    under a lock."""
+
+    _instance: _CholmodDirect | None = None
+    _tried = False
+
+    class Dense(ctypes.Structure):        # cholmod_dense (CHOLMOD 2.x-5.x)
+        _fields_ = [("nrow", ctypes.c_size_t), ("ncol", ctypes.c_size_t), ("nzmax", ctypes.c_size_t),
+                    ("d", ctypes.c_size_t), ("x", ctypes.c_void_p), ("z", ctypes.c_void_p),
+                    ("xtype", ctypes.c_int), ("dtype", ctypes.c_int)]
+
+    def __init__(self):
+        import cvxopt.cholmod as chm
+        lib = ctypes.CDLL(chm.__file__)           # dlsym also searches the libraries it links (libcholmod)
+        lib.cholmod_l_solve.restype = ctypes.POINTER(self.Dense)
+        lib.cholmod_l_solve.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(self.Dense), ctypes.c_void_p]
+        lib.cholmod_l_free_dense.argtypes = [ctypes.POINTER(ctypes.POINTER(self.Dense)), ctypes.c_void_p]
+        self._common = ctypes.create_string_buffer(1 << 20)     # cholmod_common is a few kB; kept for the process
+        self._lock = threading.Lock()
+        if lib.cholmod_l_start(self._common) != 1:
+            raise RuntimeError("cholmod_l_start failed")
+        self._lib = lib
+        self._capsule = ctypes.pythonapi.PyCapsule_GetPointer
+        self._capsule.restype = ctypes.c_void_p
+        self._capsule.argtypes = [ctypes.py_object, ctypes.c_char_p]
+
+    @classmethod
+    def get(cls) -> _CholmodDirect | None:
+        if not cls._tried:
+            cls._tried = True
+            try:
+                cls._instance = cls()
+            except (OSError, AttributeError, RuntimeError):
+                cls._instance = None
+        return cls._instance
+
+    def solve(self, F, Y: np.ndarray, sys: int) -> np.ndarray | None:
+        """X with (system sys) X = Y for a factor F of cvxopt.cholmod; None if F is not a real "long" factor."""
+        try:
+            L = self._capsule(F, b"CHOLMOD FACTOR D L")
+        except ValueError:
+            return None
+        Y = np.asfortranarray(Y, dtype=float)
+        n, k = Y.shape
+        B = self.Dense(n, k, n * k, n, Y.ctypes.data, None, 1, 0)           # CHOLMOD_REAL, CHOLMOD_DOUBLE
+        with self._lock:
+            X = self._lib.cholmod_l_solve(sys, L, ctypes.byref(B), self._common)
+            if not X:
+                raise RuntimeError("cholmod_l_solve failed")
+            x = X.contents
+            buf = ctypes.cast(x.x, ctypes.POINTER(ctypes.c_double))
+            out = np.ctypeslib.as_array(buf, shape=(x.ncol * x.d,)).reshape(x.ncol, x.d)[:, :n].T.copy()
+            self._lib.cholmod_l_free_dense(ctypes.byref(X), self._common)
+        return out
+
+
+def interior_order(Kff, interior: np.ndarray, A=None, ordering: str = "auto") -> np.ndarray:
+    """A fill-reducing order of the ``interior`` positions of Kff (the others to be appended after them):
+    "metis" (nested dissection of the interior's graph, pymetis; seeded, so the same every run), "amd" (cvxopt's
+    AMD of the whole matrix ``A``, a cvxopt spmatrix of Kff's lower triangle, restricted to the interior), or
+    "auto" (METIS when pymetis is installed, else AMD)."""
+    if ordering == "auto":
+        ordering = "metis" if metis_available() else "amd"
+    if len(interior) < 3:                           # METIS divides by zero on an empty graph
+        return np.asarray(interior, dtype=np.int64)
+    if ordering == "metis":
+        import pymetis
+        G = sp.csr_matrix(Kff)[interior][:, interior]
+        G = sp.csr_matrix((np.ones(G.nnz), G.indices, G.indptr), shape=G.shape)
+        G.setdiag(0)
+        G.eliminate_zeros()
+        G.sort_indices()
+        opts = pymetis.Options(seed=1)
+        if hasattr(pymetis, "CSRAdjacency"):        # pymetis >= 2025
+            perm, _ = pymetis.nested_dissection(pymetis.CSRAdjacency(G.indptr, G.indices), options=opts)
+        else:
+            perm, _ = pymetis.nested_dissection(xadj=G.indptr, adjncy=G.indices, options=opts)
+        return interior[np.asarray(perm, dtype=np.int64)]
+    if ordering == "amd":
+        import cvxopt.amd
+        order = np.asarray(cvxopt.amd.order(A), dtype=np.int64).ravel()
+        keep = np.zeros(Kff.shape[0], bool)
+        keep[interior] = True
+        return order[keep[order]]
+    raise ValueError(f"ordering must be 'auto', 'metis' or 'amd', got {ordering!r}")
+
+
 class CholmodSchur:
     """K_ff = K[free][:, free] factorized by CHOLMOD with the contact DOFs (positions ``contact`` in the full
     numbering, a subset of ``free``) last. ``compliance``: (n_c, n_c) = S^-1, in the order of ``contact``;
-    ``solve``: K_ff^-1 rhs (the factorization is redone on first use, see the module docstring)."""
+    ``solve``: K_ff^-1 rhs; ``solve_contact``: the same for a right-hand side on the contact DOFs only, by the
+    backward sweep alone (the factorization for both is redone on first use, see the module docstring).
+    ``ordering``: the interior's, see ``interior_order``; ``compliance=False`` skips forming it (None: a model whose
+    compliance came from the disk cache needs only the factor for its fields)."""
 
-    def __init__(self, K, free: np.ndarray, contact: np.ndarray):
+    _OPTIONS = {"supernodal": 2, "postorder": False, "nmethods": 1}
+
+    def __init__(self, K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto", compliance: bool = True):
         import cvxopt
-        import cvxopt.amd
         import cvxopt.cholmod as chm
         self._cvx, self._chm = cvxopt, chm
         t0 = time.perf_counter()
@@ -51,15 +167,14 @@ class CholmodSchur:
         n, nc = len(free), len(c)
         self._A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
                                   cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
-        order = np.asarray(cvxopt.amd.order(self._A), dtype=np.int64).ravel()
-        t1 = time.perf_counter()
         is_c = np.zeros(n, bool)
         is_c[c] = True
-        p = np.concatenate([order[~is_c[order]], c])
-        saved = dict(chm.options)
-        chm.options.update({"supernodal": 2, "postorder": False, "nmethods": 1})
+        self.ordering = ordering if ordering != "auto" else ("metis" if metis_available() else "amd")
+        p = np.concatenate([interior_order(Kff, np.flatnonzero(~is_c), self._A, self.ordering), c])
+        t1 = time.perf_counter()
         self._p = cvxopt.matrix(p)
-        try:
+        self.p = p
+        with self._options():
             self._F = chm.symbolic(self._A, p=self._p)
             chm.numeric(self._A, self._F)
             probe = cvxopt.matrix(np.arange(n, dtype=float))
@@ -69,9 +184,6 @@ class CholmodSchur:
             t2 = time.perf_counter()
             L = chm.getfactor(self._F)                            # converts the factor (see module docstring)
             self._F = None
-        finally:
-            chm.options.clear()
-            chm.options.update(saved)
         colptr, rowind, vals = L.CCS                              # compressed columns; only the trailing
         start = int(colptr[n - nc])                               # nc columns are read (lower triangular:
         ptr = np.asarray(colptr[n - nc:], dtype=np.int64).ravel() - start   # their rows are trailing too)
@@ -79,40 +191,80 @@ class CholmodSchur:
         cols = np.repeat(np.arange(nc), np.diff(ptr))
         Lcc = np.zeros((nc, nc), order="F")
         Lcc[rows, cols] = np.asarray(vals[start:]).ravel()
-        del colptr, rowind, vals
+        del colptr, rowind, vals, rows, cols
         del L
         t3 = time.perf_counter()
-        Cinv, info = sla.lapack.dpotri(Lcc, lower=1, overwrite_c=1)
+        Linv, info = sla.lapack.dtrtri(Lcc, lower=1, overwrite_c=1)     # dpotri = dtrtri, then dlauum
         if info != 0:
-            raise np.linalg.LinAlgError(f"dpotri failed (info {info}): the Schur complement is not positive definite")
-        C = np.tril(Cinv)
-        C += np.tril(C, -1).T
-        self.compliance = C
+            raise np.linalg.LinAlgError(f"dtrtri failed (info {info}): the Schur complement is not positive definite")
+        self._Linv = Linv       # L_cc^-1 (Fortran order, zero above the diagonal), for solve_contact's columns
+        self.compliance = None
+        if compliance:
+            Cinv, info = sla.lapack.dlauum(Linv, lower=1, overwrite_c=0)    # L_cc^-T L_cc^-1 (lower triangle)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"dlauum failed (info {info})")
+            C = np.tril(Cinv)
+            del Cinv
+            C += np.tril(C, -1).T
+            self.compliance = C
+        del Linv
         self.free, self.c = free, c
         self.timings_s = {"order_s": t1 - t0, "factor_s": t2 - t1, "extract_s": t3 - t2,
                           "inverse_s": time.perf_counter() - t3}
         self._factored = False
 
-    def solve(self, rhs_free: np.ndarray) -> np.ndarray:
-        """K_ff^-1 rhs for rhs given on the free DOFs (n_free,) or (n_free, k)."""
-        chm, cvxopt = self._chm, self._cvx
+    @contextlib.contextmanager
+    def _options(self):
+        """CHOLMOD's options for this factorization (supernodal, the given order kept), restored afterwards."""
+        chm = self._chm
+        saved = dict(chm.options)
+        chm.options.update(self._OPTIONS)
+        try:
+            yield
+        finally:
+            chm.options.clear()
+            chm.options.update(saved)
+
+    def _factor(self):
         if not self._factored:
-            saved = dict(chm.options)
-            chm.options.update({"supernodal": 2, "postorder": False, "nmethods": 1})
-            try:                    # a fresh supernodal factor (the first was converted to a simplicial one)
-                self._F = chm.symbolic(self._A, p=self._p)
-                chm.numeric(self._A, self._F)
-            finally:
-                chm.options.clear()
-                chm.options.update(saved)
+            with self._options():   # a fresh supernodal factor (the first was converted to a simplicial one)
+                self._F = self._chm.symbolic(self._A, p=self._p)
+                self._chm.numeric(self._A, self._F)
             self._factored = True
-        B = cvxopt.matrix(np.asfortranarray(rhs_free, dtype=float))
-        chm.solve(self._F, B)
+        return self._F
+
+    def solve(self, rhs_free: np.ndarray) -> np.ndarray:
+        """K_ff^-1 rhs for rhs given on the free DOFs (n_free,) or (n_free, k): the full solve."""
+        F = self._factor()
+        B = self._cvx.matrix(np.asfortranarray(rhs_free, dtype=float))
+        self._chm.solve(F, B)
         return np.asarray(B).reshape(rhs_free.shape)
+
+    def solve_contact(self, rhs_c: np.ndarray) -> np.ndarray:
+        """K_ff^-1 rhs (n_free, k) for a right-hand side (n_c, k) on the contact DOFs (order of ``contact``), zero
+        elsewhere: y_c = L_cc^-1 rhs_c from the kept dense inverse (only rhs_c's nonzero rows are read), then the
+        backward sweep L^T x = y through the sparse factor (CHOLMOD, sys = Lt; several columns in one sweep,
+        ``_CholmodDirect``), then x in the free numbering."""
+        F = self._factor()
+        rhs_c = np.asarray(rhs_c, dtype=float).reshape(len(self.c), -1)
+        n, nc, k = len(self.free), len(self.c), rhs_c.shape[1]
+        nz = np.flatnonzero(np.any(rhs_c != 0, axis=1))
+        Y = np.zeros((n, k), order="F")
+        Y[n - nc:] = self._Linv[:, nz] @ rhs_c[nz]
+        direct = _CholmodDirect.get() if k > 1 else None
+        Z = direct.solve(F, Y, sys=5) if direct is not None else None     # L^T x = y, in the factor's order
+        if Z is None:
+            B = self._cvx.matrix(Y)
+            self._chm.solve(F, B, sys=5)
+            Z = np.asarray(B)
+        X = np.empty((n, k))
+        X[self.p] = Z
+        return X
 
 
 class Cholesky:
-    """K = L L' by CHOLMOD (AMD ordering, supernodal) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
+    """K = L L' by CHOLMOD (supernodal; ordering as ``interior_order``: METIS when pymetis is installed, else
+    CHOLMOD's own AMD) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
 
     def __init__(self, K):
         import cvxopt
@@ -121,7 +273,10 @@ class Cholesky:
         A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
                             cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
         self._chm, self._cvx = chm, cvxopt
-        self._F = chm.symbolic(A)
+        if metis_available():
+            self._F = chm.symbolic(A, p=cvxopt.matrix(interior_order(K, np.arange(K.shape[0]), ordering="metis")))
+        else:
+            self._F = chm.symbolic(A)
         chm.numeric(A, self._F)
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -138,11 +293,13 @@ def factorize_spd(K):
                      options={"SymmetricMode": True})
 
 
-def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto"):
-    """The condensation of K_ff onto ``contact``: CholmodSchur ("cholmod", or "auto" when cvxopt is installed) or
-    fem.contact.SchurFactor ("superlu"). Both have ``compliance``, ``solve``, ``free`` and ``c``."""
+def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto", ordering: str = "auto",
+          compliance: bool = True):
+    """The condensation of K_ff onto ``contact``: CholmodSchur ("cholmod", or "auto" when cvxopt is installed; its
+    interior ``ordering``, see ``interior_order``; ``compliance=False``: not formed) or fem.contact.SchurFactor
+    ("superlu"). Both have ``compliance``, ``solve``, ``free`` and ``c``; CholmodSchur also ``solve_contact``."""
     if method == "cholmod" or (method == "auto" and available()):
-        return CholmodSchur(K, free, contact)
+        return CholmodSchur(K, free, contact, ordering, compliance)
     if method in ("superlu", "auto"):
         return SchurFactor(K, free, contact)
     raise ValueError(f"method must be 'auto', 'cholmod' or 'superlu', got {method!r}")

@@ -91,11 +91,15 @@ def _load_b_fixed(model: Model) -> np.ndarray:
 
 def condensed_displacements(model, fac, F: np.ndarray) -> np.ndarray:
     """Full displacement vectors (k columns) for downward nodal forces F (n_c, k) on the condensed DOFs of a Schur
-    factorization ``fac`` (SchurFactor or fem.condense.CholmodSchur) of ``model``."""
-    rhs = np.zeros((len(fac.free), F.shape[1]))
-    rhs[fac.c] = -F
+    factorization ``fac`` (SchurFactor or fem.condense.CholmodSchur) of ``model``: the backward sweep alone when
+    ``fac`` has ``solve_contact`` (CholmodSchur), else a full solve."""
     Y = np.zeros((model.n_dofs, F.shape[1]))
-    Y[fac.free] = fac.solve(rhs)
+    if hasattr(fac, "solve_contact"):
+        Y[fac.free] = fac.solve_contact(-F)
+    else:
+        rhs = np.zeros((len(fac.free), F.shape[1]))
+        rhs[fac.c] = -F
+        Y[fac.free] = fac.solve(rhs)
     return model.P @ Y
 
 

@@ -8,8 +8,9 @@ As in 2D (fem.contact), per scene: the model is factorized once with the vertica
 nodes ordered last (fem.contact.SchurFactor), so the trailing block of the factors is the Schur complement on them
 and the condensed compliance C (patch-node downward displacement per downward nodal force) is its inverse. A
 waypoint (x, y, depth) is then the LCP  gap = q + C_ww f >= 0, f >= 0, gap . f = 0  over the patch nodes under the
-tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from one
-back-substitution with the contact forces.
+tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from the contact
+forces by the backward sweep alone (fem.condense.CholmodSchur.solve_contact: forces on the patch, ordered last, leave
+the forward sweep to the dense trailing block), several waypoints in one sweep.
 
 A tip fem treats as rigid (fem.tip.treated_as_rigid: no modulus, or its Hertz relative compliance below
 TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid; an elastic tip in 3D is not modelled (refused).
@@ -185,7 +186,8 @@ class SurfaceModel3D:
             model = self.model
             fixed = np.unique(fixed_bottom(model))
             free = np.setdiff1d(np.arange(model.n_dofs), fixed)
-            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver)
+            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver,
+                              compliance=not hasattr(self, "C"))      # restored from disk: the factor only
         return self._fac
 
     # -- one waypoint --------------------------------------------------------------------------------------------
@@ -262,13 +264,19 @@ class SurfaceModel3D:
             active = f > 0
             vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
             if U is not None and active.any():
-                near = nodes[(np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)]
-                s = components3d(_stress_at(Rb, pos[near], U[:, k]))
+                inside = (np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)
+                near = nodes[inside]
+                s6 = _stress_at(Rb, pos[near], U[:, k])
+                s = components3d(s6)
                 j = int(np.argmax(s["von_mises_pa"]))
                 vm_max = float(s["von_mises_pa"][j])
                 at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
-                st = components3d(_stress_at(Rb, pos[self.patch[idx]], U[:, k]))
-                pressure = np.where(active, np.maximum(-st["szz_pa"], 0.0), 0.0)
+                wpos = pos[self.patch[idx]]
+                if inside[wpos].all():                       # the window's patch nodes in the near box (R <= b):
+                    szz = s6[(np.cumsum(inside) - 1)[wpos], 2]   # their rows of the same recovery
+                else:
+                    szz = _stress_at(Rb, wpos, U[:, k])[:, 2]
+                pressure = np.where(active, np.maximum(-szz, 0.0), 0.0)
             out.append(IndentResult3D(
                 x_m=x_m, y_m=y_m, depth_m=depth_m,
                 force_n=check_finite(float(f.sum()), f"scene {self.scene.name!r}: force"),

@@ -29,7 +29,7 @@ ALLOWED = {
 ROBOT_FEM_USERS = {"robot.simarm"}
 # imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
-           "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "planner.plots_plan", "planner.plots_run",
+           "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "pymetis", "planner.plots_plan", "planner.plots_run",
            "planner.plots_accuracy", "importlib.metadata", "distributed",
            "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d")
 # scipy.sparse: a cached model predicts with numpy alone (issue 19); app.commands.sim3d and run3d: the 3D path

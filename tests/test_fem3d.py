@@ -7,10 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from fem import condense
 from fem import scene as S
 from fem.assembly import Material
 from fem.assembly3d import body_force3d, elasticity_matrix3d, element_dofs3d, gradients3d, strain_matrices3d
-from fem.contact3d import SurfaceModel3D, check_waypoint3d, surface_model3d, tip_profile3d
+from fem.contact3d import SurfaceModel3D, check_waypoint3d, patch_nodes, surface_model3d, tip_profile3d
 from fem.elements3d import EDGES, quadrature, shape
 from fem.mesh3d import Mesh3D, _orient, mesh_block
 from fem.model3d import Model3D, build_model3d, fixed_bottom
@@ -296,6 +297,50 @@ def test_stone_raises_force_and_load_a_peak_above_it(stone_scene):
     assert np.hypot(xp - 0.015, yp - 0.015) < 0.006 / 4
 
 
+class _FullSolveOnly:
+    """A condensing factorization seen without ``solve_contact``: displacements by the full solve."""
+
+    def __init__(self, fac):
+        self.free, self.c, self.compliance, self.solve = fac.free, fac.c, fac.compliance, fac.solve
+
+
+@pytest.mark.skipif(not condense.available(), reason="cvxopt (CHOLMOD) is not installed")
+def test_stresses_by_the_backward_sweep_equal_the_full_solve(stone_scene, monkeypatch):
+    """Stresses under the tip from the backward sweep alone (the forward sweep of patch forces touches only the
+    trailing block) equal those of the full back-substitution to round-off: displacements, the maximum von Mises
+    and where it is, the contact pressures; a rigid stone in the model (its prolongation) included. Two waypoints
+    at once take CHOLMOD's multi-column sweep (fem.condense._CholmodDirect), one waypoint cvxopt's."""
+    m = SurfaceModel3D(stone_scene)
+    pts = [(0.015, 0.015, 0.0008), (0.0112, 0.0171, 0.0006)]
+    fast = m.indent_many(pts)
+    u_fast = m.full_field(*pts[1])
+    monkeypatch.setattr(m, "_fac", _FullSolveOnly(m.fac))
+    full = m.indent_many(pts)
+    u_full = m.full_field(*pts[1])
+    assert np.abs(u_fast - u_full).max() < 1e-10 * np.abs(u_full).max()
+    for a, b in zip(fast, full):
+        assert a.max_von_mises_pa > 0 and a.max_von_mises_at_m == b.max_von_mises_at_m
+        assert a.max_von_mises_pa == pytest.approx(b.max_von_mises_pa, rel=1e-10)
+        assert np.allclose(a.pressure_pa, b.pressure_pa, rtol=1e-9, atol=1e-10 * b.pressure_pa.max())
+
+
+@pytest.mark.skipif(not condense.available(), reason="cvxopt (CHOLMOD) is not installed")
+def test_metis_and_amd_orderings_condense_alike(stone_scene, monkeypatch):
+    """The interior's ordering (METIS nested dissection, or AMD when pymetis is absent) changes the compliance by
+    round-off only; without pymetis "auto" falls back to AMD."""
+    model = build_model3d(stone_scene)
+    free = np.setdiff1d(np.arange(model.n_dofs), np.unique(fixed_bottom(model)))
+    contact = model.reduced_index(3 * patch_nodes(model.mesh, stone_scene.analysis.patch_m) + 2)
+    amd = condense.schur(model.K, free, contact, ordering="amd")
+    assert amd.ordering == "amd"
+    if condense.metis_available():
+        nd = condense.schur(model.K, free, contact, ordering="metis")
+        assert nd.ordering == "metis"
+        assert np.abs(nd.compliance - amd.compliance).max() < 1e-10 * np.abs(amd.compliance).max()
+    monkeypatch.setattr(condense, "metis_available", lambda: False)
+    assert condense.schur(model.K, free, contact).ordering == "amd"
+
+
 def test_rigid_stone_matches_elastic_stone():
     """The 6-DOF rigid-body reduction against a meshed elastic stone 2e6 times stiffer: load A agrees to O(E_t/E_s)
     plus round-off (measured 1e-7 relative)."""
@@ -322,6 +367,8 @@ def test_cache_restores_the_compliance_bitwise(tmp_path, monkeypatch):
     assert b.force_n(0.015, 0.012, 0.0005) == a.force_n(0.015, 0.012, 0.0005)
     assert b.indent(0.015, 0.012, 0.0005).max_von_mises_pa == pytest.approx(
         a.indent(0.015, 0.012, 0.0005).max_von_mises_pa, rel=1e-9)
+    if condense.available():                        # fields after a restore: the factor, no second compliance
+        assert b.fac.compliance is None
 
 
 def test_bad_waypoints_refused():

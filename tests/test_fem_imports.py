@@ -8,8 +8,9 @@ import sys
 from pathlib import Path
 
 FEM = Path(__file__).resolve().parent.parent / "fem"
-LAZY_OK = ("gmsh", "meshio", "matplotlib", "scipy.sparse", "cvxopt")   # heavy imports that may stay inside
-# functions (scipy: a model from the disk cache predicts with numpy alone, issue 19; cvxopt: CHOLMOD, 3D only)
+LAZY_OK = ("gmsh", "meshio", "matplotlib", "scipy.sparse", "cvxopt", "pymetis")   # heavy imports that may stay
+# inside functions (scipy: a model from the disk cache predicts with numpy alone, issue 19; cvxopt: CHOLMOD, 3D
+# only; pymetis: the ordering CHOLMOD gets, 3D only)
 
 
 def _is_lazy_ok(module: str) -> bool:
