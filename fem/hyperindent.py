@@ -164,31 +164,36 @@ class HyperIndenter:
                            f"(relative residuals {', '.join(f'{h:.1e}' for h in history[-4:])})")
 
     def _newton_step(self, K, f, x0, idx, g, n, r, pv, a):
-        """One Newton step (the LCP above) with the consistent tangent; if that step's LCP is not well posed (the
-        condensed matrix indefinite: the tissue rolling around the frictionless tip comes close to an instability
-        near a side at depth), the step is made with the material tangent alone, which converges linearly."""
-        Kff = (self.TT @ K @ self.T).tocsr()
+        """One Newton step: the LCP above with the consistent tangent K~ = K_T - U D U^T (U: the tangents t_a of
+        the nodes in contact, D = p_a / |x_a - c|; the normal's rotation is rank one per node), applied through
+        Woodbury's identity on one Cholesky factorization of the material tangent K_T. If that step's LCP is not
+        well posed (the condensed matrix indefinite: the tissue rolling around the frictionless tip comes close to
+        an instability near a side at depth), the step is made with K_T alone, which converges linearly."""
+        Kt = (self.TT @ K @ self.T).tocsc()
         cols = self.top_free[idx]
-        on = np.flatnonzero(pv > 0)
-        if self.scene.indenter.shape == "cylinder" and len(on):          # the normal turns as the node slides
-            import scipy.sparse as sp
-            T = -(pv[on] / r[on])[:, None, None] * (np.eye(2) - np.einsum("ki,kj->kij", n[on], n[on]))
-            c = cols[on]
-            rows, cc = np.repeat(c, 2, axis=1).ravel(), np.tile(c, (1, 2)).ravel()
+        k = len(idx)
+        on = np.flatnonzero(pv > 0) if self.scene.indenter.shape == "cylinder" else np.zeros(0, int)
+        B = np.zeros((len(self.free), 1 + k + len(on)))
+        B[:, 0] = -f
+        B[cols[:, 0], 1 + np.arange(k)] = n[:, 0]
+        B[cols[:, 1], 1 + np.arange(k)] = n[:, 1]
+        B[cols[on, 0], 1 + k + np.arange(len(on))] = -n[on, 1]            # tangents t = (-n_y, n_x)
+        B[cols[on, 1], 1 + k + np.arange(len(on))] = n[on, 0]
+        X = _factorize(Kt)(B)
+        z, Y, V = X[:, 0], X[:, 1:1 + k], X[:, 1 + k:]
+        G = B[:, 1:1 + k]
+        if len(on):
+            U = B[:, 1 + k:]
+            S = np.diag(r[on] / pv[on]) - U.T @ V                         # D^-1 - U^T K_T^-1 U
             try:
-                return self._lcp_step(Kff + sp.csr_matrix((T.ravel(), (rows, cc)), shape=Kff.shape), f, x0, idx, g,
-                                      n, cols, a)
-            except NotConverged:
+                W = V @ np.linalg.solve(S, U.T @ np.column_stack([z, Y]))
+                return self._lcp_step(z + W[:, 0], Y + W[:, 1:], G, g, x0, idx, a)
+            except (NotConverged, np.linalg.LinAlgError):
                 self.tangent_fallbacks += 1
-        return self._lcp_step(Kff, f, x0, idx, g, n, cols, a)
+        return self._lcp_step(z, Y, G, g, x0, idx, a)
 
-    def _lcp_step(self, Kt, f, x0, idx, g, n, cols, a):
-        solve = _factorize(Kt)
-        G = np.zeros((len(self.free), len(idx)))
-        G[cols[:, 0], np.arange(len(idx))] = n[:, 0]
-        G[cols[:, 1], np.arange(len(idx))] = n[:, 1]
-        sol = solve(np.column_stack([-f, G]))
-        z, Y = sol[:, 0], sol[:, 1:]
+    def _lcp_step(self, z, Y, G, g, x0, idx, a):
+        """The step du = z + Y p with p from the LCP w = (g + G^T z) + (G^T Y) p."""
         M = G.T @ Y
         q = g + G.T @ z
         pnew = np.zeros(len(idx))
@@ -242,8 +247,8 @@ class HyperIndenter:
 
 
 def _factorize(K):
-    """solve(rhs) with a sparse factorization of the tangent: CHOLMOD (cvxopt) when it is positive definite, else
-    SuperLU."""
+    """solve(rhs) with a sparse factorization of the material tangent: CHOLMOD (cvxopt) when it is positive
+    definite, else SuperLU."""
     import scipy.sparse.linalg as spla
     if available():
         try:
