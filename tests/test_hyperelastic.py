@@ -205,3 +205,22 @@ def test_the_truth_table_and_option(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and needle in err[0], err
         assert not (tmp_path / "o").exists()
+
+
+def test_the_mismatch_study_draws_neo_hookean_truths_apart(tmp_path):
+    """`palpate study mismatch --hyperelastic`: half the trials get a neo-Hookean truth, from a generator of their
+    own, so every other draw is the study's without it; the truth file says so in valid TOML."""
+    from app.mismatch import study_trials, truth_toml
+    from planner.surrogate import load_surrogate
+    prior = load("paper").prior()
+    sur = load_surrogate(prior)
+    off = study_trials(prior, sur, 6, 2, 25, seed=3)
+    on = study_trials(prior, sur, 6, 2, 25, seed=3, hyperelastic=True)
+    assert not any(t.mismatch["hyperelastic"] for t in off) and any(t.mismatch["hyperelastic"] for t in on)
+    drop = lambda t: ({k: v for k, v in t.mismatch.items() if k != "hyperelastic"}, t.stone)   # noqa: E731
+    assert [drop(t) for t in on] == [drop(t) for t in off]
+    t = next(t for t in on if t.mismatch["hyperelastic"])
+    f = tmp_path / "truth.toml"
+    f.write_text(truth_toml(prior, t.mismatch, None))
+    c = conditions_of(str(f))
+    assert c.hyperelastic is True and c.relaxation_tau_s == t.mismatch["relaxation_tau_s"]
