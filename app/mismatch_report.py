@@ -68,15 +68,17 @@ def by_hyperelastic(rows) -> str:
     """A line per truth model (linear, neo-Hookean) when the study drew neo-Hookean truths; else nothing."""
     if not any(r.get("hyperelastic") in (True, "True") for r in rows):
         return ""
-    out = ["", "| truth | stones | detected | false alarms | lateral err median (mm) | depth err median (mm) |",
+    out = ["", "", "| truth | stones | detected | false alarms | lateral err median (mm) | depth err median (mm) |",
            "|---|---:|---:|---:|---|---|"]
     for name, on in (("linear elastic", False), ("neo-Hookean", True)):
         group = [r for r in rows if (r.get("hyperelastic") in (True, "True")) == on]
         if not group:
             continue
         s = summarize(group)
+        mm = [("-" if not np.isfinite(s[k]) else f"{s[k]:.2f}") for k in ("lateral_err_median_mm",
+                                                                           "depth_err_median_mm")]
         out.append(f"| {name} | {s['stones']} | {_pct(s['detection_rate'])} | {_pct(s['false_alarm_rate'])} | "
-                   f"{s['lateral_err_median_mm']:.2f} | {s['depth_err_median_mm']:.2f} |")
+                   f"{mm[0]} | {mm[1]} |")
     return "\n".join(out)
 
 

@@ -2,20 +2,23 @@
 (fem.finite_strain), frictionless contact, Newton's method with the consistent tangent, load-stepped in depth.
 
 Load case B as in fem.contact (bottom edge u_y = 0, sides and top free; the horizontal rigid mode removed by the
-bottom's mean horizontal displacement, see ``supports``) but with the exact geometry: the tip is the circle of radius R centred at (x0, H + R - depth) in the deformed configuration, and
-a top node's gap is its distance from that circle, g = |x - c| - R, in its *current* position x = X + u (it may
-slide along the tip). The contact force on a node acts along the circle's normal n = (x - c) / |x - c|.
+bottom's mean horizontal displacement, see ``supports``) but with the exact geometry: the tip is the circle of
+radius R centred at (x0, H + R - depth) in the deformed configuration, and a top node's gap is its distance from
+that circle, g = |x - c| - R, in its *current* position x = X + u (it may slide along the tip). The contact force
+on a node acts along the circle's normal n = (x - c) / |x - c|.
 
 One Newton step is a linear complementarity problem over the top nodes near the tip (fem.lcp, exact): with the
-tangent K~ = K_T - sum_a p_a (I - n_a n_a^T) / |x_a - c| (the contact normal's rotation, for quadratic
-convergence), z = -K~^-1 f_int and Y = K~^-1 G (G: the normals as columns),
+consistent tangent K~ = K_T - sum_a p_a t_a t_a^T / |x_a - c| (t_a the tangent: the contact normal's rotation,
+rank one per node, applied by Woodbury's identity on a Cholesky factorization of the material tangent K_T),
+z = -K~^-1 f_int and Y = K~^-1 G (G: the normals as columns),
 
     w = (g + G^T z) + (G^T Y) p,   p >= 0, w >= 0, p . w = 0,       du = z + Y p.
 
 Near the solution the contact set no longer changes and this is Newton's step on the equality-constrained problem:
-convergence is quadratic (tests print the residual history). ``sweep`` follows one tip position down through
-increasing depths (continuation: each step starts from the previous solution extrapolated), halving a step that
-does not converge, and returns the force at every depth.
+convergence is quadratic (tests print the residual history). Near a side at depth the consistent step's LCP can be
+ill-posed (the tissue rolling around the frictionless tip nears an instability); that step uses K_T alone.
+``sweep`` follows one tip position down through increasing depths (continuation: each step starts from the
+previous solution extrapolated), halving a step that does not converge, and returns the force at every depth.
 """
 from __future__ import annotations
 

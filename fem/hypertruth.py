@@ -4,12 +4,13 @@ one load-stepped sweep in depth (fem.hyperindent), kept on disk (fem.diskcache),
 The force at (x, d) is the linear model's force on the scene's own mesh (fem.contact, exact and cheap at any depth)
 times the finite-strain correction r(x, d) = F_neo-Hookean / F_linear, both computed on a *correction mesh*: the
 scene's mesh with the same top-surface element size and bulk elements twice as large (``correction_scene``).
-Measured on the paper scene at x = 35 mm, 4 mm: r is 1.04681 on the correction mesh (8.9k DOFs) and 1.04653 on the
-scene's own (18.5k DOFs, 2.5 times the cost), so the correction mesh changes the truth's force by 0.03 %. r is
+Measured on the paper scene at 4 mm (bench/hyper_truth.py --own-mesh): r is 1.0485 on the correction mesh (8.9k
+DOFs) and 1.0472 on the scene's own (18.5k DOFs) at x = 35 mm, 1.1728 and 1.1727 at x = 5 mm: the correction mesh
+changes the truth's force by at most about 0.13 % (0.15 mN of 0.12 N; a probe's noise is 0.2 mN). r is
 smooth in depth (the sweep's depths every ``DEPTH_STEP_M``, r(0) = 1), so it is interpolated linearly there; the
 sweep is made at the x asked (robot.simforce.CachedForce snaps x to 10 um), no interpolation in x (r varies from
-1.03 to 1.09 along the paper section at 4 mm: the free sides soften the linear model's response more than the
-neo-Hookean's).
+1.05 over the stone to 1.17 at 5 mm from the sides along the paper section at 4 mm: the free sides soften the
+linear model's response more than the neo-Hookean's).
 
 Beyond the depths the sweep reached (the tip radius, or where the tissue folds over), or where the linear model
 refuses (fem.contact.check_waypoint), ``force_n`` raises ValueError like the linear truth: the simulator then

@@ -18,8 +18,9 @@ and stones; ``TruthConditions`` holds the rest, which only the simulated arm app
   the sensor preset's own random ones;
 * ``hyperelastic``: the tissue is a finite-strain compressible neo-Hookean solid (fem.hypertruth: W = mu/2 (I1 - 3)
   - mu ln J + lambda/2 (ln J)^2 with the scene's E and nu, the rigid tip in exact frictionless contact) instead of
-  fem's small-strain linear model: at the paper scene's 4 mm it pushes back about 3-9 % harder, depending on x (2D
-  sections, plane strain; a sweep in depth per probe position, about 2-5 s each, kept in the disk cache).
+  fem's small-strain linear model: at the paper scene's 4 mm it pushes back 4.9 % harder over the stone and up to
+  17 % harder 5 mm from the sides (2D sections, plane strain; one sweep in depth per probe position, 2-10 s each
+  with the machine's load, kept in the disk cache).
 
 In a scene TOML file they are the ``[truth]`` table (fem ignores it: the belief never reads it); ``palpate run``'s
 ``--truth-*`` options override it. Nothing in planner/ or the driver imports this module.

@@ -89,7 +89,7 @@ def add_parser(sub) -> None:
                     help=f"its time constant (default {DEFAULT_RELAXATION[1]:g} s)")
     tr.add_argument("--truth-hyperelastic", action="store_const", const=True, default=None,
                     help="finite-strain tissue: a compressible neo-Hookean solid with the scene's E and nu instead "
-                         "of the linear model (2D plane strain; one sweep in depth per probe position, 2-5 s each, "
+                         "of the linear model (2D plane strain; one sweep in depth per probe position, 2-10 s each, "
                          "kept in the disk cache)")
     tr.add_argument("--truth-sensor-bias-n", type=finite_float, metavar="N",
                     help="a sensor force bias along the tissue normal (on top of the preset's random one)")

@@ -107,7 +107,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--budget-probes", type=int_range(15, 10000),
                    help="probes per trial (default: accuracy 45, mismatch 25)")
     p.add_argument("--hyperelastic", action="store_true",
-                   help="mismatch: a finite-strain neo-Hookean truth in half the trials (about 4x a run's time)")
+                   help="mismatch: a finite-strain neo-Hookean truth in half the trials (such a run took 1-3.3x a "
+                        "linear one's time)")
     p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="also write the summary here ('-': standard output)")
