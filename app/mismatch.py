@@ -10,6 +10,10 @@ localizer, refinement) where the planner and the localizer know only the prior (
     surface offset       +- 2 mm against the nominal tissue pose (uniform; positive: above it)
     surface tilt         +- 3 deg about the tissue's y axis (uniform)
     viscoelastic         on in half the trials: relaxation 20-30 %, tau 1-4 s (standard linear solid)
+    hyperelastic         with ``--hyperelastic`` only: a finite-strain neo-Hookean tissue (fem.hypertruth) in half
+                         the trials, drawn from its own generator (the other draws stay those of the study without
+                         it); off by default: each such trial costs a sweep in depth per probe (about 2-3 s each,
+                         some 60 s a run against 15 s)
     stone                a random rigid stone inside the true tissue (planner.surrogate.random_stones), or none
 
 with the nano17 sensor (its own random bias and drift). The plan, made once on the prior, indents 3 mm (not 4 mm: a
@@ -89,12 +93,17 @@ def draw_mismatch(rng) -> dict:
             "relaxation_tau_s": float(rng.uniform(*r["relaxation_tau_s"]))}
 
 
-def study_trials(prior, sur, stones: int, healthy: int, budget: int, seed: int) -> list[MismatchTrial]:
-    """``stones`` trials with a random stone then ``healthy`` without, from one generator seeded by ``seed``."""
+def study_trials(prior, sur, stones: int, healthy: int, budget: int, seed: int,
+                 hyperelastic: bool = False) -> list[MismatchTrial]:
+    """``stones`` trials with a random stone then ``healthy`` without, from one generator seeded by ``seed``;
+    ``hyperelastic``: a neo-Hookean truth in half the trials, drawn from a second generator (seeded by ``seed``
+    and 14) so that every other draw is the study's without it."""
     rng = np.random.default_rng(seed)
+    rng_hyper = np.random.default_rng([seed, 14])
     out = []
     for i in range(stones + healthy):
         mm = draw_mismatch(rng)
+        mm["hyperelastic"] = bool(rng_hyper.uniform() < 0.5) and hyperelastic
         stone = None
         if i < stones:
             H = prior.tissue.height_m * mm["thickness_scale"]
@@ -122,7 +131,10 @@ def truth_toml(prior, mm: dict, stone) -> str:
     truth = {"surface_offset_m": mm["surface_offset_m"], "surface_tilt_rad": math.radians(mm["surface_tilt_deg"]),
              "relaxation_fraction": mm["relaxation_fraction"] if mm["viscoelastic"] else 0.0,
              "relaxation_tau_s": mm["relaxation_tau_s"]}
-    return dump_toml(sc) + "\n[truth]\n" + "".join(f"{k} = {v!r}\n" for k, v in truth.items())
+    if mm.get("hyperelastic"):
+        truth["hyperelastic"] = True
+    value = lambda v: ("true" if v else "false") if isinstance(v, bool) else repr(v)     # noqa: E731 (TOML)
+    return dump_toml(sc) + "\n[truth]\n" + "".join(f"{k} = {value(v)}\n" for k, v in truth.items())
 
 
 class _Scaled:

@@ -128,12 +128,14 @@ def holds_run(out: Path) -> bool:
 
 TRUTH_OPTIONS = {"truth_surface_offset_m": "surface_offset_m", "truth_surface_tilt_rad": "surface_tilt_rad",
                  "truth_relaxation": "relaxation_fraction", "truth_relaxation_tau_s": "relaxation_tau_s",
-                 "truth_sensor_bias_n": "sensor_bias_n", "truth_sensor_drift_n_per_s": "sensor_drift_n_per_s"}
+                 "truth_sensor_bias_n": "sensor_bias_n", "truth_sensor_drift_n_per_s": "sensor_drift_n_per_s",
+                 "truth_hyperelastic": "hyperelastic"}
 
 
-def truth_conditions(args) -> TruthConditions | None:
+def truth_conditions(args, scene=None) -> TruthConditions | None:
     """The simulated world's conditions: the truth scene file's [truth] table, overridden by --truth-* options.
-    None for a real arm. Refused (UsageError): --truth-* options without the in-memory simulated arm."""
+    None for a real arm. Refused (UsageError): --truth-* options without the in-memory simulated arm; conditions
+    that cannot apply to the truth ``scene`` (TruthConditions.check_scene)."""
     given = {f: getattr(args, o) for o, f in TRUTH_OPTIONS.items() if getattr(args, o, None) is not None}
     if given and (args.host or args.sim == "controller"):
         opt = "--" + next(o for o, f in TRUTH_OPTIONS.items() if f in given).replace("_", "-")
@@ -142,7 +144,10 @@ def truth_conditions(args) -> TruthConditions | None:
     if args.host:
         return None
     try:
-        return conditions_of(args.scene).replace(**given)
+        cond = conditions_of(args.scene).replace(**given)
+        if scene is not None:
+            cond.check_scene(scene)
+        return cond
     except TruthError as e:
         opt = next((o for o, f in TRUTH_OPTIONS.items() if f in given and f in str(e)), None)
         raise UsageError(f"--{opt.replace('_', '-')} {given[TRUTH_OPTIONS[opt]]}: {e}" if opt else str(e)) from None

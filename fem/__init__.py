@@ -38,6 +38,12 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   contact3d   load B in 3D: SurfaceModel3D, surface_model3d (memory + disk cache), check_waypoint3d
   export3d    VTU export of tetrahedral meshes
   plots3d     3D figures (matplotlib), not imported here
+
+The finite-strain simulated truth (issue 14; 2D), imported explicitly (not re-exported here):
+  neohooke    the compressible neo-Hookean law (stress, consistent tangent) in plane strain
+  finite_strain  total-Lagrangian internal force and tangent stiffness on a Model
+  hyperindent the rigid tip in exact frictionless contact with a neo-Hookean tissue: Newton + LCP, sweeps in depth
+  hypertruth  the finite-strain simulated truth's force (per x, disk-cached), for robot.simarm only
 """
 from core.lazy import lazy_exports
 

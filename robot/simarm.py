@@ -3,7 +3,8 @@ for the simulated controller's arm. It is the one robot part that asks fem for f
 included); the driver never sees it.
 
 The truth is the simulator's secret: whoever builds the arm hands it the true scene and its conditions
-(robot.truth.TruthConditions: registration error, relaxation, sensor bias and drift), and only the arm's force
+(robot.truth.TruthConditions: registration error, relaxation, sensor bias and drift, a finite-strain neo-Hookean
+tissue), and only the arm's force
 model (inside this module's closures) reads them.
 """
 from __future__ import annotations
@@ -16,6 +17,7 @@ from core import ur5e
 from core.contracts import Frames
 from fem.contact import surface_model
 from fem.contact3d import surface_model3d
+from fem.hypertruth import HyperelasticForce
 from fem.mesh3d import patch_bounds
 from fem.scene import Scene, load
 from robot.sim import ArmModel
@@ -32,9 +34,10 @@ class TruthRangeError(RuntimeError):
     simulator cannot say what tissue there would push back with."""
 
 
-def truth_force(truth: Scene | str, mesh_m: float | None = None):
+def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: bool = False):
     """(force_n(x_m, depth_m), width_m) of the TRUE scene from fem (zero outside the tissue's top surface); for a 3D
-    block force_n(x_m, y_m, depth_m) over its probed patch (TruthRangeError elsewhere on the block)."""
+    block force_n(x_m, y_m, depth_m) over its probed patch (TruthRangeError elsewhere on the block).
+    ``hyperelastic``: the tissue as a finite-strain neo-Hookean solid (fem.hypertruth; 2D only)."""
     sc = truth if isinstance(truth, Scene) else load(truth)
     if mesh_m:
         sc = sc.with_analysis(mesh_size_m=mesh_m)
@@ -53,7 +56,7 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None):
                                       f"less the tip radius): plan inside it")
             return model3.force_n(x_m, y_m, depth_m)
         return force3, width
-    model = surface_model(sc)
+    model = HyperelasticForce(sc) if hyperelastic else surface_model(sc)
 
     def force_n(x_m: float, depth_m: float) -> float:
         return model.force_n(x_m, depth_m) if 0.0 <= x_m <= width and 0.0 < depth_m < height else 0.0
@@ -83,7 +86,8 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     length = None
     if force == "fem":
         sc = load(truth)
-        f, width = truth_force(sc, mesh_m)
+        cond.check_scene(sc)
+        f, width = truth_force(sc, mesh_m, hyperelastic=cond.hyperelastic)
         length = sc.tissue.length_m
     elif force == "standin":
         f, width = standin_force_model(), STANDIN_WIDTH_M

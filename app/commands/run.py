@@ -87,6 +87,10 @@ def add_parser(sub) -> None:
                                              f"depth relaxes by FRACTION (default {DEFAULT_RELAXATION[0]:g}), 0..0.9")
     tr.add_argument("--truth-relaxation-tau-s", type=finite_float, metavar="S",
                     help=f"its time constant (default {DEFAULT_RELAXATION[1]:g} s)")
+    tr.add_argument("--truth-hyperelastic", action="store_const", const=True, default=None,
+                    help="finite-strain tissue: a compressible neo-Hookean solid with the scene's E and nu instead "
+                         "of the linear model (2D plane strain; one sweep in depth per probe position, 2-10 s each, "
+                         "kept in the disk cache)")
     tr.add_argument("--truth-sensor-bias-n", type=finite_float, metavar="N",
                     help="a sensor force bias along the tissue normal (on top of the preset's random one)")
     tr.add_argument("--truth-sensor-drift-n-per-s", type=finite_float, metavar="N_PER_S",
@@ -161,7 +165,7 @@ def run(args) -> int:
             raise UsageError(f"--json {args.json}: would overwrite the run's own {j.name}; choose another path")
     scene = load_scene(args.scene)
     belief = load_scene(args.prior, "--prior").prior() if args.prior else None
-    cond = truth_conditions(args)
+    cond = truth_conditions(args, scene)
     check_ft(args, sim=not args.host, real_host=bool(args.host))
     if args.plan:
         plan0 = Plan.load(args.plan)

@@ -106,6 +106,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--sensor", default="nano17", choices=["nano17", "ur5e-builtin"])
     p.add_argument("--budget-probes", type=int_range(15, 10000),
                    help="probes per trial (default: accuracy 45, mismatch 25)")
+    p.add_argument("--hyperelastic", action="store_true",
+                   help="mismatch: a finite-strain neo-Hookean truth in half the trials (such a run took 1-3.3x a "
+                        "linear one's time)")
     p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4)
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="also write the summary here ('-': standard output)")
@@ -207,7 +210,8 @@ def run_mismatch_study(args, scene, runner: Runner, out: Path) -> dict:
     healthy = args.healthy if args.healthy is not None else (10 if args.quick else 40)
     budget = args.budget_probes or 25
     prior = scene.prior()
-    options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "budget": budget}
+    options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "budget": budget,
+               **({"hyperelastic": True} if args.hyperelastic else {})}     # absent when off: older pieces stay valid
     store = pieces_dir(out, "mismatch", options)
     store.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("PALPATE_CACHE_DIR", str(out / "cache"))   # the truths' one-off models stay out of ~
@@ -215,14 +219,14 @@ def run_mismatch_study(args, scene, runner: Runner, out: Path) -> dict:
     coarse_x = make_plan(prior, store / "plan.json")
     shared = Shared(prior=prior, sur=sur, plan_path=str(store / "plan.json"), runs_dir=str(store / "runs"),
                     coarse_x_m=coarse_x)
-    trials = mismatch_trials(prior, sur, stones, healthy, budget, args.seed)
+    trials = mismatch_trials(prior, sur, stones, healthy, budget, args.seed, hyperelastic=args.hyperelastic)
     _say(f"mismatch: {stones} stones + {healthy} healthy truths on {runner.describe()}; pieces and runs in {store}")
     t0 = time.perf_counter()
     rows = _run(runner, lambda: run_pieces(run_mismatch_trial, shared, trials, [t.name for t in trials],
                                            runner=runner, store=store, desc="mismatch trials"))
     elapsed = time.perf_counter() - t0
     cmd = (f"palpate study mismatch --trials {stones} --healthy {healthy} --budget-probes {budget} "
-           f"--seed {args.seed}")
+           f"--seed {args.seed}{' --hyperelastic' if args.hyperelastic else ''}")
     print(write_mismatch(out, rows, cmd))
     _say(f"mismatch: {len(trials)} trials in {elapsed:.0f} s; results in {out}")
     return {"study": "mismatch", "stones": stones, "healthy": healthy, "elapsed_s": elapsed,
