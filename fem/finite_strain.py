@@ -21,7 +21,7 @@ import numpy as np
 
 from .assembly import element_dofs, gradients
 from .elements import quadrature
-from .model import Model
+from .model import Model, deformable_elements
 from .neohooke import NeoHookean, stress_and_tangent
 
 if TYPE_CHECKING:
@@ -39,11 +39,7 @@ class FiniteStrainModel:
         if model.plane != "strain":
             raise ValueError(f"the neo-Hookean model is plane strain; the scene's analysis.plane is {model.plane!r}")
         self.model = model
-        keep = np.ones(len(mesh.tris), bool)
-        for k, r in enumerate(model.rigid):
-            if r:
-                keep &= mesh.region != k + 1
-        self.elements = np.flatnonzero(keep)
+        self.elements = deformable_elements(mesh.region, model.rigid)
         pts, w = quadrature(2 * (mesh.order - 1))
         G, det = gradients(mesh, pts)
         self.G = G[self.elements]                                      # (M, q, nen, 2) dN/dX

@@ -22,7 +22,7 @@ import numpy as np
 
 from .assembly import element_dofs, gradients, strain_matrices
 from .elements import quadrature, shape
-from .model import Model, build_model
+from .model import Model, build_model, deformable_elements
 from .results import Profile, UniformResult
 from .stress import nodal_poisson, recovery_operator
 
@@ -44,11 +44,7 @@ class MixedSystem:
         if mesh.order != 2 or model.plane != "strain":
             raise ValueError("the mixed formulation needs P2 triangles and plane strain")
         self.model = model
-        keep = np.ones(len(mesh.tris), bool)
-        for k, r in enumerate(model.rigid):
-            if r:
-                keep &= mesh.region != k + 1
-        self.els = np.flatnonzero(keep)
+        self.els = deformable_elements(mesh.region, model.rigid)
         tris, region = mesh.tris[self.els], mesh.region[self.els]
         G_, k_ = np.array([moduli(m) for m in model.materials]).T
         G, kappa = G_[region], k_[region]

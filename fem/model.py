@@ -24,6 +24,15 @@ if TYPE_CHECKING:
 RIGID_RATIO = 1.0e4   # a stone at least this much stiffer than tissue is made rigid when rigid_stones="auto"
 
 
+def deformable_elements(region: np.ndarray, rigid: list[bool]) -> np.ndarray:
+    """The elements that deform (indices): all but a rigid stone's (stone k is region k + 1)."""
+    keep = np.ones(len(region), bool)
+    for k, r in enumerate(rigid):
+        if r:
+            keep &= region != k + 1
+    return np.flatnonzero(keep)
+
+
 @dataclass
 class Model:
     mesh: Mesh
@@ -42,11 +51,8 @@ class Model:
     @cached_property
     def K(self) -> sp.csc_matrix:
         """Reduced stiffness (n_red x n_red)."""
-        keep = np.ones(len(self.mesh.tris), bool)
-        for k, r in enumerate(self.rigid):
-            if r:
-                keep &= self.mesh.region != k + 1
-        Kfull = stiffness(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
+        el = deformable_elements(self.mesh.region, self.rigid)
+        Kfull = stiffness(self.mesh, self.D, elements=None if len(el) == len(self.mesh.region) else el)
         return (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
 
     @cached_property

@@ -16,7 +16,14 @@ from .assembly import Material
 from .assembly3d import element_D3d, stiffness3d
 from .condense import factorize_spd
 from .mesh3d import Mesh3D
-from .model import RIGID_RATIO, Factored, materials_of, warn_if_ill_conditioned, warn_if_locking
+from .model import (
+    RIGID_RATIO,
+    Factored,
+    deformable_elements,
+    materials_of,
+    warn_if_ill_conditioned,
+    warn_if_locking,
+)
 from .scene_mesh3d import mesh_for3d
 
 
@@ -34,11 +41,8 @@ class Model3D:
 
     def __post_init__(self):
         self.D = element_D3d(self.mesh, self.materials)
-        keep = np.ones(len(self.mesh.tets), bool)
-        for k, r in enumerate(self.rigid):
-            if r:
-                keep &= self.mesh.region != k + 1
-        Kfull = stiffness3d(self.mesh, self.D, elements=None if keep.all() else np.flatnonzero(keep))
+        el = deformable_elements(self.mesh.region, self.rigid)
+        Kfull = stiffness3d(self.mesh, self.D, elements=None if len(el) == len(self.mesh.region) else el)
         self.P = self._prolongation()
         self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
 
