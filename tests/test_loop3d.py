@@ -19,7 +19,7 @@ from planner.area import probe_bounds
 from planner.detect3d import p_detect3d
 from planner.detectability import probe_sigma_n, probe_tau_s
 from planner.localize import Measurements
-from planner.localize3d import localize3d
+from planner.localize3d import localize3d, peak_estimate3d
 from planner.refine3d import SHALLOW_FRACTION, coarse_depths, design_positions3d, grid_around
 from planner.tasks import Runner
 from planner.tissue_response3d import PriorResponse3D
@@ -178,7 +178,6 @@ def test_run_refuses_the_other_dimensions_options(tmp_path, capsys, argv, what):
 def test_peak_of_a_contrast_with_no_positive_probe_is_the_largest_probe():
     """Healthy-looking tissue can give no positive contrast at all (the 3D study's random stone under a stiffer
     patch of mesh): the peak is then the largest probe's own position, never a 0/0 that would reach the fit."""
-    from planner.localize3d import peak_estimate3d
     x = np.array([0.01, 0.02, 0.03])
     y = np.array([0.015, 0.015, 0.02])
     c = np.array([-3e-4, -1e-4, -2e-4])

@@ -13,11 +13,15 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from app.cli import main
-from fem.scene import load
+from app.mismatch import PLAN_DEPTH_M, p_detect_in_truth
+from core.contracts import Motion, sensor_spec
+from fem.scene import Stone, load
 from planner.accuracy import run_accuracy, study_trials
+from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
 from planner.surrogate import load_surrogate
 from planner.tasks import Runner, load_piece, run_pieces
 
@@ -207,7 +211,6 @@ def test_sweep_study_scenes_are_seeded_per_scene(tmp_path):
 def test_the_study_arm_continues_the_force_where_fem_refuses_the_indentation():
     """A stone 4.6 mm under the surface: fem refuses 4 mm (tissue crushed against it); the study's arm continues the
     force with the local power law (as the table does) instead of failing the trial; elsewhere fem's force."""
-    from fem.scene import Stone
     from planner.accuracy import continued_force
     from planner.surrogate import stone_model
     m = stone_model(load("paper").prior().with_stones([Stone(x_m=0.0436, depth_m=0.0086, diameter_m=0.008)]))
@@ -245,13 +248,6 @@ def test_mismatch_envelope_is_judged_in_the_true_tissue():
     """The mismatch study's judge (app.mismatch.p_detect_in_truth): with no mismatch it equals the planner's own
     detectability; a truth half as stiff (half the contrast, the same noise) makes a marginal stone less
     detectable, one twice as stiff more; a surface 1 mm above the nominal one presses 1 mm deeper: more."""
-    import numpy as np
-
-    from app.mismatch import PLAN_DEPTH_M, p_detect_in_truth
-    from core.contracts import Motion, sensor_spec
-    from fem.scene import Stone, load
-    from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
-    from planner.surrogate import load_surrogate
     prior = load("paper").prior()
     sur = load_surrogate(prior)
     x = np.linspace(0.01, 0.06, 15)
