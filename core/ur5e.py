@@ -79,6 +79,48 @@ def matrix_to_rotvec(R) -> np.ndarray:
     return w * (th / (2 * math.sin(th)))
 
 
+def rotvecs_to_matrices(r) -> np.ndarray:
+    """``rotvec_to_matrix`` over an (N, 3) array of rotation vectors: (N, 3, 3); the same formula, to round-off."""
+    r = np.asarray(r, dtype=float).reshape(-1, 3)
+    th = np.sqrt(np.einsum("ij,ij->i", r, r))
+    big = th >= 1e-12
+    k = np.zeros_like(r)
+    k[big] = r[big] / th[big, None]
+    K = np.zeros((len(r), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    M = np.eye(3) + np.sin(th)[:, None, None] * K + (1 - np.cos(th))[:, None, None] * (K @ K)
+    M[~big] = np.eye(3)
+    return M
+
+
+def matrices_to_rotvecs(R) -> np.ndarray:
+    """``matrix_to_rotvec`` over an (N, 3, 3) array of rotation matrices: (N, 3), the same branches (small angles,
+    the symmetric part's axis beyond pi / 2, the canonical direction within ``_PI_BAND`` of pi), to round-off."""
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    w = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    c = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
+    th = np.arctan2(0.5 * np.linalg.norm(w, axis=1), c)
+    out = np.empty_like(w)
+    small, big = th < 1e-9, th > 0.5 * math.pi
+    mid = ~small & ~big
+    out[small] = 0.5 * w[small]
+    out[mid] = w[mid] * (th[mid] / (2 * np.sin(th[mid])))[:, None]
+    if big.any():
+        Rb, cb, wb, tb = R[big], c[big], w[big], th[big]
+        kk = (0.5 * (Rb + Rb.transpose(0, 2, 1)) - cb[:, None, None] * np.eye(3)) / (1.0 - cb)[:, None, None]
+        i = np.argmax(np.diagonal(kk, axis1=1, axis2=2), axis=1)
+        n = np.arange(len(i))
+        k = kk[n, :, i] / np.sqrt(kk[n, i, i])[:, None]
+        k /= np.linalg.norm(k, axis=1)[:, None]
+        pos = np.einsum("ij,ij->i", k, wb) >= 0
+        band = math.pi - tb < _PI_BAND
+        length = np.where(band, np.where(pos, tb, 2 * math.pi - tb), tb)
+        sign = np.where(band | pos, 1.0, -1.0)
+        out[big] = k * (sign * length)[:, None]
+    return out
+
+
 def pose_to_T(pose) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = rotvec_to_matrix(pose[3:6])

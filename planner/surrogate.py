@@ -247,6 +247,7 @@ class Surrogate:
         self.T = np.asarray(data["table"]) * self.scale if self.scale != 1.0 else np.asarray(data["table"])
         self.W = float(data["width_m"])
         self.build_s = float(data.get("build_s", 0.0))
+        self._slices: dict[tuple[float, float], np.ndarray] = {}
 
     # parameter box the table covers (a fit stays inside it)
     @property
@@ -254,13 +255,24 @@ class Surrogate:
         return {"xs_m": (self.xs[0], self.W - self.xs[0]), "s_m": (self.s[0], self.s[-1]),
                 "diam_m": (self.diam[0], self.diam[-1])}
 
+    def _slice(self, s: float, diam_m: float) -> np.ndarray:
+        """The table interpolated to clearance ``s`` and diameter ``diam_m``: (nxs, nlev, nx0). Remembered for the
+        last few hundred (s, D): a fit's candidates and its Jacobian's x and nuisance steps ask for the same ones."""
+        key = (s, diam_m)
+        C = self._slices.get(key)
+        if C is None:
+            i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
+            i_d, w_d = _lagrange4(self.diam, diam_m)
+            C = np.einsum("i,j,ijkln->kln", w_s, w_d, self.T[np.ix_(i_s, i_d)])
+            if len(self._slices) >= 512:
+                self._slices.clear()
+            self._slices[key] = C
+        return C
+
     def contrast(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
         x0 = np.asarray(x0_m, float)
         d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
-        s = max(stone_depth_m - 0.5 * diam_m, 1e-6)
-        i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
-        i_d, w_d = _lagrange4(self.diam, float(diam_m))
-        C = np.einsum("i,j,ijkln->kln", w_s, w_d, self.T[np.ix_(i_s, i_d)])   # (nxs, nlev, nx0)
+        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))
         xs = float(xs_m)
         if xs > 0.5 * self.W:                       # mirror image
             xs, x0 = self.W - xs, self.W - x0

@@ -49,7 +49,7 @@ from core.contracts import (
     RunStatus,
 )
 from robot.forcesource import ForceSource, RtdeForce
-from robot.link import CallTimeout, CallWorker, deadline_for
+from robot.link import BLOCKING_CALLS, CallTimeout, CallWorker, deadline_for
 from robot.netft import SensorFault
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
@@ -99,6 +99,11 @@ class DriverConfig:
 
 
 NEEDS_PROGRAM = frozenset({"moveL", "zeroFtSensor", "setTcp", "setPayload", "setWatchdog"})
+# calls made every period that never wait for the controller and need no running program: straight through
+_PLAIN_CALLS = frozenset({"getTimestamp", "getActualTCPPose", "getActualTCPForce", "isProtectiveStopped",
+                          "isConnected", "initPeriod", "waitPeriod", "getAsyncOperationProgress", "isProgramRunning",
+                          "kickWatchdog"})
+assert not _PLAIN_CALLS & (BLOCKING_CALLS | NEEDS_PROGRAM)
 PROGRAM_STOPPED_BY_OPERATOR = ("the control program was stopped from the pendant or the dashboard (or the pendant "
                                "was switched to local control), not by its watchdog: the driver does not restart "
                                "what an operator stopped")
@@ -148,8 +153,9 @@ class RunReport:
 
 
 def _vec6(v) -> bool:
+    """Six finite numbers (their sum is finite exactly when each is, short of an overflow past 1e308: no reading)."""
     try:
-        return v is not None and len(v) == 6 and all(math.isfinite(float(a)) for a in v)
+        return v is not None and len(v) == 6 and math.isfinite(sum(map(float, v)))
     except (TypeError, ValueError):
         return False
 
@@ -197,7 +203,12 @@ class Driver(Recovery):
     def _call(self, fn, *args):
         """One ur_rtde call. Those that wait for the controller are bounded in time (robot.link.call_within): one
         unanswered means a silent link, and nothing more is sent on it (a second would queue behind the first)."""
-        name = getattr(fn, "__name__", str(fn))
+        name = getattr(fn, "__name__", None) or str(fn)
+        if name in _PLAIN_CALLS:        # a getter, initPeriod/waitPeriod, kickWatchdog: local or never waiting
+            try:
+                return fn(*args)
+            except RuntimeError as e:
+                raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name}: {e}") from None
         deadline = deadline_for(name)
         if deadline is not None and self.link_dead:
             raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name} not sent: {self.link_dead}")
@@ -238,7 +249,7 @@ class Driver(Recovery):
         if self._call(r.isConnected) is not True:    # ur_rtde reconnecting by itself: its getters are not safe now
             raise ProbeFault(FaultKind.CONNECTION_LOST, "the receive interface reports no connection (the link "
                                                         "dropped; ur_rtde may be reconnecting by itself)")
-        ts, pose, ps = (self._call(f) for f in (r.getTimestamp, r.getActualTCPPose, r.isProtectiveStopped))
+        ts, pose, ps = self._call(r.getTimestamp), self._call(r.getActualTCPPose), self._call(r.isProtectiveStopped)
         if ps is True:
             raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the controller reports a protective stop")
         if not _vec6(pose):

@@ -27,26 +27,31 @@ class Sensor:
         self.offset = np.zeros(6)
         self._std = np.array([s.noise_std_n] * 3 + [s.noise_std_nm] * 3)
         self._normals = np.empty((0, 6))          # standard normals drawn ahead, in the generator's order
+        self._next = 0                            # the next row of _normals to hand out
+        self._noisy = bool(self._std.any())
 
     def _normal6(self) -> np.ndarray:
         """The next six standard normals: the same stream as rng.normal(0, 1, 6) per call, drawn in blocks."""
-        if not len(self._normals):
-            self._normals = self.rng.standard_normal((NORMAL_BLOCK, 6))
-        z, self._normals = self._normals[0], self._normals[1:]
-        return z
+        if self._next >= len(self._normals):
+            self._normals, self._next = self.rng.standard_normal((NORMAL_BLOCK, 6)), 0
+        self._next += 1
+        return self._normals[self._next - 1]
 
     def _raw(self, true_wrench, t_s: float) -> np.ndarray:
-        w = np.asarray(true_wrench, dtype=float) + self.bias + self.drift * t_s
-        if self._std.any():
-            w = w + self._normal6() * self._std
+        w = np.asarray(true_wrench, dtype=float) + self.bias
+        w += self.drift * t_s
+        if self._noisy:
+            w += self._normal6() * self._std
         return w
 
     def read(self, true_wrench, t_s: float) -> np.ndarray:
-        w = self._raw(true_wrench, t_s) - self.offset
+        w = self._raw(true_wrench, t_s)
+        w -= self.offset
         s = self.spec
+        f = w[:3]
         if s.resolution_n > 0:
-            w[:3] = np.round(w[:3] / s.resolution_n) * s.resolution_n
-        np.clip(w[:3], -s.range_n, s.range_n, out=w[:3])
+            f[:] = np.rint(f / s.resolution_n) * s.resolution_n
+        np.minimum(np.maximum(f, -s.range_n, out=f), s.range_n, out=f)
         return w
 
     def zero(self, true_wrench, t_s: float, n_average: int = 50) -> None:

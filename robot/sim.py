@@ -52,6 +52,39 @@ class _Motion:
     def progress(self):
         return self.s / self.L if self.L > 0 else 1.0
 
+    def uninterrupted(self, dt: float, max_steps: int = 1_000_000) -> list[float]:
+        """The progress after each step of ``dt`` from now to the end if nothing stops, stalls or replaces the
+        motion: ``step``'s arithmetic, so the values are the ones ``progress`` will take (exactly)."""
+        L, v, a = self.L, self.v, self.a
+        s, sdot, out = self.s, self.sdot, []
+        while len(out) < max_steps:
+            rem = max(L - s, 0.0)
+            sdot = min(v, sdot + a * dt, math.sqrt(2 * a * rem))
+            s = min(L, s + sdot * dt)
+            if s >= L - 1e-12:
+                out.append(1.0)
+                break
+            out.append(s / L)
+        return out
+
+
+def _linear_tape(T0, T1, rel, us: list[float]) -> dict:
+    """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once:
+    {u: (T_tcp, pose)} -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
+    positions exactly; ``rel`` None: the orientation stays T0's)."""
+    u = np.asarray(us, dtype=float)
+    T = np.zeros((len(u), 4, 4))
+    T[:, 3, 3] = 1.0
+    T[:, :3, 3] = T0[:3, 3] + u[:, None] * (T1[:3, 3] - T0[:3, 3])
+    if rel is None:
+        T[:, :3, :3] = T0[:3, :3]
+    else:
+        T[:, :3, :3] = T0[:3, :3] @ ur5e.rotvecs_to_matrices(u[:, None] * rel)
+    end = u >= 1
+    T[end, :3, :3] = T1[:3, :3]
+    poses = np.concatenate([T[:, :3, 3], ur5e.matrices_to_rotvecs(T[:, :3, :3])], axis=1).tolist()
+    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}
+
 
 class ArmModel:
     """A UR5e-like arm touching the true tissue. All units SI; poses are ur_rtde poses in the base frame.
@@ -68,8 +101,10 @@ class ArmModel:
     def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
                  sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
                  latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None, surface_height_m=None,
-                 relaxation=None, length_m: float | None = None):
+                 relaxation=None, length_m: float | None = None, tape: bool = True):
         self.length_m = length_m
+        self.tape = tape                  # linear moves precompute their poses (vectorised; the same to round-off)
+        self._tape_pose = None            # (T_tcp, pose) of the tape's current step
         f = force_model or ((lambda x, y, d: 0.0) if length_m is not None else (lambda x, d: 0.0))
         self.surface_height_m = surface_height_m
         self.relaxation = relaxation
@@ -187,8 +222,14 @@ class ArmModel:
         L = max(dist, 0.1 * ur5e.rotation_angle(T0[:3, :3], T1[:3, :3]))
         rel = ur5e.matrix_to_rotvec(T0[:3, :3].T @ T1[:3, :3])       # ur5e.slerp_matrix's, made once per move
         turns = float(np.linalg.norm(rel)) >= 1e-12                  # below, rotvec_to_matrix(u rel) is I
+        tape: dict = {}
 
         def interp(u):
+            hit = tape.get(u)
+            if hit is not None:
+                self.T_tcp, self._q_stale = hit[0], True
+                self._tape_pose = hit
+                return
             T = np.eye(4)
             T[:3, 3] = T0[:3, 3] + u * (T1[:3, 3] - T0[:3, 3])
             if u >= 1:
@@ -196,7 +237,10 @@ class ArmModel:
             else:
                 T[:3, :3] = T0[:3, :3] @ ur5e.rotvec_to_matrix(u * rel) if turns else T0[:3, :3]
             self.T_tcp, self._q_stale = T, True
-        self._start(_Motion(L, speed, accel, interp), "linear")
+        m = _Motion(L, speed, accel, interp)
+        if self.tape:
+            tape.update(_linear_tape(T0, T1, rel if turns else None, m.uninterrupted(self.period_s)))
+        self._start(m, "linear")
 
     def move_joint(self, q, speed, accel) -> None:
         q0, q1 = self.joints(), np.asarray(q, dtype=float)
@@ -298,8 +342,10 @@ class ArmModel:
             fn()
 
     def _pose(self) -> list[float]:
-        """ur5e.T_to_pose(T_tcp), the rotation vector reused while the orientation stays the same (the arm at
-        rest: zeroing, dwells, waits)."""
+        """ur5e.T_to_pose(T_tcp): from a linear move's tape, or with the rotation vector reused while the
+        orientation stays the same (the arm at rest: zeroing, dwells, waits)."""
+        if self._tape_pose is not None and self._tape_pose[0] is self.T_tcp:
+            return self._tape_pose[1]
         R = self.T_tcp[:3, :3]
         key = R.tobytes()
         if key != self._rotvec_key:

@@ -118,6 +118,47 @@ def test_arm_kinematics_and_trapezoid():
         c.moveL(target, 5.0, 0.5)
 
 
+def _tilted(pose, rad):
+    """``pose`` with its tool turned by ``rad`` about the base x axis (a planner's tool orientations differ by up to
+    its tilt tolerance between a probe's approach and indent poses)."""
+    T = ur5e.pose_to_T(pose)
+    T[:3, :3] = ur5e.rotvec_to_matrix([rad, 0.0, 0.0]) @ T[:3, :3]
+    return ur5e.T_to_pose(T)
+
+
+def test_move_tapes_leave_the_records_unchanged(tmp_path):
+    """Linear moves precomputed at their start (the simulated arm's tape) give the driver the records stepping
+    every pose one period at a time gives: the same samples to round-off, the same outcomes, the same force-limit
+    stop (a stop leaves the tape mid-move) -- with the tool turning along every move."""
+    from core.contracts import Limits, Motion
+    plan = make_plan(xs=(0.01, 0.035, 0.06), depth_m=0.003, predicted=0.1,
+                     motion=Motion(approach_height_m=0.004, dwell_s=0.1), limits=Limits(force_limit_n=0.27))
+    for i, p in enumerate(plan.probes):
+        p.indent_pose = _tilted(p.indent_pose, 0.004 * (i + 1))     # 0.23-0.69 deg
+        p.approach_pose = _tilted(p.approach_pose, -0.003)
+    runs = {}
+    for tape in (False, True):
+        arm, c, r = make_sim(seed=5, tape=tape)    # the probe over the stand-in's stone passes 0.27 N
+        rep = run_plan(plan, c, r, tmp_path / str(tape))
+        assert rep.status == "ok"
+        runs[tape] = (read_records(tmp_path / str(tape)), arm)
+    (reca, arma), (recb, armb) = runs[False], runs[True]
+    assert [x.status for x in reca] == [x.status for x in recb]
+    assert "force_limit" in [x.status for x in recb] and "ok" in [x.status for x in recb]
+    assert arma.t_s == armb.t_s and arma.stops_s == armb.stops_s
+    for a, b in zip(reca, recb):
+        for k in ("force_mean_n", "force_peak_n", "depth_reached_m", "contact_x_m", "contact_depth_m", "duration_s"):
+            va, vb = getattr(a, k), getattr(b, k)
+            assert (va is None and vb is None) or abs(va - vb) <= 1e-12, (k, va, vb)
+        xa, xb = load_raw(tmp_path / "False", a), load_raw(tmp_path / "True", b)
+        assert xa.keys() == xb.keys()
+        for k in xa:
+            assert xa[k].shape == xb[k].shape
+            assert np.allclose(xa[k], xb[k], rtol=0, atol=1e-12, equal_nan=True), k
+    # the tape was used: a turning move's poses came from it (a stepped arm computes them one at a time)
+    assert armb._tape_pose is not None and arma._tape_pose is None
+
+
 def test_protective_stop_on_excess_force_and_commands_refused():
     arm, c, r = make_sim(safety_force_n=0.5)
     x = arm.tip_in_tissue()

@@ -77,3 +77,21 @@ def test_tool_down_pose_round_trip():
     q = ur5e.T_to_pose(ur5e.pose_to_T(p))
     assert _angle_between(ur5e.rotvec_to_matrix(p[3:]), Rotation.from_rotvec(q[3:]).as_matrix()) < 1e-12
     assert np.allclose(q[:3], p[:3], atol=0)
+
+
+def test_vectorised_rotations_match_the_scalar_ones():
+    """rotvecs_to_matrices / matrices_to_rotvecs (the simulated arm's move tapes) agree with the one-at-a-time
+    functions to round-off at every angle: random, small, just short of pi (inside and outside the band), at pi.
+    (Exactly at the 1e-12 rad identity cut-off the two may round to opposite sides: a 1e-12 rad difference.)"""
+    rng = np.random.default_rng(3)
+    k = _random_axes(rng, 60)
+    ths = [0.0, 1e-13, 1e-11, 1e-9, 1e-6, 1e-3, 0.3, 1.5, 2.0, 3.0, math.pi - 1e-3, math.pi - 2e-6, math.pi - 5e-7,
+           math.pi - 1e-12, math.pi]
+    r = np.vstack([Rotation.random(200, random_state=rng).as_rotvec()] + [k * th for th in ths])
+    M = ur5e.rotvecs_to_matrices(r)
+    assert M.shape == (len(r), 3, 3)
+    for ri, Mi in zip(r, M):
+        assert np.allclose(Mi, ur5e.rotvec_to_matrix(ri), rtol=0, atol=2e-15)
+    got = ur5e.matrices_to_rotvecs(M)
+    for Mi, gi in zip(M, got):
+        assert np.allclose(gi, ur5e.matrix_to_rotvec(Mi), rtol=0, atol=1e-14), (Mi, gi)
