@@ -84,7 +84,7 @@ class Influence:
     g: np.ndarray             # (n_top, M) gradient bound per unit top-node force, columns in ``els`` order
     g_far: np.ndarray         # (n_top,)
     cnodes: np.ndarray        # the band elements' nodes (n_c,)
-    Y_c: np.ndarray           # (n_top, n_c, 2) their displacements per unit top-node force
+    Y_c: np.ndarray           # (n_c, 2, n_top) their displacements per unit top-node force (node-major)
     _geo: dict = field(default_factory=dict, repr=False)     # per-model lookups, made on first use
 
     def _lookups(self, model: Model) -> dict:
@@ -119,14 +119,14 @@ class Influence:
         G, J0 = check_points(mesh, els)
         A = np.empty((n_top, len(band), 3))
         g = np.empty((n_top, len(els)))
-        Y_c = np.empty((n_top, len(cnodes), 2))
+        Y_c = np.empty((len(cnodes), 2, n_top))
         for a in range(0, n_top, CHUNK):
             cols = np.arange(a, min(a + CHUNK, n_top))
             E = np.zeros((n_top, len(cols)))
             E[cols, np.arange(len(cols))] = 1.0
             U = displacements(E)                                                          # (2N, k)
             A[cols] = (Rb @ U).T.reshape(len(cols), len(band), 3)
-            Y_c[cols] = U[cd].T.reshape(len(cols), len(cnodes), 2)
+            Y_c[:, :, cols] = U[cd].reshape(len(cnodes), 2, len(cols))
             H = displacement_gradients(U.reshape(mesh.n_nodes, 2, -1)[mesh.tris[els]], G, J0)  # (k, M, q, 2, 2)
             g[cols] = np.sqrt((H ** 2).sum(axis=(-2, -1))).max(axis=2)
         window_m = WINDOW_R * radius_m
@@ -149,13 +149,21 @@ class Influence:
                                                            "Y_c")})
         M = len(model.mesh.tris)
         if not (np.array_equal(inf.band, band) and inf.A.shape == (n_top, len(band), 3)
-                and inf.g.shape == (n_top, M) and inf.Y_c.shape == (n_top, len(inf.cnodes), 2)):
+                and inf.g.shape == (n_top, M) and inf.Y_c.shape == (len(inf.cnodes), 2, n_top)):
             raise ValueError("influence operators do not fit the model")
         if not (np.all(np.isfinite(inf.vm_far)) and np.all(np.isfinite(inf.g_far))):
             raise ValueError("influence operators are not finite")
         # The large operators arrive memory-mapped (read in part, as waypoints need them): not scanned here; every
         # number that leaves fem is checked finite (fem.guards.check_finite).
         return inf
+
+    @staticmethod
+    def loaded(idx: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(idx, f) without the window's unloaded ends (zero forces add exactly nothing: fewer rows to read)."""
+        nz = np.flatnonzero(f)
+        if not len(nz) or (nz[0] == 0 and nz[-1] == len(f) - 1):
+            return idx, f
+        return idx[nz[0]:nz[-1] + 1], f[nz[0]:nz[-1] + 1]
 
     @staticmethod
     def rows(idx: np.ndarray):
@@ -170,9 +178,10 @@ class Influence:
         """(von Mises (Pa) at the band nodes self.band[span], span) for forces f on top nodes idx at tip x0: the
         window's nodes when they hold the band's maximum for certain, else the whole band."""
         geo = self._lookups(model)
+        idx, f = self.loaded(idx, f)
         idx = self.rows(idx)
         span = self._span(geo["bx"], x0)
-        S = (f @ self.A[idx, span].reshape(len(f), -1)).reshape(-1, 3)
+        S = np.einsum("j,jbc->bc", f, self.A[idx, span])          # no copy of the strided window
         vm = components(S, geo["nu"][span], model.plane)["von_mises_pa"]
         if vm.size and float(np.abs(f) @ self.vm_far[idx]) < vm.max():
             return vm, span
@@ -184,6 +193,7 @@ class Influence:
         full displacement vector, for an exact check beyond what the operators cover."""
         mesh = model.mesh
         geo = self._lookups(model)
+        idx, f = self.loaded(idx, f)
         a = np.abs(f)
         idx = self.rows(idx)
         span = self._span(geo["cx"], x0)
@@ -192,7 +202,8 @@ class Influence:
             if not len(flag):
                 return
             slots = geo["cslot"][flag]                                         # (n, a): rows of Y_c
-            U_el = (f @ self.Y_c[idx][:, slots.ravel()].reshape(len(f), -1)).reshape(*slots.shape, 2)
+            Y = self.Y_c[slots.ravel(), :, idx] if isinstance(idx, slice) else self.Y_c[slots.ravel()][:, :, idx]
+            U_el = (Y @ f).reshape(*slots.shape, 2)
             H = np.swapaxes(U_el, 1, 2)[:, None] @ geo["Bg"][flag]              # (n, q, 2, 2)
             if ((1 + H[..., 0, 0]) * (1 + H[..., 1, 1]) - H[..., 0, 1] * H[..., 1, 0] > 0).all():
                 return                                                         # det J = det J0 det(I + H) > 0

@@ -117,3 +117,14 @@ def test_cached_scene_predicts_without_scipy(tmp_path):
                                  check=True).stdout.split()
     assert run() == ["True", "True", "True"]         # cold: meshed, factorized and built (scipy needed)
     assert run() == ["True", "True", "False"]        # cached: numpy only
+
+
+def test_warm_started_sweep_gives_each_waypoints_own_answer():
+    """indent_many starts each LCP from its neighbour's contact width (same depth): the forces are each waypoint's
+    cold solve's (the solver is exact from any start), across a depth change and over the stone."""
+    sm = SurfaceModel(S.load("paper").with_analysis(**MESH))
+    xs = np.r_[np.linspace(0.0055, 0.0645, 30), np.linspace(0.0645, 0.0055, 7)]
+    depths = np.r_[np.full(20, 0.003), np.full(10, 0.0045), np.full(7, 0.001)]
+    for r, x, d in zip(sm.indent_many(xs, depths, stresses=False), xs, depths):
+        idx, f, _ = sm.contact_forces(float(x), float(d))
+        np.testing.assert_allclose(r.nodal_force_n_per_m, f, rtol=1e-12, atol=1e-12 * f.max())
