@@ -211,14 +211,22 @@ class _Forward:
 
     def contrast(self, stone, d, eta) -> np.ndarray:
         xs, dep, D = stone
+        return self.contrast_many(np.array([xs]), dep, D, d, eta)[0]
+
+    def _many(self, d, xs_m, dep: float, D: float) -> np.ndarray:
+        if hasattr(self.sur, "contrast_many"):
+            return self.sur.contrast_many(self.meas.x_m, d, xs_m, dep, D)
+        return np.array([self.sur.contrast(self.meas.x_m, d, x, dep, D) for x in xs_m])
+
+    def contrast_many(self, xs_m: np.ndarray, dep: float, D: float, d, eta) -> np.ndarray:
+        """The contrast of stones (depth ``dep``, diameter ``D``) at each of ``xs_m``: (len(xs_m), n probes)."""
         if self.levels is None:
-            return self.sur.contrast(self.meas.x_m, d, xs, dep, D)
+            return self._many(d, xs_m, dep, D)
         dc = np.clip(d, self.levels[0], self.levels[-1])     # beyond the table: the contrast scales like the force
-        C = self.sur.contrast(self.meas.x_m, dc, xs, dep, D)
+        C = self._many(dc, xs_m, dep, D)
         out = dc != d
         if out.any():
-            C = C.copy()
-            C[out] *= self.resp.force_n(d, eta)[out] / np.maximum(self.resp.force_n(dc, eta)[out], 1e-12)
+            C[:, out] *= self.resp.force_n(d, eta)[out] / np.maximum(self.resp.force_n(dc, eta)[out], 1e-12)
         return C
 
     def forces(self, stone, nu) -> np.ndarray:
@@ -396,12 +404,13 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
             for D in surrogate.diam * 1e3:
                 if math.exp(ls) + D > H - 2.0:
                     continue
-                for xc in xs_c:
-                    p = np.array([xc, ls, D])
-                    A = np.c_[P0 + fw.contrast(_stone(p), d0, nu_s[4]), meas.tau_s]
+                _, dep_c, D_c = _stone((0.0, ls, D))
+                Cm = fw.contrast_many(xs_c * 1e-3, dep_c, D_c, d0, nu_s[4])           # (n_xc, n probes)
+                for xc, ci in zip(xs_c, Cm):
+                    A = np.c_[P0 + ci, meas.tau_s]
                     coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
                     chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
-                    cands.append((chi2, p, coef))
+                    cands.append((chi2, np.array([xc, ls, D]), coef))
         cands.sort(key=lambda t: t[0])
         seen = []
         for chi2, p, coef in cands:

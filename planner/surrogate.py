@@ -270,31 +270,34 @@ class Surrogate:
         return C
 
     def contrast(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
+        return self.contrast_many(x0_m, depth_m, [float(xs_m)], stone_depth_m, diam_m)[0]
+
+    def contrast_many(self, x0_m, depth_m, xs_m, stone_depth_m: float, diam_m: float) -> np.ndarray:
+        """``contrast`` for stones at each of the positions ``xs_m`` (same depth and size): (len(xs_m), n probes)."""
         x0 = np.asarray(x0_m, float)
         d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
-        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))
-        xs = float(xs_m)
-        if xs > 0.5 * self.W:                       # mirror image
-            xs, x0 = self.W - xs, self.W - x0
-        k = int(np.clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2))
-        wk = float(np.clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0))
+        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))   # (nxs, nlev, nx0)
+        xs = np.asarray(xs_m, float)
+        mirror = xs > 0.5 * self.W                  # mirror image
+        xs = np.where(mirror, self.W - xs, xs)
+        X0 = np.where(mirror[:, None], self.W - x0[None, :], x0[None, :])
+        k = np.clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2)
+        wk = np.clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0)
         # probe depth: linear between levels (clamped)
         u = np.clip(np.interp(d, self.levels, np.arange(len(self.levels))), 0, len(self.levels) - 1)
         il = np.minimum(np.floor(u).astype(int), len(self.levels) - 2)
         wl = u - il
-        out = np.zeros(x0.shape)
+        out = np.zeros(X0.shape)
         h = self.x0[1] - self.x0[0]
         for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
-            if wkk == 0.0:
-                continue
-            xq = np.clip(x0 - xs + self.xs[kk], self.x0[0], self.x0[-1])
+            xq = np.clip(X0 - xs[:, None] + self.xs[kk][:, None], self.x0[0], self.x0[-1])
             v = (xq - self.x0[0]) / h
             ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
             wx = v - ix
-            Ck = C[kk]
-            val = ((1 - wl) * ((1 - wx) * Ck[il, ix] + wx * Ck[il, ix + 1])
-                   + wl * ((1 - wx) * Ck[il + 1, ix] + wx * Ck[il + 1, ix + 1]))
-            out += wkk * val
+            kr = kk[:, None]
+            val = ((1 - wl) * ((1 - wx) * C[kr, il, ix] + wx * C[kr, il, ix + 1])
+                   + wl * ((1 - wx) * C[kr, il + 1, ix] + wx * C[kr, il + 1, ix + 1]))
+            out += wkk[:, None] * val
         return out
 
 

@@ -186,3 +186,19 @@ def test_a_stone_near_an_end_under_a_tilted_surface_is_not_lost_to_the_tilt():
     loc = localize(prior, meas, load_surrogate(prior))
     assert loc.chi2_1 <= loc.chi2_0 and loc.detected, (loc.lr, loc.chi2_0, loc.chi2_1)
     assert abs(loc.x_m - stone["x_m"]) < 3 * loc.sigma_x_m + 1e-3, (loc.x_m, loc.sigma_x_m)   # measured 12.71 +- 0.72
+
+
+def test_contrast_at_many_positions_is_the_contrast_at_each():
+    """The stone fit's candidates score a row of stone positions at once (Surrogate.contrast_many): each row is
+    exactly the one-position contrast, mirrored positions (right of the middle) and the table's ends included."""
+    sur = load_surrogate(load("paper").prior())
+    rng = np.random.default_rng(7)
+    x0 = rng.uniform(0.003, 0.067, 25)
+    d = rng.uniform(0.0005, 0.007, 25)
+    for dep, D in ((0.012, 0.006), (0.025, 0.015), (0.04, 0.01)):
+        xs = np.r_[sur.bounds["xs_m"][0], rng.uniform(0.0, 0.07, 8), 0.035, sur.bounds["xs_m"][1]]
+        many = sur.contrast_many(x0, d, xs, dep, D)
+        assert many.shape == (len(xs), len(x0))
+        for row, x in zip(many, xs):
+            assert np.array_equal(row, sur.contrast(x0, d, float(x), dep, D))
+            assert np.array_equal(row, sur.contrast_many(x0, d, [float(x)], dep, D)[0])
