@@ -266,18 +266,24 @@ class Cholesky:
     """K = L L' by CHOLMOD (supernodal; ordering as ``interior_order``: METIS when pymetis is installed, else
     CHOLMOD's own AMD) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k)."""
 
-    def __init__(self, K):
+    def __init__(self, K, order: np.ndarray | None = None):
+        """``order``: a fill-reducing order of K's rows to use (``Cholesky.order_for(K)``; a Newton iteration's
+        tangents share their pattern, so one order serves them all); None: computed here."""
         import cvxopt
         import cvxopt.cholmod as chm
         low = sp.tril(K).tocoo()
         A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
                             cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
         self._chm, self._cvx = chm, cvxopt
-        if metis_available():
-            self._F = chm.symbolic(A, p=cvxopt.matrix(interior_order(K, np.arange(K.shape[0]), ordering="metis")))
-        else:
-            self._F = chm.symbolic(A)
+        if order is None:
+            order = self.order_for(K)
+        self._F = chm.symbolic(A) if order is None else chm.symbolic(A, p=cvxopt.matrix(np.asarray(order, np.int64)))
         chm.numeric(A, self._F)
+
+    @staticmethod
+    def order_for(K) -> np.ndarray | None:
+        """METIS nested dissection of K's graph (None without pymetis: CHOLMOD's own AMD then)."""
+        return interior_order(K, np.arange(K.shape[0]), ordering="metis") if metis_available() else None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         B = self._cvx.matrix(np.asfortranarray(rhs, dtype=float))

@@ -94,6 +94,7 @@ class HyperIndenter:
     """A scene's finite-strain contact problem, set up once (mesh, pattern, boundary conditions) for many sweeps."""
 
     def __init__(self, scene, model: Model | None = None, residual_tol: float = RESIDUAL_TOL):
+        self._order_kept = None           # (the tangent's sparsity pattern, its fill-reducing order)
         if scene.indenter.youngs_pa is not None and scene.indenter.youngs_pa < 1e3 * scene.tissue.youngs_pa:
             raise ValueError("the finite-strain truth models a rigid tip; this scene's tip is soft "
                              f"(E_tip = {scene.indenter.youngs_pa:g} Pa)")
@@ -166,6 +167,17 @@ class HyperIndenter:
         raise NotConverged(f"finite-strain contact at x_m={x0:.5g}, depth_m={depth:.4g}: Newton did not converge "
                            f"(relative residuals {', '.join(f'{h:.1e}' for h in history[-4:])})")
 
+    def _factorize(self, Kt):
+        """``_factorize`` with the fill-reducing order kept between Newton steps while the tangent's sparsity pattern
+        stays the same (it does: one mesh; the ordering was a quarter of a sweep's time when made every step)."""
+        pattern = (Kt.shape, Kt.indptr, Kt.indices)
+        kept = self._order_kept
+        if kept is None or kept[0][0] != pattern[0] or not (np.array_equal(kept[0][1], pattern[1])
+                                                            and np.array_equal(kept[0][2], pattern[2])):
+            kept = ((Kt.shape, Kt.indptr.copy(), Kt.indices.copy()), Cholesky.order_for(Kt) if available() else None)
+            self._order_kept = kept
+        return _factorize(Kt, kept[1])
+
     def _newton_step(self, K, f, x0, idx, g, n, r, pv, a):
         """One Newton step: the LCP above with the consistent tangent K~ = K_T - U D U^T (U: the tangents t_a of
         the nodes in contact, D = p_a / |x_a - c|; the normal's rotation is rank one per node), applied through
@@ -182,7 +194,7 @@ class HyperIndenter:
         B[cols[:, 1], 1 + np.arange(k)] = n[:, 1]
         B[cols[on, 0], 1 + k + np.arange(len(on))] = -n[on, 1]            # tangents t = (-n_y, n_x)
         B[cols[on, 1], 1 + k + np.arange(len(on))] = n[on, 0]
-        X = _factorize(Kt)(B)
+        X = self._factorize(Kt)(B)
         z, Y, V = X[:, 0], X[:, 1:1 + k], X[:, 1 + k:]
         G = B[:, 1:1 + k]
         if len(on):
@@ -249,13 +261,13 @@ class HyperIndenter:
                           time_s=time.perf_counter() - t0)
 
 
-def _factorize(K):
-    """solve(rhs) with a sparse factorization of the material tangent: CHOLMOD (cvxopt) when it is positive
-    definite, else SuperLU."""
+def _factorize(K, order=None):
+    """solve(rhs) with a sparse factorization of the material tangent: CHOLMOD (cvxopt; ``order``: its fill-reducing
+    order, None: computed) when it is positive definite, else SuperLU."""
     import scipy.sparse.linalg as spla
     if available():
         try:
-            return Cholesky(K).solve
+            return Cholesky(K, order).solve
         except ArithmeticError:
             pass
     return spla.splu(K.tocsc()).solve
