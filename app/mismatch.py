@@ -195,7 +195,8 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
     row.update(detected=r["detected"], lr=r["evidence"]["likelihood_ratio"], probes=r["probes_used"],
                stiffness_scale=nu["stiffness_scale"]["value"], thickness_est=nu["thickness_scale"]["value"],
                offset_est_m=nu["surface_offset_m"]["value"], tilt_est_rad=nu["surface_tilt_rad"]["value"],
-               relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"])
+               relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"],
+               finite_strain_est=(nu.get("finite_strain_amplitude") or {}).get("value"))
     meas = Measurements.from_records(read_records(d / "run"), statuses=("ok", "force_limit"))
     old = localize(prior, meas, sur, nuisance=False)
     row.update(detected_known_tissue=old.detected, lr_known_tissue=old.lr)

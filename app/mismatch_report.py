@@ -72,8 +72,9 @@ def by_hyperelastic(rows) -> str:
     """A line per truth model (linear, neo-Hookean) when the study drew neo-Hookean truths; else nothing."""
     if not any(r.get("hyperelastic") in (True, "True") for r in rows):
         return ""
-    out = ["", "", "| truth | stones | detected | false alarms | lateral err median (mm) | depth err median (mm) |",
-           "|---|---:|---:|---:|---|---|"]
+    out = ["", "", "| truth | stones | detected | false alarms (healthy) | largest healthy LR | lateral err median (mm) | "
+           "depth err median (mm) | finite-strain amplitude a, median (range) |",
+           "|---|---:|---:|---:|---:|---|---|---|"]
     for name, on in (("linear elastic", False), ("neo-Hookean", True)):
         group = [r for r in rows if (r.get("hyperelastic") in (True, "True")) == on]
         if not group:
@@ -81,8 +82,11 @@ def by_hyperelastic(rows) -> str:
         s = summarize(group)
         mm = [("-" if not np.isfinite(s[k]) else f"{s[k]:.2f}") for k in ("lateral_err_median_mm",
                                                                            "depth_err_median_mm")]
-        out.append(f"| {name} | {s['stones']} | {_pct(s['detection_rate'])} | {_pct(s['false_alarm_rate'])} | "
-                   f"{mm[0]} | {mm[1]} |")
+        a = [float(r["finite_strain_est"]) for r in group if r.get("finite_strain_est") not in (None, "")]
+        a_txt = f"{np.median(a):.2f} ({min(a):.2f}-{max(a):.2f})" if a else "-"
+        lr = "-" if not np.isfinite(s["max_lr_healthy"]) else f"{s['max_lr_healthy']:.1f}"
+        out.append(f"| {name} | {s['stones']} | {_pct(s['detection_rate'])} | {_pct(s['false_alarm_rate'])} "
+                   f"({s['healthy']}) | {lr} | {mm[0]} | {mm[1]} | {a_txt} |")
     return "\n".join(out)
 
 
