@@ -96,6 +96,21 @@ def test_a_stone_near_a_side_of_neo_hookean_tissue_is_found(prior, sur, probes):
     assert abs(loc.x_m - 0.057) < max(3 * loc.sigma_x_m, 5e-4), (loc.x_m, loc.sigma_x_m)
     assert abs(loc.depth_m - 0.017) < max(3 * loc.sigma_depth_m, 2e-3), (loc.depth_m, loc.sigma_depth_m)
     assert abs(loc.nuisance["finite_strain_amplitude"][0] - 1.0) < 0.3
+    assert loc.nuisance["finite_strain_in_estimate"] and loc.nuisance["finite_strain_gain_chi2"] > 9.0
+
+
+def test_a_stone_in_linear_tissue_is_estimated_without_the_term(prior, sur, probes):
+    """The same stone in linear tissue: the term does not lower the stone fit's chi2 (measured 0.00), so the
+    estimate is the one without it (a free let a weak or near-side stone's depth move by millimetres in the
+    mismatch study's linear truths); the detection keeps it (LR within 1 % of the fit without it here)."""
+    x, F, _ = probes
+    C = sur.contrast(x, np.full(len(x), DEPTH_M), 0.057, 0.017, 0.012)
+    m = measurements(x, F + C, seed=3)
+    loc, off = localize(prior, m, sur), localize(prior, m, sur, finite_strain=False)
+    assert loc.detected and not loc.nuisance["finite_strain_in_estimate"]
+    assert loc.nuisance["finite_strain_gain_chi2"] < 1.0 and loc.nuisance["finite_strain_amplitude"][0] < 0.15
+    assert abs(loc.x_m - off.x_m) < 0.1 * off.sigma_x_m and abs(loc.depth_m - off.depth_m) < 0.1 * off.sigma_depth_m
+    assert loc.lr == pytest.approx(off.lr, rel=0.01)
 
 
 def test_a_healthy_neo_hookean_mismatch_trial_is_not_a_stone(prior, sur):
