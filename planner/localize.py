@@ -497,7 +497,12 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     a_fit = (0.0, 0.0)                  # the amplitude of the fit with a free (reported whichever fit is used)
     if held:
         dof_a = max(len(best.fun) - 3 - nf, 1)
-        cov_a = np.linalg.pinv(best.jac.T @ best.jac) * max(1.0, chi2_1 / dof_a)
+        Jb = best.jac
+        if best.x[-1] < 1e-6:        # at its bound: scipy returns that column zeroed; a one-sided difference instead
+            Jb = Jb.copy()
+            step = 1e-3
+            Jb[:, -1] = (resid(np.append(best.x[:-1], best.x[-1] + step)) - best.fun) / step
+        cov_a = np.linalg.pinv(Jb.T @ Jb) * max(1.0, chi2_1 / dof_a)
         a_fit = (float(best.x[-1]), float(math.sqrt(max(cov_a[-1, -1], 0.0))))
         fit = least_squares(lambda qh: resid(np.append(qh, 0.0)), best.x[:-1],
                             bounds=(np.concatenate([lo, nlo])[:-1], np.concatenate([hi, nhi])[:-1]),
