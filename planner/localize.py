@@ -13,7 +13,12 @@ stones) and ``Measurements`` (probe positions, reached depths, measured forces a
    taken (F/T drift: the free-air baseline of the same descent, or the sensor's zeroing; ``Measurements.tau_s``). Uncertainty: the Jacobian covariance (inflated by chi2/dof when above 1),
    propagated to (x, depth, diameter); the depth-diameter correlation is reported (a larger, deeper stone looks like a
    smaller, shallower one: the profile's *width* tells the depth, its *height* then the size).
-4. Detection: likelihood ratio of "stone" against "no stone" (prior + offset only): LR = chi2_0 - chi2_1. A stone is
+   The tissue's unknowns are fitted with the stone (``NUISANCE``): stiffness scale, thickness, surface offset and
+   tilt (from the contact onsets), and the amplitude a of the prior's own finite-strain correction g(x, d)
+   (planner.finite_strain_response: fem's neo-Hookean force of the PRIOR over its linear one, minus 1); the model
+   force is scale (prior + contrast) (1 + a g) + drift. Detection keeps a free in both hypotheses; the estimate uses
+   it only where it lowers the stone fit's chi2 by more than ``FS_GAIN_MIN`` (times chi2/dof when above 1).
+4. Detection: likelihood ratio of "stone" against "no stone" (the nuisance model only): LR = chi2_0 - chi2_1. A stone is
    reported when LR >= ``LR_THRESHOLD``. Under "no stone" with a correct noise model, LR is the maximum over xs of a
    chi2 with ~2-3 dof; the threshold is set from Monte-Carlo runs on healthy tissue (bench/accuracy_study.py reports
    the false-alarm rate it measures; the nominal rate is below 1e-3).
