@@ -20,7 +20,8 @@ with the nano17 sensor (its own random bias and drift). The plan, made once on t
 surface up to 2 mm above the nominal one makes the true indentation reach the tip radius, where fem's contact model
 ends) with an 8 mN contact threshold (20 mN is never reached when the surface lies 2 mm below the nominal one).
 Each trial's records are also localized with the tissue taken as known (``nuisance=False``, the localizer before
-issue 14) for comparison; a stone is inside the detectability envelope when planner.detectability.p_detect (the
+issue 14) and without the finite-strain term (``finite_strain=False``: the tissue's unknowns fitted, a linear
+tissue assumed) for comparison; a stone is inside the detectability envelope when planner.detectability.p_detect (the
 coarse raster, nuisance projected out) is at least 0.9: ``p_detect`` on the prior as the planner sees it, and
 ``p_detect_in_truth`` with the truth's modulus and surface (the judge's: a stone in tissue half as stiff gives half
 the contrast; the belief's envelope counts it as detectable all the same). Trials are drawn in the parent from one generator (the same
@@ -195,10 +196,14 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
     row.update(detected=r["detected"], lr=r["evidence"]["likelihood_ratio"], probes=r["probes_used"],
                stiffness_scale=nu["stiffness_scale"]["value"], thickness_est=nu["thickness_scale"]["value"],
                offset_est_m=nu["surface_offset_m"]["value"], tilt_est_rad=nu["surface_tilt_rad"]["value"],
-               relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"])
+               relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"],
+               finite_strain_est=(nu.get("finite_strain_amplitude") or {}).get("value"),
+               finite_strain_in_estimate=nu.get("finite_strain_in_estimate"))
     meas = Measurements.from_records(read_records(d / "run"), statuses=("ok", "force_limit"))
     old = localize(prior, meas, sur, nuisance=False)
     row.update(detected_known_tissue=old.detected, lr_known_tissue=old.lr)
+    lin = localize(prior, meas, sur, finite_strain=False)      # the same records without the finite-strain term
+    row.update(detected_no_finite_strain=lin.detected, lr_no_finite_strain=lin.lr)
     if stone is not None:
         row.update(x_m=stone.x_m, depth_m=stone.depth_m, diameter_m=stone.diameter_m)
         dep = np.full(len(coarse_x), PLAN_DEPTH_M)
@@ -217,4 +222,7 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
                        x_in2s=bool(abs(est["x_m"]["value"] - stone.x_m) <= 2 * est["x_m"]["sigma"]))
         if old.detected:
             row.update(err_x_known_tissue_m=old.x_m - stone.x_m, err_depth_known_tissue_m=old.depth_m - stone.depth_m)
+        if lin.detected:
+            row.update(err_x_no_finite_strain_m=lin.x_m - stone.x_m,
+                       err_depth_no_finite_strain_m=lin.depth_m - stone.depth_m)
     return row

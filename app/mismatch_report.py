@@ -12,6 +12,10 @@ def _pct(v) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{100 * v:.0f} %"
 
 
+def _num(v, digits: int = 2) -> str:
+    return "-" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
+
+
 def summarize(rows) -> dict:
     ok = [r for r in rows if r["rc"] == 0]
     st = [r for r in ok if r["stone"]]
@@ -25,7 +29,11 @@ def summarize(rows) -> dict:
         return float(np.percentile(v, q)) if v else float("nan")
 
     def rate(rs, key):
-        return float(np.mean([bool(r[key]) for r in rs])) if rs else float("nan")
+        rs = [r for r in rs if r.get(key) not in (None, "")]      # (older rows lack the newer comparisons)
+        return float(np.mean([r[key] in (True, "True") for r in rs])) if rs else float("nan")
+
+    def top(rs, key):
+        return float(max([float(r[key]) for r in rs if r.get(key) not in (None, "")] or [np.nan]))
     return {"trials": len(rows), "failed_runs": len(rows) - len(ok), "stones": len(st), "healthy": len(he),
             "in_envelope": len(env), "detection_rate": rate(st, "detected"),
             "detection_rate_in_envelope": rate(env, "detected"), "false_alarm_rate": rate(he, "detected"),
@@ -43,6 +51,11 @@ def summarize(rows) -> dict:
                                                      for r in ok if r.get("onsets", 0) > 0] or [np.nan])),
             "max_lr_healthy": float(max([r["lr"] for r in he] or [np.nan])),
             "max_lr_healthy_known_tissue": float(max([r["lr_known_tissue"] for r in he] or [np.nan])),
+            "detection_rate_no_finite_strain": rate(st, "detected_no_finite_strain"),
+            "false_alarm_rate_no_finite_strain": rate(he, "detected_no_finite_strain"),
+            "lateral_err_median_no_finite_strain_mm": med("err_x_no_finite_strain_m", st),
+            "depth_err_median_no_finite_strain_mm": med("err_depth_no_finite_strain_m", st),
+            "max_lr_healthy_no_finite_strain": top(he, "lr_no_finite_strain"),
             "wall_s_mean": float(np.mean([r["wall_s"] for r in rows]))}
 
 
@@ -62,9 +75,14 @@ def table(s: dict, cmd: str) -> str:
         f"{_pct(s['coverage_x_2sigma'])} |",
         f"| tissue taken as the prior (before), same probes | {_pct(s['detection_rate_known_tissue'])} | | "
         f"{_pct(s['false_alarm_rate_known_tissue'])} | {s['lateral_err_median_known_tissue_mm']:.2f} median | "
-        f"{s['depth_err_median_known_tissue_mm']:.2f} median | | |", "",
+        f"{s['depth_err_median_known_tissue_mm']:.2f} median | | |",
+        f"| without the finite-strain term (a linear tissue assumed), same probes | "
+        f"{_pct(s.get('detection_rate_no_finite_strain'))} | | {_pct(s.get('false_alarm_rate_no_finite_strain'))} | "
+        f"{_num(s.get('lateral_err_median_no_finite_strain_mm'))} median | "
+        f"{_num(s.get('depth_err_median_no_finite_strain_mm'))} median | | |", "",
         f"Largest LR on healthy tissue: {s['max_lr_healthy']:.1f} (threshold 20); with the tissue taken as the prior "
-        f"{s['max_lr_healthy_known_tissue']:.1f}. Surface offset from the contact onsets: median error "
+        f"{s['max_lr_healthy_known_tissue']:.1f}, without the finite-strain term "
+        f"{_num(s.get('max_lr_healthy_no_finite_strain'), 1)}. Surface offset from the contact onsets: median error "
         f"{s['offset_err_median_mm']:.3f} mm. Median depth sigma reported: {s['depth_sigma_median_mm']:.2f} mm."])
 
 
@@ -72,8 +90,10 @@ def by_hyperelastic(rows) -> str:
     """A line per truth model (linear, neo-Hookean) when the study drew neo-Hookean truths; else nothing."""
     if not any(r.get("hyperelastic") in (True, "True") for r in rows):
         return ""
-    out = ["", "", "| truth | stones | detected | false alarms | lateral err median (mm) | depth err median (mm) |",
-           "|---|---:|---:|---:|---|---|"]
+    out = ["", "", "| truth | stones | detected | false alarms (healthy) | largest healthy LR | lateral err median (mm) | "
+           "depth err median (mm) | finite-strain amplitude a, median (range) | without the term, same probes: "
+           "detected / false alarms / largest healthy LR / lateral, depth err median (mm) |",
+           "|---|---:|---:|---:|---:|---|---|---|---|"]
     for name, on in (("linear elastic", False), ("neo-Hookean", True)):
         group = [r for r in rows if (r.get("hyperelastic") in (True, "True")) == on]
         if not group:
@@ -81,8 +101,16 @@ def by_hyperelastic(rows) -> str:
         s = summarize(group)
         mm = [("-" if not np.isfinite(s[k]) else f"{s[k]:.2f}") for k in ("lateral_err_median_mm",
                                                                            "depth_err_median_mm")]
-        out.append(f"| {name} | {s['stones']} | {_pct(s['detection_rate'])} | {_pct(s['false_alarm_rate'])} | "
-                   f"{mm[0]} | {mm[1]} |")
+        a = [float(r["finite_strain_est"]) for r in group if r.get("finite_strain_est") not in (None, "")]
+        a_txt = f"{np.median(a):.2f} ({min(a):.2f}-{max(a):.2f})" if a else "-"
+        lr = "-" if not np.isfinite(s["max_lr_healthy"]) else f"{s['max_lr_healthy']:.1f}"
+        f2 = [("-" if not np.isfinite(s[k]) else f"{s[k]:.{n}f}") for k, n in (
+            ("max_lr_healthy_no_finite_strain", 1), ("lateral_err_median_no_finite_strain_mm", 2),
+            ("depth_err_median_no_finite_strain_mm", 2))]
+        out.append(f"| {name} | {s['stones']} | {_pct(s['detection_rate'])} | {_pct(s['false_alarm_rate'])} "
+                   f"({s['healthy']}) | {lr} | {mm[0]} | {mm[1]} | {a_txt} | "
+                   f"{_pct(s['detection_rate_no_finite_strain'])} / {_pct(s['false_alarm_rate_no_finite_strain'])} / "
+                   f"{f2[0]} / {f2[1]}, {f2[2]} |")
     return "\n".join(out)
 
 

@@ -13,7 +13,12 @@ stones) and ``Measurements`` (probe positions, reached depths, measured forces a
    taken (F/T drift: the free-air baseline of the same descent, or the sensor's zeroing; ``Measurements.tau_s``). Uncertainty: the Jacobian covariance (inflated by chi2/dof when above 1),
    propagated to (x, depth, diameter); the depth-diameter correlation is reported (a larger, deeper stone looks like a
    smaller, shallower one: the profile's *width* tells the depth, its *height* then the size).
-4. Detection: likelihood ratio of "stone" against "no stone" (prior + offset only): LR = chi2_0 - chi2_1. A stone is
+   The tissue's unknowns are fitted with the stone (``NUISANCE``): stiffness scale, thickness, surface offset and
+   tilt (from the contact onsets), and the amplitude a of the prior's own finite-strain correction g(x, d)
+   (planner.finite_strain_response: fem's neo-Hookean force of the PRIOR over its linear one, minus 1); the model
+   force is scale (prior + contrast) (1 + a g) + drift. Detection keeps a free in both hypotheses; the estimate uses
+   it only where it lowers the stone fit's chi2 by more than ``FS_GAIN_MIN`` (times chi2/dof when above 1).
+4. Detection: likelihood ratio of "stone" against "no stone" (the nuisance model only): LR = chi2_0 - chi2_1. A stone is
    reported when LR >= ``LR_THRESHOLD``. Under "no stone" with a correct noise model, LR is the maximum over xs of a
    chi2 with ~2-3 dof; the threshold is set from Monte-Carlo runs on healthy tissue (bench/accuracy_study.py reports
    the false-alarm rate it measures; the nominal rate is below 1e-3).
@@ -29,6 +34,7 @@ from scipy.optimize import least_squares
 from core.contracts import N_ZERO_AVERAGE
 from core.peak import parabola_peak
 from fem.contact import surface_model
+from planner.finite_strain_response import FiniteStrainRows, prior_finite_strain, unsupported
 from planner.surrogate import load_surrogate
 from planner.tissue_response import PriorResponse
 
@@ -178,12 +184,19 @@ def peak_estimate(x: np.ndarray, c: np.ndarray) -> tuple[float, float]:
     return parabola_peak(xu, cu, k - 1, k + 1)
 
 
-# ---- the forward model: prior response x stiffness scale + stone contrast + drift, at the true indentation -------
+# ---- the forward model: (prior response + stone contrast) x stiffness scale x (1 + a g) + drift, at the true
+# indentation; g: the prior's own finite-strain correction (planner.finite_strain_response), a its fitted amplitude
 # nuisance parameters, after the stone's (xs [mm], log clearance [log mm], diameter [mm]):
-NUISANCE = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_mrad", "thickness_change")
-NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 0.03])
-NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -0.25])
-NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 0.25])
+NUISANCE = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_mrad", "thickness_change",
+            "finite_strain_amplitude")
+NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 0.03, 0.1])
+NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -0.25, 0.0])
+NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 0.25, 5.0])
+FS_PRIOR_MEAN = 0.5         # prior on the finite-strain amplitude a (0: linear tissue, 1: neo-Hookean with the
+FS_PRIOR_SIGMA = 1.0        # prior's parameters): weak, both within 1 sigma; a >= 0 (no tissue softens against the
+#                             linear model at finite strain; a free sign let "no stone" mimic a central stone's bump
+#                             with a < 0: the paper run's LR fell 1701 -> 1597 against 1600 with the bound)
+FS_GAIN_MIN = 9.0           # the stone's estimate uses the finite-strain term when it lowers chi2 by more (see localize)
 ONSET_SIGMA_M = 6e-5        # scatter of a probe's contact onset about the model's (measured: 0.042 mm, paper, nano17)
 ONSET_BIAS_M = -8e-5        # mean onset minus the model's: the first noisy threshold crossing comes early (measured)
 THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 sigma: a uniform +-10 % has 0.058)
@@ -195,16 +208,39 @@ MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the 
 class _Forward:
     """Forces (and onset and prior residuals) of the prior + nuisance (+ stone) model at the measured probes."""
 
-    def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool):
+    def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool, finite_strain: bool | None = None):
+        shape = prior_finite_strain(prior) if nuisance and finite_strain is not False else None
+        if finite_strain and shape is None:
+            raise ValueError(f"finite_strain=True: fem's finite-strain model does not cover this prior "
+                             f"({unsupported(prior) or 'nuisance=False'})")
         self.meas, self.sur = meas, surrogate
         self.resp = PriorResponse(prior, meas.x_m)
         self.xc_m = meas.x_m - 0.5 * prior.tissue.width_m
         self.on = np.flatnonzero(np.isfinite(meas.onset_m) & np.isfinite(meas.onset_threshold_n)
                                  & (meas.onset_threshold_n > 0))
+        self.fs: FiniteStrainRows | None = None if shape is None else shape.at(meas.x_m)
         free = [True, nuisance, nuisance and len(self.on) >= MIN_ONSETS,
-                nuisance and len(self.on) >= MIN_ONSETS and np.ptp(meas.x_m[self.on]) > 0.01, nuisance]
+                nuisance and len(self.on) >= MIN_ONSETS and np.ptp(meas.x_m[self.on]) > 0.01, nuisance,
+                self.fs is not None]
         self.free = np.array(free)
         self.levels = getattr(surrogate, "levels", None)
+        # g at each contact onset: at the indentation where the prior's force reaches the threshold (0.3-0.8 mm; g is
+        # 0.5-3 % there and the fitted stiffness and thickness change it by a fraction of that: held, not re-solved in
+        # every evaluation)
+        self.g_onset = None
+        if self.fs is not None and len(self.on):
+            d_on = self.resp.depth_at_force_m(meas.onset_threshold_n[self.on], 0.0, self.on)
+            self.g_onset = FiniteStrainRows(self.fs.rows[self.on], self.fs.depth_m).g(d_on)
+
+    def stiffening(self, d, nu) -> np.ndarray | float:
+        """1 + a g(x, d): the finite-strain factor at each probe's true indentation ``d`` (1 without the term)."""
+        if self.fs is None or nu[5] == 0.0:
+            return 1.0
+        return 1.0 + nu[5] * self.fs.g(d)
+
+    def tissue_force(self, d, nu) -> np.ndarray:
+        """The stone-free tissue's force at true indentations ``d``, before the stiffness scale."""
+        return self.resp.force_n(d, nu[4]) * self.stiffening(d, nu)
 
     def depth(self, nu) -> np.ndarray:
         return self.meas.depth_m + 1e-3 * (nu[2] + nu[3] * self.xc_m)
@@ -234,16 +270,20 @@ class _Forward:
         F = self.resp.force_n(d, nu[4])
         if stone is not None:
             F = F + self.contrast(stone, d, nu[4])
-        return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
+        return math.exp(nu[1]) * F * self.stiffening(d, nu) + nu[0] * 1e-3 * self.meas.tau_s
 
     def extra(self, nu) -> np.ndarray:
         """Residuals of the contact onsets (the surface height and the scale) and of the drift and thickness priors."""
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[4]:
             r.append(np.array([nu[4] / THICKNESS_SIGMA]))
+        if self.free[5]:
+            r.append(np.array([(nu[5] - FS_PRIOR_MEAN) / FS_PRIOR_SIGMA]))
         if self.free[2]:
             on = self.on
             thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
+            if self.g_onset is not None:      # the finite-strain factor at the onset
+                thr = thr / (1.0 + nu[5] * self.g_onset)
             d_thr = self.resp.depth_at_force_m(thr, nu[4], on)
             pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on]) + ONSET_BIAS_M
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
@@ -253,6 +293,15 @@ class _Forward:
         nu = np.zeros(len(NUISANCE))
         nu[self.free] = v
         return nu
+
+
+@dataclass
+class _Fit:
+    """A least-squares solution's parts the report uses (scipy's OptimizeResult, or one cut down)."""
+    x: np.ndarray
+    cost: float
+    fun: np.ndarray
+    jac: np.ndarray
 
 
 def _stone(p):
@@ -268,7 +317,9 @@ def _fit_no_stone(fw: _Forward, sig, v0=None):
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
     starts = [np.zeros(len(NUISANCE))] + ([fw.full(v0)] if v0 is not None else [])
     if fw.free[4]:
-        starts += [np.array([0, 0, 0, 0, e]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
+        starts += [np.array([0, 0, 0, 0, e, 0]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
+    if fw.free[5]:          # and the prior's tissue as a neo-Hookean solid
+        starts.append(np.array([0, 0, 0, 0, 0, 1.0]))
     best = None
     for nu in starts:
         sol = least_squares(resid, nu[fw.free], bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
@@ -333,29 +384,34 @@ def dwell_relaxation(meas: Measurements) -> tuple[float, float, int]:
 
 
 def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float = LR_THRESHOLD,
-             model_rel_err: float = MODEL_REL_ERR, profile: bool = False, nuisance: bool = True) -> Localization:
+             model_rel_err: float = MODEL_REL_ERR, profile: bool = False, nuisance: bool = True,
+             finite_strain: bool | None = None) -> Localization:
     """Detect and locate a stone from ``meas`` given only the ``prior`` (stone-free) scene. ``profile``: also the
     profile-likelihood interval of the depth (``depth_interval_m``), honest where the Jacobian's is not (a deep
     stone's depth is strongly non-Gaussian: deeper-and-bigger is hard to rule out). ``nuisance``: fit the tissue's
     stiffness scale, thickness and true surface (offset and tilt, from the contact onsets) jointly with the stone
-    (default); False: the prior's tissue and the nominal surface are taken as true (only the drift is fitted)."""
+    (default); False: the prior's tissue and the nominal surface are taken as true (only the drift is fitted).
+    ``finite_strain``: with ``nuisance``, fit the amplitude of the prior's finite-strain correction (the tissue
+    may be a neo-Hookean solid, or any blend towards the linear one: planner.finite_strain_response); None (default):
+    whenever fem's finite-strain model covers the prior (2D plane strain, a rigid-treated tip), False: never, True:
+    ValueError when it does not cover it."""
     if prior.stones:
         raise ValueError("localize() takes the prior scene (no stones): the localizer must not see the truth")
     if len(meas) < MIN_MEASUREMENTS:
         raise ValueError(f"need at least {MIN_MEASUREMENTS} probe measurements, got {len(meas)}")
     if surrogate is None:
         surrogate = load_surrogate(prior)
-    fw = _Forward(prior, meas, surrogate, nuisance)
+    fw = _Forward(prior, meas, surrogate, nuisance, finite_strain)
     nf = int(fw.free.sum())
     sig_a = np.sqrt(meas.sigma_n ** 2 + MODEL_ABS_ERR_N ** 2)
     h0 = _fit_no_stone(fw, sig_a)
     nu0 = fw.full(h0.x)
-    # the contrast for the peak and the model-error allowance: against the prior's thickness on the fitted surface,
-    # with only a scale and the drift fitted (linear): a no-stone fit's thickness can take a central stone's bump
-    # and move the contrast's peak to an end
+    # the contrast for the peak and the model-error allowance: against the prior's thickness on the fitted surface
+    # (and the fitted finite-strain factor), with only a scale and the drift fitted (linear): a no-stone fit's
+    # thickness can take a central stone's bump and move the contrast's peak to an end
     nu_pk = nu0.copy()
     nu_pk[4] = 0.0
-    A = fw.resp.force_n(fw.depth(nu_pk), 0.0)[:, None]
+    A = fw.tissue_force(fw.depth(nu_pk), nu_pk)[:, None]
     wa = 1.0 / sig_a
     coef = np.linalg.lstsq(A * wa[:, None], meas.force_n * wa, rcond=None)[0]
     contrast = meas.force_n - A @ coef       # (no drift offset here: with the scale it mimics a central bump)
@@ -386,8 +442,10 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     # thickness and scale far off: starting only there, the stone fit can stay in that valley)
     nu_prior = nu0.copy()
     nu_prior[4] = 0.0
+    nu_nominal = np.zeros(len(NUISANCE))
+    nu_nominal[5] = nu0[5]
     starts = [(nu0, 4)]
-    for nu_s in (nu_prior, np.zeros(len(NUISANCE))):    # and the prior's tissue on the nominal surface
+    for nu_s in (nu_prior, nu_nominal):    # and the prior's tissue on the nominal surface
         if not any(np.allclose(nu_s, a) for a, _ in starts):
             starts.append((nu_s, 2))
     # the candidates' positions: around the peak, and across the whole section (a big deep stone near an end under
@@ -395,10 +453,15 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     # only there end at the bounds with chi2 above the no-stone fit's; the mismatch study found 5 in 100)
     xs_c = np.unique(np.r_[np.clip(px * 1e3 + np.array([-3.0, 0.0, 3.0]), lo[0], hi[0]),
                            np.linspace(lo[0], hi[0], N_X_STARTS)])
-    best = None
+    # the starts' fits hold the finite-strain amplitude at their start's value (H0's: it is close to the answer, and
+    # with it free each fit took 1.6 times the iterations); the best is then polished with it free
+    held = bool(fw.free[5])         # a is the last free nuisance parameter
+    k_fit = len(lo) + len(nlo) - int(held)
+    best, a_best = None, 0.0
     for nu_s, n_starts in starts:
         d0 = fw.depth(nu_s)
         P0 = fw.resp.force_n(d0, nu_s[4])
+        st0 = fw.stiffening(d0, nu_s)
         cands = []
         for ls in np.log(surrogate.s * 1e3):
             for D in surrogate.diam * 1e3:
@@ -407,7 +470,7 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
                 _, dep_c, D_c = _stone((0.0, ls, D))
                 Cm = fw.contrast_many(xs_c * 1e-3, dep_c, D_c, d0, nu_s[4])           # (n_xc, n probes)
                 for xc, ci in zip(xs_c, Cm):
-                    A = np.c_[P0 + ci, meas.tau_s]
+                    A = np.c_[(P0 + ci) * st0, meas.tau_s]
                     coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
                     chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
                     cands.append((chi2, np.array([xc, ls, D]), coef))
@@ -422,19 +485,55 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
             if fw.free[1] and coef[0] > 0:
                 nu[1] = float(np.clip(math.log(coef[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
             q0 = np.concatenate([p, nu[fw.free]])
-            sol = least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
-                                x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
-                                max_nfev=300)
+
+            def resid_held(qh, a=nu[5]):
+                return resid(np.append(qh, a)) if held else resid(qh)
+            sol = least_squares(resid_held, q0[:k_fit], bounds=(np.concatenate([lo, nlo])[:k_fit],
+                                                                 np.concatenate([hi, nhi])[:k_fit]),
+                                x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:k_fit],
+                                diff_step=1e-4, max_nfev=300)
             if best is None or sol.cost < best.cost:
-                best = sol
-    q = best.x
+                best, a_best = sol, nu[5]
+    fs_gain = float("nan")
+    if held:
+        best = least_squares(resid, np.append(best.x, a_best), bounds=(np.concatenate([lo, nlo]),
+                                                                         np.concatenate([hi, nhi])),
+                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
+                             max_nfev=300)
     chi2_1 = 2.0 * best.cost
     lr = max(chi2_0 - chi2_1, 0.0)      # "no stone" is the limit of the stone family: LR >= 0 (the optimizer's
     #                                    miss of that limit, a fraction of a unit, is not evidence either way)
-    n_res = len(best.fun)
+    # The detection above has the finite-strain term in both hypotheses (a healthy neo-Hookean tissue is no stone).
+    # The stone's estimate uses it only where the data warrant it: where the stone fit with a free is better than
+    # with a = 0 by more than FS_GAIN_MIN (times chi2/dof when above 1); else a is fixed at 0 (in linear tissue a
+    # free a trades against a weak or near-side stone's depth: the mismatch study's linear truths moved by up to 6 mm)
+    fit = best
+    a_fit = (0.0, 0.0)                  # the amplitude of the fit with a free (reported whichever fit is used)
+    if held:
+        dof_a = max(len(best.fun) - 3 - nf, 1)
+        Jb = best.jac
+        if best.x[-1] < 1e-6:        # at its bound: scipy returns that column zeroed; a one-sided difference instead
+            Jb = Jb.copy()
+            step = 1e-3
+            Jb[:, -1] = (resid(np.append(best.x[:-1], best.x[-1] + step)) - best.fun) / step
+        cov_a = np.linalg.pinv(Jb.T @ Jb) * max(1.0, chi2_1 / dof_a)
+        a_fit = (float(best.x[-1]), float(math.sqrt(max(cov_a[-1, -1], 0.0))))
+        fit = least_squares(lambda qh: resid(np.append(qh, 0.0)), best.x[:-1],
+                            bounds=(np.concatenate([lo, nlo])[:-1], np.concatenate([hi, nhi])[:-1]),
+                            x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:-1],
+                            diff_step=1e-4, max_nfev=300)
+        fs_gain = 2.0 * (fit.cost - best.cost)
+        if fs_gain > FS_GAIN_MIN * max(1.0, chi2_1 / dof_a):
+            fit = best
+        else:                    # a = 0 from here on: fixed (the covariance, the profile and the report)
+            fw.free[5] = False
+            nf -= 1
+            nlo, nhi = NUIS_LO[fw.free], NUIS_HI[fw.free]
+    q = fit.x
+    n_res = len(fit.fun)
     dof = max(n_res - 3 - nf, 1)
-    J = best.jac
-    infl = max(1.0, chi2_1 / dof)
+    J = fit.jac
+    infl = max(1.0, 2.0 * fit.cost / dof)
     cov_q = np.linalg.pinv(J.T @ J) * infl
     xs, dep, D = _stone(q[:3])
     s = math.exp(q[1]) * 1e-3
@@ -448,14 +547,18 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     nu = fw.full(q[3:])
     sd_nu = np.zeros(len(NUISANCE))
     sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))
-    fit_c = math.exp(nu[1]) * fw.contrast((xs, dep, D), fw.depth(nu), nu[4])
-    interval = (_depth_profile(resid, q, lo, hi, dep, sd[1], chi2_1, infl, H, nlo, nhi) if profile else {})
+    d_fit = fw.depth(nu)
+    fit_c = math.exp(nu[1]) * fw.contrast((xs, dep, D), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
+    interval = (_depth_profile(resid, q, lo, hi, dep, sd[1], 2.0 * fit.cost, infl, H, nlo, nhi) if profile else {})
     rel, rel_sd, rel_n = dwell_relaxation(meas)
     k = math.exp(nu[1])
     fixed = [n for n, f in zip(NUISANCE, fw.free) if not f]
     nuis = {"stiffness_scale": (k, k * sd_nu[1]), "thickness_scale": (1.0 + nu[4], sd_nu[4]),
             "surface_offset_m": (nu[2] * 1e-3, sd_nu[2] * 1e-3), "surface_tilt_rad": (nu[3] * 1e-3, sd_nu[3] * 1e-3),
             "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
+            "finite_strain_amplitude": a_fit,
+            "finite_strain_gain_chi2": fs_gain if math.isfinite(fs_gain) else None,
+            "finite_strain_in_estimate": bool(fw.free[5]),
             "dwell_relaxation_fraction": (rel, rel_sd), "probes_with_dwell_history": rel_n,
             "contact_onsets_used": int(len(fw.on)) if fw.free[2] else 0,
             "fixed": ["stiffness_scale" if f == "log_stiffness_scale" else f for f in fixed]}
@@ -465,5 +568,5 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
                         chi2_0=float(chi2_0), chi2_1=float(chi2_1), dof_1=dof,
                         offset_drift_n_per_s=float(nu[0] * 1e-3), peak_x_m=px, peak_contrast_n=pc,
                         at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
-                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.resp.force_n(fw.depth(nu), nu[4]),
-                        prior_n=k * fw.resp.force_n(fw.depth(nu), nu[4]), fit_contrast_n=fit_c)
+                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.tissue_force(d_fit, nu),
+                        prior_n=k * fw.tissue_force(d_fit, nu), fit_contrast_n=fit_c)

@@ -52,12 +52,17 @@ class PriorResponse:
                 rows.append(row)
             tabs.append(np.array(rows).reshape(len(x), N_NODES))
         self.T = np.stack(tabs)           # (3, n, nodes)
+        self._last: tuple[float, np.ndarray] | None = None
 
     def _rows(self, eta: float) -> np.ndarray:
-        """log F rows (n, nodes) at the relative thickness change ``eta`` (quadratic through the three nodes)."""
-        u = eta / THICKNESS_STEP
-        w = np.array([0.5 * u * (u - 1), 1 - u * u, 0.5 * u * (u + 1)])
-        return np.tensordot(w, self.T, axes=1)
+        """log F rows (n, nodes) at the relative thickness change ``eta`` (quadratic through the three nodes; the
+        last eta's kept: a fit asks for the same one several times per evaluation)."""
+        eta = float(eta)
+        if self._last is None or self._last[0] != eta:
+            u = eta / THICKNESS_STEP
+            w = np.array([0.5 * u * (u - 1), 1 - u * u, 0.5 * u * (u + 1)])
+            self._last = (eta, np.tensordot(w, self.T, axes=1))
+        return self._last[1]
 
     def force_n(self, depth_m, eta: float = 0.0) -> np.ndarray:
         """The prior's force at each probe's true indentation ``depth_m`` (0 where it is not in contact)."""

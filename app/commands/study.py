@@ -32,6 +32,7 @@ from planner.accuracy3d_report import write_report as write_accuracy3d
 from planner.accuracy_report import write_report
 from planner.detect_study import run_detect, study_cases
 from planner.detect_study import write_report as write_detect
+from planner.finite_strain_response import prior_finite_strain
 from planner.surrogate import load_surrogate
 from planner.surrogate3d import load_surrogate3d
 from planner.tasks import Runner, run_pieces
@@ -216,6 +217,7 @@ def run_mismatch_study(args, scene, runner: Runner, out: Path) -> dict:
     store.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("PALPATE_CACHE_DIR", str(out / "cache"))   # the truths' one-off models stay out of ~
     sur = load_surrogate(prior, runner=runner)
+    prior_finite_strain(prior)        # the localizer's finite-strain table: built (or read) once, here, not per trial
     coarse_x = make_plan(prior, store / "plan.json")
     shared = Shared(prior=prior, sur=sur, plan_path=str(store / "plan.json"), runs_dir=str(store / "runs"),
                     coarse_x_m=coarse_x)
