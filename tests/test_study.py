@@ -43,9 +43,11 @@ def _comparable(rows):
     return json.dumps([{k: v for k, v in r.items() if k != "time_s"} for r in rows], sort_keys=True)
 
 
-REL_TOL = 1e-4     # the localizer's fit (issue 14) is not bit for bit the same in another process: well-determined
+REL_TOL = 1e-3     # the localizer's fit (issue 14) is not bit for bit the same in another process: well-determined
                    # estimates agree to about 1e-10 relative (x_est_m 0.04587595818494586 vs ...154577505), the
-                   # ill-conditioned ones of an undetected stone to 1e-5 (sigma_depth_m 0.0828819 vs 0.0828811)
+                   # ill-conditioned ones of an undetected stone to 1e-5 (sigma_depth_m 0.0828819 vs 0.0828811);
+                   # with the finite-strain amplitude among the nuisances one such sigma differed by 1.8e-4 (CI
+                   # rehearsal 2026-11-25: sigma_x_m 0.0022650318 vs 0.0022646139, a 2.3 mm sigma)
 ABS_TOL = 1e-9     # ... and errors (a difference of two such numbers, ~1e-5 m) to about 1e-13 m
 
 
