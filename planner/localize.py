@@ -512,9 +512,9 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     if held:
         dof_a = max(len(best.fun) - 3 - nf, 1)
         Jb = best.jac
-        if best.x[-1] < 1e-6:        # at its bound: scipy returns that column zeroed; a one-sided difference instead
+        if best.active_mask[-1] != 0:   # at a bound: scipy returns that column zeroed; a one-sided difference inward
             Jb = Jb.copy()
-            step = 1e-3
+            step = 1e-3 * best.active_mask[-1] * -1.0
             Jb[:, -1] = (resid(np.append(best.x[:-1], best.x[-1] + step)) - best.fun) / step
         cov_a = np.linalg.pinv(Jb.T @ Jb) * max(1.0, chi2_1 / dof_a)
         a_fit = (float(best.x[-1]), float(math.sqrt(max(cov_a[-1, -1], 0.0))))
@@ -523,6 +523,9 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:-1],
                             diff_step=1e-4, max_nfev=300)
         fs_gain = 2.0 * (fit.cost - best.cost)
+        if fit.cost < best.cost:         # a = 0 lies in the free family: its better fit is the family's chi2
+            chi2_1 = 2.0 * fit.cost
+            lr = max(chi2_0 - chi2_1, 0.0)
         if fs_gain > FS_GAIN_MIN * max(1.0, chi2_1 / dof_a):
             fit = best
         else:                    # a = 0 from here on: fixed (the covariance, the profile and the report)

@@ -68,12 +68,11 @@ def test_healthy_neo_hookean_tissue_is_no_stone_and_its_amplitude_is_near_one(pr
     loc = localize(prior, m, sur)
     a, sd_a = loc.nuisance["finite_strain_amplitude"]
     assert not loc.detected and loc.lr < 9.0, loc.lr
-    assert abs(a - 1.0) < 0.15 and sd_a < 0.4, (a, sd_a)      # measured 1.002 +- 0.25
+    assert abs(a - 1.0) < 0.15 and 0.0 < sd_a < 0.4, (a, sd_a)      # measured 1.002 +- 0.25
     assert loc.nuisance["stiffness_scale"][0] == pytest.approx(0.7, rel=0.03)
     assert abs(loc.nuisance["sensor_drift_n_per_s"][0]) < 5e-4
     assert loc.chi2_0 < 2 * len(m)
     off = localize(prior, m, sur, finite_strain=False)
-    assert "finite_strain_amplitude" in off.nuisance["fixed"]
     assert off.nuisance["stiffness_scale"][0] < 0.6 and off.nuisance["sensor_drift_n_per_s"][0] > 2e-3
 
 
@@ -82,7 +81,7 @@ def test_linear_tissue_gives_an_amplitude_near_zero(prior, sur, probes):
     loc = localize(prior, measurements(x, 1.3 * F, seed=1), sur)
     a, sd_a = loc.nuisance["finite_strain_amplitude"]
     assert not loc.detected and loc.lr < 9.0, loc.lr
-    assert a < 0.15 and sd_a < 0.4, (a, sd_a)
+    assert a < 0.15 and 0.0 < sd_a < 0.4, (a, sd_a)     # at its bound 0 too: a sigma from the inward difference
     assert loc.nuisance["stiffness_scale"][0] == pytest.approx(1.3, rel=0.03)
 
 
