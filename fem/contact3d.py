@@ -13,10 +13,14 @@ forces by the backward sweep alone (fem.condense.CholmodSchur.solve_contact: for
 the forward sweep to the dense trailing block), several waypoints in one sweep.
 
 A tip fem treats as rigid (fem.tip.treated_as_rigid: no modulus, or its Hertz relative compliance below
-TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid; an elastic tip in 3D is not modelled (refused).
+TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid. A softer spherical tip is elastic
+(fem.tip3d: its lower half meshed and its surface's vertical compliance condensed once; the LCP's compliance is the
+tissue's plus the tip's at the window's nodes); an elastic flat punch is refused. The tissue's compliance does not
+depend on the tip: it is cached under the scene with a rigid tip, the elastic tip's under its own key.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -30,10 +34,11 @@ from .guards import check_finite
 from .lcp import solve_lcp
 from .mesh3d import Mesh3D, patch_bounds
 from .model3d import Model3D, build_model3d, fixed_bottom
-from .scene import SceneError
+from .scene import Indenter, SceneError
 from .scene_mesh3d import code_version3d, mesh_for3d
 from .stress3d import components3d, recovery_operator3d
-from .tip import TIP_TOLERANCE, treated_as_rigid
+from .tip import TIP_TOLERANCE, rigid_tip_bound, treated_as_rigid
+from .tip3d import TipCompliance3D, load_or_build_tip3d
 
 # The contact model keeps a dense compliance of the patch's top nodes (8 n^2 bytes): 16000 nodes are 2 GB.
 MAX_PATCH_NODES = 16_000
@@ -117,24 +122,31 @@ class SurfaceModel3D:
 
     stress_band_m: depth below the surface (and horizontal reach from the tip axis) over which the maximum von
     Mises stress is searched (default 2 R). compliance: restored from disk (``from_arrays``); K is then factorized
-    only when fields are asked for."""
+    only when fields are asked for. tip: an elastic tip's compliance (default: fem.tip3d's, from the disk cache)."""
 
     def __init__(self, scene, model: Model3D | None = None, rigid_tip: str | bool = "auto",
                  tip_tolerance: float = TIP_TOLERANCE, stress_band_m: float | None = None,
                  rigid_stones: str | bool = "auto", solver: str = "auto", *, compliance: np.ndarray | None = None,
-                 mesh: Mesh3D | None = None):
+                 mesh: Mesh3D | None = None, tip: TipCompliance3D | None = None):
         t0 = time.perf_counter()
         if not scene.is_3d:
             raise SceneError(f"scene {scene.name!r} is 2D (no tissue.length_m): use fem.contact.SurfaceModel")
         self.scene = scene
-        if not treated_as_rigid(scene, rigid_tip, tip_tolerance):
-            raise SceneError(f"indenter.youngs_pa = {scene.indenter.youngs_pa!r}: an elastic tip is not modelled in "
-                             f"3D; fem treats a tip as rigid when its relative compliance (Hertz) is below "
-                             f"{tip_tolerance:g}: give no youngs_pa (rigid) or a stiffer tip")
-        self.rigid_tip = True
-        self.tip_note = ("rigid tip (no modulus given)" if scene.indenter.youngs_pa is None else
-                         "tip treated as rigid: its deformation changes the force by a relative amount below "
-                         f"{tip_tolerance:g} (Hertz estimate)")
+        self.rigid_tip = treated_as_rigid(scene, rigid_tip, tip_tolerance)
+        self.tip: TipCompliance3D | None = None
+        if not self.rigid_tip:
+            if scene.indenter.shape != "sphere":
+                raise SceneError(f"indenter.youngs_pa = {scene.indenter.youngs_pa!r} with indenter.shape = "
+                                 f"{scene.indenter.shape!r}: an elastic flat punch is not modelled in 3D (its edge "
+                                 f"is singular); give no youngs_pa (rigid) or shape = 'sphere'")
+            self.tip = tip if tip is not None else load_or_build_tip3d(scene)
+            self.tip_note = (f"elastic tip (E = {scene.indenter.youngs_pa:g} Pa, nu = {scene.indenter.poisson:g}): "
+                             f"its lower half meshed and gripped at its flat face; Hertz relative compliance "
+                             f"{rigid_tip_bound(scene):.3g}")
+        else:
+            self.tip_note = ("rigid tip (no modulus given)" if scene.indenter.youngs_pa is None else
+                             "tip treated as rigid: its deformation changes the force by a relative amount below "
+                             f"{tip_tolerance:g} (Hertz estimate)")
         self._rigid_stones, self._solver = rigid_stones, solver
         self._model = model if compliance is None else None     # restored: the model is built when fields are asked
         if compliance is None and model is None:
@@ -202,24 +214,35 @@ class SurfaceModel3D:
         q = tip_profile3d(self.scene.indenter, x_m, y_m, depth_m, self.xy[idx, 0], self.xy[idx, 1])
         if depth_m == 0.0 or not np.any(q < 0):
             return idx, np.zeros(len(idx)), q
-        return (idx, *self._solve_window(idx, q))
+        return (idx, *self._solve_window(idx, q, self.window_compliance(idx, x_m, y_m)))
 
-    def _solve_window(self, idx: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The exact LCP over the window, solved on the nodes the tip overlaps (q < 0) first: a node with q >= 0 is
-        out of contact whenever the compliance couples it non-negatively to the contact nodes (a downward push
-        lowers the surface around it). The complementarity conditions are then checked on every window node and
-        the whole window is solved when any fails. Warm start: the nodes overlapped by more than half the deepest
-        overlap (Hertz: a^2 = R d is where the sphere's overlap is d / 2)."""
+    def window_compliance(self, idx: np.ndarray, x_m: float, y_m: float):
+        """``block(rows, cols)``: the gap's compliance between window nodes idx[rows] and idx[cols] (None: all) with
+        the tip at (x_m, y_m): the tissue's, plus an elastic tip's at the nodes' positions relative to its axis."""
+        C = self.C
+        if self.tip is None:
+            return lambda r, c: C[np.ix_(idx if r is None else idx[r], idx if c is None else idx[c])]
+        tw = self.tip.window(self.xy[idx] - (x_m, y_m))
+        return lambda r, c: (C[np.ix_(idx if r is None else idx[r], idx if c is None else idx[c])]
+                             + tw.block(r, c))
+
+    def _solve_window(self, idx: np.ndarray, q: np.ndarray, block) -> tuple[np.ndarray, np.ndarray]:
+        """The exact LCP over the window (compliance blocks ``block(rows, cols)``), solved on the nodes the tip
+        overlaps (q < 0) first: a node with q >= 0 is out of contact whenever the compliance couples it
+        non-negatively to the contact nodes (a downward push lowers the surface around it). The complementarity
+        conditions are then checked on every window node and the whole window is solved when any fails. Warm start:
+        the nodes overlapped by more than half the deepest overlap (Hertz: a^2 = R d is where the sphere's overlap
+        is d / 2)."""
         inner = np.flatnonzero(q < 0)
-        r = solve_lcp(self.C[np.ix_(idx[inner], idx[inner])], q[inner], start=q[inner] < 0.5 * q.min())
+        r = solve_lcp(block(inner, inner), q[inner], start=q[inner] < 0.5 * q.min())
         z = np.zeros(len(idx))
         z[inner] = r.z
         act = inner[r.z > 0]
-        w = q + self.C[np.ix_(idx, idx[act])] @ z[act]
+        w = q + block(None, act) @ z[act]
         if np.all(w >= -1e-12 * np.abs(q).max()):
             w[inner] = r.w
             return z, w
-        full = solve_lcp(self.C[np.ix_(idx, idx)], q, start=z > 0)
+        full = solve_lcp(block(None, None), q, start=z > 0)
         return full.z, full.w
 
     def force_n(self, x_m: float, y_m: float, depth_m: float) -> float:
@@ -313,8 +336,11 @@ def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> Su
     """A SurfaceModel3D restored from the disk cache (its compliance; the model is assembled only when fields are
     asked for), else built and stored."""
     mesh = mesh_for3d(scene, use=use)
+    tissue = dataclasses.replace(scene, indenter=dataclasses.replace(scene.indenter, youngs_pa=None,
+                                                                      poisson=Indenter().poisson))
+    spec = _surface_spec(tissue, options, code_version3d())     # the tissue's compliance does not depend on the tip
     return diskcache.load_or_build(
-        "surface3d", _surface_spec(scene, options, code_version3d()), build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
+        "surface3d", spec, build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
         to_arrays=SurfaceModel3D.to_arrays,
         from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use)
 

@@ -29,7 +29,6 @@ paper prior costs nothing cold either.
 from __future__ import annotations
 
 import warnings
-
 from dataclasses import dataclass
 from pathlib import Path
 
