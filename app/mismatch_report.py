@@ -115,6 +115,8 @@ def by_hyperelastic(rows) -> str:
 
 
 def figure(rows, path: Path) -> None:
+    """|error| of each detected stone against each mismatch; neo-Hookean truths (when the study drew them) in their
+    own colour, with a panel of their own."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -122,16 +124,28 @@ def figure(rows, path: Path) -> None:
     keys = [("youngs_scale", "modulus / prior"), ("poisson", "Poisson ratio"), ("thickness_scale", "thickness / prior"),
             ("surface_offset_m", "surface offset (mm)"), ("surface_tilt_deg", "tilt (deg)"),
             ("viscoelastic", "viscoelastic (0/1)")]
-    fig, axes = plt.subplots(2, 3, figsize=(12, 6.5), sharey=True)
+    hyper = np.array([r.get("hyperelastic") in (True, "True") for r in det], bool)
+    if hyper.any():
+        keys.append(("hyperelastic", "neo-Hookean (0/1)"))
+    fig, axes = plt.subplots(2, (len(keys) + 1) // 2, figsize=(4 * ((len(keys) + 1) // 2), 6.5), sharey=True)
+    groups = [("linear", ~hyper, "C0", "C1"), ("neo-Hookean", hyper, "C2", "C3")] if hyper.any() else \
+        [("", ~hyper, "C0", "C1")]
     for ax, (k, lab) in zip(axes.flat, keys):
-        v = np.array([float(r[k]) * (1e3 if k == "surface_offset_m" else 1) for r in det])
-        ax.scatter(v, [abs(r["err_depth_m"]) * 1e3 for r in det], s=14, label="depth")
-        ax.scatter(v, [abs(r["err_x_m"]) * 1e3 for r in det], s=14, marker="x", label="lateral")
+        v = np.array([float(r[k] in (True, "True")) if k == "hyperelastic" else
+                      float(r[k]) * (1e3 if k == "surface_offset_m" else 1) for r in det])
+        for name, sel, c_depth, c_lat in groups:
+            dep = np.array([abs(r["err_depth_m"]) * 1e3 for r in det])
+            lat = np.array([abs(r["err_x_m"]) * 1e3 for r in det])
+            tag = f" ({name})" if name else ""
+            ax.scatter(v[sel], dep[sel], s=14, color=c_depth, label="depth" + tag)
+            ax.scatter(v[sel], lat[sel], s=14, marker="x", color=c_lat, label="lateral" + tag)
         ax.set_xlabel(lab)
         ax.set_yscale("log")
+    for ax in axes.flat[len(keys):]:
+        ax.axis("off")
     axes[0, 0].set_ylabel("|error| (mm)")
     axes[1, 0].set_ylabel("|error| (mm)")
-    axes[0, 0].legend()
+    axes[0, 0].legend(fontsize=7)
     fig.suptitle("palpate: stone error against each mismatch (truth drawn from the documented ranges)")
     fig.tight_layout()
     fig.savefig(path, dpi=110)

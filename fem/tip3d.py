@@ -19,6 +19,7 @@ tip against the rigid one within the Hertz bound ``fem.tip.rigid_tip_bound``.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,8 +41,8 @@ TIP_GRADE = 0.25            # growth of the element size per unit distance from 
 
 def mesh_tip3d(radius_m: float, order: int = 2, fine_m: float | None = None) -> Mesh3D:
     """The lower half of a ball of radius_m: its lowest point at the origin, its flat face at z = radius_m (the
-    mesh's ``top``, where the holder grips it). Element size ``fine_m`` (default R / 10) at the lowest point, growing
-    with slope TIP_GRADE to R * COARSE_TIP_FRACTION."""
+    mesh's ``top``, where the holder grips it). Element size ``fine_m`` (default R * FINE_TIP_FRACTION) at the lowest
+    point, growing with slope TIP_GRADE to R * COARSE_TIP_FRACTION."""
     import gmsh  # lazy: a heavy import, only needed on a cache miss
     R = radius_m
     fine = FINE_TIP_FRACTION * R if fine_m is None else fine_m
@@ -68,19 +69,20 @@ def mesh_tip3d(radius_m: float, order: int = 2, fine_m: float | None = None) -> 
             gmsh.finalize()
 
 
-def surface_nodes(mesh: Mesh3D, radius_m: float) -> np.ndarray:
-    """The nodes on the tip's spherical surface below its gripped face."""
+def surface_nodes(mesh: Mesh3D, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(the nodes on the tip's spherical surface below its gripped face, those on its gripped rim)."""
     R = radius_m
     p = mesh.nodes
     on = np.abs(np.sqrt(p[:, 0] ** 2 + p[:, 1] ** 2 + (p[:, 2] - R) ** 2) - R) < 1e-6 * R
-    return np.flatnonzero(on & (p[:, 2] < R * (1 - 1e-9)))
+    below = p[:, 2] < R * (1 - 1e-9)
+    return np.flatnonzero(on & below), np.flatnonzero(on & ~below)
 
 
 @dataclass
 class TipCompliance3D:
     """The condensed vertical compliance of an elastic spherical tip's surface (``build``), or restored."""
-    C: np.ndarray     # (n, n) upward displacement per upward force on the surface nodes
-    xy: np.ndarray    # (n, 2) the surface nodes' horizontal positions relative to the tip axis
+    C: np.ndarray     # (n, n) upward displacement per upward force on the surface nodes (zero on the gripped rim)
+    xy: np.ndarray    # (n, 2) the surface and rim nodes' horizontal positions relative to the tip axis
     radius_m: float
 
     def __post_init__(self):
@@ -92,14 +94,19 @@ class TipCompliance3D:
         if indenter.shape != "sphere" or indenter.youngs_pa is None:
             raise ValueError("an elastic 3D tip is a 'sphere' with a youngs_pa")
         R = indenter.radius_m
+        if indenter.poisson > 0.49:
+            warnings.warn(f"indenter.poisson = {indenter.poisson:g}: the tip's displacement-based elements lock near "
+                          f"0.5 (its compliance comes out low; not measured for the tip)", stacklevel=2)
         mesh = mesh_tip3d(R, order=order, fine_m=fine_m)
         K = stiffness3d(mesh, element_D3d(mesh, [Material(indenter.youngs_pa, indenter.poisson)])).tocsc()
         grip = mesh.top
         fixed = np.concatenate([3 * grip, 3 * grip + 1, 3 * grip + 2])
         free = np.setdiff1d(np.arange(mesh.n_dofs), fixed)
-        surf = surface_nodes(mesh, R)
-        C = schur(K, free, 3 * surf + 2).compliance
-        return cls(C=0.5 * (C + C.T), xy=mesh.nodes[surf, :2].copy(), radius_m=R)
+        surf, rim = surface_nodes(mesh, R)
+        n = len(surf)
+        C = np.zeros((n + len(rim), n + len(rim)))      # the gripped rim does not move: its rows stay zero, and the
+        C[:n, :n] = schur(K, free, 3 * surf + 2).compliance     # interpolation reaches the tip's whole disk
+        return cls(C=0.5 * (C + C.T), xy=mesh.nodes[np.concatenate([surf, rim]), :2].copy(), radius_m=R)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return {"C": self.C, "xy": self.xy, "radius_m": np.float64(self.radius_m)}
@@ -119,7 +126,7 @@ class TipCompliance3D:
         position, the three surface nodes of its triangle (m, 3) and their weights (m, 3)."""
         rel_xy = np.atleast_2d(np.asarray(rel_xy, dtype=float))
         tri = self._tri
-        simplex = tri.find_simplex(rel_xy, tol=1e-9 * self.radius_m)
+        simplex = tri.find_simplex(rel_xy, tol=1e-9)
         out = simplex < 0
         if out.any():
             near = np.argmin(((rel_xy[out, None, :] - self.xy[None]) ** 2).sum(-1), axis=1)

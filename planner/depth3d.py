@@ -75,7 +75,11 @@ class ContactDepths3D:
         """fem's contact force at (x, y, depth), N (the same LCP, solved on the whole window)."""
         check_waypoint3d(self.scene, x_m, y_m, depth_m)
         idx, h, _ = self._window(x_m, y_m)
-        return self._solve(self.C[np.ix_(idx, idx)], h, depth_m, np.zeros(len(idx), bool))[0]
+        return self._solve(self._compliance(idx, x_m, y_m), h, depth_m, np.zeros(len(idx), bool))[0]
+
+    def _compliance(self, idx: np.ndarray, x_m: float, y_m: float) -> np.ndarray:
+        """The window's gap compliance as fem's LCP has it (the tissue's, plus an elastic tip's)."""
+        return self.model.window_compliance(idx, x_m, y_m)(None, None)
 
     def depth_for(self, position, target_n: float, depth_max_m: float,
                   guess_m: float | None = None) -> tuple[float, float]:
@@ -86,7 +90,7 @@ class ContactDepths3D:
         x_m, y_m = (float(v) for v in position)
         check_waypoint3d(self.scene, x_m, y_m, depth_max_m)
         idx, h, r2 = self._window(x_m, y_m)
-        Cw = self.C[np.ix_(idx, idx)]
+        Cw = self._compliance(idx, x_m, y_m)
         aim = target_n * (1.0 - 0.5 * self.rtol_force)
         lo, f_lo, A_lo, hi = 0.0, 0.0, None, None
         d = depth_max_m if guess_m is None else min(max(guess_m, 1e-6 * depth_max_m), depth_max_m)

@@ -99,7 +99,8 @@ def table_scene(prior: Scene, grid: Grid3D, youngs_pa: float = 1.0, own_mesh: bo
     if not prior.is_3d:
         raise ValueError(f"scene {prior.name!r} is 2D: use planner.surrogate")
     if prior.indenter.youngs_pa is not None:
-        raise ValueError("the 3D surrogate needs a tip fem treats as rigid (fem.contact3d refuses an elastic tip)")
+        raise ValueError("the 3D surrogate table is built for a tip fem treats as rigid; the 3D loop does not take an "
+                         "elastic tip (fem.contact3d models one for simulate and predict)")
     return dataclasses.replace(
         prior, name="surrogate3d-table", stones=(), tissue=dataclasses.replace(prior.tissue, youngs_pa=youngs_pa),
         analysis=dataclasses.replace(prior.analysis, mesh_size_m=prior.analysis.mesh_size_m if own_mesh else

@@ -1,6 +1,7 @@
 """The 3D area planner on a coarse block (fem in ~0.3 s): positions inside the region and the probed patch, serpentine
 order, the tool along the normal at every pose, y_m in the plan, the plan's own and the driver's checks, predicted
 forces equal to fem's and within the budget, replan over (N, 2), the mapped NLP against the SX one, and the CLI."""
+import dataclasses
 import json
 import math
 
@@ -157,6 +158,20 @@ def test_depth_choice_at_the_depth_limit_and_below_a_useful_depth(prior):
     assert d == 0.004 and f == pytest.approx(cd.force_n(0.035, 0.035, 0.004), rel=1e-12)
     with pytest.raises(PlanError, match=r"too low.*x = 25\.0 mm, y = 25\.0 mm.*--force-limit-n"):
         plan_raster(prior, grid=(2, 2), limits=Limits(force_limit_n=0.005))
+
+
+def test_an_elastic_tip_plans_on_fems_elastic_tip_forces(toml):
+    """A tip as stiff as the tissue (fem.tip3d): the planned depths' predicted forces are fem's with the elastic tip
+    (not the rigid tip's, about twice as high at one depth), within the budget."""
+    soft = load(toml).prior()
+    soft = dataclasses.replace(soft, indenter=dataclasses.replace(soft.indenter, youngs_pa=2500.0, poisson=0.4))
+    model = surface_model3d(soft)
+    assert not model.rigid_tip
+    cd = ContactDepths3D(model)
+    d, f = cd.depth_for((0.035, 0.035), 0.03, 0.004)
+    assert f == pytest.approx(model.force_n(0.035, 0.035, d), rel=1e-9) and 0.999 * 0.03 < f <= 0.03
+    rigid = surface_model3d(load(toml).prior())
+    assert rigid.force_n(0.035, 0.035, d) > 1.5 * f
 
 
 def test_replan_over_xy_positions(plan):

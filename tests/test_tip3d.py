@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy.optimize import brentq
 
 import fem.scene as S
 from fem import diskcache
@@ -50,7 +51,8 @@ def test_tip_alone_tends_to_hertz_with_its_finite_size(tip):
     """The tip (its lower half gripped at its flat face) on a rigid flat: F / F_Hertz - 1 grows as sqrt(d / R)
     (a finite body's extra stiffness: the approach loses a term proportional to F / (E* R)) and tends to 0 as d -> 0.
     Measured on the default tip mesh: +13.1, +20.7, +31.0 % at d/R = 0.02, 0.05, 0.1; the straight line through
-    them meets sqrt(d/R) = 0 at -1.3 %."""
+    them meets sqrt(d/R) = 0 at -1.6 % (a constant extra approach alone would give a few per cent below 0: the
+    leading-order line is only that)."""
     e_star = E / (1 - NU ** 2)
     s = np.sqrt([0.02, 0.05, 0.1])
     excess = np.array([_on_rigid_flat(tip, v * v * R) / _hertz(e_star, v * v * R) - 1 for v in s])
@@ -60,12 +62,23 @@ def test_tip_alone_tends_to_hertz_with_its_finite_size(tip):
     assert np.all(excess > 0)          # a body gripped at a finite distance is stiffer than a half-space
 
 
+def _combined(e_c: float, b: float, d: float) -> float:
+    """The force at approach d of a Hertz contact of combined modulus e_c whose bodies add b F to the approach."""
+    return brentq(lambda F: (3 * F / (4 * e_c * math.sqrt(R))) ** (2 / 3) + b * F - d, 0.0, 3 * _hertz(e_c, d))
+
+
+def _extra_per_newton(e_star: float, d: float, F: float) -> float:
+    """A body's extra approach per unit force, b = (d - d_Hertz(F)) / F, from its force F alone at approach d."""
+    return (d - (3 * F / (4 * e_star * math.sqrt(R))) ** (2 / 3)) / F
+
+
 @pytest.mark.parametrize("ratio", [1.0, 5.0])
 def test_elastic_tip_on_a_block_combines_as_hertz(rigid, tip, ratio):
-    """Tip and tissue elastic: Hertz combines the bodies' compliances, 1/E* = 1/E*_tissue + 1/E*_tip, so at a given
-    depth the force is the rigid tip's over (1 + rho) (rho = E*_tissue / E*_tip), and each body's own finite-size
-    excess (measured alone: the block under the rigid tip, the tip on a rigid flat) enters weighted by its share of
-    the compliance. Measured: -0.8 % (equal moduli) and -1.0 % (tip 5 times stiffer) against that prediction."""
+    """Tip and tissue elastic: in Hertz's theory the bodies' approaches add at the same contact pressure, so the
+    force at a depth is that of one body of the combined modulus 1/E* = 1/E*_tissue + 1/E*_tip; each body's finite
+    size adds b_i F to the approach (b_i measured on the body alone: the block under the rigid tip, the tip on a
+    rigid flat, at the same depth). The elastic-tip model against that: measured -0.30 % (equal moduli, d = 0.1 R)
+    and -0.15 % (tip 5 times stiffer)."""
     d = 0.1 * R
     sc = _scene(ratio * E)
     t = tip if ratio == 1.0 else TipCompliance3D.build(sc.indenter, order=2)
@@ -73,12 +86,10 @@ def test_elastic_tip_on_a_block_combines_as_hertz(rigid, tip, ratio):
     assert not el.rigid_tip and "elastic tip" in el.tip_note
     e_s, e_t = E / (1 - NU ** 2), ratio * E / (1 - NU ** 2)
     e_c = 1 / (1 / e_s + 1 / e_t)
-    eps_s = rigid.force_n(W / 2, W / 2, d) / _hertz(e_s, d) - 1
-    eps_t = _on_rigid_flat(t, d) / _hertz(e_t, d) - 1
-    predicted = _hertz(e_c, d) * (1 + e_c / e_s * eps_s + e_c / e_t * eps_t)
+    b = (_extra_per_newton(e_s, d, rigid.force_n(W / 2, W / 2, d)) + _extra_per_newton(e_t, d, _on_rigid_flat(t, d)))
     f = el.force_n(W / 2, W / 2, d)
-    assert f == pytest.approx(predicted, rel=0.02)
-    assert f < rigid.force_n(W / 2, W / 2, d)
+    assert f == pytest.approx(_combined(e_c, b, d), rel=0.01)
+    assert f < rigid.force_n(W / 2, W / 2, d) and f > _hertz(e_c, d)
 
 
 def test_a_stiff_elastic_tip_is_the_rigid_tip_within_the_hertz_bound(rigid):
@@ -100,10 +111,11 @@ def test_an_elastic_flat_punch_is_refused_in_3d(rigid):
 
 def test_tip_interpolation_is_a_partition_of_unity_and_its_compliance_symmetric_psd(tip):
     rng = np.random.default_rng(3)
-    p = rng.uniform(-0.7 * R, 0.7 * R, (60, 2))
+    rim = 0.99 * R * np.column_stack([np.cos(np.linspace(0, 6, 12)), np.sin(np.linspace(0, 6, 12))])
+    p = np.vstack([rng.uniform(-0.7 * R, 0.7 * R, (60, 2)), rim])
     Phi = tip.interpolation_matrix(p)
     assert np.allclose(Phi.sum(1), 1.0) and Phi.min() >= -1e-12
-    assert np.allclose(Phi @ tip.xy, p, atol=1e-12)             # linear functions are reproduced
+    assert np.allclose(Phi @ tip.xy, p, atol=1e-12)             # linear functions are reproduced, to the rim
     C = tip.compliance(p)
     assert np.allclose(C, Phi @ tip.C @ Phi.T, rtol=1e-12, atol=1e-15)
     assert np.allclose(C, C.T) and np.linalg.eigvalsh(C).min() > -1e-12 * np.abs(C).max()
