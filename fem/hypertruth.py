@@ -13,8 +13,12 @@ sweep is made at the x asked (robot.simforce.CachedForce snaps x to 10 um), no i
 linear model's response more than the neo-Hookean's).
 
 Beyond the depths the sweep reached (the tip radius, or where the tissue folds over), or where the linear model
-refuses (fem.contact.check_waypoint), ``force_n`` raises ValueError like the linear truth: the simulator then
-extrapolates and reports it (robot.simforce.CachedForce.range_report).
+refuses (fem.contact.check_waypoint: the tip's radius, or a tissue crushed against a shallow stone), ``force_n``
+raises ValueError like the linear truth: the simulator then extrapolates from the depths below and reports it
+(robot.simforce.CachedForce.range_report). The ratio is kept to the depths where both models answer: over a shallow
+stone the sweep goes deeper than the linear model's crush limit, so r stops at the last sweep depth below that limit
+and is held from there to the limit. (Before, the first refused depth made every depth at that x refused, which the
+simulator extrapolated from zero: a zero force over a shallow stone in a neo-Hookean truth.)
 """
 from __future__ import annotations
 
@@ -70,6 +74,7 @@ class HyperelasticForce:
         self._corr_linear: SurfaceModel | None = None
         self.sweeps: dict[float, HyperSweep] = {}
         self._ratio: dict[float, tuple[np.ndarray, np.ndarray]] = {}
+        self._held: set[float] = set()     # x whose ratio the linear model's range cut short (a shallow stone)
 
     def _spec(self, x_m: float) -> dict:
         return {"scene": self.corr.key(), "x_m": repr(float(x_m)), "depths": [repr(float(d)) for d in self.depths],
@@ -94,9 +99,17 @@ class HyperelasticForce:
             sw = self.sweep(x_m)
             if self._corr_linear is None:
                 self._corr_linear = surface_model(self.corr, cache=self.cache)
-            lin = np.array([self._corr_linear.force_n(x_m, float(d)) for d in sw.depth_m])
-            r = np.divide(sw.force_n, lin, out=np.ones_like(lin), where=lin > 0)
-            self._ratio[x_m] = (np.concatenate([[0.0], sw.depth_m]), np.concatenate([[1.0], r]))
+            lin = []
+            for d in sw.depth_m:          # the depths the linear model answers too (over a shallow stone it stops
+                try:                      # at its crush limit, where the sweep may go on): r needs both forces
+                    lin.append(self._corr_linear.force_n(x_m, float(d)))
+                except ValueError:
+                    break
+            lin = np.array(lin)
+            r = np.divide(sw.force_n[:len(lin)], lin, out=np.ones_like(lin), where=lin > 0)
+            self._ratio[x_m] = (np.concatenate([[0.0], sw.depth_m[:len(lin)]]), np.concatenate([[1.0], r]))
+            if len(lin) < len(sw.depth_m):
+                self._held.add(x_m)
         return self._ratio[x_m]
 
     def force_n(self, x_m: float, depth_m: float) -> float:
@@ -106,7 +119,9 @@ class HyperelasticForce:
         if f <= 0.0:
             return f
         d, r = self.ratio(x_m)
-        if depth_m > d[-1] + 1e-12:
+        if depth_m > d[-1] + 1e-12 and float(x_m) in self._held:
+            return f * float(r[-1])     # the sweep went on; the linear model's own range ends (above) before its next
+        if depth_m > d[-1] + 1e-12:     # depth: r held from its last depth (it changes by about 2 % a millimetre)
             raise ValueError(f"depth_m={depth_m} beyond the finite-strain sweep at x_m={x_m} (it reached "
                              f"{d[-1]:.4g} m)")
         return f * float(np.interp(depth_m, d, r))

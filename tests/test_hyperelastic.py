@@ -187,6 +187,26 @@ def test_the_truth_is_cached_on_disk(tmp_path, monkeypatch):
         b.force_n(0.03, 0.0051)                          # beyond the model's range: the simulator extrapolates
 
 
+def test_over_a_shallow_stone_the_truth_answers_to_the_crush_limit(tmp_path, monkeypatch):
+    """A stone whose top is 1.86 mm deep (the mismatch study's trial 29 had one): the linear model refuses beyond 75 %
+    of that layer (crushed tissue), while the neo-Hookean sweep goes on. The truth's force follows the linear one
+    times r to that limit (r held from the last sweep depth below it), then refuses like the linear truth; it used to
+    refuse at every depth there, which the simulated arm extrapolated from zero: a zero force over the stone."""
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path))
+    base = load("paper").with_analysis(mesh_size_m=0.005, surface_refine=2.5)
+    sc = dataclasses.replace(base, stones=(dataclasses.replace(base.stones[0], x_m=0.014, depth_m=0.0042,
+                                                               diameter_m=0.0046),))
+    hf = HyperelasticForce(sc, cache=True)
+    d, r = hf.ratio(0.0136)
+    assert d[-1] == pytest.approx(0.001) and np.all(np.abs(r[1:] - 1.0) < 0.1)    # (a coarse mesh: 0.98, 1.04)
+    for depth in (0.0005, 0.001, 0.0013):
+        f, f_lin = hf.force_n(0.0136, depth), hf.linear.force_n(0.0136, depth)
+        assert f_lin > 0 and 0.9 < f / f_lin < 1.1, (depth, f, f_lin)
+    assert hf.force_n(0.0136, 0.0013) / hf.linear.force_n(0.0136, 0.0013) == pytest.approx(r[-1], rel=1e-12)
+    with pytest.raises(ValueError, match="crushed"):
+        hf.force_n(0.0136, 0.0015)
+
+
 def test_the_truth_table_and_option(tmp_path, capsys):
     assert TruthConditions(hyperelastic=True).to_dict()["hyperelastic"] is True
     assert "hyperelastic" not in TruthConditions().to_dict()            # older runs' options stay equal
