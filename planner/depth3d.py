@@ -29,7 +29,7 @@ from fem.lcp import solve_lcp
 
 
 class ContactDepths3D:
-    """Exact forces and force-limited depths on a fem.contact3d.SurfaceModel3D (its compliance ``C``, patch node
+    """Exact forces and force-limited depths on a fem.contact3d.SurfaceModel3D (its window compliance, patch node
     positions ``xy`` and scene). ``force_n(x, y, depth)`` is fem's force; ``depth_for(position, target, depth_max,
     guess)`` the deepest depth in [0, depth_max] whose force is at most ``target`` (and within ``rtol_force`` of it,
     unless depth_max is reached first). Counts LCP solves in ``n_lcp``."""
@@ -37,7 +37,6 @@ class ContactDepths3D:
     def __init__(self, model, rtol_force: float = 5e-4):
         self.model = model
         self.scene = model.scene
-        self.C = model.C
         self.xy = model.xy
         self.rtol_force = rtol_force
         self.n_lcp = 0
