@@ -10,8 +10,12 @@ CHOLMOD (SuiteSparse, from the cvxopt wheel; supernodal, BLAS-3 on its dense fro
 of the interior and the contact DOFs appended: METIS nested dissection (the ``pymetis`` wheel) when it is installed,
 else cvxopt's AMD (the wheel's CHOLMOD has no METIS). On block3d's default mesh nested dissection leaves 32 % less
 fill than AMD and factorizes several times faster (bench/bench_3d.py waypoints). CHOLMOD's postordering is switched
-off so the order is kept (checked). cvxopt hands the factor over by converting it to a simplicial one, so a fresh
-supernodal factorization is made (once, lazily) when back-substitutions are asked for (stress fields).
+off so the order is kept (checked). The trailing block is read in place from the supernodal factor (through ctypes
+in the CHOLMOD library cvxopt links: ``_CholmodDirect.trailing_block``, its layout checked first); only when that is
+not reachable does cvxopt's getfactor hand the whole factor over as a simplicial copy. The factor is then freed (a
+model whose stresses are never asked for holds only the dense compliance), and a fresh supernodal factorization is
+made (once, lazily) when back-substitutions are asked for (stress fields); with ``compliance=False`` (a model whose
+compliance came from the disk cache, factorized for its fields) the factor read in place is kept for them.
 
 Displacements for forces on the contact DOFs only (``solve_contact``): the forward sweep L y = P b of such a
 right-hand side touches only the trailing block (y is zero on the interior), so y_c = L_cc^-1 b_c is a dense
@@ -90,6 +94,60 @@ class _CholmodDirect:
             except (OSError, AttributeError, RuntimeError):
                 cls._instance = None
         return cls._instance
+
+    class Factor(ctypes.Structure):       # cholmod_factor (CHOLMOD 2.x-3.x; the fields checked before use)
+        _fields_ = [("n", ctypes.c_size_t), ("minor", ctypes.c_size_t), ("Perm", ctypes.c_void_p),
+                    ("ColCount", ctypes.c_void_p), ("IPerm", ctypes.c_void_p), ("nzmax", ctypes.c_size_t),
+                    ("p", ctypes.c_void_p), ("i", ctypes.c_void_p), ("x", ctypes.c_void_p), ("z", ctypes.c_void_p),
+                    ("nz", ctypes.c_void_p), ("next", ctypes.c_void_p), ("prev", ctypes.c_void_p),
+                    ("nsuper", ctypes.c_size_t), ("ssize", ctypes.c_size_t), ("xsize", ctypes.c_size_t),
+                    ("maxcsize", ctypes.c_size_t), ("maxesize", ctypes.c_size_t), ("super", ctypes.c_void_p),
+                    ("pi", ctypes.c_void_p), ("px", ctypes.c_void_p), ("s", ctypes.c_void_p),
+                    ("ordering", ctypes.c_int), ("is_ll", ctypes.c_int), ("is_super", ctypes.c_int),
+                    ("is_monotonic", ctypes.c_int), ("itype", ctypes.c_int), ("xtype", ctypes.c_int),
+                    ("dtype", ctypes.c_int), ("useGPU", ctypes.c_int)]
+
+    def trailing_block(self, F, p: np.ndarray, nc: int) -> np.ndarray | None:
+        """The trailing nc x nc block of L (lower triangle; Fortran order) read in place from cvxopt's supernodal
+        factor F of an n x n matrix factorized in the order p: no copy of the factor. None when F is not a real
+        supernodal LL' "long" factor in the order p, or its layout is not the one this reads (the caller then
+        converts the factor with cvxopt's getfactor)."""
+        try:
+            ptr = self._capsule(F, b"CHOLMOD FACTOR D L")
+        except ValueError:
+            return None
+        f = self.Factor.from_address(ptr)
+        n = len(p)
+        if not (f.n == n and f.is_super == 1 and f.is_ll == 1 and f.itype == 2 and f.xtype == 1 and f.dtype == 0
+                and f.nsuper > 0 and f.Perm and f.super and f.pi and f.px and f.s and f.x and 0 < nc <= n):
+            return None
+
+        def longs(addr, count):
+            return np.ctypeslib.as_array(ctypes.cast(addr, ctypes.POINTER(ctypes.c_int64)), shape=(count,))
+
+        if not np.array_equal(longs(f.Perm, n), p):
+            return None
+        ns = int(f.nsuper)
+        sup, pi, px = longs(f.super, ns + 1), longs(f.pi, ns + 1), longs(f.px, ns + 1)
+        if not (sup[0] == 0 and sup[ns] == n and pi[ns] == f.ssize and px[ns] <= f.xsize):
+            return None
+        s = longs(f.s, int(f.ssize))
+        x = np.ctypeslib.as_array(ctypes.cast(f.x, ctypes.POINTER(ctypes.c_double)), shape=(int(f.xsize),))
+        c0 = n - nc
+        Lcc = np.zeros((nc, nc), order="F")
+        for k in range(int(np.searchsorted(sup, c0, side="right")) - 1, ns):   # the supernodes holding columns >= c0
+            j0, j1, nr = int(sup[k]), int(sup[k + 1]), int(pi[k + 1] - pi[k])
+            rows = s[pi[k]:pi[k + 1]]
+            if not np.array_equal(rows[:j1 - j0], np.arange(j0, j1)):
+                return None
+            block = x[px[k]:px[k] + nr * (j1 - j0)].reshape(j1 - j0, nr).T      # column-major nr x ncols
+            first = max(j0, c0)
+            keep = rows >= c0
+            r, cols = rows[keep] - c0, np.arange(first - c0, j1 - c0)
+            sub = block[keep][:, first - j0:]
+            sub[r[:, None] < cols[None, :]] = 0.0          # the diagonal block's unused upper part
+            Lcc[r[:, None], cols[None, :]] = sub
+        return Lcc
 
     def solve(self, F, Y: np.ndarray, sys: int) -> np.ndarray | None:
         """X with (system sys) X = Y for a factor F of cvxopt.cholmod; None if F is not a real "long" factor."""
@@ -182,17 +240,14 @@ class CholmodSchur:
             if not np.array_equal(np.asarray(probe).ravel().astype(np.int64), p):
                 raise RuntimeError("CHOLMOD reordered the Schur factorization; cannot read the Schur complement")
             t2 = time.perf_counter()
-            L = chm.getfactor(self._F)                            # converts the factor (see module docstring)
-            self._F = None
-        colptr, rowind, vals = L.CCS                              # compressed columns; only the trailing
-        start = int(colptr[n - nc])                               # nc columns are read (lower triangular:
-        ptr = np.asarray(colptr[n - nc:], dtype=np.int64).ravel() - start   # their rows are trailing too)
-        rows = np.asarray(rowind[start:], dtype=np.int64).ravel() - (n - nc)
-        cols = np.repeat(np.arange(nc), np.diff(ptr))
-        Lcc = np.zeros((nc, nc), order="F")
-        Lcc[rows, cols] = np.asarray(vals[start:]).ravel()
-        del colptr, rowind, vals, rows, cols
-        del L
+            direct = _CholmodDirect.get()
+            Lcc = direct.trailing_block(self._F, p, nc) if direct is not None else None
+            self.extract = "in place" if Lcc is not None else "getfactor"
+            if Lcc is None:
+                Lcc = self._trailing_by_conversion(n, nc)
+                self._F = None                                    # converted: refactorized when solves are asked
+            elif compliance:
+                self._F = None        # forces only, as a rule: the factor is freed (made again if solves are asked)
         t3 = time.perf_counter()
         Linv, info = sla.lapack.dtrtri(Lcc, lower=1, overwrite_c=1)     # dpotri = dtrtri, then dlauum
         if info != 0:
@@ -211,7 +266,20 @@ class CholmodSchur:
         self.free, self.c = free, c
         self.timings_s = {"order_s": t1 - t0, "factor_s": t2 - t1, "extract_s": t3 - t2,
                           "inverse_s": time.perf_counter() - t3}
-        self._factored = False
+        self._factored = self._F is not None       # kept (compliance=False: made for solves) or made again on use
+
+    def _trailing_by_conversion(self, n: int, nc: int) -> np.ndarray:
+        """L's trailing nc x nc block through cvxopt's getfactor (a simplicial copy of the whole factor: about
+        twice the factor's memory for a moment), when the supernodal factor cannot be read in place."""
+        L = self._chm.getfactor(self._F)
+        colptr, rowind, vals = L.CCS                              # compressed columns; only the trailing
+        start = int(colptr[n - nc])                               # nc columns are read (lower triangular:
+        ptr = np.asarray(colptr[n - nc:], dtype=np.int64).ravel() - start   # their rows are trailing too)
+        rows = np.asarray(rowind[start:], dtype=np.int64).ravel() - (n - nc)
+        cols = np.repeat(np.arange(nc), np.diff(ptr))
+        Lcc = np.zeros((nc, nc), order="F")
+        Lcc[rows, cols] = np.asarray(vals[start:]).ravel()
+        return Lcc
 
     @contextlib.contextmanager
     def _options(self):

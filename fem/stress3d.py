@@ -12,6 +12,7 @@ import scipy.sparse as sp
 from .assembly3d import element_dofs3d, gradients3d, strain_matrices3d
 from .elements3d import nodes_ref
 
+CHUNK = 4000          # elements per block of the recovery operator's assembly
 NAMES = ("sxx_pa", "syy_pa", "szz_pa", "syz_pa", "sxz_pa", "sxy_pa")
 
 
@@ -32,13 +33,24 @@ def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = F
     want[nodes] = np.arange(len(nodes))
     hit = (want[mesh.tets] >= 0) & (mesh.region[:, None] == primary[mesh.tets])
     els = np.flatnonzero(hit.any(axis=1))
+    count = np.zeros(mesh.n_nodes)
+    np.add.at(count, mesh.tets[els][hit[els]], 1.0)
+    shape = (6 * len(nodes), mesh.n_dofs)
+    out = sp.csr_matrix(shape)
+    for a in range(0, len(els), CHUNK):          # in blocks of elements: the triplets of all at once would take
+        out = out + _block(model, els[a:a + CHUNK], hit, want, count, strain, shape)   # several times the result
+    return out
+
+
+def _block(model, els: np.ndarray, hit: np.ndarray, want: np.ndarray, count: np.ndarray, strain: bool,
+           shape: tuple[int, int]) -> sp.csr_matrix:
+    """The recovery operator's rows contributed by elements ``els`` (see recovery_operator3d)."""
+    mesh = model.mesh
     G, _ = gradients3d(mesh, nodes_ref(mesh.order), els)       # (m, nen, nen, 3): at each local node
     B = strain_matrices3d(G)                                   # (m, nen, 6, ne)
     if not strain:
         B = np.einsum("mkl,maln->makn", model.D[els], B)
     h = hit[els]
-    count = np.zeros(mesh.n_nodes)
-    np.add.at(count, mesh.tets[els][h], 1.0)
     row_node = want[mesh.tets[els]]
     scale = np.where(h, 1.0 / np.maximum(count[mesh.tets[els]], 1), 0.0)
     dofs = element_dofs3d(mesh)[els]
@@ -47,7 +59,7 @@ def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = F
     cols = np.broadcast_to(dofs[:, None, None, :], (m, nen, 6, ne))
     keep = np.broadcast_to(h[:, :, None, None], (m, nen, 6, ne))
     vals = B * scale[:, :, None, None]
-    return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(6 * len(nodes), mesh.n_dofs))
+    return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=shape)
 
 
 def components3d(s6: np.ndarray) -> dict[str, np.ndarray]:

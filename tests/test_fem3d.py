@@ -341,6 +341,23 @@ def test_metis_and_amd_orderings_condense_alike(stone_scene, monkeypatch):
     assert condense.schur(model.K, free, contact).ordering == "amd"
 
 
+
+@pytest.mark.skipif(not condense.available(), reason="cvxopt (CHOLMOD) is not installed")
+def test_schur_block_read_in_place_equals_the_converted_factor(stone_scene, monkeypatch):
+    """The trailing block read in place from CHOLMOD's supernodal factor (no copy of the factor) is the one cvxopt's
+    getfactor conversion gives, bitwise; a factor whose layout the reader does not accept falls back to it."""
+    model = build_model3d(stone_scene)
+    free = np.setdiff1d(np.arange(model.n_dofs), np.unique(fixed_bottom(model)))
+    contact = model.reduced_index(3 * patch_nodes(model.mesh, stone_scene.analysis.patch_m) + 2)
+    direct = condense.schur(model.K, free, contact)
+    monkeypatch.setattr(condense._CholmodDirect, "trailing_block", lambda self, F, p, nc: None)
+    converted = condense.schur(model.K, free, contact)
+    if condense._CholmodDirect.get() is not None:
+        assert direct.extract == "in place"
+    assert converted.extract == "getfactor"
+    assert np.array_equal(direct.compliance, converted.compliance)
+    assert np.array_equal(direct._Linv, converted._Linv)
+
 def test_rigid_stone_matches_elastic_stone():
     """The 6-DOF rigid-body reduction against a meshed elastic stone 2e6 times stiffer: load A agrees to O(E_t/E_s)
     plus round-off (measured 1e-7 relative)."""
