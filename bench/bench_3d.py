@@ -40,6 +40,9 @@ LEVELS = {   # name: (order, mesh_size_m, surface_refine)
 }
 GRADES = {"g25": 0.25, "g35": 0.35, "g18": 0.18}   # a level name with a suffix -g25 uses analysis.grade = 0.25
 DEPTH_M = 0.003
+# The uniformly refined family "sS": block3d's first default mesh (bulk 12 mm, surface_refine 8: 1.5 mm on the patch,
+# grade 0.25) with every size and the grading slope times S. block3d's default since 2026-11-26 is s0.80.
+FAMILY_BASE = (0.012, 8.0, 0.25)
 
 
 def _rss_gb() -> float:
@@ -52,8 +55,15 @@ def _grid():
 
 
 def _level_scene(level: str):
-    """(block3d at LEVELS[level], order, mesh_size_m, surface_refine); a suffix -g25 sets analysis.grade."""
+    """(block3d at LEVELS[level], order, mesh_size_m, surface_refine); a suffix -g25 sets analysis.grade. A level
+    "sS" (e.g. s0.80) is block3d's default mesh scaled uniformly by S: every size (top patch, stones' surfaces,
+    bulk cap) and the grading slope times S, so the meshes of the family differ only in resolution."""
     from fem.scene import load
+    if level.startswith("s"):
+        s = float(level[1:])
+        sc = load("block3d").with_analysis(order=2, mesh_size_m=FAMILY_BASE[0] * s, surface_refine=FAMILY_BASE[1],
+                                            grade=FAMILY_BASE[2] * s)
+        return sc, 2, sc.analysis.mesh_size_m, sc.analysis.surface_refine
     base, _, g = level.partition("-g")
     order, size, refine = LEVELS[base]
     sc = load("block3d").with_analysis(order=order, mesh_size_m=size, surface_refine=refine,
@@ -281,6 +291,65 @@ def richardson(rows: list[dict], bulk_m: float = 0.010, grade: float = 0.25) -> 
     return out + [""] + grading_effect(rows, seq[-1], bulk_m, grade)
 
 
+def family_limit(rows: list[dict]) -> dict | None:
+    """The converged forces from the uniformly refined family (levels "sS", at least four): per waypoint w,
+    F_w(S) = F_inf,w (1 + c S^p) with c and p shared by all waypoints (the discretization error's shape) and
+    F_inf,w free, by least squares on the relative residuals; p's standard error from the fit of the mean force
+    over the waypoints, M(S) = M_inf + C S^p (whose mesh ripple averages out over 100 waypoints)."""
+    from scipy.optimize import least_squares
+    fam = sorted((r for r in rows if str(r["level"]).startswith("s")), key=lambda r: -float(r["level"][1:]))
+    if len(fam) < 4:
+        return None
+    s = np.array([float(r["level"][1:]) for r in fam])
+    F = np.array([r["forces_n"] for r in fam])
+
+    def inf_of(c, p):
+        shape = 1 + c * s[:, None] ** p
+        return (F * shape).sum(0) / (shape ** 2).sum(0), shape
+
+    def res(t):
+        Finf, shape = inf_of(*t)
+        return ((F - Finf * shape) / F).ravel()
+    fit = min((least_squares(res, [0.01, p0], bounds=([-1, 0.3], [1, 8])) for p0 in (1.0, 2.0, 3.0)),
+              key=lambda r: r.cost)
+    c, p = fit.x
+    F_inf, shape = inf_of(c, p)
+    m = F.mean(axis=1)
+    mf = least_squares(lambda t: (t[0] + t[1] * s ** t[2] - m) / m, [m[-1], m[0] - m[-1], p],
+                       bounds=([0, -1, 0.3], [1, 1, 8]))
+    dof = max(1, len(s) - 3)
+    cov = np.linalg.pinv(mf.jac.T @ mf.jac) * (2 * mf.cost / dof)
+    return {"rows": fam, "s": s, "F": F, "F_inf": F_inf, "c": float(c), "p": float(p),
+            "ripple": (F / (F_inf * shape) - 1), "mean_fit": mf.x, "p_mean": float(mf.x[2]),
+            "p_mean_sigma": float(np.sqrt(cov[2, 2]))}
+
+
+def uniform_family(rows: list[dict]) -> list[str]:
+    """Markdown lines: every run of the uniform family (and any other run) against the family's limit."""
+    fam = family_limit(rows)
+    if fam is None:
+        return []
+    rip = fam["ripple"]
+    out = [f"Uniform refinement (levels sS: every size of the first default mesh times S, {len(fam['s'])} levels, "
+           f"{fam['rows'][0]['dofs']}-{fam['rows'][-1]['dofs']} DOFs): F_w(S) = F_inf,w (1 + c S^p) with c = "
+           f"{fam['c']:.4f}, p = {fam['p']:.2f} shared; the mean force alone gives p = {fam['p_mean']:.2f} +- "
+           f"{fam['p_mean_sigma']:.2f}; the mesh ripple left (residual) rms {rip.std():.3%}, max "
+           f"{np.abs(rip).max():.3%}.", "",
+           "| mesh | S | h_top (mm) | grade | DOFs | max error against F_inf (100 waypoints) | mean error | "
+           "set-up (s) | ms / waypoint (force) | peak memory (GB) |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: r["dofs"]):
+        if r["order"] != 2:
+            continue
+        e = np.asarray(r["forces_n"]) / fam["F_inf"] - 1
+        S = r["level"][1:] if str(r["level"]).startswith("s") else ""
+        out.append(f"| {r['level']} | {S} | {r['h_top_m'] * 1e3:.3g} | {r.get('grade', 0.5):g} | {r['dofs']} | "
+                   f"{np.abs(e).max():.2%} | {e.mean():+.2%} | "
+                   f"{r['mesh_s'] + r['assemble_s'] + r['condense_s']:.1f} | "
+                   f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} |")
+    return out + [""]
+
+
 def grading_effect(rows: list[dict], finest: dict, bulk_m: float, grade: float) -> list[str]:
     """Markdown lines: the force change from a finer bulk grading at equal h_top and cap, and the finest run
     corrected by it (additive: F(h_min, g_fine) ~ F(h_min, g) + F(h, g_fine) - F(h, g) at the finest h run with
@@ -329,6 +398,7 @@ def table(out: Path) -> str:
                          f"{r['per_waypoint_median_s'] * 1e3:.2f} | {r['peak_rss_gb']:.2f} | {r['load_avg']:.1f} |")
         lines.append("")
         lines += richardson(list(conv.values()))
+        lines += uniform_family(list(conv.values()))
     way = _read(out, "waypoints")
     if way:
         b = [r for r in way if r["phase"] == "build"][-1]
@@ -352,6 +422,11 @@ def table(out: Path) -> str:
         if conv:
             err = np.max(np.abs(np.asarray(rl["forces_n"]) / F_ref - 1))
             lines.append(f"- force error against {ref['level']}: max over the 100 waypoints {err:.2%}")
+            fam = family_limit(list(conv.values()))
+            if fam is not None:
+                e = np.asarray(rl["forces_n"]) / fam["F_inf"] - 1
+                lines.append(f"- force error against the uniform family's limit (p = {fam['p']:.2f}): max over the "
+                             f"100 waypoints {np.abs(e).max():.2%}, mean {e.mean():+.2%}")
         lines.append("")
     hz = _read(out, "hertz")
     if hz:

@@ -392,6 +392,7 @@ class Surrogate3D:
         T = np.asarray(data["table"], float) * self.scale
         cal_s, cal_f = calibration or (data.get("cal_s_m", np.zeros(0)), data.get("cal_factor"))
         cal_s = np.asarray(cal_s, float)
+        self.calibration = (cal_s, cal_f)
         if len(cal_s):             # the mesh factor, linear in log s between the calibration nodes (module doc)
             o = np.argsort(cal_s)
             fac = np.asarray(cal_f, float)[o]
@@ -663,6 +664,9 @@ def main(argv=None) -> int:
     if a.ship:
         d = {k: np.asarray(v) for k, v in sur.data.items()}
         d["table"] = d["table"].astype(np.float32)
+        if len(sur.calibration[0]):          # the calibration for the scene's own mesh, as used: shipped with it
+            d.update(cal_s_m=np.asarray(sur.calibration[0], float), cal_factor=np.asarray(sur.calibration[1], float),
+                     cal_mesh=own_mesh(prior))
         SHIPPED.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(cache_path(prior, Grid3D(), SHIPPED), **d)
         print(f"shipped: {cache_path(prior, Grid3D(), SHIPPED)}")
