@@ -118,8 +118,9 @@ class _CholmodDirect:
             return None
         f = self.Factor.from_address(ptr)
         n = len(p)
-        if not (f.n == n and f.is_super == 1 and f.is_ll == 1 and f.itype == 2 and f.xtype == 1 and f.dtype == 0
-                and f.nsuper > 0 and f.Perm and f.super and f.pi and f.px and f.s and f.x and 0 < nc <= n):
+        if not (f.n == n and f.minor == n and f.is_super == 1 and f.is_ll == 1 and f.itype == 2 and f.xtype == 1
+                and f.dtype == 0 and f.nsuper > 0 and f.Perm and f.super and f.pi and f.px and f.s and f.x
+                and 0 < nc <= n):
             return None
 
         def longs(addr, count):
@@ -129,9 +130,12 @@ class _CholmodDirect:
             return None
         ns = int(f.nsuper)
         sup, pi, px = longs(f.super, ns + 1), longs(f.pi, ns + 1), longs(f.px, ns + 1)
-        if not (sup[0] == 0 and sup[ns] == n and pi[ns] == f.ssize and px[ns] <= f.xsize):
+        if not (sup[0] == 0 and sup[ns] == n and pi[ns] == f.ssize and px[ns] <= f.xsize
+                and np.array_equal(np.diff(px), np.diff(pi) * np.diff(sup)) and np.all(np.diff(sup) > 0)):
             return None
         s = longs(f.s, int(f.ssize))
+        if s.min() < 0 or s.max() >= n:
+            return None
         x = np.ctypeslib.as_array(ctypes.cast(f.x, ctypes.POINTER(ctypes.c_double)), shape=(int(f.xsize),))
         c0 = n - nc
         Lcc = np.zeros((nc, nc), order="F")

@@ -12,7 +12,8 @@ os.environ["PALPATE_CACHE_DIR"] = _CACHE_DIR
 # Tests that drive the simulated UR controller or sensor box in real time (sockets, 500 Hz data, watchdogs and
 # time-outs in wall-clock time): run on their own, after the rest, so no other test's CPU load delays their
 # controller and turns a fault's classification (a host held up past the watchdog's period) into another one. The
-# rest run on two workers (pytest-xdist). The README's test command does both.
+# rest run on two workers (pytest-xdist). The README's test command does both. Single tests elsewhere that do so carry
+# @pytest.mark.realtime themselves.
 REALTIME_FILES = {"test_fault_drills.py", "test_simcontroller.py", "test_netft_cli.py", "test_netft.py",
                   "test_run_sim.py", "test_run_data_safety.py"}
 

@@ -324,6 +324,7 @@ def test_false_returns_are_faults(tmp_path, method):
     assert not arm.is_moving
 
 
+@pytest.mark.realtime          # wall-clock: run on its own (tests/conftest.py)
 def test_unanswered_command_is_bounded_and_nothing_follows(tmp_path, monkeypatch):
     """A command that never gets its answer (the link went silent just as it was sent: ur_rtde would wait up to its
     300 s execution time-out) is abandoned after its deadline; the interrupted probe is recorded, no further command

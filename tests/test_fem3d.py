@@ -474,3 +474,26 @@ def test_straightening_folded_p2_elements_leaves_none_folded():
                       size_m=0.016, surface_refine=8.0, order=2, patch_m=0.05, grade=0.5)
     assert mesh.straightened >= 2
     assert np.all(jacobians3d(mesh) > 0)
+
+
+@pytest.mark.skipif(not condense.available(), reason="cvxopt (CHOLMOD) is not installed")
+def test_schur_block_read_in_place_for_every_split():
+    """The in-place read against a dense reference for every size of the trailing set on a small SPD matrix (a 2D
+    grid Laplacian plus its diagonal): supernodes that straddle the split included. The condensed compliance is the
+    inverse of the Schur complement S = K_cc - K_ci K_ii^-1 K_ic."""
+    import scipy.sparse as sps
+    m = 9
+    T = sps.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(m, m))
+    K = (sps.kron(T, sps.eye(m)) + sps.kron(sps.eye(m), T) + sps.eye(m * m)).tocsr()
+    n = K.shape[0]
+    Kd = K.toarray()
+    free = np.arange(n)
+    rng = np.random.default_rng(3)
+    for nc in range(1, n, 4):
+        c = np.sort(rng.choice(n, nc, replace=False))
+        i = np.setdiff1d(free, c)
+        S = Kd[np.ix_(c, c)] - Kd[np.ix_(c, i)] @ np.linalg.solve(Kd[np.ix_(i, i)], Kd[np.ix_(i, c)])
+        fac = condense.schur(K, free, c)
+        if condense._CholmodDirect.get() is not None:
+            assert fac.extract == "in place"
+        assert np.abs(fac.compliance - np.linalg.inv(S)).max() < 1e-10 * np.abs(np.linalg.inv(S)).max()

@@ -206,6 +206,7 @@ def test_truth_and_belief_are_separate_objects(tmp_path):
     assert not any(isinstance(v, ArmModel) for v in vars(d).values())
 
 
+@pytest.mark.realtime          # wall-clock: run on its own (tests/conftest.py)
 def test_cell_script_against_simulated_controller(tmp_path, capsys):
     """The controller path: robot/simcontroller.py on a loopback address of its own, the real ur_rtde client, the
     same driver. Skips only when the ports are taken on every loopback address tried (exit code 4)."""
