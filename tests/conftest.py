@@ -3,6 +3,8 @@
 import os
 import tempfile
 
+import pytest
+
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -19,7 +21,6 @@ REALTIME_FILES = {"test_fault_drills.py", "test_simcontroller.py", "test_netft_c
 
 
 def pytest_collection_modifyitems(config, items):
-    import pytest
     for item in items:
         if item.path.name in REALTIME_FILES:
             item.add_marker(pytest.mark.realtime)

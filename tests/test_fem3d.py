@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import scipy.sparse as sps
 
 from fem import condense
 from fem import scene as S
@@ -481,7 +482,6 @@ def test_schur_block_read_in_place_for_every_split():
     """The in-place read against a dense reference for every size of the trailing set on a small SPD matrix (a 2D
     grid Laplacian plus its diagonal): supernodes that straddle the split included. The condensed compliance is the
     inverse of the Schur complement S = K_cc - K_ci K_ii^-1 K_ic."""
-    import scipy.sparse as sps
     m = 9
     T = sps.diags([-1.0, 2.0, -1.0], [-1, 0, 1], shape=(m, m))
     K = (sps.kron(T, sps.eye(m)) + sps.kron(sps.eye(m), T) + sps.eye(m * m)).tocsr()
