@@ -11,6 +11,9 @@ SLOW_COMMAND_TIMEOUT_S = 10.0   # reuploadScript, reconnect, stopScript: ur_rtde
 # kickWatchdog is made directly, every period, and only while the controller's data are fresh: through a worker it
 # would cost 60 us median and over 1.5 ms at the 99th percentile on a busy 2-core machine, a period's budget; on a
 # link that dies inside that one period it is bounded by ur_rtde's own ready time-out (a few seconds).
+# KICK_BOUND_S: that bound, ur_rtde's UR_GET_READY_TIMEOUT (3 s) and one reconnect attempt (measured 4.0 s once in a
+# partition drill, 2026-11-26); meanwhile no kick reaches the controller, whose RTDE watchdog stops the arm.
+KICK_BOUND_S = 5.0
 BLOCKING_CALLS = frozenset({"moveL", "moveJ", "stopL", "stopJ", "speedStop", "zeroFtSensor", "setTcp", "setPayload",
                             "setWatchdog", "reuploadScript", "reconnect", "stopScript", "disconnect",
                             "triggerProtectiveStop"})

@@ -26,7 +26,7 @@ from app.faultdrill import (  # noqa: E402
     run_cell,
     run_drill,
 )
-from robot.link import COMMAND_TIMEOUT_S, LOCAL_CONTROL  # noqa: E402
+from robot.link import COMMAND_TIMEOUT_S, KICK_BOUND_S, LOCAL_CONTROL  # noqa: E402
 from robot.records import latest_by_index, read_records  # noqa: E402
 from robot.simlaunch import PortsUnavailable, start_controller  # noqa: E402
 
@@ -66,8 +66,10 @@ def test_drill_ends_safe_with_records_kept(name, tmp_path, scene_path):
     # the fault was seen, and soon: the driver's fault carries the controller time of its last reading (for a silent
     # link that is the last packet before the fault, a period or two before it)
     assert res.fault_at_s is not None and res.detection_s is not None and -0.1 <= res.detection_s < 1.0, res
-    # wall time, injection to the driver's fault: at most a command's deadline (a silent link met by a command)
-    assert res.reaction_s is not None and 0 <= res.reaction_s < COMMAND_TIMEOUT_S + 1.0, res
+    # wall time, injection to the driver's fault: at most a command's deadline (a silent link met by a command), or
+    # the watchdog kick's own bound when the link dies in the few periods a kick is still sent on it (robot/link.py:
+    # measured 4.0 s once; the controller's watchdog stops the arm meanwhile, checked below)
+    assert res.reaction_s is not None and 0 <= res.reaction_s < max(COMMAND_TIMEOUT_S, KICK_BOUND_S) + 1.0, res
     # the motion stopped: asked of the controller where it still answers; a partitioned one shows it in its log
     if res.final_state is not None:
         assert not res.final_state["moving"], res.final_state
