@@ -1,6 +1,7 @@
 """Benchmarks of fem in 3D (issue 15): numbers printed and written, not timed tests.
 
     python bench/bench_3d.py convergence [--out bench-out] [--levels p2-2.0 p2-1.5 ...]
+                                     # or the uniform family s1.00 s0.90 ... s0.60 (FAMILY_BASE times S)
     python bench/bench_3d.py waypoints   [--out bench-out]       # block3d, 100 waypoints, set-up, cache, memory
     python bench/bench_3d.py hertz       [--out bench-out]       # rigid sphere on a block 20 R wide
     python bench/bench_3d.py solvers [LEVEL [METHOD ...]] [--out bench-out]   # Schur condensation: CHOLMOD with
