@@ -12,6 +12,10 @@ What is timed:
   (a fresh ``PALPATE_CACHE_DIR``); *cached*: the same command again on that cache.
 - the floor: ``python -c "import numpy"`` (an interpreter that loads numpy and does nothing else).
 
+palpate's own modules are compiled to bytecode first (``compileall``, as ``pip install`` does for a regular install):
+with ``PYTHONDONTWRITEBYTECODE`` set (this machine sets it) an editable install would otherwise recompile every
+module in every command (30 ms of a cached ``predict``), which no installed copy does.
+
 Ratios are naive-per-waypoint x waypoints / command time (predict), or naive-per-waypoint / command time (the other
 commands: how many naive re-solves the whole command costs). Writes OUT/process.json and OUT/process.md.
 """
@@ -23,6 +27,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import argparse  # noqa: E402
+import compileall  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
 import statistics  # noqa: E402
@@ -125,9 +130,18 @@ def period_floor(n: int = 20000) -> dict:
     return {"per_period_cpu_s": (time.process_time() - t0) / n, "period_s": arm.period_s}
 
 
+PACKAGES = ("app", "core", "fem", "planner", "robot")
+
+
+def compile_bytecode() -> bool:
+    """palpate's modules to bytecode (__pycache__, ignored by git), as an installed copy has them."""
+    return all(compileall.compile_dir(str(ROOT / pkg), quiet=1) for pkg in PACKAGES)
+
+
 def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    bytecode = compile_bytecode()
     repeats = repeats or (1 if quick else 3)
     work = Path(tempfile.mkdtemp(prefix="bench-process-", dir=out_dir))
     env = dict(os.environ, PALPATE_CACHE_DIR=str(work / "cache"), PYTHONPATH=str(ROOT))
@@ -169,7 +183,9 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
     best = naive * N_WAYPOINTS / fl["python_numpy"]
     result = {
         "machine": {"cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0],
-                    "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS")},
+                    "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+                    "bytecode_compiled": bytecode, "python": sys.version.split()[0],
+                    "numpy": np.__version__},
         "in_process": ip, "floor_s": fl, "period_floor": pf, "commands": rows, "ratio_to_naive": ratio,
         "in_process_ratio": {"force": naive_cpu * N_WAYPOINTS / ip["fast_100_force_cpu_s"],
                              "stresses": naive_cpu * N_WAYPOINTS / ip["fast_100_stresses_cpu_s"]},

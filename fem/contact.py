@@ -159,8 +159,9 @@ class SurfaceModel:
         self.model = model or build_model(scene, rigid_stones=rigid_stones)
         mesh = self.model.mesh
         t1 = time.perf_counter()
-        fixed = np.unique(_load_b_fixed(self.model))
-        free = np.setdiff1d(np.arange(self.model.n_dofs), fixed)
+        keep = np.ones(self.model.n_dofs, bool)
+        keep[_load_b_fixed(self.model)] = False
+        free = np.flatnonzero(keep)          # (np.unique / np.setdiff1d would load numpy.ma: 7 ms of start-up)
         self.top = mesh.top
         self.x = mesh.nodes[self.top, 0]
         if np.diff(self.x).max() > scene.indenter.radius_m:   # a tip could fall between two top nodes
@@ -325,6 +326,19 @@ class SurfaceModel:
 
     def force_n(self, x_m: float, depth_m: float) -> float:
         return self.force_n_per_m(x_m, depth_m) * self.scene.indenter.thickness_m
+
+    def force_curve_n(self, x_m: float, depths_m) -> np.ndarray:
+        """``force_n`` at one position for each of ``depths_m``: each depth's LCP starts from the contact the one
+        before it reached (the same answers as one ``force_n`` per depth: the solver is exact from any start; the
+        active-set steps fall about 3-fold on a rising depth sweep)."""
+        out, reach = [], None
+        gap_m = float(np.diff(self.x).max(initial=0.0))
+        for d in depths_m:
+            idx, f, _ = self.contact_forces(float(x_m), float(d), reach)
+            on = f > 0
+            reach = float(np.abs(self.x[idx][on] - x_m).max()) + gap_m if on.any() else None
+            out.append(check_finite(float(f.sum()), f"scene {self.scene.name!r}: force at x_m={x_m}, depth_m={d}"))
+        return np.array(out) * self.scene.indenter.thickness_m
 
     def indent(self, x_m: float, depth_m: float, stresses: bool = True) -> IndentResult:
         return self.indent_many([x_m], [depth_m], stresses=stresses)[0]

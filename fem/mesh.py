@@ -210,6 +210,20 @@ def estimate_nodes(width_m: float, height_m: float, stones: list[tuple[float, fl
     return {"vertices": vertices, "nodes": nodes, "dofs": 2.0 * nodes, "top_nodes": top}
 
 
+def estimate_dofs_bound(width_m: float, height_m: float, stone_radii_m, size_m: float, surface_refine: float = 4.0,
+                        order: int = 2) -> float:
+    """An upper bound of ``estimate_nodes``'s "dofs" for the same scene, in closed form: its element size h never
+    falls below min(fine, size_m), so each integral is bounded by its domain times the largest integrand (the
+    trapezoid rule's weights are positive; equal when h is that minimum everywhere, hence a round-off margin)."""
+    fine = size_m / surface_refine
+    smin = min(2 * fine, size_m)
+    hmin = min(fine, size_m)
+    boundary = (width_m / fine + width_m / size_m + 2 * height_m / hmin
+                + sum(2 * math.pi * r / smin for r in stone_radii_m))
+    vertices = VERTEX_DENSITY * width_m * height_m / hmin ** 2 + 0.5 * boundary
+    return 2.0 * (vertices if order == 1 else 4.0 * vertices) * (1.0 + 1e-9)     # the integrals' round-off
+
+
 def mesh_tip(radius_m: float, size_m: float, order: int = 2) -> Mesh:
     """The lower half of a disk of radius R centred at (0, R): a cylindrical tip whose lowest point is the origin.
     Its flat top edge (y = R) is where the holder grips it. ``height_m`` = R, ``top`` = the gripped edge."""

@@ -66,7 +66,7 @@ class Model:
         owner = np.full(self.mesh.n_nodes, -1)
         for k, r in enumerate(self.rigid):
             if r:
-                owner[np.unique(self.mesh.tris[self.mesh.region == k + 1])] = k
+                owner[self.mesh.tris[self.mesh.region == k + 1].ravel()] = k   # (np.unique would load numpy.ma)
         return owner
 
     def _prolongation(self) -> sp.csr_matrix:

@@ -8,16 +8,17 @@ the mesher or the assembly invalidates old entries by itself.
 from __future__ import annotations
 
 import functools
+import importlib.util
 import os
+import re
 import warnings
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
 from . import diskcache
 from .elements import nodes_ref, quadrature, shape_grad
-from .mesh import Mesh, estimate_nodes, mesh_scene
+from .mesh import Mesh, estimate_dofs_bound, estimate_nodes, mesh_scene
 from .scene import Scene, SceneError
 
 FORMAT = 2
@@ -26,14 +27,31 @@ _SOURCES = ("scene_mesh.py", "mesh.py", "assembly.py", "elements.py", "model.py"
             "stress.py", "guards.py")
 
 
+@functools.lru_cache(maxsize=1)
+def gmsh_version() -> str:
+    """gmsh's version ("?" when it is not installed), without importing it: the ``GMSH_API_VERSION`` its module
+    states near its top (importlib.metadata, 10 ms of imports, only when that line is missing)."""
+    spec = importlib.util.find_spec("gmsh")
+    if spec is None or not spec.origin:
+        return "?"
+    try:
+        with open(spec.origin, encoding="utf-8", errors="replace") as f:
+            m = re.search(r'^GMSH_API_VERSION\s*=\s*"([^"]+)"', f.read(8192), re.M)
+    except OSError:
+        m = None
+    if m:
+        return m.group(1)
+    import importlib.metadata as metadata  # lazy: only for a gmsh module that does not state its version
+    try:
+        return metadata.version("gmsh")
+    except metadata.PackageNotFoundError:
+        return "?"
+
+
 def sources_version(sources: tuple[str, ...], tag: str) -> str:
     """A hash of fem's source files ``sources``, gmsh's version and ``tag``: a code version for cache keys."""
-    try:
-        gv = metadata.version("gmsh")
-    except metadata.PackageNotFoundError:
-        gv = "?"
     here = Path(__file__).resolve().parent
-    return diskcache.files_digest([here / name for name in sources], f"{tag}; gmsh {gv}")
+    return diskcache.files_digest([here / name for name in sources], f"{tag}; gmsh {gmsh_version()}")
 
 
 @functools.lru_cache(maxsize=1)
@@ -78,15 +96,19 @@ def _what_to_change(scene: Scene) -> str:
             f"{scene.tissue.height_m:g} m)")
 
 
-def check_mesh_budget(scene: Scene) -> dict:
-    """SceneError if the scene's mesh would exceed the DOF cap (max_dofs()); else its estimate (estimate_size)."""
-    est = estimate_size(scene)
+def check_mesh_budget(scene: Scene) -> None:
+    """SceneError if the scene's mesh would exceed the DOF cap (max_dofs()). The estimate (estimate_size, ~20 ms)
+    is made only when its upper bound (fem.mesh.estimate_dofs_bound, a few us) exceeds the cap."""
+    t, a = scene.tissue, scene.analysis
     cap = max_dofs()
+    if estimate_dofs_bound(t.width_m, t.height_m, [s.radius_m for s in scene.stones], a.mesh_size_m,
+                           a.surface_refine, a.order) <= cap:
+        return
+    est = estimate_size(scene)
     if est["dofs"] > cap:
         raise SceneError(f"scene {scene.name!r}: the mesh would have about {est['dofs']:.3g} DOFs "
                          f"(P{scene.analysis.order}), above the cap of {cap:.3g} ($PALPATE_MAX_DOFS): "
                          f"{_what_to_change(scene)}")
-    return est
 
 
 def check_surface_budget(scene: Scene) -> None:

@@ -227,6 +227,7 @@ class _Forward:
         # g at each contact onset: at the indentation where the prior's force reaches the threshold (0.3-0.8 mm; g is
         # 0.5-3 % there and the fitted stiffness and thickness change it by a fraction of that: held, not re-solved in
         # every evaluation)
+        self._memo_tables: dict[str, dict] = {}
         self.g_onset = None
         if self.fs is not None and len(self.on):
             d_on = self.resp.depth_at_force_m(meas.onset_threshold_n[self.on], 0.0, self.on)
@@ -265,15 +266,33 @@ class _Forward:
             C[:, out] *= self.resp.force_n(d, eta)[out] / np.maximum(self.resp.force_n(dc, eta)[out], 1e-12)
         return C
 
+    def _memo(self, table: str, key: tuple, make):
+        """``make()``, remembered under ``key`` (the exact parameters it depends on) for the next evaluations: a
+        finite-difference Jacobian moves one parameter at a time, so most parts of the model repeat the base point's
+        (the contrast when only the scale, drift or finite-strain amplitude moves; the prior's force when only the
+        stone does). The same numbers as computing them again, bit for bit. Callers must not modify the result."""
+        memo = self._memo_tables.setdefault(table, {})
+        v = memo.get(key)
+        if v is None:
+            if len(memo) >= 64:
+                memo.clear()
+            v = memo[key] = make()
+        return v
+
     def forces(self, stone, nu) -> np.ndarray:
-        d = self.depth(nu)
-        F = self.resp.force_n(d, nu[4])
+        surf = (nu[2], nu[3])                   # the true indentation depends on the surface's offset and tilt only
+        d = self._memo("depth", surf, lambda: self.depth(nu))
+        F = self._memo("prior", (*surf, nu[4]), lambda: self.resp.force_n(d, nu[4]))
         if stone is not None:
-            F = F + self.contrast(stone, d, nu[4])
-        return math.exp(nu[1]) * F * self.stiffening(d, nu) + nu[0] * 1e-3 * self.meas.tau_s
+            F = F + self._memo("contrast", (*stone, *surf, nu[4]), lambda: self.contrast(stone, d, nu[4]))
+        st = self._memo("stiffening", (*surf, nu[5]), lambda: self.stiffening(d, nu))
+        return math.exp(nu[1]) * F * st + nu[0] * 1e-3 * self.meas.tau_s
 
     def extra(self, nu) -> np.ndarray:
         """Residuals of the contact onsets (the surface height and the scale) and of the drift and thickness priors."""
+        return self._memo("extra", (*nu, self.free.tobytes()), lambda: self._extra(nu))
+
+    def _extra(self, nu) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[4]:
             r.append(np.array([nu[4] / THICKNESS_SIGMA]))
@@ -477,7 +496,9 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
         cands.sort(key=lambda t: t[0])
         seen = []
         for chi2, p, coef in cands:
-            if any(np.allclose(p, q, atol=1e-9) for q in seen) or len(seen) >= n_starts:
+            if len(seen) >= n_starts:
+                break
+            if any(np.allclose(p, q, atol=1e-9) for q in seen):
                 continue
             seen.append(p)
             nu = nu_s.copy()

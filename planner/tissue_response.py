@@ -47,7 +47,7 @@ class PriorResponse:
                 row = _ROWS.get(key)
                 if row is None:
                     model = model or surface_model(sc)
-                    row = np.log(np.maximum([model.force_n(float(xi), float(d)) for d in np.exp(self.logd)], 1e-12))
+                    row = np.log(np.maximum(model.force_curve_n(float(xi), np.exp(self.logd)), 1e-12))
                     _ROWS[key] = row
                 rows.append(row)
             tabs.append(np.array(rows).reshape(len(x), N_NODES))

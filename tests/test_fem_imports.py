@@ -8,7 +8,8 @@ import sys
 from pathlib import Path
 
 FEM = Path(__file__).resolve().parent.parent / "fem"
-LAZY_OK = ("gmsh", "meshio", "matplotlib", "scipy.sparse", "cvxopt", "pymetis")   # heavy imports that may stay
+LAZY_OK = ("gmsh", "meshio", "matplotlib", "scipy.sparse", "cvxopt", "pymetis",    # heavy imports that may stay
+           "importlib.metadata", "tomllib")   # 10 and 4 ms of start-up: a gmsh without a stated version, TOML scenes
 # inside functions (scipy: a model from the disk cache predicts with numpy alone, issue 19; cvxopt: CHOLMOD, 3D
 # only; pymetis: the ordering CHOLMOD gets, 3D only)
 

@@ -128,3 +128,16 @@ def test_warm_started_sweep_gives_each_waypoints_own_answer():
     for r, x, d in zip(sm.indent_many(xs, depths, stresses=False), xs, depths):
         idx, f, _ = sm.contact_forces(float(x), float(d))
         np.testing.assert_allclose(r.nodal_force_n_per_m, f, rtol=1e-12, atol=1e-12 * f.max())
+
+
+def test_depth_sweep_gives_each_depths_own_force():
+    """force_curve_n starts each depth's LCP from the contact the shallower one reached: the forces are the cold
+    solves' exactly (the same final active set, solved the same way), over the depths the localizer tabulates
+    (0.06 to 0.96 tip radii: planner.tissue_response), over the stone, beside it and at the section's ends."""
+    sm = SurfaceModel(S.load("paper").with_analysis(**MESH))
+    R = sm.scene.indenter.radius_m
+    depths = np.exp(np.linspace(np.log(0.06 * R), np.log(0.96 * R), 32))
+    for x in (0.0, 0.0051, 0.0297, 0.035, 0.07):
+        cold = np.array([sm.force_n(x, float(d)) for d in depths])
+        np.testing.assert_array_equal(sm.force_curve_n(x, depths), cold)
+        assert np.all(np.diff(cold) > 0)                    # the sweep covers contact growing with depth

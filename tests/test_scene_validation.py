@@ -15,10 +15,10 @@ from hypothesis import strategies as st
 from fem import scene as S
 from fem.contact import SurfaceModel, check_waypoint
 from fem.guards import InvertedElementsError, NonFiniteResultError, check_finite
-from fem.mesh import mesh_scene
+from fem.mesh import estimate_dofs_bound, estimate_nodes, mesh_scene
 from fem.results import Profile
 from fem.scene import SceneError
-from fem.scene_mesh import check_mesh_budget, estimate_size, mesh_for
+from fem.scene_mesh import check_mesh_budget, estimate_size, gmsh_version, mesh_for
 
 BASE = """name = "t"
 [tissue]
@@ -110,6 +110,35 @@ def test_huge_meshes_are_refused_before_gmsh(changes, field, monkeypatch):
     monkeypatch.setenv("PALPATE_MAX_DOFS", "1000")
     with pytest.raises(SceneError, match="above the cap of 1e"):
         check_mesh_budget(S.load("paper").with_analysis(mesh_size_m=0.004))
+
+
+@settings(max_examples=60, deadline=None)
+@given(w=st.floats(0.01, 0.2), h=st.floats(0.01, 0.2), size=st.floats(5e-4, 0.02), refine=st.floats(0.5, 16.0),
+       order=st.sampled_from([1, 2]), stones=st.lists(st.tuples(st.floats(0.1, 0.9), st.floats(0.2, 0.8),
+                                                                 st.floats(0.02, 0.2)), max_size=3))
+def test_dof_bound_is_above_the_estimate(w, h, size, refine, order, stones):
+    """check_mesh_budget skips the estimate when its closed-form bound is within the cap: the bound must hold."""
+    placed = [(fx * w, fy * h, fr * min(w, h)) for fx, fy, fr in stones]
+    est = estimate_nodes(w, h, placed, size, refine, order)["dofs"]
+    assert estimate_dofs_bound(w, h, [r for _, _, r in placed], size, refine, order) >= est
+
+
+def test_budget_refuses_exactly_what_the_estimate_exceeds(monkeypatch):
+    """Around the cap the bound defers to the estimate: refused iff the estimate exceeds the cap."""
+    sc = S.load("paper").with_analysis(mesh_size_m=0.003)
+    est = estimate_size(sc)["dofs"]
+    for cap, refused in ((int(est * 1.01), False), (int(est * 0.99), True)):
+        monkeypatch.setenv("PALPATE_MAX_DOFS", str(cap))
+        if refused:
+            with pytest.raises(SceneError, match="above the cap"):
+                check_mesh_budget(sc)
+        else:
+            check_mesh_budget(sc)
+
+
+def test_gmsh_version_read_without_importing_it():
+    from importlib import metadata
+    assert gmsh_version() == metadata.version("gmsh")
 
 
 @pytest.mark.parametrize("name,order,h,refine", [
