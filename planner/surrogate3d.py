@@ -55,6 +55,7 @@ from fem.model3d import build_model3d
 from fem.scene import Analysis, Indenter, Scene, SceneError, Stone, Tissue, from_dict, load
 from fem.scene_mesh3d import mesh_for3d
 from fem.tip import contact_scene
+from planner.fingerprint import cached_fingerprint
 from planner.tasks import Runner, run_pieces
 
 FORMAT = 1
@@ -462,6 +463,12 @@ def fingerprint(scene: Scene) -> np.ndarray:
                            forces_at(same_mesh_prior(st, m), pts[:, 0], pts[:, 1], d)])
 
 
+def _fingerprint_now(own: Scene) -> np.ndarray:
+    """``fingerprint(own)``, read from fem's disk cache when today's fem and libraries computed it before
+    (planner.fingerprint)."""
+    return cached_fingerprint("fingerprint3d", {"scene": own.key(), "format": FORMAT}, lambda: fingerprint(own))
+
+
 def table_candidates(prior: Scene, grid: Grid3D) -> list[Path]:
     """Where a table may be read from, in order: the disk cache (unless PALPATE_CACHE=0), then the shipped data."""
     return ([cache_path(prior, grid)] if diskcache.enabled() else []) + [cache_path(prior, grid, SHIPPED)]
@@ -478,7 +485,8 @@ def _fingerprint_ok(d: dict, fp: np.ndarray, scale: float) -> bool:
 def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = None, progress=None,
                      grid: Grid3D = Grid3D(), check: bool = True) -> Surrogate3D:
     """The 3D surrogate of a prior scene (no stones): from memory, the disk cache or planner/data, provided its
-    fingerprint matches what fem computes now (~1 s); else built (``build_table3d`` on ``runner``; minutes) and
+    fingerprint matches what fem computes now (~1 s, once per version of fem and its libraries: planner.fingerprint);
+    else built (``build_table3d`` on ``runner``; minutes) and
     written to the cache. FileNotFoundError when there is none and ``build`` is False."""
     if prior.stones:
         raise ValueError("the surrogate is built on the prior scene (no stones); pass scene.prior()")
@@ -493,7 +501,7 @@ def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = N
         if d is None:
             continue
         if check:
-            fp = fingerprint(own) if fp is None else fp
+            fp = _fingerprint_now(own) if fp is None else fp
             if not _fingerprint_ok(d, fp, float(prior.tissue.youngs_pa / float(d["youngs_ref_pa"]))):
                 print(f"surrogate3d: {cand} was built by a different fem (fingerprint differs): not used",
                       file=sys.stderr)
@@ -505,7 +513,7 @@ def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = N
             raise FileNotFoundError(f"no valid 3D surrogate table at {path}")
         store = path.with_suffix(".parts") if diskcache.enabled() else None
         data = build_table3d(prior, grid, runner=runner, progress=progress, store=store)
-        data["fingerprint"] = fingerprint(own) if fp is None else fp
+        data["fingerprint"] = _fingerprint_now(own) if fp is None else fp
         if diskcache.enabled():
             diskcache.write(path, data)
     sur = Surrogate3D(data, prior, calibration_for(prior, grid, data, build=build, runner=runner, progress=progress))

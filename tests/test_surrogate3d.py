@@ -10,6 +10,7 @@ import pytest
 
 from fem import contact3d
 from fem.scene import Analysis, Indenter, Scene, Tissue
+from planner import fingerprint
 from planner import surrogate3d as s3
 from planner.tasks import Runner
 
@@ -110,15 +111,39 @@ def test_smooth_in_every_argument(table, arg):
 
 
 def test_the_fingerprint_catches_a_changed_fem(table, monkeypatch, capsys):
-    """fem's contact answering 0.1 % differently: the cached table is not used (and not rebuilt with build=False)."""
+    """fem's contact answering 0.1 % differently (changed code: a new planner.fingerprint.numbers_version): the
+    cached table is not used (and not rebuilt with build=False)."""
     s3._MEM.clear()
     assert s3.load_surrogate3d(BLOCK.prior(), build=False, grid=GRID) is not None
     s3._MEM.clear()
     orig = contact3d.SurfaceModel3D.force_n
     monkeypatch.setattr(contact3d.SurfaceModel3D, "force_n", lambda self, *a: 1.001 * orig(self, *a))
+    monkeypatch.setattr(fingerprint, "numbers_version", lambda: "fem changed")
     with pytest.raises(FileNotFoundError):
         s3.load_surrogate3d(BLOCK.prior(), build=False, grid=GRID)
     assert "fingerprint differs" in capsys.readouterr().err
+
+
+def test_the_fingerprint_is_computed_once_per_fem_version(table, monkeypatch):
+    """A second process (memory cleared) reads today's fingerprint from the disk cache: the same numbers as
+    computing it, without fem; a changed fem (numbers_version) or the cache switched off computes it again."""
+    s3._MEM.clear()
+    s3.load_surrogate3d(BLOCK.prior(), build=False, grid=GRID)          # computed or read: now on disk
+    own = s3.table_scene(BLOCK.prior(), GRID, BLOCK.tissue.youngs_pa)
+    fresh = s3.fingerprint(own)
+    calls = []
+    real = s3.fingerprint
+    monkeypatch.setattr(s3, "fingerprint", lambda sc: calls.append(1) or real(sc))
+    s3._MEM.clear()
+    s3.load_surrogate3d(BLOCK.prior(), build=False, grid=GRID)
+    assert not calls
+    np.testing.assert_array_equal(s3._fingerprint_now(own), fresh)
+    monkeypatch.setattr(fingerprint, "numbers_version", lambda: "another fem")
+    np.testing.assert_array_equal(s3._fingerprint_now(own), fresh)
+    assert len(calls) == 1
+    monkeypatch.setenv("PALPATE_CACHE", "0")
+    s3._fingerprint_now(own)
+    assert len(calls) == 2
 
 
 def test_a_calibration_is_applied_only_on_the_mesh_it_was_made_for(table, monkeypatch):
