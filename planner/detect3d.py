@@ -15,9 +15,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.stats import ncx2
 
-from planner.detectability import P_DETECT, noncentrality, probe_sigma_n, probe_tau_s, sensor_usable
+from planner.detectability import P_DETECT, ncx2_sf, noncentrality, probe_sigma_n, probe_tau_s, sensor_usable
 from planner.localize import DRIFT_SIGMA_N_PER_S, MODEL_ABS_ERR_N
 from planner.localize3d import LR_THRESHOLD3D
 
@@ -42,7 +41,7 @@ def p_detect3d(stone, *, x_m, y_m, depth_m, sigma_n, surrogate, prior_force_n, t
     w = weights3d(sigma_n, c, surrogate)
     cols = np.c_[np.broadcast_to(np.asarray(tau_s, float), x.shape), np.broadcast_to(prior_force_n, x.shape)]
     lam = noncentrality(c, w, cols, np.array([1.0 / DRIFT_SIGMA_N_PER_S ** 2, 0.0]))
-    return float(ncx2.sf(lr_threshold, STONE_DOF, max(lam, 1e-12)))
+    return ncx2_sf(lr_threshold, STONE_DOF, max(lam, 1e-12))
 
 
 def detectability3d(plan, surrogate, prior_force_n: float, *, sensor_spec, stones=None) -> dict:

@@ -26,7 +26,7 @@ import math
 import sys
 
 import numpy as np
-from scipy.stats import ncx2
+from scipy.special import chndtr
 
 from core.contracts import (
     BASELINE_CLEARANCE_M,
@@ -137,12 +137,18 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
         c = sur.contrast(x, d, xs, dep, D)
         w = fit_weights(sig, c)
         lam = noncentrality(c, w, cols, np.array(prec))
-        p = float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12))) if usable else 0.0
+        p = ncx2_sf(lr_threshold, 3, max(lam, 1e-12)) if usable else 0.0
         rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": float(np.max(c)), "snr": math.sqrt(max(lam, 0)),
                      "p_detect": p, "detectable": bool(usable and p >= P_DETECT)})
     return {"sensor": sp.name, "usable": usable, "reason": reason, "sigma_n": sig, "force_limit_n": force_limit_n,
             "depths_m": [float(v) for v in d], "x_m": [float(v) for v in x], "xs_m": xs, "lr_threshold": lr_threshold,
             "nuisance": nuisance, "rows": rows}
+
+
+def ncx2_sf(x: float, df: float, nc: float) -> float:
+    """The non-central chi-squared survival function: 1 - scipy.special.chndtr, scipy.stats.ncx2.sf's value to
+    2e-15 absolute over the range detection asks (tested), without scipy.stats (0.27 s of a command's start-up)."""
+    return max(0.0, 1.0 - float(chndtr(x, df, nc)))
 
 
 def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: float = LR_THRESHOLD,
@@ -157,7 +163,7 @@ def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: fl
         P, dP = prior_and_thickness_slope(prior, x_m, depth_m)
         cols, prec = [tau, P, dP], [0.0, 0.0, 1.0 / THICKNESS_SIGMA ** 2]
     lam = noncentrality(c, w, np.array(cols).T, np.array(prec))
-    return float(ncx2.sf(lr_threshold, 3, max(lam, 1e-12)))
+    return ncx2_sf(lr_threshold, 3, max(lam, 1e-12))
 
 
 def format_table(res: dict) -> str:

@@ -14,12 +14,15 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.stats import ncx2
 
 from core.contracts import Motion  # noqa: E402
 from core.contracts import sensor_spec as spec  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
 from planner.accuracy import DEPTH_M, FastArm  # noqa: E402
-from planner.detectability import p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
+from planner.detectability import ncx2_sf, p_detect, probe_sigma_n, probe_tau_s  # noqa: E402
 from planner.localize import Measurements, localize  # noqa: E402
 from planner.raster import raster_positions  # noqa: E402
 from planner.surrogate import load_surrogate, stone_model  # noqa: E402
@@ -44,3 +47,14 @@ def test_predicted_detection_rate_matches_monte_carlo():
     print(f"predicted {pred:.2f}, Monte Carlo {rate:.2f} (+- {se:.2f})")
     assert 0.2 < pred < 0.8                          # a marginal stone: the check has teeth
     assert abs(rate - pred) < 3 * se + 0.2
+
+
+@settings(max_examples=300, deadline=None)
+@given(x=st.floats(1.0, 200.0), df=st.sampled_from([3, 4]), log_nc=st.floats(-12.0, 3.5))
+def test_ncx2_sf_is_scipy_stats(x, df, log_nc):
+    """Detection's non-central chi-squared tail without scipy.stats: its value to 2e-15 where detection asks (x: the
+    LR threshold, 20 to 25; scipy.stats itself overflows near x = 0 with a large nc); never negative."""
+    nc = 10.0 ** log_nc
+    got = ncx2_sf(x, df, nc)
+    assert 0.0 <= got <= 1.0
+    assert abs(got - float(ncx2.sf(x, df, nc))) < 2e-15 + 1e-9 * float(ncx2.sf(x, df, nc))
