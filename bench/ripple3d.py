@@ -59,7 +59,8 @@ def measure(mesh_size_m: float | None, grade: float | None, n_grid: int) -> dict
     a = prior.analysis
     return {"mesh_size_m": a.mesh_size_m, "grade": a.grade, "surface_refine": a.surface_refine, "grid": n_grid,
             "depth_m": DEPTH_M, "stone": dict(zip(("xs_m", "ys_m", "depth_m", "diameter_m"), STONE)),
-            "peak_contrast_n": float(np.nanmax(same)), "ripple": stats(direct - same),
+            "peak_contrast_n": float(np.nanmax(same)) if np.isfinite(same).any() else None,
+            "ripple": stats(direct - same),
             "direct_minus_table": stats(direct - table), "same_minus_table": stats(same - table),
             "x_m": X.tolist(), "y_m": Y.tolist(), "direct_n": direct.tolist(), "same_n": same.tolist(),
             "table_n": table.tolist(), "wall_s": time.perf_counter() - t0}
@@ -79,7 +80,8 @@ def main() -> int:
         f.write(json.dumps(r) + "\n")
     def mn(s):
         return "n/a" if not s["n"] else f"rms {s['rms_n'] * 1e3:.3f} mN, max {s['max_abs_n'] * 1e3:.3f} mN"
-    print(f"mesh {r['mesh_size_m']} m, grade {r['grade']}: peak contrast {r['peak_contrast_n'] * 1e3:.3f} mN; "
+    peak = "n/a" if r["peak_contrast_n"] is None else f"{r['peak_contrast_n'] * 1e3:.3f} mN"
+    print(f"mesh {r['mesh_size_m']} m, grade {r['grade']}: peak contrast {peak}; "
           f"ripple (direct - same) {mn(r['ripple'])}; direct - table {mn(r['direct_minus_table'])}; "
           f"same - table {mn(r['same_minus_table'])}; {r['wall_s']:.0f} s")
     return 0

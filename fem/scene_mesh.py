@@ -31,14 +31,17 @@ _SOURCES = ("scene_mesh.py", "mesh.py", "assembly.py", "elements.py", "model.py"
 def gmsh_version() -> str:
     """gmsh's version ("?" when it is not installed), without importing it: the ``GMSH_API_VERSION`` its module
     states near its top (importlib.metadata, 10 ms of imports, only when that line is missing)."""
-    spec = importlib.util.find_spec("gmsh")
-    if spec is None or not spec.origin:
-        return "?"
     try:
-        with open(spec.origin, encoding="utf-8", errors="replace") as f:
-            m = re.search(r'^GMSH_API_VERSION\s*=\s*"([^"]+)"', f.read(8192), re.M)
-    except OSError:
-        m = None
+        spec = importlib.util.find_spec("gmsh")
+    except (ImportError, ValueError):          # a gmsh module already loaded without a spec (a stand-in)
+        spec = None
+    m = None
+    if spec is not None and spec.origin:
+        try:
+            with open(spec.origin, encoding="utf-8", errors="replace") as f:
+                m = re.search(r'^GMSH_API_VERSION\s*=\s*"([^"]+)"', f.read(8192), re.M)
+        except OSError:
+            pass
     if m:
         return m.group(1)
     import importlib.metadata as metadata  # lazy: only for a gmsh module that does not state its version

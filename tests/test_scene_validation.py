@@ -4,6 +4,8 @@ refused; nothing non-finite leaves fem. Small meshes only."""
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 import tomllib
 import warnings
 
@@ -137,8 +139,14 @@ def test_budget_refuses_exactly_what_the_estimate_exceeds(monkeypatch):
 
 
 def test_gmsh_version_read_without_importing_it():
+    """gmsh's version (part of the cache keys) as its distribution states it, read in a fresh process that then has
+    loaded neither gmsh nor importlib.metadata (a cached command's start-up)."""
     from importlib import metadata
     assert gmsh_version() == metadata.version("gmsh")
+    code = ("import sys; from fem.scene_mesh import gmsh_version; v = gmsh_version(); "
+            "print(v, 'gmsh' in sys.modules, 'importlib.metadata' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == [metadata.version("gmsh"), "False", "False"]
 
 
 @pytest.mark.parametrize("name,order,h,refine", [
