@@ -193,6 +193,7 @@ class SurfaceModel:
         self.use_influence = use_influence
         self._influence: Influence | bool | None = None
         self._influence_cache = None         # set by load_or_build_surface: the disk cache's entry for them
+        self._gap_m: float | None = None     # the top nodes' widest spacing (a warm start's margin; _reach)
         self._cache_probed = False
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
 
@@ -332,13 +333,21 @@ class SurfaceModel:
         before it reached (the same answers as one ``force_n`` per depth: the solver is exact from any start; the
         active-set steps fall about 3-fold on a rising depth sweep)."""
         out, reach = [], None
-        gap_m = float(np.diff(self.x).max(initial=0.0))
         for d in depths_m:
             idx, f, _ = self.contact_forces(float(x_m), float(d), reach)
-            on = f > 0
-            reach = float(np.abs(self.x[idx][on] - x_m).max()) + gap_m if on.any() else None
+            reach = self._reach(idx, f, x_m)
             out.append(check_finite(float(f.sum()), f"scene {self.scene.name!r}: force at x_m={x_m}, depth_m={d}"))
         return np.array(out) * self.scene.indenter.thickness_m
+
+    def _reach(self, idx: np.ndarray, f: np.ndarray, x_m: float) -> float | None:
+        """A solved contact's half-width from the tip plus the top nodes' widest spacing (the next LCP's warm start
+        for a neighbouring waypoint or a deeper indentation); None without contact."""
+        on = f > 0
+        if not on.any():
+            return None
+        if self._gap_m is None:
+            self._gap_m = float(np.diff(self.x).max(initial=0.0))
+        return float(np.abs(self.x[idx][on] - x_m).max()) + self._gap_m
 
     def indent(self, x_m: float, depth_m: float, stresses: bool = True) -> IndentResult:
         return self.indent_many([x_m], [depth_m], stresses=stresses)[0]
@@ -348,12 +357,9 @@ class SurfaceModel:
         x0s = np.atleast_1d(np.asarray(x_m, float))
         depths = np.broadcast_to(np.asarray(depth_m, float), x0s.shape)
         sols, reach = [], None
-        gap_m = float(np.diff(self.x).max(initial=0.0))       # the top nodes' widest spacing: the guess's margin
         for k, (x, d) in enumerate(zip(x0s, depths)):
             sols.append(self.contact_forces(float(x), float(d), reach if k and d == depths[k - 1] else None))
-            idx, f, _ = sols[-1]
-            on = f > 0
-            reach = float(np.abs(self.x[idx][on] - x).max()) + gap_m if on.any() else None
+            reach = self._reach(sols[-1][0], sols[-1][1], x)
         tip = self._tip_stresses(sols, x0s, depths) if stresses else [None] * len(sols)
         out = []
         H = self.model.mesh.height_m
