@@ -2,7 +2,7 @@
 
 A table (planner.surrogate, planner.surrogate3d) stores what fem computed for a small case when it was built, and is
 used only while fem computes the same now: a behavioural check, so that refactoring fem without changing its numbers
-keeps the table. Computing "now" costs a mesh and a factorization (0.7 s in 2D, about a second in 3D) in every
+keeps the table. Computing "now" costs a mesh and a factorization (0.7-0.9 s in 2D, 0.6 s in 3D) in every
 process that loads a table. The same code on the same numeric libraries gives the same numbers, so the result is
 kept in fem's disk cache under the version of both (``numbers_version``: every fem source file, gmsh's, numpy's,
 scipy's and cvxopt's versions) and read back by the next process; any change to them computes it again.

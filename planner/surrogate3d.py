@@ -485,7 +485,7 @@ def _fingerprint_ok(d: dict, fp: np.ndarray, scale: float) -> bool:
 def load_surrogate3d(prior: Scene, build: bool = True, runner: Runner | None = None, progress=None,
                      grid: Grid3D = Grid3D(), check: bool = True) -> Surrogate3D:
     """The 3D surrogate of a prior scene (no stones): from memory, the disk cache or planner/data, provided its
-    fingerprint matches what fem computes now (~1 s, once per version of fem and its libraries: planner.fingerprint);
+    fingerprint matches what fem computes now (0.6 s, once per version of fem and its libraries: planner.fingerprint);
     else built (``build_table3d`` on ``runner``; minutes) and
     written to the cache. FileNotFoundError when there is none and ``build`` is False."""
     if prior.stones:
