@@ -105,17 +105,23 @@ def in_process(repeats: int) -> dict:
         naive.append(time.perf_counter() - t0)
         naive_cpu.append(time.process_time() - c0)
         assert abs(r["force_n"] / m.force_n(x, DEPTH_M) - 1) < 1e-9     # the same answer
-    force, stress = [], []
+    prior = surface_model(sc.prior())                                  # predict's reference, the same way
+    prior.indent_many(xs, DEPTH_M)
+    force, stress, stress_prior = [], [], []
     for _ in range(repeats):
         c0 = time.process_time()
         m.indent_many(xs, DEPTH_M, stresses=False)
         c1 = time.process_time()
         m.indent_many(xs, DEPTH_M)
+        c2 = time.process_time()
+        prior.indent_many(xs, DEPTH_M)
         force.append(c1 - c0)
-        stress.append(time.process_time() - c1)
+        stress.append(c2 - c1)
+        stress_prior.append(time.process_time() - c2)
     return {"dofs": int(m.model.n_dofs), "naive_per_waypoint_s": statistics.median(naive), "naive_s": naive,
             "naive_per_waypoint_cpu_s": statistics.median(naive_cpu),
-            "fast_100_force_cpu_s": statistics.median(force), "fast_100_stresses_cpu_s": statistics.median(stress)}
+            "fast_100_force_cpu_s": statistics.median(force), "fast_100_stresses_cpu_s": statistics.median(stress),
+            "fast_100_stresses_prior_cpu_s": statistics.median(stress_prior)}
 
 
 def period_floor(n: int = 20000) -> dict:
@@ -169,6 +175,8 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
             med = {k: statistics.median(t[k] for t in ts) for k in ts[0]}
             shown = " ".join(argv).replace(str(work), "OUT").replace("-{n}", "")
             rows[f"{name}:{phase}"] = {"command": "palpate " + shown, "runs": len(ts), **med}
+            if name == "predict":           # the command's own split: set-up and waypoints, scene and reference
+                rows[f"{name}:{phase}"]["own_timings_s"] = json.loads((work / "predict.json").read_text())["timings_s"]
             if name == "run_sim":
                 robot_s = json.loads((work / f"run-{n}" / "result.json").read_text())["time"]["robot_s"]
                 periods = robot_s / pf["period_s"]
@@ -181,6 +189,9 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
         k = N_WAYPOINTS if key.startswith("predict") else 1
         ratio[key] = {"wall": naive * k / r["wall_s"], "cpu": naive_cpu * k / r["cpu_s"]}
     best = naive * N_WAYPOINTS / fl["python_numpy"]
+    # a predict's least work: the interpreter with numpy, then both scenes' waypoints in-process and warm
+    best_predict = naive * N_WAYPOINTS / (fl["python_numpy"] + ip["fast_100_stresses_cpu_s"]
+                                          + ip["fast_100_stresses_prior_cpu_s"])
     result = {
         "machine": {"cpus": os.cpu_count(), "load_avg_1m": os.getloadavg()[0],
                     "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
@@ -189,7 +200,7 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
         "in_process": ip, "floor_s": fl, "period_floor": pf, "commands": rows, "ratio_to_naive": ratio,
         "in_process_ratio": {"force": naive_cpu * N_WAYPOINTS / ip["fast_100_force_cpu_s"],
                              "stresses": naive_cpu * N_WAYPOINTS / ip["fast_100_stresses_cpu_s"]},
-        "best_possible_predict_ratio": best,
+        "best_possible_predict_ratio": best, "best_possible_predict_with_work_ratio": best_predict,
     }
     (out_dir / "process.json").write_text(json.dumps(result, indent=1) + "\n")
     md = markdown(result)
@@ -215,7 +226,10 @@ def markdown(r: dict) -> str:
                      f"{row['first_output_s']:.3f} s | {ra['wall']:.1f} / {ra['cpu']:.1f} ({unit}) |")
     lines += ["", f"Floor: an interpreter that does nothing takes {fl['python'] * 1e3:.0f} ms, one that imports numpy "
               f"{fl['python_numpy'] * 1e3:.0f} ms: no Python command that loads numpy can beat "
-              f"{r['best_possible_predict_ratio']:.0f}x on {N_WAYPOINTS} waypoints against this run's naive re-solve."]
+              f"{r['best_possible_predict_ratio']:.0f}x on {N_WAYPOINTS} waypoints against this run's naive re-solve; "
+              f"with the two scenes' waypoints as warm in-process work added ({ip['fast_100_stresses_cpu_s'] * 1e3:.1f} "
+              f"+ {ip['fast_100_stresses_prior_cpu_s'] * 1e3:.1f} ms), "
+              f"{r['best_possible_predict_with_work_ratio']:.0f}x."]
     pf = r["period_floor"]
     for key, row in r["commands"].items():
         if "periods" in row:

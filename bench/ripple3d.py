@@ -62,8 +62,13 @@ def measure(mesh_size_m: float | None, grade: float | None, n_grid: int) -> dict
             "peak_contrast_n": float(np.nanmax(same)) if np.isfinite(same).any() else None,
             "ripple": stats(direct - same),
             "direct_minus_table": stats(direct - table), "same_minus_table": stats(same - table),
-            "x_m": X.tolist(), "y_m": Y.tolist(), "direct_n": direct.tolist(), "same_n": same.tolist(),
-            "table_n": table.tolist(), "wall_s": time.perf_counter() - t0}
+            "x_m": X.tolist(), "y_m": Y.tolist(), "direct_n": _json(direct), "same_n": _json(same),
+            "table_n": _json(table), "wall_s": time.perf_counter() - t0}
+
+
+def _json(v: np.ndarray) -> list:
+    """Values for JSON: null where fem refused a probe or there is no table (JSON has no NaN)."""
+    return [float(x) if np.isfinite(x) else None for x in v]
 
 
 def main() -> int:

@@ -148,7 +148,8 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
 def ncx2_sf(x: float, df: float, nc: float) -> float:
     """The non-central chi-squared survival function: 1 - scipy.special.chndtr, scipy.stats.ncx2.sf's value to
     2e-15 absolute over the range detection asks (tested), without scipy.stats (0.27 s of a command's start-up)."""
-    return max(0.0, 1.0 - float(chndtr(x, df, nc)))
+    v = 1.0 - float(chndtr(x, df, nc))
+    return v if math.isnan(v) else max(0.0, v)          # a NaN stays NaN, as scipy.stats gives it
 
 
 def p_detect(prior, stone, *, x_m, depth_m, sigma_n, surrogate, lr_threshold: float = LR_THRESHOLD,

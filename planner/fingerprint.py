@@ -2,9 +2,10 @@
 
 A table (planner.surrogate, planner.surrogate3d) stores what fem computed for a small case when it was built, and is
 used only while fem computes the same now: a behavioural check, so that refactoring fem without changing its numbers
-keeps the table. Computing "now" costs a mesh and a factorization (0.7-0.9 s in 2D, 0.6 s in 3D) in every
-process that loads a table. The same code on the same numeric libraries gives the same numbers, so the result is
-kept in fem's disk cache under the version of both (``numbers_version``: every fem source file, gmsh's, numpy's,
+keeps the table. Computing "now" costs a mesh and a factorization (0.4-0.9 s in 2D, 0.6 s in 3D, with the machine's
+load) in every process that loads a table. The same code on the same numeric libraries gives the same numbers, so the
+result is kept in fem's disk cache under the version of both (``numbers_version``: every source file of fem and of
+core, which fem imports, the planner modules that compute a fingerprint (FINGERPRINT_CODE), and gmsh's, numpy's,
 scipy's and cvxopt's versions) and read back by the next process; any change to them computes it again.
 """
 from __future__ import annotations
@@ -21,6 +22,7 @@ from fem import diskcache
 from fem.scene_mesh import gmsh_version
 
 LIBRARIES = ("numpy", "scipy", "cvxopt")
+FINGERPRINT_CODE = ("fingerprint.py", "surrogate.py", "surrogate3d.py")    # planner's part: the probes, the scenes
 
 
 def _version(dist: str) -> str:
@@ -32,10 +34,18 @@ def _version(dist: str) -> str:
 
 @functools.lru_cache(maxsize=1)
 def numbers_version() -> str:
-    """A digest of every fem source file, gmsh's version and the numeric libraries' (LIBRARIES)."""
+    """A digest of every source file of fem and core, planner's FINGERPRINT_CODE, gmsh's version and the numeric
+    libraries' (LIBRARIES)."""
     libs = "; ".join(f"{d} {_version(d)}" for d in LIBRARIES)
-    sources = sorted(Path(fem.__file__).resolve().parent.glob("*.py"))
-    return diskcache.files_digest(sources, f"gmsh {gmsh_version()}; {libs}")
+    return diskcache.files_digest(sources(), f"gmsh {gmsh_version()}; {libs}")
+
+
+def sources() -> list[Path]:
+    """The source files whose code decides a fingerprint's numbers."""
+    fem_dir = Path(fem.__file__).resolve().parent
+    here = Path(__file__).resolve().parent
+    return (sorted(fem_dir.glob("*.py")) + sorted((fem_dir.parent / "core").glob("*.py"))
+            + [here / name for name in FINGERPRINT_CODE])
 
 
 def cached_fingerprint(kind: str, spec: dict, compute: Callable[[], np.ndarray]) -> np.ndarray:

@@ -29,8 +29,8 @@ scene's name, the tissue modulus, the stones, a rigid-treated tip's modulus, loa
 
 The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``) and carries a
 behavioural fingerprint of the fem that built it (``fingerprint``: fem's forces for the prior and one grid stone at a
-few probes, recomputed in ~1 s at load at the prior's own modulus and compared with the stored one scaled; a
-mismatch means rebuild). It is built once (~10 min on 2 busy cores; 360 fem models; on dask.distributed with
+few probes, computed at the prior's own modulus (0.4-0.9 s; once per version of fem and its libraries, then read
+from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (~10 min on 2 busy cores; 360 fem models; on dask.distributed with
 ``planner.tasks``) and read in milliseconds. A table for the built-in paper tissue is shipped in planner/data/ (same
 file name, same check).
 ``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.

@@ -28,8 +28,9 @@ outside ``levels_m`` (clamped: the localizer extrapolates), stones leaving the t
 
 Modulus: with a rigid stone and a rigid tip the force is E times a function of the geometry and nu (as in 2D,
 planner.surrogate.table_scene), so the table is keyed by the prior at unit modulus and scaled by E / youngs_ref_pa.
-A behavioural fingerprint (``fingerprint``: fem's forces on a small block with a stone, ~1 s) is stored with the
-table and recomputed at load: a table built by a different fem is not used.
+A behavioural fingerprint (``fingerprint``: fem's forces on a small block with a stone, 0.6 s) is stored with the
+table and compared at load with today's (computed once per version of fem and its libraries, then read from the
+disk cache: planner.fingerprint): a table built by a different fem is not used.
 
 ``python -m planner.surrogate3d [SCENE] [--check N]`` builds (or loads) the table and measures its error against
 direct 3D fem on the scene's own mesh.

@@ -58,3 +58,7 @@ def test_ncx2_sf_is_scipy_stats(x, df, log_nc):
     got = ncx2_sf(x, df, nc)
     assert 0.0 <= got <= 1.0
     assert abs(got - float(ncx2.sf(x, df, nc))) < 2e-15 + 1e-9 * float(ncx2.sf(x, df, nc))
+
+
+def test_ncx2_sf_keeps_a_nan_as_scipy_does():
+    assert math.isnan(ncx2_sf(20.0, 3, float("nan"))) and math.isnan(float(ncx2.sf(20.0, 3, float("nan"))))

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import tomllib
 import warnings
+from importlib import metadata
 
 import numpy as np
 import pytest
@@ -141,7 +142,6 @@ def test_budget_refuses_exactly_what_the_estimate_exceeds(monkeypatch):
 def test_gmsh_version_read_without_importing_it():
     """gmsh's version (part of the cache keys) as its distribution states it, read in a fresh process that then has
     loaded neither gmsh nor importlib.metadata (a cached command's start-up)."""
-    from importlib import metadata
     assert gmsh_version() == metadata.version("gmsh")
     code = ("import sys; from fem.scene_mesh import gmsh_version; v = gmsh_version(); "
             "print(v, 'gmsh' in sys.modules, 'importlib.metadata' in sys.modules)")
