@@ -66,7 +66,7 @@ def main() -> int:
     out = Path(a.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     run_dir = out / f"run-{time.strftime('%Y%m%dT%H%M%S')}-{os.getpid()}"
-    import app.cli
+    import app.cli  # here, not at the top: the imports are part of what before_main_s measures
     spent, calls = instrument()
     t_main = time.perf_counter()
     rc = app.cli.main(["run", a.scene, "--sim", "--out", str(run_dir)])
