@@ -32,6 +32,8 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from functools import reduce
+from operator import add
 
 import numpy as np
 
@@ -91,6 +93,9 @@ class DriverConfig:
                                        # and the motion. Kicked every period. This is the lowest rate; 0: off.
     max_unsupervised_travel_m: float = 4e-4   # ... and the rate is raised so that a probe moving at its speed
                                        # travels at most this far before that stop (see watchdog_rate_hz)
+    fast_forward: bool = True          # on a simulator that can look ahead (robot.sim's look_ahead): step quiet
+                                       # periods (nothing for the driver to do but record) many at once -- the
+                                       # same records, decisions and commands, tests compare them; False: one by one
     wrist_backstop_margin_n: float = 5.0  # with an external sensor: the wrist sensor (zeroed with it) reading
                                        # more than the force limit + this along the normal (filtered) is a fault --
                                        # the external one, which should have stopped the probe, is stuck, misread
@@ -160,18 +165,134 @@ def _vec6(v) -> bool:
         return False
 
 
+FF_PERIODS = 500      # periods looked ahead at once (1 s): a fault, a stop or a move's end cuts it short
+
+
+def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
+    """The moving average the driver's filter gives after each value of ``f`` (``prev``: the values in the filter
+    before), each window summed in order as ``_read`` sums it (the same float operations: the same values)."""
+    seq = np.concatenate([np.asarray(list(prev), dtype=float), f])
+    end = np.arange(len(seq) - len(f), len(seq))
+    start = np.maximum(0, end - window + 1)
+    acc = seq[start].copy()
+    for o in range(1, window):
+        idx = start + o
+        ok = idx <= end
+        acc[ok] += seq[idx[ok]]
+    return acc / (end - start + 1)
+
+
+@dataclass
+class _Block:
+    """Periods read at once (robot.sim's look-ahead): what ``_read`` gives one period at a time, as arrays, and
+    the asynchronous progress (getAsyncOperationProgress) of each."""
+    ts: np.ndarray
+    pose: np.ndarray
+    wrench: np.ndarray
+    f: np.ndarray
+    filt: np.ndarray
+    depth: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    prog: list
+
+    @property
+    def n(self) -> int:
+        return len(self.ts)
+
+
+SAMPLE_COLUMNS = ("time_s", "tcp_pose", "wrench", "force_n", "depth_m", "x_m", "phase", "y_m")
+
+
 class _Samples:
     def __init__(self):
-        self.rows = []
+        self.rows, self.parts = [], []
 
     def add(self, *row):
         self.rows.append(row)
 
+    def _flush(self):
+        if self.rows:
+            self.parts.append({c: np.array([r[i] for r in self.rows], dtype=float)
+                               for i, c in enumerate(SAMPLE_COLUMNS)})
+            self.rows = []
+
+    def add_block(self, b: _Block, k: int, phase: int) -> None:
+        """The first ``k`` periods of ``b``."""
+        self._flush()
+        self.parts.append({"time_s": b.ts[:k], "tcp_pose": b.pose[:k], "wrench": b.wrench[:k], "force_n": b.f[:k],
+                           "depth_m": b.depth[:k], "x_m": b.x[:k], "phase": np.full(k, float(phase)),
+                           "y_m": b.y[:k]})
+
     def arrays(self) -> dict:
-        cols = ["time_s", "tcp_pose", "wrench", "force_n", "depth_m", "x_m", "phase", "y_m"]
-        if not self.rows:
-            return {c: np.zeros((0, 6) if c in ("tcp_pose", "wrench") else 0) for c in cols}
-        return {c: np.array([r[i] for r in self.rows], dtype=float) for i, c in enumerate(cols)}
+        self._flush()
+        if not self.parts:
+            return {c: np.zeros((0, 6) if c in ("tcp_pose", "wrench") else 0) for c in SAMPLE_COLUMNS}
+        if len(self.parts) > 1:
+            self.parts = [{c: np.concatenate([p[c] for p in self.parts]) for c in SAMPLE_COLUMNS}]
+        return dict(self.parts[0])
+
+
+def _first(mask: np.ndarray, default: int) -> int:
+    """The index of the first True in ``mask``, else ``default``."""
+    i = int(np.argmax(mask)) if len(mask) else 0
+    return i if len(mask) and mask[i] else default
+
+
+def forces_when_stopped(hist, filt: np.ndarray, lead: int) -> np.ndarray:
+    """``force_when_stopped`` after each of ``filt`` appended to ``hist`` (a deque with its maxlen) in turn: the
+    same float operations, so the same values."""
+    seq = np.concatenate([np.asarray(list(hist), dtype=float), filt])
+    end = np.arange(len(hist), len(seq))
+    start = np.maximum(0, end - hist.maxlen + 1)
+    first, last, n = seq[start], seq[end], end - start + 1
+    slope = np.where(n > 1, (last - first) / np.maximum(n - 1, 1), 0.0)
+    return last + np.maximum(slope, 0.0) * lead
+
+
+class _Collision:
+    """Moving to a probe's approach pose: a force above the limit there is a collision (a fault)."""
+
+    def __init__(self, driver: "Driver"):
+        self.d = driver
+
+    def __call__(self, s):
+        return self.d._halt(FaultKind.COLLISION) if s["filt"] > self.d.lim.force_limit_n else None
+
+    def quiet(self, b: _Block, limit: int) -> int:
+        return _first(b.filt[:limit] > self.d.lim.force_limit_n, limit)
+
+
+class _ForceWatch:
+    """The descent's and the dwell's force monitor: notes the first contact (the filtered force above the contact
+    threshold) and stops the arm when the force where it will have stopped (``force_when_stopped``) exceeds the
+    limit."""
+
+    def __init__(self, driver: "Driver"):
+        self.d = driver
+        self.contact: dict = {}
+        self.hist = deque(maxlen=driver.cfg.filter_window + 1)
+        self.lead = stop_lead_periods(driver.cfg.filter_window)
+
+    def __call__(self, s):
+        if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
+            self.contact.update(depth=s["depth"], x=s["x"])
+        self.hist.append(s["filt"])
+        if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
+            self.d._stop()
+            return ProbeStatus.FORCE_LIMIT
+        return None
+
+    def quiet(self, b: _Block, limit: int) -> int:
+        """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
+        filt = b.filt[:limit]
+        k = _first(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
+        if "depth" not in self.contact:
+            j = _first(filt[:k] > self.d.contact_thr, -1)
+            if j >= 0:
+                self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]))
+        self.hist.extend(filt[:k].tolist())
+        return k
 
 
 class Driver(Recovery):
@@ -198,6 +319,13 @@ class Driver(Recovery):
         self.link_dead: str = ""        # why the link is taken for silent (a command got no answer)
         self.worker = CallWorker()      # every waiting ur_rtde call, one at a time, each with a deadline
         self.last_kick_ts = None        # controller time of the last accepted watchdog kick
+        self.normal = tuple(float(v) for v in self.tf.normal)
+        # a simulator's look-ahead (robot.sim): quiet periods many at once; with the wrist sensor only (an external
+        # sensor's readings come from elsewhere)
+        self.look = getattr(rtde_r, "look_ahead", None) \
+            if self.cfg.fast_forward and self.fs.name == "rtde" and not self.backstop else None
+        self.n_fast = 0                 # periods stepped through the look-ahead
+        self._ff_n = FF_PERIODS         # the next look-ahead's length (short after one found nothing quiet)
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -278,41 +406,97 @@ class Driver(Recovery):
                                 "partition or a frozen controller)"))
         self.last_ts = self.ts = float(ts)
         x, y, depth = self.tf.xy_depth(pose)
-        f = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) if ok_w \
-            else float("nan")
+        f = self._along_normal(w) if ok_w else float("nan")
         if ok_w:
             self.filt.append(f)
-        filt = sum(self.filt) / len(self.filt) if self.filt else float("nan")
+        filt = reduce(add, self.filt) / len(self.filt) if self.filt else float("nan")
         self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase, y)
         return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
+
+    def _along_normal(self, w) -> float:
+        """The contact force: the wrench's force along the tissue normal (written out as ``_fast_forward`` does it
+        on many periods at once: the same values)."""
+        n0, n1, n2 = self.normal
+        return self.cfg.force_sign * (float(w[0]) * n0 + float(w[1]) * n1 + float(w[2]) * n2)
 
     def _check_wrist(self, w) -> None:
         """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
         wr = self._call(self.r.getActualTCPForce)
         if not _vec6(wr):
             return                  # the wrist's reading is not the one the probe relies on
-        self.wrist_filt.append(self.cfg.force_sign * float(np.dot(np.asarray(wr[:3], dtype=float), self.tf.normal)))
+        self.wrist_filt.append(self._along_normal(wr))
         fw = sum(self.wrist_filt) / len(self.wrist_filt)
         backstop = self.lim.force_limit_n + self.cfg.wrist_backstop_margin_n
         if fw > backstop:
-            fe = self.cfg.force_sign * float(np.dot(np.asarray(w[:3], dtype=float), self.tf.normal)) \
-                if _vec6(w) else float("nan")
+            fe = self._along_normal(w) if _vec6(w) else float("nan")
             raise ProbeFault(FaultKind.SENSOR_DISAGREES,
                              f"the wrist sensor reads {fw:.2f} N along the normal, above the backstop {backstop:g} N "
                              f"(the force limit + {self.cfg.wrist_backstop_margin_n:g} N), while the {self.fs.name} "
                              f"sensor reads {fe:.3f} N: the "
                              f"external sensor is stuck, misread or wrongly mounted")
 
-    def _loop(self, max_s: float, body, strict=True, what="wait"):
-        """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s."""
-        for _ in range(max(1, int(math.ceil(max_s / self.cfg.period_s)))):
+    def _loop(self, max_s: float, body, strict=True, what="wait", quiet=None):
+        """Call ``body(sample)`` once per controller period until it returns a value; time out after max_s.
+        ``quiet(block)``: how many leading periods of a block of periods read at once ``body`` would have returned
+        None for (and their effects applied: see ``_fast_forward``); None: one period at a time only."""
+        n_max = max(1, int(math.ceil(max_s / self.cfg.period_s)))
+        i = 0
+        while i < n_max:
+            if quiet is not None and self.look is not None:
+                k, more = self._fast_forward(quiet, n_max - i)
+                i += k
+                if more:                # the look-ahead ran out before a period that is not quiet: look again
+                    continue
+                if i >= n_max:
+                    break
             t0 = self._call(self.c.initPeriod)
             self._kick()
             res = body(self._read(strict))
             self._call(self.c.waitPeriod, t0)
+            i += 1
             if res is not None:
                 return res
         raise ProbeFault(FaultKind.TIMEOUT, f"{what} did not finish within {max_s:.1f} s")
+
+    def _fast_forward(self, quiet, limit: int) -> tuple[int, bool]:
+        """Step the periods in which nothing happens but recording, many at once, on a simulator that computes them
+        ahead (robot.sim.ArmModel.look_ahead): the readings of up to FF_PERIODS periods are read as ``_read`` would
+        read them one by one; ``quiet`` counts the leading periods whose ``body`` would return None (it looks at
+        no period after one that would not); those are taken -- the simulator advances by them, the driver
+        records them and updates its filter, timestamps and watchdog kicks exactly as period by period -- and
+        the first period that is not quiet runs in ``_loop`` one at a time. Returns how many were taken (0: the
+        simulator cannot look ahead now, a reading would be a fault, or the first period is not quiet) and whether
+        all the periods looked at were quiet (look again). Only readings the driver would have had by then decide
+        anything; the rest of the look-ahead is dropped."""
+        if self.stale or self.link_dead or limit < 1:
+            return 0, False
+        la = self.look(min(limit, self._ff_n), self.watchdog_on)
+        if la is None:
+            return 0, False
+        self._ff_n = 4                  # a short look next time when this one finds nothing quiet
+        ts = np.array([r[0] for r in la.seen], dtype=float)
+        pose = np.array([r[1] for r in la.seen], dtype=float)
+        w = np.array([r[2] for r in la.seen], dtype=float)
+        if ((self.last_ts is not None and not ts[0] > self.last_ts) or not np.all(np.diff(ts) > 0)
+                or not (np.isfinite(pose).all() and np.isfinite(w).all() and np.isfinite(ts).all())):
+            return 0, False             # a stale or invalid reading: one period at a time says what it is
+        n0, n1, n2 = self.normal
+        f = self.cfg.force_sign * (w[:, 0] * n0 + w[:, 1] * n1 + w[:, 2] * n2)
+        x, y, depth = self.tf.xy_depth_many(pose)
+        b = _Block(ts, pose, w, f, window_means(self.filt, f, self.cfg.filter_window), depth, x, y, la.prog)
+        k = quiet(b)
+        if k < 1:
+            return 0, False
+        la.commit(k)
+        if self.watchdog_on:            # each period's kick went out before its read: the last one after ts[k - 2]
+            self.last_kick_ts = self.ts if k == 1 else float(ts[k - 2])
+        self.filt.extend(f[:k].tolist())
+        self.last_ts = self.ts = float(ts[k - 1])
+        self.stale = 0
+        self.samples.add_block(b, k, self.phase)
+        self.n_fast += k
+        self._ff_n = min(FF_PERIODS, 2 * k)
+        return k, k == la.n
 
     def _wait(self, seconds: float, collect=None):
         n = [0]
@@ -322,7 +506,14 @@ class Driver(Recovery):
                 collect.append((s["f"], s["filt"]))
             n[0] += 1
             return True if n[0] * self.cfg.period_s >= seconds else None
-        self._loop(seconds + 1.0, body)
+
+        def quiet(b: _Block) -> int:
+            k = _first(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= seconds, b.n)
+            if collect is not None:
+                collect.extend(zip(b.f[:k].tolist(), b.filt[:k].tolist()))
+            n[0] += k
+            return k
+        self._loop(seconds + 1.0, body, quiet=quiet)
 
     def _link_up(self, what: str) -> None:
         """No command while ur_rtde reports the link down (one sent then can block for good)."""
@@ -407,7 +598,17 @@ class Driver(Recovery):
                     short_mm = math.dist(s['pose'][:3], pose[:3]) * 1e3
                     raise ProbeFault(FaultKind.MOVE_FAILED, f"{what} ended {short_mm:.2f} mm short of its target")
             return None
-        return self._loop(timeout, body, strict, what)    # a fault is recorded first, then safe_state() stops
+
+        def quiet(b: _Block) -> int:
+            """The periods while the move runs (progress >= 0) and ``watch`` has nothing to say."""
+            k = _first(np.asarray(b.prog) < 0, b.n)
+            if watch is not None and k:
+                k = watch.quiet(b, k)
+            state["started"] |= k > 0
+            return k
+        quiet_ok = watch is None or hasattr(watch, "quiet")
+        return self._loop(timeout, body, strict, what, quiet if quiet_ok else None)  # a fault is recorded first,
+        # then safe_state() stops
 
     # ---- one probe ---------------------------------------------------------------------------------------
     def _zero(self) -> None:
@@ -446,23 +647,10 @@ class Driver(Recovery):
         mo, lim = self.plan.motion, self.lim
         self.samples, self.phase = _Samples(), FREE
         t0 = self.ts
-        collision = lambda s: self._halt(FaultKind.COLLISION) if s["filt"] > lim.force_limit_n else None  # noqa: E731
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
-                   collision, what=f"approach to probe {p.index}")
+                   _Collision(self), what=f"approach to probe {p.index}")
         self._zero()
-        contact = {}
-
-        hist = deque(maxlen=self.cfg.filter_window + 1)
-        lead = stop_lead_periods(self.cfg.filter_window)
-
-        def watch(s):
-            if "depth" not in contact and s["filt"] > self.contact_thr:
-                contact.update(depth=s["depth"], x=s["x"])
-            hist.append(s["filt"])
-            if force_when_stopped(hist, lead) > lim.force_limit_n:
-                self._stop()
-                return ProbeStatus.FORCE_LIMIT
-            return None
+        watch = _ForceWatch(self)
         self.phase = DESCENT
         outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
                              min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
@@ -474,13 +662,18 @@ class Driver(Recovery):
                 n[0] += 1
                 r = watch(s)
                 return r if r is not None else ("reached" if n[0] * self.cfg.period_s >= mo.dwell_s else None)
-            outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell")
+
+            def quiet(b: _Block) -> int:
+                k = watch.quiet(b, _first(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= mo.dwell_s, b.n))
+                n[0] += k
+                return k
+            outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell", quiet=quiet)
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
                    min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
         status = ProbeStatus.OK if outcome == "reached" else ProbeStatus.FORCE_LIMIT
         raw = self.samples.arrays()
-        return summarise(p, raw, status, contact, t0, self.ts, self.contact_thr, self.noise_std,
+        return summarise(p, raw, status, watch.contact, t0, self.ts, self.contact_thr, self.noise_std,
                          lim.depth_limit_m), raw
 
     def _halt(self, kind):
@@ -506,7 +699,8 @@ class Driver(Recovery):
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
             rep.program_restarts = self.program_restarts
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
-                           "commands_sent": len(self.c.sent), "force_source": self.fs.report()})
+                           "commands_sent": len(self.c.sent), "force_source": self.fs.report(),
+                           "periods_fast_forwarded": self.n_fast})
         try:
             if problems or (bad and not cfg.skip_invalid):
                 rep.status = RunStatus.REJECTED

@@ -98,6 +98,7 @@ class TissueFrame:
         T = ur5e.pose_to_T(tissue_pose_base)
         self.R, self.o = T[:3, :3], T[:3, 3]
         self.normal = self.R[:, 2].copy()
+        self._rows = tuple(tuple(T[i, :].tolist()) for i in range(3))     # (R[i, :], o[i]) as Python floats
 
     def local(self, p) -> np.ndarray:
         return self.R.T @ (np.asarray(p[:3], dtype=float) - self.o)
@@ -107,9 +108,17 @@ class TissueFrame:
         return float(p[0]), float(-p[2])
 
     def xy_depth(self, pose) -> tuple[float, float, float]:
-        """(x_m, y_m, depth_m) of a pose's position in the tissue frame."""
-        p = self.local(pose)
-        return float(p[0]), float(p[1]), float(-p[2])
+        """(x_m, y_m, depth_m) of a pose's position in the tissue frame: written out element by element, the same
+        operations as ``xy_depth_many``, so the two agree exactly."""
+        (r00, r01, r02, o0), (r10, r11, r12, o1), (r20, r21, r22, o2) = self._rows
+        dx, dy, dz = float(pose[0]) - o0, float(pose[1]) - o1, float(pose[2]) - o2
+        return r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz, -(r02 * dx + r12 * dy + r22 * dz)
+
+    def xy_depth_many(self, P: np.ndarray):
+        """``xy_depth`` of many positions (rows of ``P``, x y z first): arrays x_m, y_m, depth_m."""
+        (r00, r01, r02, o0), (r10, r11, r12, o1), (r20, r21, r22, o2) = self._rows
+        dx, dy, dz = P[:, 0] - o0, P[:, 1] - o1, P[:, 2] - o2
+        return r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz, -(r02 * dx + r12 * dy + r22 * dz)
 
     def tilt(self, pose) -> float:
         """Angle between the tool z axis and the inward normal (rad)."""

@@ -37,6 +37,33 @@ class Sensor:
         self._next += 1
         return self._normals[self._next - 1]
 
+    def normals_ahead(self, n: int) -> np.ndarray:
+        """The next ``n`` rows of the stream, not handed out (``skip`` hands them out): more blocks are drawn as
+        needed, in the generator's order, so the stream stays the same."""
+        while len(self._normals) - self._next < n:
+            self._normals = np.concatenate([self._normals[self._next:], self.rng.standard_normal((NORMAL_BLOCK, 6))])
+            self._next = 0
+        return self._normals[self._next:self._next + n]
+
+    def skip(self, n: int) -> None:
+        """Hand out ``n`` rows of the stream (after ``normals_ahead`` of at least ``n``)."""
+        self._next += n
+
+    def read_many(self, true_wrenches: np.ndarray, t_s: np.ndarray, normals: np.ndarray | None) -> np.ndarray:
+        """``read`` of many samples at once (rows), with the stream's ``normals`` (rows; None without noise): the
+        same operations element by element, so the same values exactly."""
+        w = true_wrenches + self.bias
+        w += self.drift * t_s[:, None]
+        if self._noisy:
+            w += normals * self._std
+        w -= self.offset
+        s = self.spec
+        f = w[:, :3]
+        if s.resolution_n > 0:
+            f[:] = np.rint(f / s.resolution_n) * s.resolution_n
+        np.minimum(np.maximum(f, -s.range_n, out=f), s.range_n, out=f)
+        return w
+
     def _raw(self, true_wrench, t_s: float) -> np.ndarray:
         w = np.asarray(true_wrench, dtype=float) + self.bias
         w += self.drift * t_s

@@ -14,6 +14,7 @@ The force model is cached on a grid (robot/simforce.py's ``CachedForce``; ``stan
 """
 from __future__ import annotations
 
+import copy
 import datetime
 import math
 from collections import deque
@@ -33,8 +34,11 @@ class _Motion:
     def __init__(self, L, v, a, interp):
         self.L, self.v, self.a, self.interp = L, v, a, interp
         self.s, self.sdot, self.a_stop, self.stalled = 0.0, 0.0, None, False
+        self.k = 0                # steps taken
+        self.plan = None          # the uninterrupted run's s, sdot, T_tcp, pose and tape entry after each step, or None
 
     def step(self, dt):
+        self.k += 1
         if self.a_stop is not None:
             self.sdot = max(0.0, self.sdot - self.a_stop * dt)
         elif self.stalled:
@@ -52,25 +56,29 @@ class _Motion:
     def progress(self):
         return self.s / self.L if self.L > 0 else 1.0
 
-    def uninterrupted(self, dt: float, max_steps: int = 1_000_000) -> list[float]:
-        """The progress after each step of ``dt`` from now to the end if nothing stops, stalls or replaces the
-        motion: ``step``'s arithmetic, so the values are the ones ``progress`` will take (exactly)."""
+    def uninterrupted(self, dt: float, max_steps: int = 1_000_000) -> tuple[list[float], list[float], list[float]]:
+        """(progress, s, sdot) after each step of ``dt`` from now to the end if nothing stops, stalls or replaces
+        the motion: ``step``'s arithmetic, so the values are the ones ``progress``, ``s`` and ``sdot`` will take
+        (exactly)."""
         L, v, a = self.L, self.v, self.a
-        s, sdot, out = self.s, self.sdot, []
+        s, sdot, out, ss, vs = self.s, self.sdot, [], [], []
         while len(out) < max_steps:
             rem = max(L - s, 0.0)
             sdot = min(v, sdot + a * dt, math.sqrt(2 * a * rem))
             s = min(L, s + sdot * dt)
+            vs.append(sdot)
             if s >= L - 1e-12:
                 out.append(1.0)
+                ss.append(L)
                 break
             out.append(s / L)
-        return out
+            ss.append(s)
+        return out, ss, vs
 
 
-def _linear_tape(T0, T1, rel, us: list[float]) -> dict:
+def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, list]:
     """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once:
-    {u: (T_tcp, pose)} -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
+    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step) -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
     positions exactly; ``rel`` None: the orientation stays T0's)."""
     u = np.asarray(us, dtype=float)
     T = np.zeros((len(u), 4, 4))
@@ -83,7 +91,7 @@ def _linear_tape(T0, T1, rel, us: list[float]) -> dict:
     end = u >= 1
     T[end, :3, :3] = T1[:3, :3]
     poses = np.concatenate([T[:, :3, 3], ur5e.matrices_to_rotvecs(T[:, :3, :3])], axis=1).tolist()
-    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}
+    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}, T, poses
 
 
 class ArmModel:
@@ -123,7 +131,9 @@ class ArmModel:
         # the probe's tip as mounted on the flange: the physics (contact) is at the tip whatever TCP is set
         self.tool_offset = list(tcp_offset if tool_offset is None else tool_offset)
         self._T_tool = ur5e.pose_to_T(self.tool_offset)
-        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self._set_tip()
+        # the tissue frame as rows (R[0, :], o[0]), ... of Python floats: tip_xyz's arithmetic
+        self._frame = tuple(tuple(self.T_tissue[i, :].tolist()) for i in range(3))
         self._rotvec_key, self._rotvec = None, None     # the last rotation reported and its rotation vector
         self.T_tcp = ur5e.fk_flange(self.q) @ ur5e.pose_to_T(self.tcp_offset)
         self._q_stale = False
@@ -142,6 +152,7 @@ class ArmModel:
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
+        self.control = None               # the control facade over this arm (SimRTDEControl), if any
         self.on_step: list = []           # called after every step (a simulated external sensor samples there)
         self.stops_s: list = []
         n_lat = max(0, int(round(latency_s / period_s)))
@@ -169,12 +180,40 @@ class ArmModel:
 
     def tip_xyz(self) -> tuple[float, float, float]:
         """(x_m, y_m, depth_m) of the probe's physical tip (``tool_offset``) in the tissue frame; depth > 0 below the
-        undeformed surface."""
-        T_tip = self.T_tcp
-        if self.tool_offset != self.tcp_offset:
-            T_tip = self.T_tcp @ self._tcp_inv @ self._T_tool
-        p = self.T_tissue[:3, :3].T @ (T_tip[:3, 3] - self.T_tissue[:3, 3])
-        return float(p[0]), float(p[1]), float(-p[2])
+        undeformed surface. Written out element by element (Python floats), the same operations in the same order
+        as ``_tips_xyz`` on many poses at once, so the two agree exactly."""
+        t = self.T_tcp[:3, :].ravel().tolist()
+        if self._tip_c is None:
+            px, py, pz = t[3], t[7], t[11]
+        else:
+            c0, c1, c2 = self._tip_c
+            px = t[0] * c0 + t[1] * c1 + t[2] * c2 + t[3]
+            py = t[4] * c0 + t[5] * c1 + t[6] * c2 + t[7]
+            pz = t[8] * c0 + t[9] * c1 + t[10] * c2 + t[11]
+        (r00, r01, r02, o0), (r10, r11, r12, o1), (r20, r21, r22, o2) = self._frame
+        dx, dy, dz = px - o0, py - o1, pz - o2
+        return (r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz,
+                -(r02 * dx + r12 * dy + r22 * dz))
+
+    def _tips_xyz(self, T: np.ndarray):
+        """``tip_xyz`` for a stack of TCP transforms ``T`` (n, 4, 4): arrays x, y, depth."""
+        if self._tip_c is None:
+            px, py, pz = T[:, 0, 3], T[:, 1, 3], T[:, 2, 3]
+        else:
+            c0, c1, c2 = self._tip_c
+            px = T[:, 0, 0] * c0 + T[:, 0, 1] * c1 + T[:, 0, 2] * c2 + T[:, 0, 3]
+            py = T[:, 1, 0] * c0 + T[:, 1, 1] * c1 + T[:, 1, 2] * c2 + T[:, 1, 3]
+            pz = T[:, 2, 0] * c0 + T[:, 2, 1] * c1 + T[:, 2, 2] * c2 + T[:, 2, 3]
+        (r00, r01, r02, o0), (r10, r11, r12, o1), (r20, r21, r22, o2) = self._frame
+        dx, dy, dz = px - o0, py - o1, pz - o2
+        return (r00 * dx + r10 * dy + r20 * dz, r01 * dx + r11 * dy + r21 * dz,
+                -(r02 * dx + r12 * dy + r22 * dz))
+
+    def _set_tip(self) -> None:
+        """The tip's position in the TCP frame (None: the tip is the TCP), from the TCP and the tool offsets."""
+        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self._tip_c = None if self.tool_offset == self.tcp_offset else \
+            tuple((self._tcp_inv @ self._T_tool)[:3, 3].tolist())
 
     def tip_in_tissue(self) -> tuple[float, float]:
         """(x_m, depth_m) of the probe's physical tip in the tissue frame (``tip_xyz`` without y)."""
@@ -183,17 +222,30 @@ class ArmModel:
 
     def elastic_force_n(self) -> float:
         """The tissue's elastic force at the tip now (the indentation below the TRUE surface)."""
-        x, y, d = self.tip_xyz()
+        return self._elastic_at(*self.tip_xyz())[0]
+
+    def _elastic_at(self, x: float, y: float, d: float, count: bool = True) -> tuple[float, float | None]:
+        """(the elastic force with the tip at tissue-frame ``x``, ``y``, ``d``, the depth when the force model
+        extrapolated beyond its range, else None); ``count`` False: not counted in the model's range report (a
+        look ahead)."""
         if self.surface_height_m is not None:
             d += self.surface_height_m(x)
         if d <= 0 or not (-1e-6 <= x <= self.width_m + 1e-6):   # 1 um: round-off at the edges is not a jump
-            return 0.0
+            return 0.0, None
         x = min(max(x, 0.0), self.width_m)
-        if self.length_m is None:
-            return float(self.force_model(x, d))
-        if not (-1e-6 <= y <= self.length_m + 1e-6):
-            return 0.0
-        return float(self.force_model(x, d, min(max(y, 0.0), self.length_m)))
+        if self.length_m is not None:
+            if not (-1e-6 <= y <= self.length_m + 1e-6):
+                return 0.0, None
+            y = min(max(y, 0.0), self.length_m)
+        else:
+            y = 0.0
+        fm = self.force_model
+        if isinstance(fm, CachedForce):
+            f, beyond = fm.look(x, d, y)
+            if count and beyond:
+                fm.count_beyond(d)
+            return f, (d if beyond else None)
+        return float(fm(x, d) if self.length_m is None else fm(x, d, y)), None
 
     def contact_force_n(self) -> float:
         fe = self.elastic_force_n()
@@ -213,7 +265,7 @@ class ArmModel:
     def set_tcp(self, offset) -> None:
         flange = self.T_tcp @ np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
         self.tcp_offset = list(offset)
-        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self._set_tip()
         self.T_tcp = flange @ ur5e.pose_to_T(self.tcp_offset)
 
     def move_linear(self, pose, speed, accel) -> None:
@@ -239,7 +291,10 @@ class ArmModel:
             self.T_tcp, self._q_stale = T, True
         m = _Motion(L, speed, accel, interp)
         if self.tape:
-            tape.update(_linear_tape(T0, T1, rel if turns else None, m.uninterrupted(self.period_s)))
+            us, ss, vs = m.uninterrupted(self.period_s)
+            hits, Ts, poses = _linear_tape(T0, T1, rel if turns else None, us)
+            tape.update(hits)
+            m.plan = (ss, vs, Ts, poses, [hits[u] for u in us])
         self._start(m, "linear")
 
     def move_joint(self, q, speed, accel) -> None:
@@ -365,10 +420,117 @@ class ArmModel:
         """(timestamp_s, tcp_pose, wrench) as the controller reports it now (``latency_s`` old)."""
         return self.samples[0]
 
+    # ---- looking ahead: many periods at once where nothing but the motion and the tissue acts ---------------
+    def look_ahead(self, n: int, kicks: bool) -> "Lookahead | None":
+        """The next ``n`` periods computed at once, as ``n`` calls of ``step`` would compute them, if no command
+        but a watchdog kick per period (``kicks``) reaches the controller meanwhile: readings of the states now
+        and after each of the first steps, the motion's progress at each. None where stepping one period at a time
+        is needed: a fault scheduled or acting, a hook on the steps (an external sensor), the link or the program
+        down, a protective stop, a motion stopping, stalled, turning joints or without its tape, the watchdog
+        unfed. The force stays below the protective stop's threshold over the periods returned (fewer than ``n``
+        when it would not). Nothing changes until ``Lookahead.commit(k)``."""
+        m = self.motion
+        if (n < 1 or not self.connected or not self.program_running or self.start_program_at_s is not None
+                or self.protective_stopped or self.on_step or any(f["fired_s"] is None for f in self.faults)
+                or self.t_s < self._spike_until or self.t_s < self._nan_until
+                or len(self.samples) != self.samples.maxlen
+                or (self.watchdog_hz > 0 and not (kicks and 1.0 / self.watchdog_hz > 1.5 * self.period_s))
+                or (m is not None and (m.plan is None or m.stalled or m.a_stop is not None or m.k >= len(m.plan[0])))):
+            return None
+        dt = self.period_s
+        t = np.cumsum(np.concatenate([[self.t_s], np.full(n, dt)]))[1:]     # t_s += dt, n times
+        if m is not None:
+            ss, vs, Ts, poses, hits = m.plan
+            last = len(ss) - 1
+            idx = np.minimum(np.arange(m.k, m.k + n), last)
+            T = Ts[idx]
+            step_poses = [poses[i] for i in idx.tolist()]
+            x, y, d = self._tips_xyz(T)
+            x, y, d = x.tolist(), y.tolist(), d.tolist()
+        else:
+            pose = self._pose()
+            step_poses = [pose] * n
+            x, y, d = ([v] * n for v in self.tip_xyz())
+        fe, beyond = [0.0] * n, [None] * n
+        for j in range(n):
+            if d[j] > 0 or self.surface_height_m is not None:
+                fe[j], beyond[j] = self._elastic_at(x[j], y[j], d[j], count=False)
+        relax = []
+        if self.relaxation is not None:
+            r = copy.copy(self.relaxation)
+            fc = []
+            for j in range(n):
+                r.step(fe[j], dt)
+                fc.append(r.force(fe[j]))
+                relax.append((r.h, r.fe))
+        else:
+            fc = fe
+        stop = next((j for j in range(n) if fc[j] > self.safety_force_n), n)
+        if stop == 0:
+            return None
+        n = stop
+        tw = np.zeros((n, 6))
+        tw[:, :3] = np.asarray(fc[:n])[:, None] * self.n_base
+        w = self.sensor.read_many(tw, t[:n], self.sensor.normals_ahead(n) if self.sensor._noisy else None)
+        new = [(float(t[j]), step_poses[j], w[j]) for j in range(n)]
+        seen = (list(self.samples) + new)[:n]                       # the reading of state j is seen[j]
+        ended = self.motions_ended
+        if m is None:
+            prog = [-1 - ended % 2] * n
+        else:
+            left = len(ss) - m.k                                    # the step that ends the motion
+            prog = [int(1000 * m.progress)] + [int(1000 * (ss[m.k + j - 1] / m.L)) if j < left else
+                                               -1 - (ended + 1) % 2 for j in range(1, n)]
+        return Lookahead(self, self.t_s, kicks, n, t, seen, prog, new, fc[:n], beyond[:n], relax)
+
+    def _commit(self, la: "Lookahead", k: int) -> None:
+        """Advance ``k`` periods as ``la`` computed them."""
+        if la.t0 != self.t_s or not 1 <= k <= la.n:
+            raise RuntimeError("a stale look-ahead")
+        t_before = self.t_s
+        self.t_s = float(la.t[k - 1])
+        m = self.motion
+        if m is not None:
+            ss, vs, Ts, poses, hits = m.plan
+            i = m.k + k - 1
+            if i >= len(ss) - 1:            # the motion ended
+                hit = hits[-1]
+                self.motion = None
+                self.motions_ended += 1
+            else:
+                hit = hits[i]
+                m.s, m.sdot, m.k = ss[i], vs[i], m.k + k
+            self.T_tcp, self._q_stale, self._tape_pose = hit[0], True, hit
+        if la.relax:
+            self.relaxation.h, self.relaxation.fe = la.relax[k - 1]
+        self.max_contact_force_n = max(self.max_contact_force_n, max(la.fc[:k]))
+        for b in la.beyond[:k]:
+            if b is not None:       # step() asks for the elastic force twice with relaxation, once without
+                for _ in range(2 if la.relax else 1):
+                    self.force_model.count_beyond(b)
+        if self.sensor._noisy:
+            self.sensor.skip(k)
+        self.samples.extend(la.new[:k])
+        if la.kicks:
+            self.last_input_s = t_before if k == 1 else float(la.t[k - 2])
+
     def run_until_still(self, max_s: float = 120.0) -> None:
         t_end = self.t_s + max_s
         while self.motion is not None and not self.protective_stopped and self.t_s < t_end:
             self.step()
+
+
+class Lookahead:
+    """Periods computed ahead by ``ArmModel.look_ahead``: ``seen[j]`` the reading (timestamp_s, tcp_pose, wrench)
+    and ``prog[j]`` the asynchronous-progress value (getAsyncOperationProgress) the driver gets in the j-th period
+    from now; ``commit(k)`` advances the arm k periods (the first k readings taken)."""
+
+    def __init__(self, arm, t0, kicks, n, t, seen, prog, new, fc, beyond, relax):
+        self.arm, self.t0, self.kicks, self.n, self.t = arm, t0, kicks, n, t
+        self.seen, self.prog, self.new, self.fc, self.beyond, self.relax = seen, prog, new, fc, beyond, relax
+
+    def commit(self, k: int) -> None:
+        self.arm._commit(self, k)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -402,6 +564,7 @@ class SimRTDEControl(_Facade):
         super().__init__(arm)
         arm.program_running = True           # like ur_rtde's constructor: the control script is uploaded
         arm.input_update()
+        arm.control = self
 
     def _ok(self) -> bool:
         """The link is up (else RuntimeError); the command's input package reaches the controller; it is executed
@@ -545,6 +708,16 @@ class SimRTDEReceive(_Facade):
 
     def isProtectiveStopped(self) -> bool:
         return self._get(lambda a: a.protective_stopped)
+
+    def look_ahead(self, n: int, kicks: bool) -> Lookahead | None:
+        """Not ur_rtde's: the simulator's next ``n`` periods at once (``ArmModel.look_ahead``), or None. Only a
+        simulator can know them; the driver uses it to step many quiet periods at once (robot.driver). None from a
+        subclass (its getters may answer otherwise: a test's lagging or failing link) or over a closed link."""
+        c = self.arm.control
+        if (type(self) is not SimRTDEReceive or type(c) is not SimRTDEControl or self._closed or c._closed
+                or not self.arm.connected):
+            return None
+        return self.arm.look_ahead(n, kicks)
 
     def isEmergencyStopped(self) -> bool:
         return self._get(lambda a: False)

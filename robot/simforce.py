@@ -44,17 +44,26 @@ class CachedForce:
         return v
 
     def __call__(self, x_m: float, depth_m: float, y_m: float = 0.0) -> float:
+        f, beyond = self.look(x_m, depth_m, y_m)
+        if beyond:
+            self.count_beyond(depth_m)
+        return f
+
+    def look(self, x_m: float, depth_m: float, y_m: float = 0.0) -> tuple[float, bool]:
+        """(the force, whether it lies at or beyond the model's range) without counting it in the range report."""
         if depth_m <= 0:
-            return 0.0
+            return 0.0, False
         ix, iy = int(round(x_m / self.hx)), (int(round(y_m / self.hx)) if self.three_d else 0)
         u = depth_m / self.hd
         i = int(math.floor(u))
         w = u - i
         f = (1 - w) * self._node(ix, iy, i) + w * self._node(ix, iy, i + 1)
-        if (ix, iy) in self._refused_from and u >= self._refused_from[(ix, iy)]:
-            self.beyond_range += 1
-            self.deepest_beyond_range_m = max(self.deepest_beyond_range_m, depth_m)
-        return f
+        return f, (ix, iy) in self._refused_from and u >= self._refused_from[(ix, iy)]
+
+    def count_beyond(self, depth_m: float) -> None:
+        """Count one force beyond the model's range at ``depth_m`` (the range report)."""
+        self.beyond_range += 1
+        self.deepest_beyond_range_m = max(self.deepest_beyond_range_m, depth_m)
 
     def range_report(self) -> dict | None:
         """None if every force came from the model's range; else what was extrapolated (for run.json)."""

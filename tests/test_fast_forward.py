@@ -1,0 +1,234 @@
+"""The driver's fast-forward on the in-memory arm (robot.driver._fast_forward over robot.sim's look-ahead): quiet
+periods stepped many at once give exactly the run that stepping every period gives -- the same raw samples bit for
+bit, the same records, commands, stops, run.json and simulator state -- over force-limit stops, a turning tool,
+relaxing tissue on a tilted and offset surface with a drifting sensor, a 3D block with a misregistered tip, a force
+model extrapolated beyond its range, and a protective stop mid-descent."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import SCENE, TCP, make_plan, make_sim  # noqa: E402
+
+from core import ur5e  # noqa: E402
+from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
+from robot.driver import Driver, DriverConfig, window_means  # noqa: E402
+from robot.records import load_raw, read_records  # noqa: E402
+from robot.recovery import ProbeFault  # noqa: E402
+from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive  # noqa: E402
+from robot.simforce import standin_force_model  # noqa: E402
+from robot.truth import Relaxation  # noqa: E402
+
+
+def _turned(pose, rad):
+    T = ur5e.pose_to_T(pose)
+    T[:3, :3] = ur5e.rotvec_to_matrix([rad, 0.0, 0.0]) @ T[:3, :3]
+    return ur5e.T_to_pose(T)
+
+
+# when and where, not what happened; and how many periods went at once (0 without fast-forward: compared apart)
+WALL_CLOCK = ("out_dir", "wall_s", "wall_time_utc", "detected_unix_s", "periods_fast_forwarded")
+
+
+def _scrub(d):
+    """``d`` without its wall-clock fields, at any depth."""
+    if isinstance(d, dict):
+        return {k: _scrub(v) for k, v in d.items() if k not in WALL_CLOCK}
+    return [_scrub(v) for v in d] if isinstance(d, list) else d
+
+
+def _twin_runs(tmp_path, plan, make_arm):
+    """The plan run twice on fresh, equal arms: period by period, then fast-forwarded."""
+    out = {}
+    for ff in (False, True):
+        arm, c, r = make_arm()
+        d = Driver(plan, c, r, DriverConfig(fast_forward=ff))
+        rep = d.run(tmp_path / str(ff))
+        recs = read_records(tmp_path / str(ff))
+        run_json = json.loads((tmp_path / str(ff) / "run.json").read_text())
+        run = _scrub(run_json)
+        out[ff] = dict(rep=rep, recs=[_scrub(dataclasses.asdict(x)) for x in recs], raw=[load_raw(tmp_path / str(ff), x) for x in recs], run=run, arm=arm,
+                       sent=list(d.c.sent), n_fast=d.n_fast, run_ff=run_json["periods_fast_forwarded"], next_normal=arm.sensor._normal6().copy(),
+                       range=getattr(arm.force_model, "range_report", lambda: None)())
+    return out[False], out[True]
+
+
+def _assert_same(a, b, min_fast=0.7):
+    assert a["n_fast"] == 0
+    assert a["recs"] == b["recs"]
+    for ra, rb in zip(a["raw"], b["raw"]):
+        assert ra.keys() == rb.keys()
+        for k in ra:
+            assert ra[k].shape == rb[k].shape and np.array_equal(ra[k], rb[k], equal_nan=True), k
+    assert a["run"] == b["run"] and a["sent"] == b["sent"] and a["range"] == b["range"]
+    aa, ab = a["arm"], b["arm"]
+    assert aa.t_s == ab.t_s and aa.stops_s == ab.stops_s and aa.max_contact_force_n == ab.max_contact_force_n
+    assert aa.motions_ended == ab.motions_ended and aa.protective_stopped == ab.protective_stopped
+    assert np.array_equal(aa.T_tcp, ab.T_tcp) and aa.last_input_s == ab.last_input_s
+    assert np.array_equal(a["next_normal"], b["next_normal"])          # the sensor's noise stream at the same place
+    periods = round(ab.t_s / ab.period_s)
+    assert b["n_fast"] >= min_fast * periods, (b["n_fast"], periods)   # it did fast-forward
+    assert b["run_ff"] == b["n_fast"] and a["run_ff"] == 0              # and run.json says how much
+
+
+def test_force_limit_stops_and_a_turning_tool(tmp_path):
+    plan = make_plan(xs=(0.01, 0.035, 0.06), depth_m=0.003, predicted=0.1,
+                     motion=Motion(approach_height_m=0.004, dwell_s=0.1), limits=Limits(force_limit_n=0.27))
+    for i, p in enumerate(plan.probes):
+        p.indent_pose = _turned(p.indent_pose, 0.004 * (i + 1))
+        p.approach_pose = _turned(p.approach_pose, -0.003)
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=5))
+    assert [r["status"] for r in b["recs"]] == ["ok", "force_limit", "ok"]
+    _assert_same(a, b)
+
+
+def test_relaxing_tissue_on_a_tilted_offset_surface_with_a_drifting_sensor(tmp_path):
+    plan = make_plan(xs=(0.015, 0.035, 0.055), depth_m=0.003, motion=Motion(approach_height_m=0.006, dwell_s=0.5))
+
+    def arm():
+        made = make_sim(seed=11, surface_height_m=lambda x: 8e-4 + (x - 0.035) * math.tan(0.05),
+                        relaxation=Relaxation(0.25, 0.5))
+        made[0].sensor.bias[:3] += 0.3 * made[0].n_base
+        made[0].sensor.drift[:3] += 0.004 * made[0].n_base
+        return made
+    a, b = _twin_runs(tmp_path, plan, arm)
+    assert all(r["status"] == "ok" for r in b["recs"])
+    _assert_same(a, b)
+
+
+def _plan3d(points, depth_m, tissue_pose, width_m, length_m, motion):
+    T = ur5e.pose_to_T(tissue_pose)
+
+    def pose(x, y, z):
+        Tt = np.eye(4)
+        Tt[:3, :3] = T[:3, :3] @ ur5e.rotvec_to_matrix([math.pi, 0, 0])
+        Tt[:3, 3] = T[:3, :3] @ [x, y, z] + T[:3, 3]
+        return ur5e.T_to_pose(Tt)
+    probes = [Probe(index=i, x_m=x, y_m=y, depth_m=depth_m, predicted_force_n=0.05,
+                    approach_pose=pose(x, y, motion.approach_height_m), indent_pose=pose(x, y, -depth_m),
+                    q_approach_rad=[0.0] * 6, q_indent_rad=[0.0] * 6) for i, (x, y) in enumerate(points)]
+    scene = {**SCENE, "tissue": {**SCENE["tissue"], "width_m": width_m, "length_m": length_m}}
+    return Plan(scene=scene, frames=Frames(tissue_pose_base=list(tissue_pose), tcp_offset=list(TCP)),
+                limits=Limits(), motion=motion, probes=probes)
+
+
+def test_a_3d_block_with_a_misregistered_tip(tmp_path):
+    """y matters (the force depends on it, off the block's length it is zero) and the physical tip sits 0.5 mm
+    beyond and 0.3 mm beside the TCP the driver set (the tip's position is computed from the TCP's rotation)."""
+    pose = [0.40, -0.015, 0.020, 0.0, 0.0, math.pi / 2]
+
+    def force(x, y, d):
+        return 900.0 * d ** 1.5 * (1.0 + 0.8 * math.exp(-((x - 0.015) ** 2 + (y - 0.012) ** 2) / 2e-5))
+    plan = _plan3d([(0.015, 0.012), (0.010, 0.020), (0.020, 0.005)], 0.003, pose, 0.030, 0.030,
+                   Motion(approach_height_m=0.004, dwell_s=0.2))
+    plan.probes[1].indent_pose = _turned(plan.probes[1].indent_pose, 0.01)
+    q0 = ur5e.ik(plan.probes[0].approach_pose, ur5e.IK_SEED, TCP)
+    tool = [0.0003, 0.0, 0.1005, 0.0, 0.0, 0.0]
+
+    def arm():
+        m = ArmModel(force, tissue_pose_base=pose, width_m=0.030, length_m=0.030, seed=2, q0=q0, tcp_offset=TCP,
+                     tool_offset=tool)
+        return m, SimRTDEControl(m), SimRTDEReceive(m)
+    a, b = _twin_runs(tmp_path, plan, arm)
+    assert all(r["status"] == "ok" for r in b["recs"])
+    assert len({round(r["force_mean_n"], 4) for r in b["recs"]}) == 3
+    _assert_same(a, b)
+
+
+def test_a_force_model_beyond_its_range(tmp_path):
+    """The cached force model refuses depths beyond 2 mm (as fem refuses the tip radius): the simulator
+    extrapolates and counts those forces for run.json, the same count either way."""
+    base = standin_force_model()
+
+    def refusing(x, d):
+        if d > 0.002:
+            raise ValueError("beyond the model's range")
+        return base(x, d)
+    plan = make_plan(xs=(0.02, 0.05), depth_m=0.003)
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(refusing, seed=4))
+    assert b["range"] is not None and b["range"]["samples_beyond_model_range"] > 100
+    _assert_same(a, b)
+
+
+def test_a_protective_stop_mid_descent(tmp_path):
+    """The controller's own force limit (0.15 N) is below the plan's: it stops the arm during the first
+    descent; the look-ahead ends before that period, which runs one period at a time; the run ends in a fault."""
+    plan = make_plan(xs=(0.035, 0.05), depth_m=0.003, limits=Limits(force_limit_n=1.0))
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=6, safety_force_n=0.15))
+    assert b["rep"].status == "fault" and b["rep"].fault["kind"] == "protective_stop"
+    assert b["arm"].protective_stopped
+    _assert_same(a, b, min_fast=0.5)
+
+
+def test_a_collision_on_the_way_to_a_probe(tmp_path):
+    """The true surface lies 5 mm above the nominal one, the approach pose 2 mm above the nominal: the move to the
+    first probe runs into the tissue and the collision watch ends the run (a fault) at the same period."""
+    plan = make_plan(xs=(0.035, 0.05), depth_m=0.002, motion=Motion(approach_height_m=0.002),
+                     limits=Limits(force_limit_n=0.2))
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=8, surface_height_m=lambda x: 0.005))
+    assert b["rep"].status == "fault" and b["rep"].fault["kind"] == "collision"
+    _assert_same(a, b, min_fast=0.5)
+
+
+def _arm_state(arm) -> dict:
+    m = arm.motion
+    return {"t_s": arm.t_s, "last_input_s": arm.last_input_s, "T_tcp": arm.T_tcp.tolist(),
+            "motion": None if m is None else (m.s, m.sdot, m.k), "ended": arm.motions_ended,
+            "samples": [(t, list(p), w.tolist()) for t, p, w in arm.samples], "max_f": arm.max_contact_force_n,
+            "relax": (arm.relaxation.h, arm.relaxation.fe), "next_normal": arm.sensor.normals_ahead(1).tolist()}
+
+
+def _driver_state(d) -> dict:
+    raw = d.samples.arrays()
+    return {"ts": d.ts, "last_ts": d.last_ts, "last_kick_ts": d.last_kick_ts, "stale": d.stale,
+            "filt": list(d.filt), **{k: v.tolist() for k, v in raw.items()}}
+
+
+@pytest.mark.parametrize("periods", [1, 2, 7, 499, 500, 501, 1400])
+def test_one_stretch_fast_forwarded_leaves_the_states_of_period_by_period(periods):
+    """The arm's and the driver's whole state after ``periods`` quiet periods of a descent into relaxing tissue
+    (free air, then contact from about period 1000) equals stepping them one at a time: time, the watchdog's last
+    input and the last kick's time, the pose, the move's progress, the readings in flight, the relaxation's state,
+    the sensor's noise stream, the filter and the samples."""
+    plan = make_plan(xs=(0.035,), depth_m=0.003, motion=Motion(approach_height_m=0.004))
+    states = {}
+    for ff in (False, True):
+        arm, c, r = make_sim(seed=3, relaxation=Relaxation(0.25, 0.5))
+        d = Driver(plan, c, r, DriverConfig(fast_forward=ff))
+        d._setup()
+        p = plan.probes[0]
+        d._move(p.approach_pose, 0.05, 0.5, what="to the probe")
+        d._zero()
+        assert d.c.moveL(p.indent_pose, 0.002, 0.1, True) is True
+        before, n0 = arm.t_s, d.n_fast
+        with pytest.raises(ProbeFault, match="did not finish"):    # a body that never ends: a time-out
+            d._loop((periods - 0.5) * d.cfg.period_s, lambda s: None, quiet=lambda b: b.n)
+        assert round((arm.t_s - before) / arm.period_s) == periods
+        states[ff] = (_arm_state(arm), _driver_state(d), d.n_fast - n0)
+    (sa, da, na), (sb, db, nb) = states[False], states[True]
+    assert na == 0 and nb == periods
+    assert sa == sb
+    assert da == db
+
+
+@pytest.mark.parametrize("n_prev", [0, 1, 3, 5])
+def test_window_means_sum_as_the_filter_does(n_prev):
+    """The block filter: each window summed in order, as the per-period filter (a deque, summed left to right)."""
+    from collections import deque
+    from functools import reduce
+    from operator import add
+    rng = np.random.default_rng(n_prev)
+    prev = deque(rng.normal(size=n_prev).tolist(), maxlen=5)
+    f = rng.normal(size=40) * 10.0 ** rng.integers(-8, 3, size=40)
+    got = window_means(prev, f, 5)
+    q = deque(prev, maxlen=5)
+    for i, v in enumerate(f.tolist()):
+        q.append(v)
+        assert got[i] == reduce(add, q) / len(q)
