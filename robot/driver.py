@@ -474,9 +474,7 @@ class Driver(Recovery):
         if la is None:
             return 0, False
         self._ff_n = 4                  # a short look next time when this one finds nothing quiet
-        ts = np.array([r[0] for r in la.seen], dtype=float)
-        pose = np.array([r[1] for r in la.seen], dtype=float)
-        w = np.array([r[2] for r in la.seen], dtype=float)
+        ts, pose, w = la.seen
         if ((self.last_ts is not None and not ts[0] > self.last_ts) or not np.all(np.diff(ts) > 0)
                 or not (np.isfinite(pose).all() and np.isfinite(w).all() and np.isfinite(ts).all())):
             return 0, False             # a stale or invalid reading: one period at a time says what it is

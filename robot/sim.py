@@ -35,7 +35,7 @@ class _Motion:
         self.L, self.v, self.a, self.interp = L, v, a, interp
         self.s, self.sdot, self.a_stop, self.stalled = 0.0, 0.0, None, False
         self.k = 0                # steps taken
-        self.plan = None          # the uninterrupted run's s, sdot, T_tcp, pose and tape entry after each step, or None
+        self.plan = None          # the uninterrupted run's s, sdot, T_tcp, pose (rows) and tape entry after each step
 
     def step(self, dt):
         self.k += 1
@@ -76,9 +76,9 @@ class _Motion:
         return out, ss, vs
 
 
-def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, list]:
+def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, np.ndarray]:
     """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once:
-    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step) -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
+    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step as rows) -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
     positions exactly; ``rel`` None: the orientation stays T0's)."""
     u = np.asarray(us, dtype=float)
     T = np.zeros((len(u), 4, 4))
@@ -90,8 +90,9 @@ def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, list]:
         T[:, :3, :3] = T0[:3, :3] @ ur5e.rotvecs_to_matrices(u[:, None] * rel)
     end = u >= 1
     T[end, :3, :3] = T1[:3, :3]
-    poses = np.concatenate([T[:, :3, 3], ur5e.matrices_to_rotvecs(T[:, :3, :3])], axis=1).tolist()
-    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}, T, poses
+    P = np.concatenate([T[:, :3, 3], ur5e.matrices_to_rotvecs(T[:, :3, :3])], axis=1)
+    poses = P.tolist()
+    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}, T, P
 
 
 class ArmModel:
@@ -292,9 +293,9 @@ class ArmModel:
         m = _Motion(L, speed, accel, interp)
         if self.tape:
             us, ss, vs = m.uninterrupted(self.period_s)
-            hits, Ts, poses = _linear_tape(T0, T1, rel if turns else None, us)
+            hits, Ts, P = _linear_tape(T0, T1, rel if turns else None, us)
             tape.update(hits)
-            m.plan = (ss, vs, Ts, poses, [hits[u] for u in us])
+            m.plan = (ss, vs, Ts, P, [hits[u] for u in us])
         self._start(m, "linear")
 
     def move_joint(self, q, speed, accel) -> None:
@@ -440,40 +441,36 @@ class ArmModel:
         dt = self.period_s
         t = np.cumsum(np.concatenate([[self.t_s], np.full(n, dt)]))[1:]     # t_s += dt, n times
         if m is not None:
-            ss, vs, Ts, poses, hits = m.plan
-            last = len(ss) - 1
-            idx = np.minimum(np.arange(m.k, m.k + n), last)
-            T = Ts[idx]
-            step_poses = [poses[i] for i in idx.tolist()]
-            x, y, d = self._tips_xyz(T)
-            x, y, d = x.tolist(), y.tolist(), d.tolist()
+            ss, vs, Ts, P, hits = m.plan
+            idx = np.minimum(np.arange(m.k, m.k + n), len(ss) - 1)
+            pose = P[idx]
+            x, y, d = self._tips_xyz(Ts[idx])
         else:
-            pose = self._pose()
-            step_poses = [pose] * n
-            x, y, d = ([v] * n for v in self.tip_xyz())
-        fe, beyond = [0.0] * n, [None] * n
-        for j in range(n):
-            if d[j] > 0 or self.surface_height_m is not None:
-                fe[j], beyond[j] = self._elastic_at(x[j], y[j], d[j], count=False)
+            pose = np.tile(np.asarray(self._pose(), dtype=float), (n, 1))
+            x, y, d = (np.full(n, v) for v in self.tip_xyz())
+        fe, beyond = self._elastic_many(x, y, d)
         relax = []
         if self.relaxation is not None:
             r = copy.copy(self.relaxation)
             fc = []
-            for j in range(n):
-                r.step(fe[j], dt)
-                fc.append(r.force(fe[j]))
+            for f in fe.tolist():
+                r.step(f, dt)
+                fc.append(r.force(f))
                 relax.append((r.h, r.fe))
+            fc = np.array(fc)
         else:
             fc = fe
-        stop = next((j for j in range(n) if fc[j] > self.safety_force_n), n)
+        stop = _first_true(fc > self.safety_force_n, n)
         if stop == 0:
             return None
         n = stop
         tw = np.zeros((n, 6))
-        tw[:, :3] = np.asarray(fc[:n])[:, None] * self.n_base
+        tw[:, :3] = fc[:n, None] * self.n_base
         w = self.sensor.read_many(tw, t[:n], self.sensor.normals_ahead(n) if self.sensor._noisy else None)
-        new = [(float(t[j]), step_poses[j], w[j]) for j in range(n)]
-        seen = (list(self.samples) + new)[:n]                       # the reading of state j is seen[j]
+        old = list(self.samples)                                    # the readings in flight: states 0, 1, ...
+        seen_t = np.concatenate([[o[0] for o in old], t[:n]])[:n]
+        seen_pose = np.concatenate([np.array([o[1] for o in old], dtype=float), pose[:n]])[:n]
+        seen_w = np.concatenate([np.array([o[2] for o in old], dtype=float), w])[:n]
         ended = self.motions_ended
         if m is None:
             prog = [-1 - ended % 2] * n
@@ -481,7 +478,34 @@ class ArmModel:
             left = len(ss) - m.k                                    # the step that ends the motion
             prog = [int(1000 * m.progress)] + [int(1000 * (ss[m.k + j - 1] / m.L)) if j < left else
                                                -1 - (ended + 1) % 2 for j in range(1, n)]
-        return Lookahead(self, self.t_s, kicks, n, t, seen, prog, new, fc[:n], beyond[:n], relax)
+        return Lookahead(self, self.t_s, kicks, n, t, (seen_t, seen_pose, seen_w), prog, (pose[:n], w), fc[:n],
+                         beyond[:n], relax)
+
+    def _elastic_many(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_elastic_at`` at many tip positions, not counted: (forces, the depth where the force model extrapolated
+        beyond its range, else NaN). Element by element the same operations."""
+        n = len(x)
+        fm = self.force_model
+        if not isinstance(fm, CachedForce):
+            fe, beyond = np.zeros(n), np.full(n, np.nan)
+            for j, (a, b, c) in enumerate(zip(x.tolist(), y.tolist(), d.tolist())):
+                if c > 0 or self.surface_height_m is not None:
+                    fe[j] = self._elastic_at(a, b, c, count=False)[0]
+            return fe, beyond
+        if self.surface_height_m is not None:
+            d = d + np.array([self.surface_height_m(v) for v in x.tolist()], dtype=float)
+        inside = (d > 0) & (x >= -1e-6) & (x <= self.width_m + 1e-6)
+        if self.length_m is not None:
+            inside &= (y >= -1e-6) & (y <= self.length_m + 1e-6)
+        fe, beyond = np.zeros(n), np.full(n, np.nan)
+        j = np.flatnonzero(inside)
+        if len(j):
+            xs = np.minimum(np.maximum(x[j], 0.0), self.width_m)
+            ys = np.minimum(np.maximum(y[j], 0.0), self.length_m) if self.length_m is not None else np.zeros(len(j))
+            f, b = fm.look_many(xs, d[j], ys)
+            fe[j] = f
+            beyond[j] = np.where(b, d[j], np.nan)
+        return fe, beyond
 
     def _commit(self, la: "Lookahead", k: int) -> None:
         """Advance ``k`` periods as ``la`` computed them."""
@@ -503,14 +527,15 @@ class ArmModel:
             self.T_tcp, self._q_stale, self._tape_pose = hit[0], True, hit
         if la.relax:
             self.relaxation.h, self.relaxation.fe = la.relax[k - 1]
-        self.max_contact_force_n = max(self.max_contact_force_n, max(la.fc[:k]))
-        for b in la.beyond[:k]:
-            if b is not None:       # step() asks for the elastic force twice with relaxation, once without
-                for _ in range(2 if la.relax else 1):
-                    self.force_model.count_beyond(b)
+        self.max_contact_force_n = max(self.max_contact_force_n, float(la.fc[:k].max()))
+        for b in la.beyond[:k][np.isfinite(la.beyond[:k])].tolist():
+            for _ in range(2 if la.relax else 1):   # step() asks for the elastic force twice with relaxation
+                self.force_model.count_beyond(b)
         if self.sensor._noisy:
             self.sensor.skip(k)
-        self.samples.extend(la.new[:k])
+        pose, w = la.new
+        for j in range(max(0, k - self.samples.maxlen), k):        # the readings left in flight
+            self.samples.append((float(la.t[j]), pose[j].tolist(), w[j].copy()))
         if la.kicks:
             self.last_input_s = t_before if k == 1 else float(la.t[k - 2])
 
@@ -520,10 +545,16 @@ class ArmModel:
             self.step()
 
 
+def _first_true(mask: np.ndarray, default: int) -> int:
+    """The index of the first True in ``mask``, else ``default``."""
+    i = int(np.argmax(mask)) if len(mask) else 0
+    return i if len(mask) and mask[i] else default
+
+
 class Lookahead:
-    """Periods computed ahead by ``ArmModel.look_ahead``: ``seen[j]`` the reading (timestamp_s, tcp_pose, wrench)
-    and ``prog[j]`` the asynchronous-progress value (getAsyncOperationProgress) the driver gets in the j-th period
-    from now; ``commit(k)`` advances the arm k periods (the first k readings taken)."""
+    """Periods computed ahead by ``ArmModel.look_ahead``: ``seen`` the readings (timestamps_s, tcp poses as rows,
+    wrenches as rows) and ``prog[j]`` the asynchronous-progress value (getAsyncOperationProgress) the driver gets in
+    the j-th period from now; ``commit(k)`` advances the arm k periods (the first k readings taken)."""
 
     def __init__(self, arm, t0, kicks, n, t, seen, prog, new, fc, beyond, relax):
         self.arm, self.t0, self.kicks, self.n, self.t = arm, t0, kicks, n, t

@@ -202,3 +202,54 @@ def test_contrast_at_many_positions_is_the_contrast_at_each():
         for row, x in zip(many, xs):
             assert np.array_equal(row, sur.contrast(x0, d, float(x), dep, D))
             assert np.array_equal(row, sur.contrast_many(x0, d, [float(x)], dep, D)[0])
+
+
+def _same(a, b) -> list[str]:
+    """The fields of two Localizations that differ (arrays and floats compared exactly, NaN equal to NaN)."""
+    import dataclasses
+    bad = []
+    for f in dataclasses.fields(a):
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(u, np.ndarray) or isinstance(v, np.ndarray):
+            ok = np.array_equal(np.asarray(u), np.asarray(v), equal_nan=True)
+        else:                   # floats (also inside dicts and tuples) by their repr: exact, and NaN equals NaN
+            ok = repr(u) == repr(v)
+        if not ok:
+            bad.append(f.name)
+    return bad
+
+
+def test_the_final_report_reuses_the_last_fit(prior):
+    """The run localizes its last round, then the same measurements again with the depth's profile: the second call
+    takes the first's fit (planner.localize._LAST_FIT) and gives exactly what a fresh call gives; other
+    measurements, options or a new surrogate object fit again; the caller's copy cannot change the stored fit."""
+    import planner.localize as L
+    st = Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012)
+    x = np.linspace(0.005, 0.065, 21)
+    meas, sur = synth(prior, st, x, seed=3), ToySurrogate()
+    L._LAST_FIT.clear()
+    fresh = localize(prior, meas, sur, profile=True)
+    assert fresh.depth_interval_m and fresh.detected
+    L._LAST_FIT.clear()
+    first = localize(prior, meas, sur)
+    assert first.depth_interval_m == {} and _same(first, fresh) == ["depth_interval_m"]
+    first.contrast_n[:] = 0.0                                     # the caller's copy
+    fit_again = L._fit_stone
+    L._fit_stone = None                                           # a second fit would fail
+    try:
+        final = localize(prior, meas, sur, profile=True)
+    finally:
+        L._fit_stone = fit_again
+    assert _same(final, fresh) == []
+    other = synth(prior, st, x, seed=4)
+    assert localize(prior, other, sur).lr != fresh.lr            # other measurements: fitted (not the stored fit)
+    assert L._LAST_FIT["fit"][0] != pickle_key(prior, meas)
+    L._LAST_FIT.clear()
+
+
+def pickle_key(prior, meas):
+    import pickle
+
+    import planner.localize as L
+    return pickle.dumps((prior, [getattr(meas, k) for k in Measurements.FIELDS], L.LR_THRESHOLD, L.MODEL_REL_ERR,
+                         True, None))
