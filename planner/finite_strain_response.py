@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from core.arrays import clip
 from fem import diskcache
 from fem.hypertruth import HyperelasticForce, correction_scene, sweep_depths
 from fem.scene_mesh import code_version, sources_version
@@ -87,7 +88,7 @@ class FiniteStrainRows:
     def g(self, depth_m) -> np.ndarray:
         d = np.asarray(depth_m, float)
         nodes = self.depth_m
-        k = np.clip(np.searchsorted(nodes, d) - 1, 0, len(nodes) - 2)     # beyond the ends: the end segments
+        k = clip(np.searchsorted(nodes, d) - 1, 0, len(nodes) - 2)     # beyond the ends: the end segments
         w = (d - nodes[k]) / (nodes[k + 1] - nodes[k])
         n = np.arange(len(d))
         return np.where(d > 0, (1 - w) * self.rows[n, k] + w * self.rows[n, k + 1], 0.0)

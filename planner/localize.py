@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
+from core.arrays import clip
 from core.contracts import N_ZERO_AVERAGE
 from core.peak import parabola_peak
 from fem.contact import surface_model
@@ -261,7 +262,7 @@ class _Forward:
         """The contrast of stones (depth ``dep``, diameter ``D``) at each of ``xs_m``: (len(xs_m), n probes)."""
         if self.levels is None:
             return self._many(d, xs_m, dep, D)
-        dc = np.clip(d, self.levels[0], self.levels[-1])     # beyond the table: the contrast scales like the force
+        dc = clip(d, self.levels[0], self.levels[-1])     # beyond the table: the contrast scales like the force
         C = self._many(dc, xs_m, dep, D)
         out = dc != d
         if out.any():

@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.arrays import clip
 from fem import diskcache
 from fem.contact import SurfaceModel, surface_model
 from fem.model import build_model
@@ -224,7 +225,7 @@ def _lagrange4(nodes: np.ndarray, u: float) -> tuple[np.ndarray, np.ndarray]:
     """Indices (4) and cubic Lagrange weights of u over the 4-node stencil around it (clamped to the range)."""
     n = len(nodes)
     u = min(max(u, nodes[0]), nodes[-1])
-    i = int(np.clip(np.searchsorted(nodes, u) - 2, 0, n - 4))
+    i = min(max(int(np.searchsorted(nodes, u)) - 2, 0), n - 4)
     st = nodes[i:i + 4]
     w = np.ones(4)
     for a in range(4):
@@ -289,16 +290,16 @@ class Surrogate:
         mirror = xs > 0.5 * self.W                  # mirror image
         xs = np.where(mirror, self.W - xs, xs)
         X0 = np.where(mirror[:, None], self.W - x0[None, :], x0[None, :])
-        k = np.clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2)
-        wk = np.clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0)
+        k = clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2)
+        wk = clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0)
         # probe depth: linear between levels (clamped)
-        u = np.clip(np.interp(d, self.levels, np.arange(len(self.levels))), 0, len(self.levels) - 1)
+        u = clip(np.interp(d, self.levels, np.arange(len(self.levels))), 0, len(self.levels) - 1)
         il = np.minimum(np.floor(u).astype(int), len(self.levels) - 2)
         wl = u - il
         out = np.zeros(X0.shape)
         h = self.x0[1] - self.x0[0]
         for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
-            xq = np.clip(X0 - xs[:, None] + self.xs[kk][:, None], self.x0[0], self.x0[-1])
+            xq = clip(X0 - xs[:, None] + self.xs[kk][:, None], self.x0[0], self.x0[-1])
             v = (xq - self.x0[0]) / h
             ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
             wx = v - ix

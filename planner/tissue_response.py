@@ -16,6 +16,7 @@ import dataclasses
 
 import numpy as np
 
+from core.arrays import clip
 from fem.contact import surface_model
 
 THICKNESS_STEP = 0.10          # the thickness nodes: prior height x (1 - step, 1, 1 + step)
@@ -81,7 +82,7 @@ def loglog_force(rows: np.ndarray, logd: np.ndarray, depth_m) -> np.ndarray:
     d = np.asarray(depth_m, float)
     step = logd[1] - logd[0]
     u = (np.log(np.maximum(d, 1e-7)) - logd[0]) / step
-    i = np.clip(np.floor(u).astype(int), 0, len(logd) - 2)
+    i = clip(np.floor(u).astype(int), 0, len(logd) - 2)
     w = u - i                                            # outside [0, 1] at the ends: linear extrapolation
     n = np.arange(len(d))
     lf = (1 - w) * rows[n, i] + w * rows[n, i + 1]
@@ -91,7 +92,7 @@ def loglog_force(rows: np.ndarray, logd: np.ndarray, depth_m) -> np.ndarray:
 def loglog_depth(rows: np.ndarray, logd: np.ndarray, force_n) -> np.ndarray:
     """The inverse of ``loglog_force``: the depth at which each row's force reaches ``force_n`` (rows rise)."""
     lf = np.log(np.maximum(np.asarray(force_n, float), 1e-12))
-    k = np.clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, len(logd) - 2)
+    k = clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, len(logd) - 2)
     n = np.arange(len(lf))
     t = (lf - rows[n, k]) / (rows[n, k + 1] - rows[n, k])
     return np.exp(logd[k] + t * (logd[1] - logd[0]))
