@@ -322,8 +322,10 @@ class Driver(Recovery):
         self.normal = tuple(float(v) for v in self.tf.normal)
         # a simulator's look-ahead (robot.sim): quiet periods many at once; with the wrist sensor only (an external
         # sensor's readings come from elsewhere)
-        self.look = getattr(rtde_r, "look_ahead", None) \
-            if self.cfg.fast_forward and self.fs.name == "rtde" and not self.backstop else None
+        look = getattr(rtde_r, "look_ahead", None)
+        own = look is not None and getattr(look, "__self__", None) is rtde_r     # its own, not one it forwards
+        self.look = (lambda n, kicks: look(n, kicks, rtde_c)) \
+            if own and self.cfg.fast_forward and self.fs.name == "rtde" and not self.backstop else None
         self.n_fast = 0                 # periods stepped through the look-ahead
         self._ff_n = FF_PERIODS         # the next look-ahead's length (short after one found nothing quiet)
 
@@ -425,7 +427,7 @@ class Driver(Recovery):
         if not _vec6(wr):
             return                  # the wrist's reading is not the one the probe relies on
         self.wrist_filt.append(self._along_normal(wr))
-        fw = sum(self.wrist_filt) / len(self.wrist_filt)
+        fw = reduce(add, self.wrist_filt) / len(self.wrist_filt)
         backstop = self.lim.force_limit_n + self.cfg.wrist_backstop_margin_n
         if fw > backstop:
             fe = self._along_normal(w) if _vec6(w) else float("nan")
@@ -470,7 +472,9 @@ class Driver(Recovery):
         anything; the rest of the look-ahead is dropped."""
         if self.stale or self.link_dead or limit < 1:
             return 0, False
-        la = self.look(min(limit, self._ff_n), self.watchdog_on)
+        # the periods' watchdog kicks: as _kick sends them (the link is up on a simulator that looks ahead)
+        kicks = self.watchdog_on and self.stale < self.cfg.stale_periods // 4
+        la = self.look(min(limit, self._ff_n), kicks)
         if la is None:
             return 0, False
         self._ff_n = 4                  # a short look next time when this one finds nothing quiet
@@ -486,7 +490,7 @@ class Driver(Recovery):
         if k < 1:
             return 0, False
         la.commit(k)
-        if self.watchdog_on:            # each period's kick went out before its read: the last one after ts[k - 2]
+        if kicks:                       # each period's kick went out before its read: the last one after ts[k - 2]
             self.last_kick_ts = self.ts if k == 1 else float(ts[k - 2])
         self.filt.extend(f[:k].tolist())
         self.last_ts = self.ts = float(ts[k - 1])

@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 import datetime
 import math
+import weakref
 from collections import deque
 
 import numpy as np
@@ -153,7 +154,7 @@ class ArmModel:
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
         self.max_contact_force_n = 0.0
-        self.control = None               # the control facade over this arm (SimRTDEControl), if any
+        self.control = None               # a weak reference to the control facade over this arm, if any
         self.on_step: list = []           # called after every step (a simulated external sensor samples there)
         self.stops_s: list = []
         n_lat = max(0, int(round(latency_s / period_s)))
@@ -449,6 +450,11 @@ class ArmModel:
             pose = np.tile(np.asarray(self._pose(), dtype=float), (n, 1))
             x, y, d = (np.full(n, v) for v in self.tip_xyz())
         fe, beyond = self._elastic_many(x, y, d)
+        if len(fe) < n:                 # the force model failed at period len(fe): stepping says how
+            if len(fe) == 0:
+                return None
+            n = len(fe)
+            t, pose = t[:n], pose[:n]
         relax = []
         if self.relaxation is not None:
             r = copy.copy(self.relaxation)
@@ -483,7 +489,21 @@ class ArmModel:
 
     def _elastic_many(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``_elastic_at`` at many tip positions, not counted: (forces, the depth where the force model extrapolated
-        beyond its range, else NaN). Element by element the same operations."""
+        beyond its range, else NaN). Element by element the same operations. Shorter when the force model fails
+        (raises) at a position: up to it."""
+        try:
+            return self._elastic_vectorised(x, y, d)
+        except Exception:               # noqa: BLE001 -- one at a time, up to the period whose force fails
+            fe, beyond = np.zeros(len(x)), np.full(len(x), np.nan)
+            for j, (a, b, c) in enumerate(zip(x.tolist(), y.tolist(), d.tolist())):
+                try:
+                    f, bey = self._elastic_at(a, b, c, count=False)
+                except Exception:       # noqa: BLE001 -- step() meets it there, and says what it is
+                    return fe[:j], beyond[:j]
+                fe[j], beyond[j] = f, (np.nan if bey is None else bey)
+            return fe, beyond
+
+    def _elastic_vectorised(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         n = len(x)
         fm = self.force_model
         if not isinstance(fm, CachedForce):
@@ -595,7 +615,7 @@ class SimRTDEControl(_Facade):
         super().__init__(arm)
         arm.program_running = True           # like ur_rtde's constructor: the control script is uploaded
         arm.input_update()
-        arm.control = self
+        arm.control = weakref.ref(self)
 
     def _ok(self) -> bool:
         """The link is up (else RuntimeError); the command's input package reaches the controller; it is executed
@@ -740,15 +760,18 @@ class SimRTDEReceive(_Facade):
     def isProtectiveStopped(self) -> bool:
         return self._get(lambda a: a.protective_stopped)
 
-    def look_ahead(self, n: int, kicks: bool) -> Lookahead | None:
+    def look_ahead(self, n: int, kicks: bool, control) -> Lookahead | None:
         """Not ur_rtde's: the simulator's next ``n`` periods at once (``ArmModel.look_ahead``), or None. Only a
-        simulator can know them; the driver uses it to step many quiet periods at once (robot.driver). None from a
-        subclass (its getters may answer otherwise: a test's lagging or failing link) or over a closed link."""
-        c = self.arm.control
-        if (type(self) is not SimRTDEReceive or type(c) is not SimRTDEControl or self._closed or c._closed
-                or not self.arm.connected):
+        simulator can know them; the driver uses it to step many quiet periods at once (robot.driver), passing the
+        control interface it commands. None unless this receive interface, ``control`` and the arm are exactly
+        these classes over one arm (a subclass -- a test's lagging or failing link, an arm with its own step --
+        answers otherwise than the look-ahead would compute), or over a closed link."""
+        arm = self.arm
+        own = arm.control() if arm.control is not None else None
+        if (type(self) is not SimRTDEReceive or type(arm) is not ArmModel or type(control) is not SimRTDEControl
+                or control is not own or self._closed or control._closed or not arm.connected):
             return None
-        return self.arm.look_ahead(n, kicks)
+        return arm.look_ahead(n, kicks)
 
     def isEmergencyStopped(self) -> bool:
         return self._get(lambda a: False)

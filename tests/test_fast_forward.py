@@ -44,12 +44,26 @@ def _scrub(d):
     return [_scrub(v) for v in d] if isinstance(d, list) else d
 
 
-def _twin_runs(tmp_path, plan, make_arm):
-    """The plan run twice on fresh, equal arms: period by period, then fast-forwarded."""
+def _failing_below(depth_m: float, error: type):
+    """The stand-in force model, raising ``error`` below ``depth_m`` (ValueError: fem's refusal at its range)."""
+    base = standin_force_model()
+
+    def f(x, d):
+        if d > depth_m:
+            raise error("beyond the model's range")
+        return base(x, d)
+    return f
+
+
+def _twin_runs(tmp_path, plan, make_arm, config: DriverConfig | None = None, wrap=None):
+    """The plan run twice on fresh, equal arms: period by period, then fast-forwarded. ``wrap(arm, c, r)``: the
+    interfaces the driver gets instead of the arm's own."""
     out = {}
     for ff in (False, True):
         arm, c, r = make_arm()
-        d = Driver(plan, c, r, DriverConfig(fast_forward=ff))
+        if wrap is not None:
+            c, r = wrap(arm, c, r)
+        d = Driver(plan, c, r, dataclasses.replace(config or DriverConfig(), fast_forward=ff))
         rep = d.run(tmp_path / str(ff))
         recs = read_records(tmp_path / str(ff))
         run_json = json.loads((tmp_path / str(ff) / "run.json").read_text())
@@ -145,14 +159,8 @@ def test_a_3d_block_with_a_misregistered_tip(tmp_path):
 def test_a_force_model_beyond_its_range(tmp_path):
     """The cached force model refuses depths beyond 2 mm (as fem refuses the tip radius): the simulator
     extrapolates and counts those forces for run.json, the same count either way."""
-    base = standin_force_model()
-
-    def refusing(x, d):
-        if d > 0.002:
-            raise ValueError("beyond the model's range")
-        return base(x, d)
     plan = make_plan(xs=(0.02, 0.05), depth_m=0.003)
-    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(refusing, seed=4))
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(_failing_below(0.002, ValueError), seed=4))
     assert b["range"] is not None and b["range"]["samples_beyond_model_range"] > 100
     _assert_same(a, b)
 
@@ -175,6 +183,105 @@ def test_a_collision_on_the_way_to_a_probe(tmp_path):
     a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=8, surface_height_m=lambda x: 0.005))
     assert b["rep"].status == "fault" and b["rep"].fault["kind"] == "collision"
     _assert_same(a, b, min_fast=0.5)
+
+
+def _injected(kind: str, **kw):
+    def make():
+        made = make_sim(seed=9)
+        made[0].inject(kind, **kw)
+        return made
+    return make
+
+
+@pytest.mark.parametrize("kind, kw, status", [
+    ("force_spike", dict(at_s=1.6, duration_s=0.02, magnitude_n=0.05), "ok"),    # in free air, descending
+    ("nan", dict(at_s=2.5, duration_s=0.01), "fault"),
+    ("stall", dict(when=lambda arm: arm.tip_xyz()[2] > 0.001), "fault"),
+    ("disconnect", dict(at_s=3.0, reconnectable=True), "fault"),
+])
+def test_injected_faults(tmp_path, kind, kw, status):
+    """A fault scheduled or acting is stepped one period at a time (the look-ahead refuses it); before and after it
+    the quiet periods go at once: the same run either way."""
+    plan = make_plan(xs=(0.02, 0.05), depth_m=0.003)
+    a, b = _twin_runs(tmp_path, plan, _injected(kind, **kw))
+    assert b["rep"].status == status
+    _assert_same(a, b, min_fast=0.0)
+    assert b["n_fast"] > 0 or kind != "force_spike"
+
+
+def test_a_long_latency_without_move_tapes(tmp_path):
+    """Readings five periods old, and moves stepped pose by pose (no tape: the look-ahead refuses a move without
+    one, and takes the waits and dwells)."""
+    plan = make_plan(xs=(0.02, 0.035), depth_m=0.003)
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=12, latency_s=0.01, tape=False))
+    _assert_same(a, b, min_fast=0.05)
+
+
+def test_relaxing_tissue_with_a_force_model_beyond_its_range(tmp_path):
+    plan = make_plan(xs=(0.02, 0.05), depth_m=0.003)
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(_failing_below(0.002, ValueError), seed=13,
+                                                       relaxation=Relaxation(0.25, 0.5)))
+    assert b["range"]["samples_beyond_model_range"] > 100
+    _assert_same(a, b)
+
+
+def test_a_force_model_failing_where_the_arm_never_goes(tmp_path):
+    """The model raises below 2.8 mm; the force limit stops every probe above that. The look-ahead computes the
+    path beyond the stop: it must end there, not fail (stepping never asks for that force)."""
+    plan = make_plan(xs=(0.02, 0.05), depth_m=0.003, limits=Limits(force_limit_n=0.15))
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(_failing_below(0.0028, RuntimeError), seed=14))
+    assert [r["status"] for r in b["recs"]] == ["force_limit", "force_limit"]
+    _assert_same(a, b, min_fast=0.5)
+
+
+def test_an_unfed_watchdog(tmp_path):
+    """With stale_periods 3 the driver never kicks (its kick waits for fresh data: stale < 3 // 4); the
+    controller's watchdog stops the program in the first move, with or without the look-ahead."""
+    plan = make_plan(xs=(0.02,), depth_m=0.003)
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=15), config=DriverConfig(stale_periods=3))
+    assert b["rep"].status == "fault" and b["arm"].watchdog_fired_s is not None
+    _assert_same(a, b, min_fast=0.0)
+
+
+class _Forwarding:
+    """A receive interface wrapping the simulator's (as a test's recorder does): forwards everything, but its force
+    reading turns NaN after 2 s."""
+
+    def __init__(self, inner, arm):
+        self.inner, self.arm = inner, arm
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def getActualTCPForce(self):
+        w = self.inner.getActualTCPForce()
+        return [float("nan")] * 6 if self.arm.t_s > 2.0 else w
+
+
+class _OwnStep(ArmModel):
+    """An arm with its own step (a test counting what the arm did)."""
+    steps = 0
+
+    def step(self, dt=None):
+        self.steps += 1
+        super().step(dt)
+
+
+def test_no_look_ahead_through_a_wrapper_or_a_subclass(tmp_path):
+    """Only the simulator's own interfaces over its own arm look ahead: a wrapper's getters and a subclassed arm's
+    step are met every period."""
+    plan = make_plan(xs=(0.02, 0.05), depth_m=0.003)
+    a, b = _twin_runs(tmp_path / "wrapped", plan, lambda: make_sim(seed=1),
+                      wrap=lambda arm, c, r: (c, _Forwarding(r, arm)))
+    assert b["n_fast"] == 0 and b["rep"].fault["kind"] == "invalid_reading"
+    assert a["recs"] == b["recs"]
+
+    def own_step():
+        from robot_fixtures import TISSUE_POSE, start_q
+        arm = _OwnStep(standin_force_model(), tissue_pose_base=TISSUE_POSE, seed=2, q0=start_q(), tcp_offset=TCP)
+        return arm, SimRTDEControl(arm), SimRTDEReceive(arm)
+    a, b = _twin_runs(tmp_path / "subclass", plan, own_step)
+    assert b["n_fast"] == 0 and b["arm"].steps == a["arm"].steps == round(b["arm"].t_s / b["arm"].period_s)
 
 
 def _arm_state(arm) -> dict:
