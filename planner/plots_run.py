@@ -30,12 +30,11 @@ def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=
     xx = np.linspace(max(0.0, x.min() - 1), min(W, x.max() + 1), 200)
     m0 = surface_model(prior)
     for dep in np.unique(np.round(meas.depth_m, 5)):
-        ax.plot(xx, [m0.force_n(v * 1e-3, float(dep)) * 1e3 for v in xx], "k-", lw=1,
-                label=f"fem prior (no stone), depth {dep * 1e3:.1f} mm")
+        f0 = np.array([m0.force_n(v * 1e-3, float(dep)) for v in xx])
+        ax.plot(xx, f0 * 1e3, "k-", lw=1, label=f"fem prior (no stone), depth {dep * 1e3:.1f} mm")
         if surrogate is not None and loc.detected:
             c = surrogate.contrast(xx * 1e-3, float(dep), loc.x_m, loc.depth_m, loc.diameter_m)
-            ax.plot(xx, ([m0.force_n(v * 1e-3, float(dep)) for v in xx] + c) * 1e3, "r-", lw=1,
-                    label="fem with the fitted stone")
+            ax.plot(xx, (f0 + c) * 1e3, "r-", lw=1, label="fem with the fitted stone")
     for k in range(rnd.max() + 1):
         s = rnd == k
         ax.errorbar(x[s], meas.force_n[s] * 1e3, yerr=2e3 * meas.sigma_n[s], fmt="o", ms=3, color=colors[k],

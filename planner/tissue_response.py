@@ -108,5 +108,20 @@ def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarr
     F = {}
     for k in (-1, 0, 1):
         m = surface_model(_scene_with_height(prior, 1.0 + k * THICKNESS_STEP))
-        F[k] = np.array([m.force_n(float(xi), float(di)) for xi, di in zip(x, d)])
+        seen = _FORCES.setdefault(m, {})
+        if len(seen) > 20000:
+            seen.clear()
+        F[k] = np.array([_force(m, seen, float(xi), float(di)) for xi, di in zip(x, d)])
     return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)
+
+
+# Each model's forces at the points asked before: a run's refinement design asks for the same candidate grid and the
+# probes made so far in every round (the same numbers: one contact solve per point, remembered).
+_FORCES: dict = {}
+
+
+def _force(m, seen: dict, x: float, d: float) -> float:
+    f = seen.get((x, d))
+    if f is None:
+        f = seen[(x, d)] = m.force_n(x, d)
+    return f

@@ -253,3 +253,18 @@ def pickle_key(prior, meas):
     import planner.localize as L
     return pickle.dumps((prior, [getattr(meas, k) for k in Measurements.FIELDS], L.LR_THRESHOLD, L.MODEL_REL_ERR,
                          True, None))
+
+
+def test_the_design_columns_are_remembered_exactly(prior):
+    """prior_and_thickness_slope remembers each model's force per point (the refinement design asks for the same
+    grid every round): asked again, in another order, the same numbers; and they are the model's own."""
+    from fem.contact import surface_model
+    from planner import tissue_response as tr
+    x = np.array([0.012, 0.027, 0.041])
+    tr._FORCES.clear()
+    P1, dP1 = tr.prior_and_thickness_slope(prior, x, 0.004)
+    assert sum(len(v) for v in tr._FORCES.values()) == 9          # 3 points x 3 thickness nodes
+    P2, dP2 = tr.prior_and_thickness_slope(prior, x[::-1], 0.004)
+    assert np.array_equal(P2[::-1], P1) and np.array_equal(dP2[::-1], dP1)
+    assert P1.tolist() == [surface_model(prior).force_n(float(v), 0.004) for v in x]
+    assert np.all(dP1 != 0.0)
