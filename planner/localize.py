@@ -429,6 +429,8 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     if last is not None and last[0] == key and last[1] is surrogate:
         loc, profile_args = last[2]        # the same fit again (the run's last round, then its final report)
     else:
+        # on a copy: the stored fit's profile reads the measurements later, whatever the caller does to its arrays
+        meas = Measurements(**{k: np.array(getattr(meas, k)) for k in Measurements.FIELDS})
         loc, profile_args = _fit_stone(prior, meas, surrogate, lr_threshold, model_rel_err, nuisance, finite_strain)
         _LAST_FIT["fit"] = (key, surrogate, (loc, profile_args))
     loc = copy.deepcopy(loc)

@@ -13,6 +13,7 @@ grid, where fem refuses: indentations at the tip radius), quadratically in the r
 from __future__ import annotations
 
 import dataclasses
+import weakref
 
 import numpy as np
 
@@ -116,8 +117,9 @@ def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarr
 
 
 # Each model's forces at the points asked before: a run's refinement design asks for the same candidate grid and the
-# probes made so far in every round (the same numbers: one contact solve per point, remembered).
-_FORCES: dict = {}
+# probes made so far in every round (the same numbers: one contact solve per point, remembered). Weak: a model fem
+# forgets (fem.contact.forget_except) is not kept alive here.
+_FORCES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _force(m, seen: dict, x: float, d: float) -> float:

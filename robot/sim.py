@@ -504,6 +504,8 @@ class ArmModel:
             return fe, beyond
 
     def _elastic_vectorised(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if not (np.isfinite(x).all() and np.isfinite(y).all() and np.isfinite(d).all()):
+            raise ValueError("a tip position is not finite")  # one at a time: step() meets it as it does
         n = len(x)
         fm = self.force_model
         if not isinstance(fm, CachedForce):
@@ -514,6 +516,8 @@ class ArmModel:
             return fe, beyond
         if self.surface_height_m is not None:
             d = d + np.array([self.surface_height_m(v) for v in x.tolist()], dtype=float)
+            if not np.isfinite(d).all():
+                raise ValueError("a surface height is not finite")
         inside = (d > 0) & (x >= -1e-6) & (x <= self.width_m + 1e-6)
         if self.length_m is not None:
             inside &= (y >= -1e-6) & (y <= self.length_m + 1e-6)

@@ -63,22 +63,33 @@ class CachedForce:
         return f, (ix, iy) in self._refused_from and u >= self._refused_from[(ix, iy)]
 
     def look_many(self, x_m: np.ndarray, depth_m: np.ndarray, y_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``look`` at many points (depths > 0): the forces and whether each lies at or beyond the model's range.
-        Element by element the same operations (round half to even, floor, the same interpolation)."""
+        """``look`` at many points in turn (depths > 0): the forces and whether each lies at or beyond the model's
+        range. Element by element the same operations (round half to even, floor, the same interpolation), the
+        nodes evaluated in the order the points first need them, and each point's range flag read as ``look`` reads
+        it at its turn: after the nodes of the points before it (the same flags for a model whose refusals are not
+        monotone in depth)."""
         ix = np.rint(x_m / self.hx).astype(np.int64)
         iy = np.rint(y_m / self.hx).astype(np.int64) if self.three_d else np.zeros(len(ix), np.int64)
         u = depth_m / self.hd
         i = np.floor(u).astype(np.int64)
         w = u - i
-        keys, inv = np.unique(np.stack([ix, iy, i], axis=1), axis=0, return_inverse=True)
+        keys, first, inv = np.unique(np.stack([ix, iy, i], axis=1), axis=0, return_index=True, return_inverse=True)
         inv = inv.reshape(-1)
-        n0, n1, refused = np.empty(len(keys)), np.empty(len(keys)), np.full(len(keys), np.inf)
-        for r, (a, b, c) in enumerate(keys.tolist()):
+        n0, n1, refused = np.empty(len(keys)), np.empty(len(keys)), np.empty(len(keys))
+        order = np.argsort(first, kind="stable")
+        rows = keys.tolist()
+        for r in order.tolist():
+            a, b, c = rows[r]
             n0[r], n1[r] = self._node(a, b, c), self._node(a, b, c + 1)
-        for r, (a, b, _) in enumerate(keys.tolist()):
-            refused[r] = self._refused_from.get((a, b), np.inf)
+            refused[r] = self._refused_from.get((a, b), np.inf)     # this column's range after this key's nodes
         f = (1 - w) * n0[inv] + w * n1[inv]
-        return f, u >= refused[inv]
+        beyond = np.zeros(len(u), bool)
+        for a, b in {(r[0], r[1]) for r in rows}:       # per column: the last of its keys needed by each point
+            kk = order[(keys[order, 0] == a) & (keys[order, 1] == b)]
+            at = np.flatnonzero((ix == a) & (iy == b))
+            last = kk[np.searchsorted(first[kk], at, side="right") - 1]
+            beyond[at] = u[at] >= refused[last]
+        return f, beyond
 
     def count_beyond(self, depth_m: float) -> None:
         """Count one force beyond the model's range at ``depth_m`` (the range report)."""

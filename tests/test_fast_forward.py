@@ -339,3 +339,26 @@ def test_window_means_sum_as_the_filter_does(n_prev):
     for i, v in enumerate(f.tolist()):
         q.append(v)
         assert got[i] == reduce(add, q) / len(q)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_look_many_is_look_in_turn(seed):
+    """CachedForce.look_many gives each point the force and the range flag look gives it in turn, on fresh caches --
+    also for a model that refuses only some depths (not monotone: a later point's refused node must not flag an
+    earlier point) and across columns."""
+    from robot.simforce import CachedForce
+
+    def model(x, d):
+        if abs(d - 0.0030) < 1e-9 or d > 0.0045:        # refuses the 3.0 mm node and everything below 4.5 mm
+            raise ValueError("beyond the model's range")
+        return 900.0 * d ** 1.5 * (1 + x)
+    rng = np.random.default_rng(seed)
+    x = np.round(rng.uniform(0.01, 0.0101, 60), 5)             # a few columns (x snapped to 10 um), shared
+    x[:2] = x[10:14] = 0.01
+    d = np.concatenate([[0.0035, 0.00295], rng.uniform(1e-4, 0.005, 58)])
+    d[10:14] = [0.0030, 0.0031, 0.0046, 0.0029]
+    one, many = CachedForce(model), CachedForce(model)
+    f1, b1 = zip(*(one.look(float(a), float(c)) for a, c in zip(x, d)))
+    f2, b2 = many.look_many(x, d, np.zeros(len(x)))
+    assert list(f1) == f2.tolist() and list(b1) == b2.tolist()
+    assert one.extrapolated == many.extrapolated > 0 and any(b1) and not all(b1)

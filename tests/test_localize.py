@@ -221,8 +221,11 @@ def _same(a, b) -> list[str]:
 
 def test_the_final_report_reuses_the_last_fit(prior):
     """The run localizes its last round, then the same measurements again with the depth's profile: the second call
-    takes the first's fit (planner.localize._LAST_FIT) and gives exactly what a fresh call gives; other
-    measurements, options or a new surrogate object fit again; the caller's copy cannot change the stored fit."""
+    takes the first's fit (planner.localize._LAST_FIT) and gives exactly what a fresh call gives, even when the
+    caller changed the first call's arrays in place since; other measurements, options or another surrogate object
+    fit again; the caller's copy of the result cannot change the stored fit."""
+    import copy
+
     import planner.localize as L
     st = Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012)
     x = np.linspace(0.005, 0.065, 21)
@@ -231,9 +234,11 @@ def test_the_final_report_reuses_the_last_fit(prior):
     fresh = localize(prior, meas, sur, profile=True)
     assert fresh.depth_interval_m and fresh.detected
     L._LAST_FIT.clear()
-    first = localize(prior, meas, sur)
+    mine = copy.deepcopy(meas)
+    first = localize(prior, mine, sur)
     assert first.depth_interval_m == {} and _same(first, fresh) == ["depth_interval_m"]
-    first.contrast_n[:] = 0.0                                     # the caller's copy
+    first.contrast_n[:] = 0.0                                     # the caller's copy of the result
+    mine.force_n[:] *= 1.5                                        # and of the measurements
     fit_again = L._fit_stone
     L._fit_stone = None                                           # a second fit would fail
     try:
@@ -241,18 +246,25 @@ def test_the_final_report_reuses_the_last_fit(prior):
     finally:
         L._fit_stone = fit_again
     assert _same(final, fresh) == []
-    other = synth(prior, st, x, seed=4)
-    assert localize(prior, other, sur).lr != fresh.lr            # other measurements: fitted (not the stored fit)
-    assert L._LAST_FIT["fit"][0] != pickle_key(prior, meas)
+    calls = []
+
+    def counting(*a, **k):
+        calls.append(1)
+        return fit_again(*a, **k)
+    L._fit_stone = counting
+    try:
+        localize(prior, synth(prior, st, x, seed=4), sur)                  # other measurements
+        localize(prior, meas, sur)
+        localize(prior, meas, sur, nuisance=False)                         # other options
+        localize(prior, meas, sur, lr_threshold=2 * LR_THRESHOLD)
+        localize(prior, meas, ToySurrogate())                              # another surrogate object
+        localize(prior, meas, sur, profile=True)
+        localize(prior, meas, sur, profile=True)                           # the same again: no fit
+    finally:
+        L._fit_stone = fit_again
+    assert len(calls) == 6
     L._LAST_FIT.clear()
 
-
-def pickle_key(prior, meas):
-    import pickle
-
-    import planner.localize as L
-    return pickle.dumps((prior, [getattr(meas, k) for k in Measurements.FIELDS], L.LR_THRESHOLD, L.MODEL_REL_ERR,
-                         True, None))
 
 
 def test_the_design_columns_are_remembered_exactly(prior):
@@ -268,3 +280,5 @@ def test_the_design_columns_are_remembered_exactly(prior):
     assert np.array_equal(P2[::-1], P1) and np.array_equal(dP2[::-1], dP1)
     assert P1.tolist() == [surface_model(prior).force_n(float(v), 0.004) for v in x]
     assert np.all(dP1 != 0.0)
+    P3, _ = tr.prior_and_thickness_slope(prior, x, 0.003)            # the same points at another depth
+    assert P3.tolist() == [surface_model(prior).force_n(float(v), 0.003) for v in x] and np.all(P3 < P1)
