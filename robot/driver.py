@@ -37,6 +37,7 @@ from operator import add
 
 import numpy as np
 
+from core.arrays import first_true
 from core.contracts import (
     DESCENT,
     DWELL,
@@ -233,12 +234,6 @@ class _Samples:
         return dict(self.parts[0])
 
 
-def _first(mask: np.ndarray, default: int) -> int:
-    """The index of the first True in ``mask``, else ``default``."""
-    i = int(np.argmax(mask)) if len(mask) else 0
-    return i if len(mask) and mask[i] else default
-
-
 def forces_when_stopped(hist, filt: np.ndarray, lead: int) -> np.ndarray:
     """``force_when_stopped`` after each of ``filt`` appended to ``hist`` (a deque with its maxlen) in turn: the
     same float operations, so the same values."""
@@ -260,7 +255,7 @@ class _Collision:
         return self.d._halt(FaultKind.COLLISION) if s["filt"] > self.d.lim.force_limit_n else None
 
     def quiet(self, b: _Block, limit: int) -> int:
-        return _first(b.filt[:limit] > self.d.lim.force_limit_n, limit)
+        return first_true(b.filt[:limit] > self.d.lim.force_limit_n, limit)
 
 
 class _ForceWatch:
@@ -286,9 +281,9 @@ class _ForceWatch:
     def quiet(self, b: _Block, limit: int) -> int:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
-        k = _first(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
+        k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
         if "depth" not in self.contact:
-            j = _first(filt[:k] > self.d.contact_thr, -1)
+            j = first_true(filt[:k] > self.d.contact_thr, -1)
             if j >= 0:
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]))
         self.hist.extend(filt[:k].tolist())
@@ -510,7 +505,7 @@ class Driver(Recovery):
             return True if n[0] * self.cfg.period_s >= seconds else None
 
         def quiet(b: _Block) -> int:
-            k = _first(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= seconds, b.n)
+            k = first_true(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= seconds, b.n)
             if collect is not None:
                 collect.extend(zip(b.f[:k].tolist(), b.filt[:k].tolist()))
             n[0] += k
@@ -603,14 +598,14 @@ class Driver(Recovery):
 
         def quiet(b: _Block) -> int:
             """The periods while the move runs (progress >= 0) and ``watch`` has nothing to say."""
-            k = _first(np.asarray(b.prog) < 0, b.n)
+            k = first_true(np.asarray(b.prog) < 0, b.n)
             if watch is not None and k:
                 k = watch.quiet(b, k)
             state["started"] |= k > 0
             return k
         quiet_ok = watch is None or hasattr(watch, "quiet")
-        return self._loop(timeout, body, strict, what, quiet if quiet_ok else None)  # a fault is recorded first,
-        # then safe_state() stops
+        # a fault is recorded first, then safe_state() stops
+        return self._loop(timeout, body, strict, what, quiet if quiet_ok else None)
 
     # ---- one probe ---------------------------------------------------------------------------------------
     def _zero(self) -> None:
@@ -666,7 +661,7 @@ class Driver(Recovery):
                 return r if r is not None else ("reached" if n[0] * self.cfg.period_s >= mo.dwell_s else None)
 
             def quiet(b: _Block) -> int:
-                k = watch.quiet(b, _first(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= mo.dwell_s, b.n))
+                k = watch.quiet(b, first_true(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= mo.dwell_s, b.n))
                 n[0] += k
                 return k
             outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell", quiet=quiet)

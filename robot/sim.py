@@ -23,6 +23,7 @@ from collections import deque
 import numpy as np
 
 from core import ur5e
+from core.arrays import first_true
 from robot.sensor import Sensor
 from robot.simforce import CachedForce
 
@@ -466,7 +467,7 @@ class ArmModel:
             fc = np.array(fc)
         else:
             fc = fe
-        stop = _first_true(fc > self.safety_force_n, n)
+        stop = first_true(fc > self.safety_force_n, n)
         if stop == 0:
             return None
         n = stop
@@ -567,12 +568,6 @@ class ArmModel:
         t_end = self.t_s + max_s
         while self.motion is not None and not self.protective_stopped and self.t_s < t_end:
             self.step()
-
-
-def _first_true(mask: np.ndarray, default: int) -> int:
-    """The index of the first True in ``mask``, else ``default``."""
-    i = int(np.argmax(mask)) if len(mask) else 0
-    return i if len(mask) and mask[i] else default
 
 
 class Lookahead:
