@@ -19,6 +19,7 @@ import datetime
 import math
 import weakref
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -80,8 +81,9 @@ class _Motion:
 
 def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, np.ndarray]:
     """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once:
-    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step as rows) -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per step, to round-off (the
-    positions exactly; ``rel`` None: the orientation stays T0's)."""
+    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step as rows) -- what ``move_linear``'s interp and
+    ``ArmModel._pose`` compute per step, to round-off (the positions exactly; ``rel`` None: the orientation stays
+    T0's)."""
     u = np.asarray(us, dtype=float)
     T = np.zeros((len(u), 4, 4))
     T[:, 3, 3] = 1.0
@@ -214,9 +216,8 @@ class ArmModel:
 
     def _set_tip(self) -> None:
         """The tip's position in the TCP frame (None: the tip is the TCP), from the TCP and the tool offsets."""
-        self._tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
-        self._tip_c = None if self.tool_offset == self.tcp_offset else \
-            tuple((self._tcp_inv @ self._T_tool)[:3, 3].tolist())
+        tcp_inv = np.linalg.inv(ur5e.pose_to_T(self.tcp_offset))
+        self._tip_c = None if self.tool_offset == self.tcp_offset else tuple((tcp_inv @ self._T_tool)[:3, 3].tolist())
 
     def tip_in_tissue(self) -> tuple[float, float]:
         """(x_m, depth_m) of the probe's physical tip in the tissue frame (``tip_xyz`` without y)."""
@@ -492,29 +493,26 @@ class ArmModel:
         """``_elastic_at`` at many tip positions, not counted: (forces, the depth where the force model extrapolated
         beyond its range, else NaN). Element by element the same operations. Shorter when the force model fails
         (raises) at a position: up to it."""
-        try:
-            return self._elastic_vectorised(x, y, d)
-        except Exception:               # noqa: BLE001 -- one at a time, up to the period whose force fails
-            fe, beyond = np.zeros(len(x)), np.full(len(x), np.nan)
-            for j, (a, b, c) in enumerate(zip(x.tolist(), y.tolist(), d.tolist())):
-                try:
-                    f, bey = self._elastic_at(a, b, c, count=False)
-                except Exception:       # noqa: BLE001 -- step() meets it there, and says what it is
-                    return fe[:j], beyond[:j]
-                fe[j], beyond[j] = f, (np.nan if bey is None else bey)
-            return fe, beyond
+        if isinstance(self.force_model, CachedForce):
+            try:
+                return self._elastic_vectorised(x, y, d)
+            except Exception:           # noqa: BLE001 -- one at a time, up to the period whose force fails
+                pass
+        fe, beyond = np.zeros(len(x)), np.full(len(x), np.nan)
+        for j, (a, b, c) in enumerate(zip(x.tolist(), y.tolist(), d.tolist())):
+            try:
+                f, bey = self._elastic_at(a, b, c, count=False)
+            except Exception:           # noqa: BLE001 -- step() meets it there, and says what it is
+                return fe[:j], beyond[:j]
+            fe[j], beyond[j] = f, (np.nan if bey is None else bey)
+        return fe, beyond
 
     def _elastic_vectorised(self, x: np.ndarray, y: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``_elastic_many`` over a CachedForce, at once."""
         if not (np.isfinite(x).all() and np.isfinite(y).all() and np.isfinite(d).all()):
             raise ValueError("a tip position is not finite")  # one at a time: step() meets it as it does
         n = len(x)
         fm = self.force_model
-        if not isinstance(fm, CachedForce):
-            fe, beyond = np.zeros(n), np.full(n, np.nan)
-            for j, (a, b, c) in enumerate(zip(x.tolist(), y.tolist(), d.tolist())):
-                if c > 0 or self.surface_height_m is not None:
-                    fe[j] = self._elastic_at(a, b, c, count=False)[0]
-            return fe, beyond
         if self.surface_height_m is not None:
             d = d + np.array([self.surface_height_m(v) for v in x.tolist()], dtype=float)
             if not np.isfinite(d).all():
@@ -570,14 +568,22 @@ class ArmModel:
             self.step()
 
 
+@dataclass
 class Lookahead:
     """Periods computed ahead by ``ArmModel.look_ahead``: ``seen`` the readings (timestamps_s, tcp poses as rows,
     wrenches as rows) and ``prog[j]`` the asynchronous-progress value (getAsyncOperationProgress) the driver gets in
     the j-th period from now; ``commit(k)`` advances the arm k periods (the first k readings taken)."""
-
-    def __init__(self, arm, t0, kicks, n, t, seen, prog, new, fc, beyond, relax):
-        self.arm, self.t0, self.kicks, self.n, self.t = arm, t0, kicks, n, t
-        self.seen, self.prog, self.new, self.fc, self.beyond, self.relax = seen, prog, new, fc, beyond, relax
+    arm: "ArmModel"
+    t0: float                  # the arm's time when looked ahead (a commit checks it)
+    kicks: bool                # a watchdog kick in every period
+    n: int                     # periods computed
+    t: np.ndarray              # the time after each step
+    seen: tuple                # (timestamps_s, poses, wrenches): the reading of each period
+    prog: list                 # getAsyncOperationProgress in each period
+    new: tuple                 # (poses, wrenches) of the samples each step makes
+    fc: np.ndarray             # the contact force after each step
+    beyond: np.ndarray         # the depth where the force model extrapolated beyond its range, else NaN
+    relax: list                # the relaxation's (h, fe) after each step (empty without relaxation)
 
     def commit(self, k: int) -> None:
         self.arm._commit(self, k)
