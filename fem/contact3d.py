@@ -163,8 +163,8 @@ class SurfaceModel3D:
         self._band = None
         if compliance is None:
             compliance = self.fac.compliance
-        if not np.all(np.isfinite(compliance)):
-            raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
+            if not np.all(np.isfinite(compliance)):
+                raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
         self.C = compliance
         self.band_m = stress_band_m if stress_band_m is not None else 2 * scene.indenter.radius_m
         self.timings_s = {"mesh_assemble_s": t1 - t0, "factor_condense_s": time.perf_counter() - t1}
@@ -177,11 +177,14 @@ class SurfaceModel3D:
     @classmethod
     def from_arrays(cls, scene, arrays: dict[str, np.ndarray], mesh: Mesh3D, **options) -> SurfaceModel3D:
         """The SurfaceModel3D of ``scene`` on ``mesh`` with the compliance ``to_arrays`` wrote (no assembly, no
-        factorization until fields are asked for); ValueError if it does not fit the mesh."""
-        C = arrays["C"]
+        factorization until fields are asked for); ValueError if it does not fit the mesh. The compliance arrives
+        memory-mapped (``load_or_build_surface3d``: a run reads the rows of the windows it probes, not the whole
+        dense matrix, 0.5 GB on the block3d scene) and is not scanned here: each block is checked finite as a contact
+        solve reads it (``window_compliance``)."""
+        C = np.asarray(arrays["C"])          # a memory map as a plain array: no copy (np.memmap's indexing is slow)
         n = len(patch_nodes(mesh, scene.analysis.patch_m))
-        if C.shape != (n, n) or not np.all(np.isfinite(C)):
-            raise ValueError(f"compliance of shape {C.shape}, expected ({n}, {n}) and finite")
+        if C.shape != (n, n):
+            raise ValueError(f"compliance of shape {C.shape}, expected ({n}, {n})")
         return cls(scene, mesh=mesh, compliance=C, **options)
 
     @property
@@ -219,12 +222,18 @@ class SurfaceModel3D:
     def window_compliance(self, idx: np.ndarray, x_m: float, y_m: float):
         """``block(rows, cols)``: the gap's compliance between window nodes idx[rows] and idx[cols] (None: all) with
         the tip at (x_m, y_m): the tissue's, plus an elastic tip's at the nodes' positions relative to its axis."""
-        C = self.C
+        C, name = self.C, self.scene.name
+
+        def tissue(r, c):       # checked as read: a restored compliance is memory-mapped, not scanned whole
+            b = C[np.ix_(idx if r is None else idx[r], idx if c is None else idx[c])]
+            if not np.isfinite(b).all():
+                raise FloatingPointError(f"scene {name!r}: the surface compliance holds non-finite numbers (a "
+                                         f"damaged disk cache entry? delete it, or set PALPATE_CACHE=0)")
+            return b
         if self.tip is None:
-            return lambda r, c: C[np.ix_(idx if r is None else idx[r], idx if c is None else idx[c])]
+            return tissue
         tw = self.tip.window(self.xy[idx] - (x_m, y_m))
-        return lambda r, c: (C[np.ix_(idx if r is None else idx[r], idx if c is None else idx[c])]
-                             + tw.block(r, c))
+        return lambda r, c: tissue(r, c) + tw.block(r, c)
 
     def _solve_window(self, idx: np.ndarray, q: np.ndarray, block) -> tuple[np.ndarray, np.ndarray]:
         """The exact LCP over the window (compliance blocks ``block(rows, cols)``), solved on the nodes the tip
@@ -342,7 +351,8 @@ def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> Su
     return diskcache.load_or_build(
         "surface3d", spec, build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
         to_arrays=SurfaceModel3D.to_arrays,
-        from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use)
+        from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use,
+        mmap=True)
 
 
 _CACHE: dict[tuple, SurfaceModel3D] = {}

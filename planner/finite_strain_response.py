@@ -93,6 +93,14 @@ class FiniteStrainRows:
         n = np.arange(len(d))
         return np.where(d > 0, (1 - w) * self.rows[n, k] + w * self.rows[n, k + 1], 0.0)
 
+    def slope(self, depth_m) -> np.ndarray:
+        """d g / d depth at each probe's depth (the segment's slope; 0 out of contact)."""
+        d = np.asarray(depth_m, float)
+        nodes = self.depth_m
+        k = clip(np.searchsorted(nodes, d) - 1, 0, len(nodes) - 2)
+        n = np.arange(len(d))
+        return np.where(d > 0, (self.rows[n, k + 1] - self.rows[n, k]) / (nodes[k + 1] - nodes[k]), 0.0)
+
 
 def unsupported(prior) -> str:
     """Why fem's finite-strain model cannot give this prior's correction ("" when it can)."""

@@ -316,6 +316,107 @@ class _Forward:
         nu[self.free] = v
         return nu
 
+    # ---- the derivatives, in closed form: every part of the model is an interpolant (planner.surrogate,
+    # planner.tissue_response, planner.finite_strain_response), differentiated exactly; one evaluation replaces the
+    # finite-difference Jacobian's one per parameter, and the columns are the derivatives, not a 1e-4 step's secants
+
+    def contrast_slopes(self, stone, d, eta) -> np.ndarray:
+        """d/d(xs_m, log s, diameter_m at fixed s, depth, eta) of ``contrast`` at each probe: (5, n probes)."""
+        xs, dep, D = stone
+        if not hasattr(self.sur, "contrast_slopes"):       # a surrogate without its own: central differences
+            return self._contrast_slopes_numeric(stone, d, eta)
+        dc = d if self.levels is None else clip(d, self.levels[0], self.levels[-1])
+        S = np.zeros((5, len(self.meas)))
+        S[:4] = self.sur.contrast_slopes(self.meas.x_m, dc, xs, dep, D)
+        out = dc != d
+        if out.any():           # beyond the table: C(dc) P(d) / P(dc), dc held at the table's end
+            Pd, Pc = self.resp.force_n(d, eta)[out], np.maximum(self.resp.force_n(dc, eta)[out], 1e-12)
+            Pd_d, Pd_eta = (a[out] for a in self.resp.force_slopes(d, eta))
+            Pc_eta = self.resp.force_slopes(dc, eta)[1][out]
+            C = self._many(dc, np.array([xs]), dep, D)[0][out]
+            S[:3, out] *= Pd / Pc
+            S[3, out] = C * Pd_d / Pc
+            S[4, out] = C * (Pd_eta / Pc - Pd * Pc_eta / Pc ** 2)
+        return S
+
+    def _contrast_slopes_numeric(self, stone, d, eta) -> np.ndarray:
+        xs, dep, D = stone
+        s = dep - 0.5 * D
+        h, e = 1e-7, 1e-6
+        steps = (((xs + h, dep, D), d, eta), ((xs - h, dep, D), d, eta),
+                 ((xs, s * math.exp(e) + 0.5 * D, D), d, eta), ((xs, s * math.exp(-e) + 0.5 * D, D), d, eta),
+                 ((xs, dep + 0.5 * h, D + h), d, eta), ((xs, dep - 0.5 * h, D - h), d, eta),
+                 (stone, d + h, eta), (stone, d - h, eta), (stone, d, eta + e), (stone, d, eta - e))
+        C = [self.contrast(*a) for a in steps]
+        return np.array([(C[2 * j] - C[2 * j + 1]) / (2 * w) for j, w in enumerate((h, e, h, h, e))])
+
+    def force_jac(self, p, nu) -> np.ndarray:
+        """d forces / d(xs_mm, log s_mm, D_mm, *NUISANCE) at each probe for the stone ``_stone(p)`` (None: no stone,
+        its columns 0): (n probes, 3 + len(NUISANCE))."""
+        d = self.depth(nu)
+        K = math.exp(nu[1])
+        B = self.resp.force_n(d, nu[4])                 # the force before the scale and the finite-strain factor
+        B_d, B_eta = self.resp.force_slopes(d, nu[4])
+        g = g_d = 0.0
+        if self.fs is not None:
+            g, g_d = self.fs.g(d), self.fs.slope(d)
+        st = 1.0 + nu[5] * g
+        J = np.zeros((len(self.meas), 3 + len(NUISANCE)))
+        if p is not None:
+            stone = _stone(p)
+            B = B + self.contrast(stone, d, nu[4])
+            S = self.contrast_slopes(stone, d, nu[4])
+            J[:, :3] = ((K * st) * np.array([1e-3 * S[0], S[1], 1e-3 * S[2]])).T
+            B_d, B_eta = B_d + S[3], B_eta + S[4]
+        dF_dd = K * (B_d * st + B * nu[5] * g_d)
+        J[:, 3] = 1e-3 * self.meas.tau_s
+        J[:, 4] = K * B * st
+        J[:, 5] = 1e-3 * dF_dd
+        J[:, 6] = 1e-3 * self.xc_m * dF_dd
+        J[:, 7] = K * B_eta * st
+        J[:, 8] = K * B * g
+        return J
+
+    def extra_jac(self, nu) -> np.ndarray:
+        """d extra / d NUISANCE: (len(extra), len(NUISANCE))."""
+        rows = [np.eye(len(NUISANCE))[0] * 1e-3 / DRIFT_SIGMA_N_PER_S]
+        if self.free[4]:
+            rows.append(np.eye(len(NUISANCE))[4] / THICKNESS_SIGMA)
+        if self.free[5]:
+            rows.append(np.eye(len(NUISANCE))[5] / FS_PRIOR_SIGMA)
+        if self.free[2]:
+            on = self.on
+            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
+            dlf_da = np.zeros(len(on))
+            if self.g_onset is not None:
+                thr = thr / (1.0 + nu[5] * self.g_onset)
+                dlf_da = -self.g_onset / (1.0 + nu[5] * self.g_onset)
+            dd_dlf, dd_deta = self.resp.depth_at_force_slopes(thr, nu[4], on)
+            Jo = np.zeros((len(on), len(NUISANCE)))      # d pred / d nu; the residual is -(that) / ONSET_SIGMA_M
+            Jo[:, 1] = -dd_dlf
+            Jo[:, 2] = -1e-3
+            Jo[:, 3] = -1e-3 * self.xc_m[on]
+            Jo[:, 4] = dd_deta
+            Jo[:, 5] = dd_dlf * dlf_da
+            rows.extend(-Jo / ONSET_SIGMA_M)
+        return np.array(rows)
+
+
+def _jac(fw: _Forward, sig, p, nu) -> np.ndarray:
+    """d residuals / d(xs_mm, log s_mm, D_mm, *free nuisance) (the stone's columns only with a stone ``p``)."""
+    J = np.vstack([-fw.force_jac(p, nu) / sig[:, None],
+                   np.c_[np.zeros((len(fw.extra(nu)), 3)), fw.extra_jac(nu)]])
+    return J[:, np.r_[np.arange(3) if p is not None else [], 3 + np.flatnonzero(fw.free)].astype(int)]
+
+
+def _jac_or_fd(jac):
+    """The Jacobian least_squares is given: ``jac`` (closed form), or its own finite differences when ``JACOBIAN``
+    says so (the previous method, kept to compare against: bench/localize_jacobian.py)."""
+    return jac if JACOBIAN == "analytic" else "2-point"
+
+
+JACOBIAN = "analytic"       # or "2-point": scipy's finite differences (diff_step as given at each fit)
+
 
 @dataclass
 class _Fit:
@@ -337,6 +438,9 @@ def _fit_no_stone(fw: _Forward, sig, v0=None):
     def resid(v):
         nu = fw.full(v)
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
+
+    def jac(v):
+        return _jac(fw, sig, None, fw.full(v))
     starts = [np.zeros(len(NUISANCE))] + ([fw.full(v0)] if v0 is not None else [])
     if fw.free[4]:
         starts += [np.array([0, 0, 0, 0, e, 0]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
@@ -344,14 +448,48 @@ def _fit_no_stone(fw: _Forward, sig, v0=None):
         starts.append(np.array([0, 0, 0, 0, 0, 1.0]))
     best = None
     for nu in starts:
-        sol = least_squares(resid, nu[fw.free], bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
+        sol = least_squares(resid, nu[fw.free], jac=_jac_or_fd(jac), bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
                             x_scale=NUIS_X_SCALE[fw.free], diff_step=1e-5, max_nfev=200)
         if best is None or sol.cost < best.cost:
             best = sol
     return best
 
 
-def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25) -> dict:
+def _scale_and_drift(a: np.ndarray, tau: np.ndarray, f: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each row a_i of ``a``: the weighted least squares f ~ c0 a_i + c1 tau (weights ``w``), by its 2 x 2 normal
+    equations, all rows at once: (chi2 per row, (c0, c1) per row)."""
+    wa = w * a
+    saa, sat, saf = (wa * a).sum(1), wa @ tau, wa @ f
+    stt, stf = float(w @ (tau * tau)), float(w @ (tau * f))
+    det = saa * stt - sat * sat
+    ok = det > 1e-12 * saa * stt
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coef = np.c_[(saf * stt - sat * stf) / det, (saa * stf - sat * saf) / det]
+    sw = np.sqrt(w)
+    for i in np.flatnonzero(~ok):        # (next to) collinear with tau, or no force at all: the minimum-norm answer
+        coef[i] = np.linalg.lstsq(np.c_[a[i], tau] * sw[:, None], f * sw, rcond=None)[0]
+    r = f - coef[:, :1] * a - coef[:, 1:] * tau
+    return (w * r * r).sum(1), coef
+
+
+def _depth_held(resid, jac, d_mm: float):
+    """The stone fit's residuals and their Jacobian in p = (xs_mm, D_mm, *nuisance), the stone's depth held at
+    ``d_mm`` (its clearance s = d - D/2, at least 1 um)."""
+    def q(p):
+        return np.concatenate([[p[0], math.log(max(d_mm - 0.5 * p[1], 1e-3)), p[1]], p[2:]])
+
+    def r(p):
+        return resid(q(p))
+
+    def r_jac(p):
+        J = jac(q(p))
+        s = d_mm - 0.5 * p[1]
+        dls_dD = -0.5 / s if s > 1e-3 else 0.0
+        return np.c_[J[:, 0], J[:, 2] + dls_dD * J[:, 1], J[:, 3:]]
+    return r, r_jac
+
+
+def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25) -> dict:
     """Profile likelihood of the depth: chi2 minimised over (x, diameter, nuisance) with the depth held at each of
     ``n`` values; the 68 % / 95 % intervals are where chi2 - chi2_min <= 1 / 4 (times the chi2/dof inflation)."""
     d_hat = dep * 1e3
@@ -360,9 +498,7 @@ def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n
     grid = np.unique(np.append(grid, d_hat))
     prof = []
     for d in grid:
-        def r(p):       # p = (xs_mm, D_mm, *nuisance): s = d - D/2
-            s = max(d - 0.5 * p[1], 1e-3)
-            return resid(np.concatenate([[p[0], math.log(s), p[1]], p[2:]]))
+        r, r_jac = _depth_held(resid, jac, d)
         D0 = float(np.clip(q[2], lo[2], hi[2]))
         dlo, dhi = max(lo[2], 2 * (d - math.exp(hi[1]))), min(hi[2], 2 * (d - math.exp(lo[1])))
         if dhi - dlo <= 2e-6:          # the diameter has (next to) no room at this depth
@@ -372,7 +508,8 @@ def _depth_profile(resid, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n
         x0 = np.concatenate([[q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6))], q[3:]])
         # the fit's optimum may sit on (or, by round-off, a hair beyond) a bound that this depth's box moved: start
         # inside (found by the mismatch study: "Initial guess is outside of provided bounds")
-        sol = least_squares(r, np.clip(x0, lb, ub), bounds=(lb, ub), diff_step=1e-4, max_nfev=200)
+        sol = least_squares(r, np.clip(x0, lb, ub), jac=_jac_or_fd(r_jac), bounds=(lb, ub), diff_step=1e-4,
+                            max_nfev=200)
         prof.append(2 * sol.cost)
     prof = np.array(prof)
     base = min(chi2_min, prof.min())
@@ -424,7 +561,7 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     if surrogate is None:
         surrogate = load_surrogate(prior)
     key = pickle.dumps((prior, [getattr(meas, k) for k in Measurements.FIELDS], lr_threshold, model_rel_err,
-                        nuisance, finite_strain))
+                        nuisance, finite_strain, JACOBIAN))
     last = _LAST_FIT.get("fit")
     if last is not None and last[0] == key and last[1] is surrogate:
         loc, profile_args = last[2]        # the same fit again (the run's last round, then its final report)
@@ -484,6 +621,9 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
         nu = fw.full(q[3:])
         return np.concatenate([(meas.force_n - fw.forces(_stone(q[:3]), nu)) / sig, fw.extra(nu)])
 
+    def jac(q):
+        return _jac(fw, sig, q[:3], fw.full(q[3:]))
+
     # starts: the table's (s, D) nodes around the peak; scale and drift profiled out (linear), the surface as H0
     # fitted it (the onsets pin it), the thickness at H0's value and at the prior's (a big stone drives H0's
     # thickness and scale far off: starting only there, the stone fit can stay in that valley)
@@ -509,19 +649,16 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
         d0 = fw.depth(nu_s)
         P0 = fw.resp.force_n(d0, nu_s[4])
         st0 = fw.stiffening(d0, nu_s)
-        cands = []
+        rows, params = [], []
         for ls in np.log(surrogate.s * 1e3):
             for D in surrogate.diam * 1e3:
                 if math.exp(ls) + D > H - 2.0:
                     continue
                 _, dep_c, D_c = _stone((0.0, ls, D))
-                Cm = fw.contrast_many(xs_c * 1e-3, dep_c, D_c, d0, nu_s[4])           # (n_xc, n probes)
-                for xc, ci in zip(xs_c, Cm):
-                    A = np.c_[(P0 + ci) * st0, meas.tau_s]
-                    coef = np.linalg.lstsq(A * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
-                    chi2 = float(np.sum(w * (meas.force_n - A @ coef) ** 2))
-                    cands.append((chi2, np.array([xc, ls, D]), coef))
-        cands.sort(key=lambda t: t[0])
+                rows.append(fw.contrast_many(xs_c * 1e-3, dep_c, D_c, d0, nu_s[4]))   # (n_xc, n probes)
+                params.extend(np.array([xc, ls, D]) for xc in xs_c)
+        chi2s, coefs = _scale_and_drift((P0 + np.vstack(rows)) * st0, meas.tau_s, meas.force_n, w)
+        cands = sorted(zip(chi2s.tolist(), params, coefs), key=lambda t: t[0])
         seen = []
         for chi2, p, coef in cands:
             if len(seen) >= n_starts:
@@ -537,7 +674,10 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
 
             def resid_held(qh, a=nu[5]):
                 return resid(np.append(qh, a)) if held else resid(qh)
-            sol = least_squares(resid_held, q0[:k_fit], bounds=(np.concatenate([lo, nlo])[:k_fit],
+
+            def jac_held(qh, a=nu[5]):
+                return jac(np.append(qh, a))[:, :-1] if held else jac(qh)
+            sol = least_squares(resid_held, q0[:k_fit], jac=_jac_or_fd(jac_held), bounds=(np.concatenate([lo, nlo])[:k_fit],
                                                                  np.concatenate([hi, nhi])[:k_fit]),
                                 x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:k_fit],
                                 diff_step=1e-4, max_nfev=300)
@@ -545,7 +685,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
                 best, a_best = sol, nu[5]
     fs_gain = float("nan")
     if held:
-        best = least_squares(resid, np.append(best.x, a_best), bounds=(np.concatenate([lo, nlo]),
+        best = least_squares(resid, np.append(best.x, a_best), jac=_jac_or_fd(jac), bounds=(np.concatenate([lo, nlo]),
                                                                          np.concatenate([hi, nhi])),
                              x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
                              max_nfev=300)
@@ -561,13 +701,15 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     if held:
         dof_a = max(len(best.fun) - 3 - nf, 1)
         Jb = best.jac
-        if best.active_mask[-1] != 0:   # at a bound: scipy returns that column zeroed; a one-sided difference inward
+        if JACOBIAN != "analytic" and best.active_mask[-1] != 0:   # at a bound, scipy's finite differences
+            #                           return that column zeroed: a one-sided difference inward
             Jb = Jb.copy()
             step = 1e-3 * best.active_mask[-1] * -1.0
             Jb[:, -1] = (resid(np.append(best.x[:-1], best.x[-1] + step)) - best.fun) / step
         cov_a = np.linalg.pinv(Jb.T @ Jb) * max(1.0, chi2_1 / dof_a)
         a_fit = (float(best.x[-1]), float(math.sqrt(max(cov_a[-1, -1], 0.0))))
         fit = least_squares(lambda qh: resid(np.append(qh, 0.0)), best.x[:-1],
+                            jac=_jac_or_fd(lambda qh: jac(np.append(qh, 0.0))[:, :-1]),
                             bounds=(np.concatenate([lo, nlo])[:-1], np.concatenate([hi, nhi])[:-1]),
                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:-1],
                             diff_step=1e-4, max_nfev=300)
@@ -601,7 +743,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))
     d_fit = fw.depth(nu)
     fit_c = math.exp(nu[1]) * fw.contrast((xs, dep, D), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
-    profile_args = (resid, q, lo, hi, dep, sd[1], 2.0 * fit.cost, infl, H, nlo, nhi)
+    profile_args = (resid, jac, q, lo, hi, dep, sd[1], 2.0 * fit.cost, infl, H, nlo, nhi)
     rel, rel_sd, rel_n = dwell_relaxation(meas)
     k = math.exp(nu[1])
     fixed = [n for n, f in zip(NUISANCE, fw.free) if not f]

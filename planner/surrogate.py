@@ -235,6 +235,24 @@ def _lagrange4(nodes: np.ndarray, u: float) -> tuple[np.ndarray, np.ndarray]:
     return np.arange(i, i + 4), w
 
 
+def _lagrange4_slope(nodes: np.ndarray, u: float) -> np.ndarray:
+    """d/du of ``_lagrange4``'s weights at u (0 outside the nodes' range, where the weights are held)."""
+    if not nodes[0] <= u <= nodes[-1]:
+        return np.zeros(4)
+    i = min(max(int(np.searchsorted(nodes, u)) - 2, 0), len(nodes) - 4)
+    st = nodes[i:i + 4]
+    dw = np.zeros(4)
+    for a in range(4):
+        for c in range(4):
+            if c != a:
+                term = 1.0 / (st[a] - st[c])
+                for b in range(4):
+                    if b != a and b != c:
+                        term *= (u - st[b]) / (st[a] - st[b])
+                dw[a] += term
+    return dw
+
+
 def modulus_scale(data: dict, prior) -> float:
     """The factor that turns a table built at its ``youngs_ref_pa`` into the prior's forces (module doc)."""
     return float(prior.tissue.youngs_pa / float(data["youngs_ref_pa"]))
@@ -257,6 +275,7 @@ class Surrogate:
         self.W = float(data["width_m"])
         self.build_s = float(data.get("build_s", 0.0))
         self._slices: dict[tuple[float, float], np.ndarray] = {}
+        self._slopes: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
 
     # parameter box the table covers (a fit stays inside it)
     @property
@@ -277,6 +296,68 @@ class Surrogate:
                 self._slices.clear()
             self._slices[key] = C
         return C
+
+    def _slice_slopes(self, s: float, diam_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """d/d(log s) and d/d(diam_m) of ``_slice`` (at fixed s and fixed diameter respectively), remembered alike."""
+        key = (s, diam_m)
+        v = self._slopes.get(key)
+        if v is None:
+            i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
+            i_d, w_d = _lagrange4(self.diam, diam_m)
+            dw_s, dw_d = _lagrange4_slope(self.logs, float(np.log(s))), _lagrange4_slope(self.diam, diam_m)
+            T = self.T[np.ix_(i_s, i_d)]
+            v = (np.einsum("i,j,ijkln->kln", dw_s, w_d, T), np.einsum("i,j,ijkln->kln", w_s, dw_d, T))
+            if len(self._slopes) >= 512:
+                self._slopes.clear()
+            self._slopes[key] = v
+        return v
+
+    def contrast_slopes(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
+        """The derivatives of ``contrast`` at each probe, (4, n probes): with respect to the stone's position xs_m,
+        the log of its clearance s = stone_depth_m - diam_m / 2 (the table's own variable), its diameter at fixed
+        clearance, and the probe's depth. Exact for the interpolant (linear in xs, probe position and depth, cubic
+        Lagrange in log s and diameter), one-sided at its nodes; 0 where the interpolant holds a clamped value."""
+        x0 = np.asarray(x0_m, float)
+        d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
+        s = stone_depth_m - 0.5 * diam_m
+        C = self._slice(max(s, 1e-6), float(diam_m))
+        Cs, CD = self._slice_slopes(max(s, 1e-6), float(diam_m)) if s > 1e-6 else (0.0 * C, 0.0 * C)
+        xs, sign = float(xs_m), 1.0
+        if xs > 0.5 * self.W:                       # mirror image: xs -> W - xs, x0 -> W - x0
+            xs, sign, x0 = self.W - xs, -1.0, self.W - x0
+        k = min(max(int(np.searchsorted(self.xs, xs)) - 1, 0), len(self.xs) - 2)
+        t = (xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k])
+        wk = min(max(t, 0.0), 1.0)
+        dwk = 1.0 / (self.xs[k + 1] - self.xs[k]) if 0.0 <= t <= 1.0 else 0.0
+        lev = self.levels
+        u = clip(np.interp(d, lev, np.arange(len(lev))), 0, len(lev) - 1)
+        il = np.minimum(np.floor(u).astype(int), len(lev) - 2)
+        wl = u - il
+        du = np.where((d >= lev[0]) & (d <= lev[-1]), 1.0 / (lev[il + 1] - lev[il]), 0.0)
+        h = self.x0[1] - self.x0[0]
+        out = np.zeros((4, len(x0)))
+        vals = []
+        for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
+            xq_raw = x0 - xs + self.xs[kk]
+            xq = clip(xq_raw, self.x0[0], self.x0[-1])
+            v = (xq - self.x0[0]) / h
+            ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
+            wx = v - ix
+
+            def levels_of(T):   # the table T at the probe positions, on the level below and the one above
+                return ((1 - wx) * T[kk, il, ix] + wx * T[kk, il, ix + 1],
+                        (1 - wx) * T[kk, il + 1, ix] + wx * T[kk, il + 1, ix + 1])
+            lo, hi = levels_of(C)
+            vals.append((1 - wl) * lo + wl * hi)
+            d_xq = ((1 - wl) * (C[kk, il, ix + 1] - C[kk, il, ix]) + wl * (C[kk, il + 1, ix + 1] - C[kk, il + 1, ix]))
+            inside = (xq_raw >= self.x0[0]) & (xq_raw <= self.x0[-1])
+            out[0] -= wkk * np.where(inside, d_xq / h, 0.0)          # xq = x0 - xs + node: d xq / d xs = -1
+            for j, T in ((1, Cs), (2, CD)):
+                a, b = levels_of(T)
+                out[j] += wkk * ((1 - wl) * a + wl * b)
+            out[3] += wkk * (hi - lo) * du
+        out[0] = sign * (out[0] + (vals[1] - vals[0]) * dwk)
+        return out
 
     def contrast(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
         return self.contrast_many(x0_m, depth_m, [float(xs_m)], stone_depth_m, diam_m)[0]

@@ -55,6 +55,7 @@ class PriorResponse:
             tabs.append(np.array(rows).reshape(len(x), N_NODES))
         self.T = np.stack(tabs)           # (3, n, nodes)
         self._last: tuple[float, np.ndarray] | None = None
+        self._last_slopes: tuple[float, np.ndarray] | None = None
 
     def _rows(self, eta: float) -> np.ndarray:
         """log F rows (n, nodes) at the relative thickness change ``eta`` (quadratic through the three nodes; the
@@ -65,6 +66,44 @@ class PriorResponse:
             w = np.array([0.5 * u * (u - 1), 1 - u * u, 0.5 * u * (u + 1)])
             self._last = (eta, np.tensordot(w, self.T, axes=1))
         return self._last[1]
+
+    def _row_slopes(self, eta: float) -> np.ndarray:
+        """d/d eta of ``_rows(eta)`` (the last eta's kept)."""
+        eta = float(eta)
+        if self._last_slopes is None or self._last_slopes[0] != eta:
+            u = eta / THICKNESS_STEP
+            dw = np.array([u - 0.5, -2.0 * u, u + 0.5]) / THICKNESS_STEP
+            self._last_slopes = (eta, np.tensordot(dw, self.T, axes=1))
+        return self._last_slopes[1]
+
+    def force_slopes(self, depth_m, eta: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """d/d depth and d/d eta of ``force_n`` at each probe (exact for the interpolant; 0 out of contact)."""
+        d = np.asarray(depth_m, float)
+        i, w = _loglog_segment(self.logd, d)
+        n = np.arange(len(d))
+        rows, drows = self._rows(eta), self._row_slopes(eta)
+        F = np.exp((1 - w) * rows[n, i] + w * rows[n, i + 1])
+        step = self.logd[1] - self.logd[0]
+        dF_dd = np.where(d > 1e-7, F * (rows[n, i + 1] - rows[n, i]) / (step * np.maximum(d, 1e-7)), 0.0)
+        dF_deta = np.where(d > 0, F * ((1 - w) * drows[n, i] + w * drows[n, i + 1]), 0.0)
+        return dF_dd, dF_deta
+
+    def depth_at_force_slopes(self, force_n, eta: float = 0.0, idx=None) -> tuple[np.ndarray, np.ndarray]:
+        """d/d log(force) and d/d eta of ``depth_at_force_m`` at each probe (or probe ``idx``)."""
+        rows, drows = self._rows(eta), self._row_slopes(eta)
+        if idx is not None:
+            rows, drows = rows[idx], drows[idx]
+        F = np.asarray(force_n, float)
+        lf = np.log(np.maximum(F, 1e-12))
+        k = clip(np.sum(rows < lf[:, None], axis=1) - 1, 0, len(self.logd) - 2)
+        n = np.arange(len(lf))
+        gap = rows[n, k + 1] - rows[n, k]
+        t = (lf - rows[n, k]) / gap
+        step = self.logd[1] - self.logd[0]
+        d = np.exp(self.logd[k] + t * step)
+        dd_dlf = np.where(F > 1e-12, d * step / gap, 0.0)
+        dd_deta = d * step * (-drows[n, k] - t * (drows[n, k + 1] - drows[n, k])) / gap
+        return dd_dlf, dd_deta
 
     def force_n(self, depth_m, eta: float = 0.0) -> np.ndarray:
         """The prior's force at each probe's true indentation ``depth_m`` (0 where it is not in contact)."""
@@ -81,13 +120,18 @@ def loglog_force(rows: np.ndarray, logd: np.ndarray, depth_m) -> np.ndarray:
     """Force at ``depth_m`` (one per row) from rows of log force on the even log-depth nodes ``logd``: linear in
     (log depth, log force), extrapolated the same way beyond the nodes; 0 where the depth is not positive."""
     d = np.asarray(depth_m, float)
-    step = logd[1] - logd[0]
-    u = (np.log(np.maximum(d, 1e-7)) - logd[0]) / step
-    i = clip(np.floor(u).astype(int), 0, len(logd) - 2)
-    w = u - i                                            # outside [0, 1] at the ends: linear extrapolation
+    i, w = _loglog_segment(logd, d)
     n = np.arange(len(d))
     lf = (1 - w) * rows[n, i] + w * rows[n, i + 1]
     return np.where(d > 0, np.exp(lf), 0.0)
+
+
+def _loglog_segment(logd: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The log-depth segment of each depth and the weight of its upper node (outside [0, 1] at the ends: linear
+    extrapolation)."""
+    u = (np.log(np.maximum(d, 1e-7)) - logd[0]) / (logd[1] - logd[0])
+    i = clip(np.floor(u).astype(int), 0, len(logd) - 2)
+    return i, u - i
 
 
 def loglog_depth(rows: np.ndarray, logd: np.ndarray, force_n) -> np.ndarray:

@@ -24,3 +24,17 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in REALTIME_FILES:
             item.add_marker(pytest.mark.realtime)
+
+
+@pytest.fixture(scope="session")
+def paper_prior():
+    """The paper scene's prior (no stones): what the localizer is given."""
+    from fem.scene import load
+    return load("paper").prior()
+
+
+@pytest.fixture(scope="session")
+def paper_surrogate(paper_prior):
+    """Its contrast table (the shipped one: tests/test_finite_strain_localize.py checks it is today's)."""
+    from planner.surrogate import load_surrogate
+    return load_surrogate(paper_prior)

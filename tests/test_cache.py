@@ -106,3 +106,31 @@ def test_unwritable_directory_only_warns(tmp_path, monkeypatch):
     with pytest.warns(UserWarning, match="could not write"):
         sm = contact.surface_model(_scene("healthy"))
     assert sm.force_n(0.035, 0.004) > 0
+
+
+def test_a_restored_3d_compliance_is_memory_mapped_and_gives_the_fresh_forces(cdir):
+    """The 3D compliance (dense, 0.5 GB on block3d) is read memory-mapped: a run reads the rows of the windows it
+    probes. The forces are the fresh model's bit for bit; a damaged entry is rebuilt; a non-finite number in an entry
+    never leaves fem (the force that reads it raises)."""
+    from fem import contact3d
+    small = S.Scene(name="t", tissue=S.Tissue(width_m=0.03, length_m=0.03, height_m=0.015, youngs_pa=2500.0,
+                                              poisson=0.4),
+                    indenter=S.Indenter(shape="sphere", radius_m=0.004),
+                    analysis=S.Analysis(order=2, mesh_size_m=0.006, surface_refine=4.0, patch_m=0.02,
+                                        top_displacement_m=0.001))
+    fresh = contact3d.load_or_build_surface3d(small, {})
+    restored = contact3d.load_or_build_surface3d(small, {})
+    assert isinstance(restored.C.base, np.memmap) and not restored.C.flags.writeable
+    pts = [(0.015, 0.015, 0.001), (0.011, 0.017, 0.0015), (0.019, 0.012, 0.0005)]
+    assert [restored.force_n(*p) for p in pts] == [fresh.force_n(*p) for p in pts]
+    path = next(cdir.glob("surface3d-*.npz"))
+    path.write_bytes(path.read_bytes()[:1000])                     # truncated
+    with pytest.warns(UserWarning, match="palpate cache: ignoring"):
+        again = contact3d.load_or_build_surface3d(small, {})
+    assert [again.force_n(*p) for p in pts] == [fresh.force_n(*p) for p in pts]
+    C = np.array(fresh.C)
+    C[:] = np.nan
+    diskcache.write(path, {"C": C})
+    poisoned = contact3d.load_or_build_surface3d(small, {})
+    with pytest.raises(FloatingPointError):
+        poisoned.force_n(*pts[0])
