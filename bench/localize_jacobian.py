@@ -37,7 +37,7 @@ def compare(run_dir: Path, repeats: int) -> dict:
     prior = load(scene).prior()
     sur = load_surrogate(prior)
     meas = L.Measurements.from_records(read_records(run_dir), statuses=("ok", "force_limit"))
-    times, locs = {m: [] for m in MODES}, {}
+    times, locs, before = {m: [] for m in MODES}, {}, L.JACOBIAN
     try:
         for _ in range(repeats):
             for m in MODES:
@@ -47,7 +47,7 @@ def compare(run_dir: Path, repeats: int) -> dict:
                 locs[m] = L.localize(prior, meas, sur, profile=True)
                 times[m].append(time.perf_counter() - t)
     finally:
-        L.JACOBIAN = "analytic"
+        L.JACOBIAN = before
         L._LAST_FIT.clear()
     fd, an = locs["2-point"], locs["analytic"]
     med = {m: statistics.median(v) for m, v in times.items()}

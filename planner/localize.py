@@ -353,9 +353,10 @@ class _Forward:
     def force_jac(self, p, nu) -> np.ndarray:
         """d forces / d(xs_mm, log s_mm, D_mm, *NUISANCE) at each probe for the stone ``_stone(p)`` (None: no stone,
         its columns 0): (n probes, 3 + len(NUISANCE))."""
-        d = self.depth(nu)
+        surf = (nu[2], nu[3])                   # the parts ``forces`` computed at this point, from its memo
+        d = self._memo("depth", surf, lambda: self.depth(nu))
         K = math.exp(nu[1])
-        B = self.resp.force_n(d, nu[4])                 # the force before the scale and the finite-strain factor
+        B = self._memo("prior", (*surf, nu[4]), lambda: self.resp.force_n(d, nu[4]))   # before scale and stiffening
         B_d, B_eta = self.resp.force_slopes(d, nu[4])
         g = g_d = 0.0
         if self.fs is not None:
@@ -364,7 +365,7 @@ class _Forward:
         J = np.zeros((len(self.meas), 3 + len(NUISANCE)))
         if p is not None:
             stone = _stone(p)
-            B = B + self.contrast(stone, d, nu[4])
+            B = B + self._memo("contrast", (*stone, *surf, nu[4]), lambda: self.contrast(stone, d, nu[4]))
             S = self.contrast_slopes(stone, d, nu[4])
             J[:, :3] = ((K * st) * np.array([1e-3 * S[0], S[1], 1e-3 * S[2]])).T
             B_d, B_eta = B_d + S[3], B_eta + S[4]
@@ -412,6 +413,8 @@ def _jac(fw: _Forward, sig, p, nu) -> np.ndarray:
 def _jac_or_fd(jac):
     """The Jacobian least_squares is given: ``jac`` (closed form), or its own finite differences when ``JACOBIAN``
     says so (the previous method, kept to compare against: bench/localize_jacobian.py)."""
+    if JACOBIAN not in ("analytic", "2-point"):
+        raise ValueError(f"planner.localize.JACOBIAN = {JACOBIAN!r}: 'analytic' or '2-point'")
     return jac if JACOBIAN == "analytic" else "2-point"
 
 
@@ -677,16 +680,16 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
 
             def jac_held(qh, a=nu[5]):
                 return jac(np.append(qh, a))[:, :-1] if held else jac(qh)
-            sol = least_squares(resid_held, q0[:k_fit], jac=_jac_or_fd(jac_held), bounds=(np.concatenate([lo, nlo])[:k_fit],
-                                                                 np.concatenate([hi, nhi])[:k_fit]),
+            sol = least_squares(resid_held, q0[:k_fit], jac=_jac_or_fd(jac_held),
+                                bounds=(np.concatenate([lo, nlo])[:k_fit], np.concatenate([hi, nhi])[:k_fit]),
                                 x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:k_fit],
                                 diff_step=1e-4, max_nfev=300)
             if best is None or sol.cost < best.cost:
                 best, a_best = sol, nu[5]
     fs_gain = float("nan")
     if held:
-        best = least_squares(resid, np.append(best.x, a_best), jac=_jac_or_fd(jac), bounds=(np.concatenate([lo, nlo]),
-                                                                         np.concatenate([hi, nhi])),
+        best = least_squares(resid, np.append(best.x, a_best), jac=_jac_or_fd(jac),
+                             bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
                              x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
                              max_nfev=300)
     chi2_1 = 2.0 * best.cost

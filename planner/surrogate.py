@@ -236,9 +236,13 @@ def _lagrange4(nodes: np.ndarray, u: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _lagrange4_slope(nodes: np.ndarray, u: float) -> np.ndarray:
-    """d/du of ``_lagrange4``'s weights at u (0 outside the nodes' range, where the weights are held)."""
-    if not nodes[0] <= u <= nodes[-1]:
+    """d/du of ``_lagrange4``'s weights at u: 0 outside the nodes' range, where the weights are held; at an end, and
+    within round-off of it (a fit at its bound there: s = (s + D/2) - D/2 may land a hair outside), the slope
+    inwards."""
+    tol = 1e-9 * (nodes[-1] - nodes[0])
+    if not nodes[0] - tol <= u <= nodes[-1] + tol:
         return np.zeros(4)
+    u = min(max(u, nodes[0]), nodes[-1])
     i = min(max(int(np.searchsorted(nodes, u)) - 2, 0), len(nodes) - 4)
     st = nodes[i:i + 4]
     dw = np.zeros(4)
@@ -307,7 +311,7 @@ class Surrogate:
             dw_s, dw_d = _lagrange4_slope(self.logs, float(np.log(s))), _lagrange4_slope(self.diam, diam_m)
             T = self.T[np.ix_(i_s, i_d)]
             v = (np.einsum("i,j,ijkln->kln", dw_s, w_d, T), np.einsum("i,j,ijkln->kln", w_s, dw_d, T))
-            if len(self._slopes) >= 512:
+            if len(self._slopes) >= 32:       # (a fit's Jacobians rarely revisit an (s, D): 95 kB each)
                 self._slopes.clear()
             self._slopes[key] = v
         return v
@@ -328,7 +332,7 @@ class Surrogate:
         k = min(max(int(np.searchsorted(self.xs, xs)) - 1, 0), len(self.xs) - 2)
         t = (xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k])
         wk = min(max(t, 0.0), 1.0)
-        dwk = 1.0 / (self.xs[k + 1] - self.xs[k]) if 0.0 <= t <= 1.0 else 0.0
+        dwk = 1.0 / (self.xs[k + 1] - self.xs[k]) if -1e-9 <= t <= 1.0 + 1e-9 else 0.0     # (inwards at an end)
         lev = self.levels
         u = clip(np.interp(d, lev, np.arange(len(lev))), 0, len(lev) - 1)
         il = np.minimum(np.floor(u).astype(int), len(lev) - 2)

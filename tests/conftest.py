@@ -35,6 +35,6 @@ def paper_prior():
 
 @pytest.fixture(scope="session")
 def paper_surrogate(paper_prior):
-    """Its contrast table (the shipped one: tests/test_finite_strain_localize.py checks it is today's)."""
+    """Its contrast table (shipped in planner/data, checked against today's fem by its fingerprint)."""
     from planner.surrogate import load_surrogate
     return load_surrogate(paper_prior)

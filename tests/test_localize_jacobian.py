@@ -21,9 +21,10 @@ from tests.test_localize import ToySurrogate, synth
 
 
 def _meas(n=25, seed=3):
-    """Probes anywhere on the section, 2-7.5 mm deep (the table's levels end at 4 mm), with contact onsets."""
+    """Probes anywhere on the section (also nearer a side than the table's probe positions reach), 2-7.5 mm deep
+    (the table's levels end at 4 mm), with contact onsets."""
     rng = np.random.default_rng(seed)
-    x = np.sort(rng.uniform(0.004, 0.066, n))
+    x = np.sort(np.r_[rng.uniform(0.0005, 0.004, 3), rng.uniform(0.004, 0.066, n - 6), rng.uniform(0.066, 0.0695, 3)])
     return L.Measurements(x, rng.uniform(0.002, 0.0075, n), rng.uniform(0.05, 0.3, n), np.full(n, 1e-3),
                           rng.uniform(2, 9, n), np.arange(n), rng.uniform(3e-4, 8e-4, n), np.full(n, 0.008))
 
@@ -124,20 +125,16 @@ def test_the_pieces_slopes_are_their_derivatives(paper_prior, paper_surrogate):
     assert np.abs(g.slope(dd) - (g.g(dd + 1e-9) - g.g(dd - 1e-9)) / 2e-9).max() < 1e-5 * np.abs(g.slope(dd)).max()
 
 
-def _both(paper_prior, meas, paper_surrogate, **kw):
+def _both(monkeypatch, prior, meas, sur, **kw):
     out = {}
     for mode in ("2-point", "analytic"):
-        L.JACOBIAN = mode
-        L._LAST_FIT.clear()
-        try:
-            out[mode] = L.localize(paper_prior, meas, paper_surrogate, **kw)
-        finally:
-            L.JACOBIAN = "analytic"
-            L._LAST_FIT.clear()
+        monkeypatch.setattr(L, "JACOBIAN", mode)
+        monkeypatch.setattr(L, "_LAST_FIT", {})
+        out[mode] = L.localize(prior, meas, sur, **kw)
     return out["2-point"], out["analytic"]
 
 
-def test_the_fits_agree_with_the_finite_difference_fits(paper_prior, paper_surrogate):
+def test_the_fits_agree_with_the_finite_difference_fits(monkeypatch, paper_prior, paper_surrogate):
     """The same fits on scipy's finite differences (the previous method): a mismatch-study trial's records (a stone
     near an end under a tilted surface, tissue softer and thinner) and a synthetic paper-table stone; the estimates
     agree to a small fraction of their uncertainty and the closed form's chi2 is no worse."""
@@ -148,7 +145,7 @@ def test_the_fits_agree_with_the_finite_difference_fits(paper_prior, paper_surro
     cases = [(meas, stone["x_m"]),
              (synth(paper_prior, Stone(x_m=0.041, depth_m=0.018, diameter_m=0.010), x, sigma=5e-4, seed=2, sur=paper_surrogate), 0.041)]
     for meas, x_true in cases:
-        fd, an = _both(paper_prior, meas, paper_surrogate, profile=True)
+        fd, an = _both(monkeypatch, paper_prior, meas, paper_surrogate, profile=True)
         assert an.detected and fd.detected
         assert an.chi2_1 <= fd.chi2_1 * (1 + 1e-6) + 1e-6, (an.chi2_1, fd.chi2_1)
         assert abs(an.lr - fd.lr) <= 1e-3 * fd.lr + 0.5
@@ -159,3 +156,24 @@ def test_the_fits_agree_with_the_finite_difference_fits(paper_prior, paper_surro
         for lvl in ("68", "95"):
             assert np.allclose(an.depth_interval_m[lvl], fd.depth_interval_m[lvl], atol=0.05 * fd.sigma_depth_m)
         assert abs(an.x_m - x_true) < 3 * an.sigma_x_m + 1e-3
+
+
+def test_at_the_tables_ends_the_slopes_point_inwards(paper_surrogate):
+    """A fit at a bound of the table (the smallest clearance, the first or last stone position) must see the
+    parameter's effect: s = (s + D/2) - D/2 can land a hair outside the table, where the interpolant is held. The
+    slope there is the inward one (a zero column would give that parameter no variance)."""
+    sur = paper_surrogate
+    x0, d = np.linspace(0.004, 0.066, 25) + 1.23e-4, np.full(25, 0.003)      # off the table's probe grid
+    s0, xs0, xs1 = sur.s[0], sur.bounds["xs_m"][0], sur.bounds["xs_m"][1]
+    outside = 0
+    for D in np.linspace(sur.diam[0], sur.diam[-1], 40):
+        dep = s0 + 0.5 * D
+        outside += (dep - 0.5 * D) < s0
+        S = sur.contrast_slopes(x0, d, 0.03, dep, D)
+        inward = (sur.contrast(x0, d, 0.03, s0 * math.exp(1e-6) + 0.5 * D, D) - sur.contrast(x0, d, 0.03, dep, D)) / 1e-6
+        assert np.abs(S[1] - inward).max() < 1e-4 * np.abs(inward).max(), D
+    assert outside > 0                   # the round-off case occurs among these diameters
+    for xs, step in ((xs0, 1e-8), (np.nextafter(xs0, 0.0), 1e-8), (xs1, -1e-8), (np.nextafter(xs1, 1.0), -1e-8)):
+        S = sur.contrast_slopes(x0, d, xs, 0.02, 0.01)
+        inward = (sur.contrast(x0, d, xs + step, 0.02, 0.01) - sur.contrast(x0, d, xs, 0.02, 0.01)) / step
+        assert np.abs(S[0] - inward).max() < 1e-5 * np.abs(inward).max(), xs
