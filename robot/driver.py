@@ -52,7 +52,7 @@ from core.contracts import (
     RunStatus,
 )
 from robot.forcesource import ForceSource, RtdeForce
-from robot.link import BLOCKING_CALLS, CallTimeout, CallWorker, deadline_for
+from robot.link import BLOCKING_CALLS, UR_READY_TIMEOUT_S, CallTimeout, CallWorker, deadline_for
 from robot.netft import SensorFault
 from robot.records import RunLog, done_indices, summarise
 from robot.recovery import ProbeFault, Recovery
@@ -314,6 +314,8 @@ class Driver(Recovery):
         self.link_dead: str = ""        # why the link is taken for silent (a command got no answer)
         self.worker = CallWorker()      # every waiting ur_rtde call, one at a time, each with a deadline
         self.last_kick_ts = None        # controller time of the last accepted watchdog kick
+        self.program_ended_ts = None    # controller time by which the driver found its control program ended (None:
+                                        # running as far as it knows); whose stop it was is judged at this time
         self.normal = tuple(float(v) for v in self.tf.normal)
         # a simulator's look-ahead (robot.sim): quiet periods many at once; with the wrist sensor only (an external
         # sensor's readings come from elsewhere)
@@ -348,21 +350,32 @@ class Driver(Recovery):
         except RuntimeError as e:
             raise ProbeFault(FaultKind.CONNECTION_LOST, f"{name}: {e}") from None
 
-    def _require(self, ok, what: str, program: bool = False) -> None:
+    def _require(self, ok, what: str, program: bool = False, sent_ts: float | None = None) -> None:
         """A command's bool must be True. If not, say why: a protective stop (the receive data may lag the control
         interface's by a period or two, so it is watched for a few periods), a link down or silent (ur_rtde's
-        control interface may notice a silent link first, and refuse), or else the command failed."""
+        control interface may notice a silent link first, and refuse), for a command that needs the control program
+        (``program``) an operator's stop of it (not its watchdog's), or else the command failed. ``sent_ts``: the
+        controller time of the last reading before the refused call, if it was made directly (a kick)."""
         if ok is True:
             return
         ts0 = self._call(self.r.getTimestamp)
+        if program and self._call(self.c.isProgramRunning) is False:
+            # ended by the refusal: whose stop it was is judged at that time, not after the wait below. A call
+            # refused only after ur_rtde's ready time-out (UR_READY_TIMEOUT_S) waited for a script that never got
+            # ready again: the program ended within a cycle of the call (at ``sent_ts``), not seconds later
+            spun = isinstance(sent_ts, (int, float)) and isinstance(ts0, (int, float)) and \
+                ts0 - sent_ts >= UR_READY_TIMEOUT_S
+            self._note_program_ended(sent_ts if spun else ts0)
         for k in range(self.cfg.stale_periods):
             if self._call(self.r.isProtectiveStopped) is True:
                 raise ProbeFault(FaultKind.PROTECTIVE_STOP, f"{what} refused: the controller is protective-stopped")
             if not (self._connected(self.c) and self._connected(self.r)):
                 raise ProbeFault(FaultKind.CONNECTION_LOST, f"{what} returned {ok!r}: ur_rtde reports no connection")
             if k >= 10 and self._call(self.r.getTimestamp) != ts0:
-                if program and self._call(self.c.isProgramRunning) is False and not self._watchdog_may_have_fired():
-                    raise ProbeFault(FaultKind.PROGRAM_STOPPED, PROGRAM_STOPPED_BY_OPERATOR)
+                if program and self._call(self.c.isProgramRunning) is False:
+                    self._note_program_ended(self._call(self.r.getTimestamp))    # (if it ended while waiting here)
+                    if not self._watchdog_may_have_fired():
+                        raise ProbeFault(FaultKind.PROGRAM_STOPPED, PROGRAM_STOPPED_BY_OPERATOR)
                 raise ProbeFault(FaultKind.COMMAND_FAILED, f"{what} returned {ok!r}")
             self._call(self.c.waitPeriod, self._call(self.c.initPeriod))
         self.stale = self.cfg.stale_periods          # safe_state: a silent link, send nothing
@@ -530,16 +543,19 @@ class Driver(Recovery):
             raise ProbeFault(FaultKind.PROTECTIVE_STOP, "the arm is protective-stopped: clear it on the pendant first")
         self.watchdog_on = False
         if self._call(c.isProgramRunning) is not True:
+            # found ended now, unless a refused call found it before (safe_state after such a fault)
+            self._note_program_ended(self._call(self.r.getTimestamp))
             if not self._watchdog_may_have_fired():
                 raise ProbeFault(FaultKind.PROGRAM_STOPPED, PROGRAM_STOPPED_BY_OPERATOR)
             self._require(self._call(c.reuploadScript), "reuploadScript")
             self._loop(5.0, lambda s: True if self._call(c.isProgramRunning) is True else None, strict=False,
                        what="restart of the control script")
             self.program_restarts += 1
-        self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp")
-        self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload")
+        self.program_ended_ts = None
+        self._require(self._call(c.setTcp, list(self.plan.frames.tcp_offset)), "setTcp", program=True)
+        self._require(self._call(c.setPayload, cfg.payload_kg, list(cfg.payload_cog_m)), "setPayload", program=True)
         if self.watchdog_hz > 0:
-            self._require(self._call(c.setWatchdog, self.watchdog_hz), "setWatchdog")
+            self._require(self._call(c.setWatchdog, self.watchdog_hz), "setWatchdog", program=True)
             self.watchdog_on = True
 
     def _kick(self) -> None:
@@ -552,16 +568,23 @@ class Driver(Recovery):
             if ok is True:
                 self.last_kick_ts = self.ts
                 return
-            self._require(ok, "kickWatchdog (the control program has stopped)", program=True)
+            self._require(ok, "kickWatchdog (the control program has stopped)", program=True, sent_ts=self.ts)
+
+    def _note_program_ended(self, seen_ts) -> None:
+        """The control program was found ended by controller time ``seen_ts`` (the first finding counts)."""
+        if self.program_ended_ts is None:
+            self.program_ended_ts = seen_ts
 
     def _watchdog_may_have_fired(self) -> bool:
         """Could the program have been ended by its RTDE watchdog (no accepted kick for 1/rate of controller
         time), rather than by an operator (the pendant's or the dashboard's stop, local control)? Only then may the
-        driver upload it again."""
+        driver upload it again. Judged at the time the driver found it ended (``_note_program_ended``), not now:
+        a fault's report, a refused kick's wait in ur_rtde or the safe state come later, and by then any stop
+        would look like the watchdog's."""
         if self.last_kick_ts is None or self.watchdog_hz <= 0:
             return True
-        now = self._call(self.r.getTimestamp)
-        return not isinstance(now, (int, float)) or now - self.last_kick_ts >= 1.0 / self.watchdog_hz - 0.01
+        seen = self.program_ended_ts
+        return not isinstance(seen, (int, float)) or seen - self.last_kick_ts >= 1.0 / self.watchdog_hz - 0.01
 
     def _stop(self) -> None:
         self._call(self.c.stopL, self.cfg.stop_decel_m_s2)
@@ -572,7 +595,7 @@ class Driver(Recovery):
         dist = math.dist(start[:3], pose[:3])
         self._link_up(f"moveL ({what})")
         before = self._call(self.c.getAsyncOperationProgress)
-        self._require(self._call(self.c.moveL, list(pose), speed, accel, True), f"moveL ({what})")
+        self._require(self._call(self.c.moveL, list(pose), speed, accel, True), f"moveL ({what})", program=True)
         timeout = self.cfg.timeout_factor * _move_time(dist, speed, accel) + self.cfg.timeout_margin_s
         state = {"started": False, "idle": 0}
 
@@ -612,10 +635,12 @@ class Driver(Recovery):
         self.phase = FREE
         self._wait(self.cfg.settle_s)
         self._link_up("zeroFtSensor")
+        rtde = self.fs.name == "rtde"           # zeroFtSensor: a command of the control program
         self._require(self._sensor(self.fs.zero, self._call),
-                      "zeroFtSensor" if self.fs.name == "rtde" else f"zeroing the {self.fs.name} sensor")
+                      "zeroFtSensor" if rtde else f"zeroing the {self.fs.name} sensor", program=rtde)
         if self.backstop:           # the wrist sensor too: it is the backstop
-            self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor (the wrist sensor: the backstop)")
+            self._require(self._call(self.c.zeroFtSensor), "zeroFtSensor (the wrist sensor: the backstop)",
+                          program=True)
             self.wrist_filt.clear()
         self.filt.clear()
         self._wait(self.cfg.settle_s)

@@ -14,6 +14,11 @@ SLOW_COMMAND_TIMEOUT_S = 10.0   # reuploadScript, reconnect, stopScript: ur_rtde
 # KICK_BOUND_S: that bound, ur_rtde's UR_GET_READY_TIMEOUT (3 s) and one reconnect attempt (measured 4.0 s once in a
 # partition drill, 2026-11-26); meanwhile no kick reaches the controller, whose RTDE watchdog stops the arm.
 KICK_BOUND_S = 5.0
+# ur_rtde 1.6.5's UR_GET_READY_TIMEOUT: a command or kick first waits for the control script's "ready for a command"
+# state, which a running script shows again a cycle after the previous command's end; the wait ends in a refusal
+# only after this (4 s: ur_rtde counts whole seconds), e.g. when the program stops in that cycle. A refusal for a
+# program already stopped comes at once.
+UR_READY_TIMEOUT_S = 3.0
 BLOCKING_CALLS = frozenset({"moveL", "moveJ", "stopL", "stopJ", "speedStop", "zeroFtSensor", "setTcp", "setPayload",
                             "setWatchdog", "reuploadScript", "reconnect", "stopScript", "disconnect",
                             "triggerProtectiveStop"})

@@ -552,6 +552,9 @@ def main(argv=None) -> int:
         ap.error(f"--inject: {e}")
     ctl.arm = build_truth_arm(a.scene, force=a.force, sensor=a.sensor, seed=a.seed, tissue_pose=a.tissue_pose,
                               q0=a.q0, mesh_m=a.mesh_m, inject=a.inject, tool_offset=a.tool)
+    # gmsh.initialize (a mesh built here: a cold cache) sets SIGPIPE back to its default, which ends the process on
+    # a data packet sent as a client vanishes; a controller outlives its clients (a failed send closes that one)
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
     for f in faults:
         if f.on_controller:
             ctl.schedule(f)

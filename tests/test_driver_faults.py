@@ -149,6 +149,75 @@ def test_watchdog_stop_while_at_rest_restarts_the_program(tmp_path, monkeypatch)
     assert max(rec.force_peak_n for rec in read_records(tmp_path)) < 2.0
 
 
+def _operator_stop_in_flight(arm, c, call: str, after_zeros: int = 3):
+    """An operator stops the control program (the pendant's or the dashboard's stop) at rest before probe 1 while
+    the driver's ur_rtde call ``call`` is in flight (after ``after_zeros`` zeroings: set-up, probe 0, probe 1):
+    ``zeroFtSensor`` is refused at once; ``kickWatchdog`` -- the kick right after that zeroing, which ur_rtde holds
+    until the program's script is ready for a command again -- is refused only at ur_rtde's ready time-out (3-4 s
+    of waiting, stepped here), since a stopped script never gets ready. Returns the controller times of every
+    reuploadScript (the driver must not restart what an operator stopped)."""
+    zero, kick, upload = c.zeroFtSensor, c.kickWatchdog, c.reuploadScript
+    n, uploads = [0], []
+
+    def zeroFtSensor():
+        n[0] += 1
+        if call == "zeroFtSensor" and n[0] == after_zeros:
+            arm.stop_program()
+        return zero()
+
+    def kickWatchdog():
+        if call == "kickWatchdog" and n[0] == after_zeros and arm.program_running:
+            arm.stop_program()
+            for _ in range(int(4.0 / arm.period_s)):      # ur_rtde waits for the script's ready state
+                arm.step()
+            return False
+        return kick()
+
+    def reuploadScript():
+        uploads.append(arm.t_s)
+        return upload()
+    c.zeroFtSensor, c.kickWatchdog, c.reuploadScript = zeroFtSensor, kickWatchdog, reuploadScript
+    return uploads
+
+
+@pytest.mark.parametrize("call", ["zeroFtSensor", "kickWatchdog"])
+def test_operator_stop_racing_a_call_is_program_stopped(tmp_path, call):
+    """The fault drill program-stop-rest through the real client on a loaded machine (app/faultdrill.py): the
+    operator's stop met a call in flight and was reported as command_failed -- the refused zeroFtSensor was not
+    checked against the program's state, and a kick refused after ur_rtde's 4 s wait was judged by the time it came
+    back, long enough for the watchdog, so the safe state even uploaded the program again. It is program_stopped,
+    and the program stays stopped: the motion stopped, the records kept, no retract (no program to run one)."""
+    arm, c, r = make_sim()
+    uploads = _operator_stop_in_flight(arm, c, call)
+    rep = run(tmp_path, c, r, config=DriverConfig(fast_forward=False))    # every period's kick through ur_rtde
+    check_safe_end(rep, arm, tmp_path, "program_stopped", retracted=False)
+    assert uploads == [] and rep.program_restarts == 0 and not arm.program_running, uploads
+    assert "not by its watchdog" in rep.fault["message"]
+
+
+def test_watchdog_stop_met_by_a_kick_is_not_taken_for_an_operator(tmp_path):
+    """The other side of the test above: the host held up for 0.5 s at rest just before a kick (probe 1's zeroing),
+    so the watchdog did end the program; the refused kick cannot be an operator's stop, and the safe state uploads
+    the program again (as between probes) and checks the tip."""
+    arm, c, r = make_sim()
+    zero, kick, n = c.zeroFtSensor, c.kickWatchdog, [0]
+
+    def zeroFtSensor():
+        n[0] += 1
+        return zero()
+
+    def kickWatchdog():
+        if n[0] == 3 and arm.program_running:
+            for _ in range(int(0.5 / arm.period_s)):      # no input from the host meanwhile
+                arm.step()
+        return kick()
+    c.zeroFtSensor, c.kickWatchdog = zeroFtSensor, kickWatchdog
+    rep = run(tmp_path, c, r, config=DriverConfig(fast_forward=False))
+    assert arm.watchdog_fired_s is not None
+    assert rep.fault["kind"] == "command_failed" and "kickWatchdog" in rep.fault["message"], rep.fault
+    assert rep.program_restarts == 1 and rep.fault["retracted"] and not arm.is_moving
+
+
 def test_transient_disconnect_reconnects_and_retracts(tmp_path):
     arm, c, r = make_sim()
     arm.inject("disconnect", when=at_probe(1, 0.001), reconnectable=True)

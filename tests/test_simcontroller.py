@@ -11,10 +11,12 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import signal
 import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -69,6 +71,18 @@ def clients(host):
     finally:
         c.disconnect()
         r.disconnect()
+
+
+def test_controller_outlives_its_clients_after_meshing(scene_file, tmp_path, monkeypatch):
+    """A controller that meshed its scene (a cold cache: gmsh sets SIGPIPE back to its default) still ignores
+    SIGPIPE: a packet sent to a client that just vanished must not end it (the fault drills then found no controller
+    to ask how the motion ended: exit -13 after the cell's exit, several times in 40 loaded runs)."""
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path / "cold-cache"))
+    with controller(scene_file, tmp_path) as ctl:
+        status = (Path("/proc") / str(ctl.proc.pid) / "status").read_text()
+        ignored = int(next(ln for ln in status.splitlines() if ln.startswith("SigIgn:")).split()[1], 16)
+        assert ignored & (1 << (signal.SIGPIPE - 1)), hex(ignored)
+        assert "physics ready" in (tmp_path / "controller.log").read_text()
 
 
 def test_watchdog_stops_program_and_motion_when_inputs_stop(scene_file, tmp_path):
