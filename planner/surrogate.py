@@ -321,46 +321,30 @@ class Surrogate:
         the log of its clearance s = stone_depth_m - diam_m / 2 (the table's own variable), its diameter at fixed
         clearance, and the probe's depth. Exact for the interpolant (linear in xs, probe position and depth, cubic
         Lagrange in log s and diameter), one-sided at its nodes; 0 where the interpolant holds a clamped value."""
-        x0 = np.asarray(x0_m, float)
-        d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
+        st = _Stencil.of(self, x0_m, depth_m, [float(xs_m)])
         s = stone_depth_m - 0.5 * diam_m
         C = self._slice(max(s, 1e-6), float(diam_m))
         Cs, CD = self._slice_slopes(max(s, 1e-6), float(diam_m)) if s > 1e-6 else (0.0 * C, 0.0 * C)
-        xs, sign = float(xs_m), 1.0
-        if xs > 0.5 * self.W:                       # mirror image: xs -> W - xs, x0 -> W - x0
-            xs, sign, x0 = self.W - xs, -1.0, self.W - x0
-        k = min(max(int(np.searchsorted(self.xs, xs)) - 1, 0), len(self.xs) - 2)
-        t = (xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k])
-        wk = min(max(t, 0.0), 1.0)
-        dwk = 1.0 / (self.xs[k + 1] - self.xs[k]) if -1e-9 <= t <= 1.0 + 1e-9 else 0.0     # (inwards at an end)
+        t = float(st.t[0])
+        dk = self.xs[st.k[0] + 1] - self.xs[st.k[0]]
+        dwk = 1.0 / dk if -1e-9 <= t <= 1.0 + 1e-9 else 0.0          # (inwards at an end)
         lev = self.levels
-        u = clip(np.interp(d, lev, np.arange(len(lev))), 0, len(lev) - 1)
-        il = np.minimum(np.floor(u).astype(int), len(lev) - 2)
-        wl = u - il
-        du = np.where((d >= lev[0]) & (d <= lev[-1]), 1.0 / (lev[il + 1] - lev[il]), 0.0)
+        du = np.where((st.d >= lev[0]) & (st.d <= lev[-1]), 1.0 / (lev[st.il + 1] - lev[st.il]), 0.0)
         h = self.x0[1] - self.x0[0]
-        out = np.zeros((4, len(x0)))
+        out = np.zeros((4, len(st.d)))
         vals = []
-        for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
-            xq_raw = x0 - xs + self.xs[kk]
-            xq = clip(xq_raw, self.x0[0], self.x0[-1])
-            v = (xq - self.x0[0]) / h
-            ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
-            wx = v - ix
-
-            def levels_of(T):   # the table T at the probe positions, on the level below and the one above
-                return ((1 - wx) * T[kk, il, ix] + wx * T[kk, il, ix + 1],
-                        (1 - wx) * T[kk, il + 1, ix] + wx * T[kk, il + 1, ix + 1])
-            lo, hi = levels_of(C)
-            vals.append((1 - wl) * lo + wl * hi)
-            d_xq = ((1 - wl) * (C[kk, il, ix + 1] - C[kk, il, ix]) + wl * (C[kk, il + 1, ix + 1] - C[kk, il + 1, ix]))
+        for kk, wkk, xq_raw, ix, wx in st.nodes():
+            lo, hi = st.levels_of(C, kk, ix, wx)
+            vals.append(((1 - st.wl) * lo + st.wl * hi)[0])
+            kr, il, wl = kk[:, None], st.il, st.wl
+            d_xq = ((1 - wl) * (C[kr, il, ix + 1] - C[kr, il, ix]) + wl * (C[kr, il + 1, ix + 1] - C[kr, il + 1, ix]))
             inside = (xq_raw >= self.x0[0]) & (xq_raw <= self.x0[-1])
-            out[0] -= wkk * np.where(inside, d_xq / h, 0.0)          # xq = x0 - xs + node: d xq / d xs = -1
+            out[0] -= wkk[0] * np.where(inside, d_xq / h, 0.0)[0]         # xq = x0 - xs + node: d xq / d xs = -1
             for j, T in ((1, Cs), (2, CD)):
-                a, b = levels_of(T)
-                out[j] += wkk * ((1 - wl) * a + wl * b)
-            out[3] += wkk * (hi - lo) * du
-        out[0] = sign * (out[0] + (vals[1] - vals[0]) * dwk)
+                a, b = st.levels_of(T, kk, ix, wx)
+                out[j] += wkk[0] * ((1 - wl) * a + wl * b)[0]
+            out[3] += wkk[0] * (hi - lo)[0] * du
+        out[0] = (-1.0 if st.mirror[0] else 1.0) * (out[0] + (vals[1] - vals[0]) * dwk)
         return out
 
     def contrast(self, x0_m, depth_m, xs_m: float, stone_depth_m: float, diam_m: float) -> np.ndarray:
@@ -368,31 +352,62 @@ class Surrogate:
 
     def contrast_many(self, x0_m, depth_m, xs_m, stone_depth_m: float, diam_m: float) -> np.ndarray:
         """``contrast`` for stones at each of the positions ``xs_m`` (same depth and size): (len(xs_m), n probes)."""
+        st = _Stencil.of(self, x0_m, depth_m, xs_m)
+        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))   # (nxs, nlev, nx0)
+        out = np.zeros((len(st.k), len(st.d)))
+        for kk, wkk, _, ix, wx in st.nodes():
+            lo, hi = st.levels_of(C, kk, ix, wx)
+            out += wkk[:, None] * ((1 - st.wl) * lo + st.wl * hi)
+        return out
+
+
+@dataclass(frozen=True)
+class _Stencil:
+    """Where the probes (x0, depth) and the stones' positions fall in the table: the two neighbouring stone-position
+    nodes and their weights, the depth levels, and per node the probe-position cells. Stones right of the middle
+    are taken as their mirror images (the probes mirrored with them). ``contrast_many`` sums the table over it,
+    ``contrast_slopes`` differentiates the same sum."""
+    sur: Surrogate
+    xs: np.ndarray           # the stones' positions, mirrored into the left half
+    mirror: np.ndarray       # which were mirrored
+    X0: np.ndarray           # (n stones, n probes): probe positions, mirrored with their stone
+    k: np.ndarray            # the stone-position node below each stone
+    t: np.ndarray            # its weight towards the node above, before clamping to [0, 1]
+    d: np.ndarray            # probe depths
+    il: np.ndarray           # the level below each depth
+    wl: np.ndarray           # the weight of the level above (clamped)
+
+    @staticmethod
+    def of(sur: Surrogate, x0_m, depth_m, xs_m) -> _Stencil:
         x0 = np.asarray(x0_m, float)
         d = np.broadcast_to(np.asarray(depth_m, float), x0.shape)
-        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))   # (nxs, nlev, nx0)
         xs = np.asarray(xs_m, float)
-        mirror = xs > 0.5 * self.W                  # mirror image
-        xs = np.where(mirror, self.W - xs, xs)
-        X0 = np.where(mirror[:, None], self.W - x0[None, :], x0[None, :])
-        k = clip(np.searchsorted(self.xs, xs) - 1, 0, len(self.xs) - 2)
-        wk = clip((xs - self.xs[k]) / (self.xs[k + 1] - self.xs[k]), 0.0, 1.0)
+        mirror = xs > 0.5 * sur.W                  # mirror image
+        xs = np.where(mirror, sur.W - xs, xs)
+        X0 = np.where(mirror[:, None], sur.W - x0[None, :], x0[None, :])
+        k = clip(np.searchsorted(sur.xs, xs) - 1, 0, len(sur.xs) - 2)
+        t = (xs - sur.xs[k]) / (sur.xs[k + 1] - sur.xs[k])
         # probe depth: linear between levels (clamped)
-        u = clip(np.interp(d, self.levels, np.arange(len(self.levels))), 0, len(self.levels) - 1)
-        il = np.minimum(np.floor(u).astype(int), len(self.levels) - 2)
-        wl = u - il
-        out = np.zeros(X0.shape)
-        h = self.x0[1] - self.x0[0]
-        for kk, wkk in ((k, 1.0 - wk), (k + 1, wk)):
-            xq = clip(X0 - xs[:, None] + self.xs[kk][:, None], self.x0[0], self.x0[-1])
-            v = (xq - self.x0[0]) / h
-            ix = np.minimum(np.floor(v).astype(int), len(self.x0) - 2)
-            wx = v - ix
-            kr = kk[:, None]
-            val = ((1 - wl) * ((1 - wx) * C[kr, il, ix] + wx * C[kr, il, ix + 1])
-                   + wl * ((1 - wx) * C[kr, il + 1, ix] + wx * C[kr, il + 1, ix + 1]))
-            out += wkk[:, None] * val
-        return out
+        u = clip(np.interp(d, sur.levels, np.arange(len(sur.levels))), 0, len(sur.levels) - 1)
+        il = np.minimum(np.floor(u).astype(int), len(sur.levels) - 2)
+        return _Stencil(sur, xs, mirror, X0, k, t, d, il, u - il)
+
+    def nodes(self):
+        """For the node below and the node above each stone: (node, weight, unclamped probe-position coordinate,
+        cell, weight in the cell)."""
+        x0 = self.sur.x0
+        h = x0[1] - x0[0]
+        wk = clip(self.t, 0.0, 1.0)
+        for kk, wkk in ((self.k, 1.0 - wk), (self.k + 1, wk)):
+            xq_raw = self.X0 - self.xs[:, None] + self.sur.xs[kk][:, None]
+            v = (clip(xq_raw, x0[0], x0[-1]) - x0[0]) / h
+            ix = np.minimum(np.floor(v).astype(int), len(x0) - 2)
+            yield kk, wkk, xq_raw, ix, v - ix
+
+    def levels_of(self, T: np.ndarray, kk: np.ndarray, ix: np.ndarray, wx: np.ndarray):
+        """The table T (nxs, nlev, nx0) at the probes' positions in node kk: on the level below, and the one above."""
+        kr, il = kk[:, None], self.il
+        return ((1 - wx) * T[kr, il, ix] + wx * T[kr, il, ix + 1], (1 - wx) * T[kr, il + 1, ix] + wx * T[kr, il + 1, ix + 1])
 
 
 _MEM: dict[str, Surrogate] = {}
