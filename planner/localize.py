@@ -317,8 +317,9 @@ class _Forward:
         return nu
 
     # ---- the derivatives, in closed form: every part of the model is an interpolant (planner.surrogate,
-    # planner.tissue_response, planner.finite_strain_response), differentiated exactly; one evaluation replaces the
-    # finite-difference Jacobian's one per parameter, and the columns are the derivatives, not a 1e-4 step's secants
+    # planner.tissue_response, planner.finite_strain_response), differentiated exactly; one pass (about three
+    # evaluations' cost) replaces the finite-difference Jacobian's evaluation per parameter (8-9), and the columns
+    # are the derivatives, not a 1e-4 step's secants
 
     def contrast_slopes(self, stone, d, eta) -> np.ndarray:
         """d/d(xs_m, log s, diameter_m at fixed s, depth, eta) of ``contrast`` at each probe: (5, n probes)."""
