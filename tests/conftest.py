@@ -26,6 +26,7 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.realtime)
 
 
+# (the fixtures import palpate when first used: at the top, numpy would load before the BLAS settings above)
 @pytest.fixture(scope="session")
 def paper_prior():
     """The paper scene's prior (no stones): what the localizer is given."""

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from fem import contact, diskcache, scene_mesh
+from fem import contact, contact3d, diskcache, scene_mesh
 from fem import scene as S
 
 
@@ -112,7 +112,6 @@ def test_a_restored_3d_compliance_is_memory_mapped_and_gives_the_fresh_forces(cd
     """The 3D compliance (dense, 0.5 GB on block3d) is read memory-mapped: a run reads the rows of the windows it
     probes. The forces are the fresh model's bit for bit; a damaged entry is rebuilt; a non-finite number in an entry
     never leaves fem (the force that reads it raises)."""
-    from fem import contact3d
     small = S.Scene(name="t", tissue=S.Tissue(width_m=0.03, length_m=0.03, height_m=0.015, youngs_pa=2500.0,
                                               poisson=0.4),
                     indenter=S.Indenter(shape="sphere", radius_m=0.004),
