@@ -10,6 +10,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   elements    P1/P2 shape functions and quadrature
   lcp         the contact LCP solver (solve_lcp)
   diskcache   generic key -> arrays disk cache (imports nothing from fem)
+  memo        float keys -> float rows, remembered between runs on the disk cache (Memo)
   mesh        Mesh (to_arrays/from_arrays) and gmsh meshing: mesh_section, mesh_scene, mesh_tip
   scene_mesh  a scene's checked mesh from the disk cache or gmsh: mesh_for
   assembly    vectorized stiffness assembly
@@ -21,6 +22,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   tip         TipCompliance (an elastic tip), rigid_tip_bound, treated_as_rigid, contact_scene (what a key names)
   influence   influence operators of the top nodes: stresses and the no-inversion check at the cost of forces
   contact     load B: SurfaceModel, surface_model (memory + disk cache), indent_full, tip_profile, check_waypoint
+  recall      a scene's contact forces as computed before (fem.memo): force_n, force_curve_n, known
   export      VTU export (meshio): write_vtu, write_result_vtu
   plots       figures (matplotlib), not imported here
   cache       historical names of the disk-cache entry points (mesh_for, mesh_key, surface_key, stats, ...)
@@ -36,6 +38,7 @@ Modules (each imports only modules listed before it; tests/test_fem_imports.py c
   uniform3d   load A in 3D: solve_uniform3d
   condense    Schur condensation onto contact DOFs and a sparse Cholesky (CHOLMOD via cvxopt; SuperLU fallback)
   contact3d   load B in 3D: SurfaceModel3D, surface_model3d (memory + disk cache), check_waypoint3d
+  recall3d    a 3D scene's contact forces as computed before (fem.memo): force_n, known
   export3d    VTU export of tetrahedral meshes
   plots3d     3D figures (matplotlib), not imported here
 

@@ -21,6 +21,7 @@ Entry points: ``plan_raster(scene, ...) -> planfile.Plan`` and, for adaptive ref
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ import numpy as np
 
 from core import ur5e
 from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
-from fem.contact import surface_model
+from fem import recall
 from fem.contact3d import surface_model3d
 from fem.scene import from_dict, load
 from planner import area
@@ -354,8 +355,9 @@ def _prior(scene):
 
 
 def default_force_model(prior):
-    """fem's condensed surface model of the prior scene (built once per scene by fem, ~1 s)."""
-    return surface_model(prior).force_n
+    """fem's condensed surface model of the prior scene (built once per scene by fem, ~1 s; its answers remembered
+    between runs: fem.recall)."""
+    return functools.partial(recall.force_n, prior)
 
 
 MIN_NORMAL_UP = 0.5     # the tissue's outward normal within 60 deg of the base's +z: tissue lying on a table

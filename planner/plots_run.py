@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 
-from fem.contact import surface_model
+from fem import recall
 
 
 def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> None:
@@ -28,9 +28,8 @@ def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=
 
     ax = axs[0]
     xx = np.linspace(max(0.0, x.min() - 1), min(W, x.max() + 1), 200)
-    m0 = surface_model(prior)
     for dep in np.unique(np.round(meas.depth_m, 5)):
-        f0 = np.array([m0.force_n(v * 1e-3, float(dep)) for v in xx])
+        f0 = np.array([recall.force_n(prior, v * 1e-3, float(dep)) for v in xx])
         ax.plot(xx, f0 * 1e3, "k-", lw=1, label=f"fem prior (no stone), depth {dep * 1e3:.1f} mm")
         if surrogate is not None and loc.detected:
             c = surrogate.contrast(xx * 1e-3, float(dep), loc.x_m, loc.depth_m, loc.diameter_m)

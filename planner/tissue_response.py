@@ -13,12 +13,11 @@ grid, where fem refuses: indentations at the tip radius), quadratically in the r
 from __future__ import annotations
 
 import dataclasses
-import weakref
 
 import numpy as np
 
 from core.arrays import clip
-from fem.contact import surface_model
+from fem import recall
 
 THICKNESS_STEP = 0.10          # the thickness nodes: prior height x (1 - step, 1, 1 + step)
 N_NODES = 32                   # indentation nodes, geometric from MIN_FRAC to MAX_FRAC of the tip radius
@@ -42,14 +41,12 @@ class PriorResponse:
         tabs = []
         for k in (-1, 0, 1):
             sc = _scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
-            model = None
             rows = []
             for xi in x:
                 key = (prior.key(), k, round(float(xi), 7))
                 row = _ROWS.get(key)
                 if row is None:
-                    model = model or surface_model(sc)
-                    row = np.log(np.maximum(model.force_curve_n(float(xi), np.exp(self.logd)), 1e-12))
+                    row = np.log(np.maximum(recall.force_curve_n(sc, float(xi), np.exp(self.logd)), 1e-12))
                     _ROWS[key] = row
                 rows.append(row)
             tabs.append(np.array(rows).reshape(len(x), N_NODES))
@@ -151,23 +148,7 @@ def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarr
     x = np.clip(np.asarray(x_m, float), 0.0, W)
     d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
     F = {}
-    for k in (-1, 0, 1):
-        m = surface_model(_scene_with_height(prior, 1.0 + k * THICKNESS_STEP))
-        seen = _FORCES.setdefault(m, {})
-        if len(seen) > 20000:
-            seen.clear()
-        F[k] = np.array([_force(m, seen, float(xi), float(di)) for xi, di in zip(x, d)])
+    for k in (-1, 0, 1):       # (remembered: a run's refinement design asks for the same candidate grid every round)
+        sc = _scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+        F[k] = np.array([recall.force_n(sc, float(xi), float(di)) for xi, di in zip(x, d)])
     return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)
-
-
-# Each model's forces at the points asked before: a run's refinement design asks for the same candidate grid and the
-# probes made so far in every round (the same numbers: one contact solve per point, remembered). Weak: a model fem
-# forgets (fem.contact.forget_except) is not kept alive here.
-_FORCES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _force(m, seen: dict, x: float, d: float) -> float:
-    f = seen.get((x, d))
-    if f is None:
-        f = seen[(x, d)] = m.force_n(x, d)
-    return f

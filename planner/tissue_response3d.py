@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fem.contact3d import surface_model3d
+from fem import recall3d
 from planner.tissue_response import loglog_depth, loglog_force
 
 N_NODES = 16
@@ -35,22 +35,19 @@ class PriorResponse3D:
     def __init__(self, prior, x_m, y_m, depth_m=None):
         R = prior.indenter.radius_m
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(MAX_FRAC * R), N_NODES)
-        model = None
         rows = []
         for xi, yi in zip(np.asarray(x_m, float), np.asarray(y_m, float)):
             key = (prior.key(), round(float(xi), 7), round(float(yi), 7))
             row = _ROWS.get(key)
             if row is None:
-                model = model or surface_model3d(prior)
-                row = np.log(np.maximum([model.force_n(float(xi), float(yi), float(d))
+                row = np.log(np.maximum([recall3d.force_n(prior, float(xi), float(yi), float(d))
                                          for d in np.exp(self.logd)], 1e-12))
                 _ROWS[key] = row
             rows.append(row)
         self.rows = np.array(rows).reshape(-1, N_NODES)
         if depth_m is not None:
-            model = model or surface_model3d(prior)
             d = np.asarray(depth_m, float)
-            exact = np.array([_exact(model, prior, float(x), float(y), float(di))
+            exact = np.array([_exact(prior, float(x), float(y), float(di))
                               for x, y, di in zip(np.asarray(x_m, float), np.asarray(y_m, float), d)])
             ok = exact > 0
             shift = np.zeros(len(d))
@@ -69,12 +66,12 @@ class PriorResponse3D:
 _EXACT: dict = {}
 
 
-def _exact(model, prior, x: float, y: float, d: float) -> float:
+def _exact(prior, x: float, y: float, d: float) -> float:
     """fem's force at (x, y, d), 0 where fem refuses the indentation (at the tip radius): no anchor there."""
     key = (prior.key(), round(x, 7), round(y, 7), round(d, 9))
     if key not in _EXACT:
         try:
-            _EXACT[key] = model.force_n(x, y, d) if d > 0 else 0.0
+            _EXACT[key] = recall3d.force_n(prior, x, y, d) if d > 0 else 0.0
         except ValueError:
             _EXACT[key] = 0.0
     return _EXACT[key]

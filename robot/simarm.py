@@ -15,6 +15,7 @@ import numpy as np
 
 from core import ur5e
 from core.contracts import Frames
+from fem import recall, recall3d
 from fem.contact import surface_model
 from fem.contact3d import surface_model3d
 from fem.hypertruth import HyperelasticForce
@@ -43,7 +44,8 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: b
         sc = sc.with_analysis(mesh_size_m=mesh_m)
     width, height = sc.tissue.width_m, sc.tissue.height_m
     if sc.is_3d:
-        model3 = surface_model3d(sc)
+        if not recall3d.known(sc):      # the truth's model built now (its errors before the run)
+            surface_model3d(sc)
         length, R = sc.tissue.length_m, sc.indenter.radius_m
         x0, x1, y0, y1 = patch_bounds(width, length, sc.analysis.patch_m)
 
@@ -54,12 +56,19 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: b
                 raise TruthRangeError(f"the simulated tip pressed at (x, y) = ({x_m * 1e3:.2f}, {y_m * 1e3:.2f}) mm, "
                                       f"outside the truth's fem patch (analysis.patch_m = {sc.analysis.patch_m} m "
                                       f"less the tip radius): plan inside it")
-            return model3.force_n(x_m, y_m, depth_m)
+            return recall3d.force_n(sc, x_m, y_m, depth_m)
         return force3, width
-    model = HyperelasticForce(sc) if hyperelastic else surface_model(sc)
+    if hyperelastic:
+        of = HyperelasticForce(sc).force_n
+    else:           # the truth's model built now (its errors before the run), unless it answered here before
+        if not recall.known(sc):
+            surface_model(sc)
+
+        def of(x_m: float, depth_m: float) -> float:
+            return recall.force_n(sc, x_m, depth_m)
 
     def force_n(x_m: float, depth_m: float) -> float:
-        return model.force_n(x_m, depth_m) if 0.0 <= x_m <= width and 0.0 < depth_m < height else 0.0
+        return of(x_m, depth_m) if 0.0 <= x_m <= width and 0.0 < depth_m < height else 0.0
     return force_n, width
 
 

@@ -1,0 +1,121 @@
+"""What fem computed before for the same question, kept between runs: a memo of float keys -> float rows on disk.
+
+A run asks fem the same things as the run before it: the prior tissue's force curve at each probe position (the
+localizer's tables), its force at each candidate of the refinement's design, the simulated truth's force on its
+depth grid; 3,000 to 4,000 contact solves (0.6 s) in ``palpate run paper --sim``. A ``Memo`` keeps each answer
+exactly as computed (the same float64 bits) under its exact key (floats: a position, a depth), in memory and, with
+the disk cache on, in one file per question and model (``fem.diskcache``: ``<kind>-<digest of spec>.npz``, the
+spec naming the model's content and the code that computes the answer). An entry is only ever a function of its
+spec and key, so reading it back is the same as computing it again.
+
+Files are written when the process ends (and when a memo leaves the in-memory registry): merged with what another
+process wrote meanwhile, atomically, the newest ``MAX_ROWS`` kept. A damaged or inconsistent file is ignored with
+a warning (and replaced at the next write); ``PALPATE_CACHE=0`` keeps memos in memory only.
+
+Used by the callers that ask the same questions run after run (planner.tissue_response, robot.simarm), not by
+fem's own queries: ``SurfaceModel.force_n`` always solves (``palpate predict`` and the benchmarks time the solver).
+"""
+from __future__ import annotations
+
+import atexit
+import warnings
+from collections import OrderedDict
+
+import numpy as np
+
+from . import diskcache
+
+MAX_ROWS = 200_000          # per file (a 32-node force row: 0.3 KB; a force: 24 bytes)
+MAX_OPEN = 16               # memos kept in memory (a study's truths each have their own)
+
+
+class Memo:
+    """Rows of ``width`` floats under keys of ``n_key`` floats, for one ``kind`` and ``spec`` (see the module)."""
+
+    def __init__(self, kind: str, spec: dict, n_key: int, width: int):
+        self.kind, self.spec, self.n_key, self.width = kind, spec, n_key, width
+        self.path = diskcache.entry_path(kind, spec) if diskcache.enabled() else None
+        self._rows: dict[tuple[float, ...], np.ndarray] | None = None
+        self._new: dict[tuple[float, ...], np.ndarray] = {}
+
+    def _load(self) -> dict:
+        if self._rows is None:
+            self._rows = self._read()
+        return self._rows
+
+    def _read(self) -> dict:
+        arrays = diskcache.read(self.path) if self.path is not None else None
+        if arrays is None:
+            return {}
+        try:
+            keys, rows = arrays["keys"], arrays["rows"]
+            if (keys.ndim != 2 or rows.ndim != 2 or keys.shape != (len(rows), self.n_key)
+                    or rows.shape[1] != self.width or keys.dtype != np.float64 or rows.dtype != np.float64
+                    or not np.isfinite(keys).all()):
+                raise ValueError(f"keys {keys.shape} {keys.dtype}, rows {rows.shape} {rows.dtype}: expected "
+                                 f"(n, {self.n_key}) and (n, {self.width}) finite float64")
+        except (KeyError, ValueError) as e:
+            diskcache.stats["corrupt"] += 1
+            warnings.warn(f"palpate cache: ignoring memo {self.path} ({type(e).__name__}: {e})", stacklevel=4)
+            return {}
+        diskcache.stats[f"{self.kind}_read"] += 1
+        rows = np.array(rows)
+        rows.flags.writeable = False
+        return dict(zip(map(tuple, keys.tolist()), rows))
+
+    def __len__(self) -> int:
+        return len(self._load())
+
+    def get(self, key: tuple[float, ...]) -> np.ndarray | None:
+        """The row stored under ``key`` (a read-only view; None when absent)."""
+        return self._load().get(key)
+
+    def put(self, key: tuple[float, ...], row) -> None:
+        row = np.array(row, dtype=np.float64).reshape(self.width)
+        row.flags.writeable = False
+        self._load()[key] = row
+        self._new[key] = row
+        _DIRTY.add(self)
+
+    def save(self) -> None:
+        """Write the entries this process added (merged with the file as it is now; the newest MAX_ROWS kept)."""
+        _DIRTY.discard(self)
+        if self.path is None or not self._new:
+            return
+        merged = self._read()
+        merged.update(self._new)
+        keys = list(merged)[-MAX_ROWS:]
+        diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
+                                    "rows": np.array([merged[k] for k in keys]).reshape(len(keys), self.width)})
+        self._new = {}
+
+
+_OPEN: OrderedDict[str, Memo] = OrderedDict()
+_DIRTY: set[Memo] = set()
+
+
+def memo(kind: str, spec: dict, n_key: int, width: int) -> Memo:
+    """The memo of ``kind`` and ``spec`` (one object per process while among the MAX_OPEN most recently asked for;
+    one leaving is written first)."""
+    where = diskcache.entry_path(kind, spec) if diskcache.enabled() else f"memory {kind}-{diskcache.digest(spec)}"
+    name = f"{where} {n_key} {width}"
+    m = _OPEN.pop(name, None) or Memo(kind, spec, n_key, width)
+    _OPEN[name] = m
+    while len(_OPEN) > MAX_OPEN:
+        _OPEN.popitem(last=False)[1].save()
+    return m
+
+
+def save_all() -> None:
+    """Write every memo with new entries (at the process's end; a test or a long study may call it earlier)."""
+    for m in list(_DIRTY):
+        m.save()
+
+
+def forget() -> None:
+    """Drop the memos from memory (written first): the next question reads the files again."""
+    save_all()
+    _OPEN.clear()
+
+
+atexit.register(save_all)

@@ -1,0 +1,121 @@
+"""fem.memo and fem.recall: what fem computed before, read back bit for bit, from memory and from disk."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fem import contact, diskcache, memo, recall
+from fem import scene as S
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    """A private disk cache, and no memo left in memory from before (or after)."""
+    memo.forget()
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path))
+    monkeypatch.delenv("PALPATE_CACHE", raising=False)
+    yield tmp_path
+    memo.forget()
+
+
+@pytest.fixture(scope="module")
+def coarse():
+    return S.load("paper").prior().with_analysis(mesh_size_m=0.004)
+
+
+def test_rows_come_back_bit_for_bit_and_merge_across_writers(cache):
+    spec = {"what": "test", "v": 1}
+    rng = np.random.default_rng(3)
+    keys = [tuple(v) for v in rng.normal(size=(50, 2)).tolist()]
+    rows = rng.normal(size=(50, 3)) * 1e-7
+    a = memo.Memo("t", spec, 2, 3)
+    for k, r in zip(keys[:30], rows[:30]):
+        a.put(k, r)
+    b = memo.Memo("t", spec, 2, 3)          # another writer: saw nothing of a yet
+    for k, r in zip(keys[30:], rows[30:]):
+        b.put(k, r)
+    a.save()
+    b.save()                                 # merged with a's file, not over it
+    c = memo.Memo("t", spec, 2, 3)
+    assert len(c) == 50
+    for k, r in zip(keys, rows):
+        assert c.get(k).tobytes() == r.tobytes()
+    assert c.get((0.5, 0.25)) is None
+    assert memo.Memo("t", {"what": "test", "v": 2}, 2, 3).get(keys[0]) is None      # another spec: another file
+    with pytest.raises(ValueError):
+        c.get(keys[0])[0] = 1.0              # read-only
+
+
+def test_a_full_file_keeps_the_newest(cache, monkeypatch):
+    monkeypatch.setattr(memo, "MAX_ROWS", 10)
+    m = memo.Memo("t", {"cap": 1}, 1, 1)
+    for i in range(25):
+        m.put((float(i),), i)
+    m.save()
+    back = memo.Memo("t", {"cap": 1}, 1, 1)
+    assert len(back) == 10 and back.get((24.0,))[0] == 24.0 and back.get((14.0,)) is None
+
+
+@pytest.mark.parametrize("damage", ["garbage", "shape", "nan-key"])
+def test_a_damaged_file_is_ignored_with_a_warning_and_replaced(cache, damage):
+    spec = {"damaged": damage}
+    path = diskcache.entry_path("t", spec)
+    if damage == "garbage":
+        path.write_bytes(b"not a zip file")
+    else:
+        keys = np.array([[0.1, np.nan]]) if damage == "nan-key" else np.zeros((1, 3))
+        diskcache.write(path, {"keys": keys, "rows": np.zeros((1, 1))})
+    m = memo.Memo("t", spec, 2, 1)
+    with pytest.warns(UserWarning, match="palpate cache: ignoring"):
+        assert len(m) == 0
+    m.put((0.1, 0.2), 7.0)
+    with pytest.warns(UserWarning, match="palpate cache: ignoring"):      # read again at the merge: still ignored
+        m.save()
+    assert memo.Memo("t", spec, 2, 1).get((0.1, 0.2))[0] == 7.0          # and replaced
+
+
+def test_with_the_disk_cache_off_nothing_is_written(cache, monkeypatch):
+    monkeypatch.setenv("PALPATE_CACHE", "0")
+    m = memo.memo("t", {"off": 1}, 1, 1)
+    assert m.path is None
+    m.put((1.0,), 2.0)
+    memo.save_all()
+    assert m.get((1.0,))[0] == 2.0 and not list(cache.iterdir())
+
+
+def test_recalled_forces_are_the_models_own(cache, coarse, monkeypatch):
+    """Remembered forces and force curves equal a fresh model's bit for bit; after the memo is written and
+    forgotten, they come from disk without the model."""
+    model = contact.surface_model(coarse)
+    x, depths = [0.012, 0.035, 0.0551], [0.001, 0.0025, 0.004]
+    assert not recall.known(coarse)
+    F = [[recall.force_n(coarse, xi, d) for d in depths] for xi in x]
+    assert F == [[model.force_n(xi, d) for d in depths] for xi in x]
+    curve = recall.force_curve_n(coarse, 0.02, np.array(depths))
+    assert curve.tobytes() == model.force_curve_n(0.02, np.array(depths)).tobytes()
+    memo.forget()
+
+    def no_model(*a, **k):
+        raise AssertionError("the model was asked")
+    monkeypatch.setattr(recall, "surface_model", no_model)
+    assert recall.known(coarse)
+    assert [[recall.force_n(coarse, xi, d) for d in depths] for xi in x] == F
+    assert recall.force_curve_n(coarse, 0.02, depths).tobytes() == curve.tobytes()
+    with pytest.raises(AssertionError, match="asked"):        # a new depth on the curve: solved whole
+        recall.force_curve_n(coarse, 0.02, depths + [0.005])
+
+
+def test_the_memo_outlives_the_process(cache, coarse):
+    """Written at the process's end (atexit): a second process reads what the first computed."""
+    code = ("import sys; from fem import recall, scene as S; sc = S.load('paper').prior().with_analysis("
+            "mesh_size_m=0.004); print(recall.known(sc), repr(recall.force_n(sc, 0.03, 0.003)))")
+    env = {"PALPATE_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1"}
+    out = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+           for _ in range(2)]
+    first, second = (o.split() for o in out)
+    assert first[0] == "False" and second[0] == "True" and first[1] == second[1]
+    assert float(second[1]) == contact.surface_model(coarse).force_n(0.03, 0.003)
