@@ -14,7 +14,10 @@ Constraints (bounds carry the targets and margins, so one built solver serves ev
 Objective: joint travel ``sum_k 2|qi_k - qa_k|^2 + |qa_{k+1} - qa_k|^2`` (down-and-up plus moves between probes), a
 small pull towards the seed (fixes the free rotation about the tool axis that travel alone leaves flat) and a tilt
 penalty (W_TILT: the tolerance is a hard bound; tilt is used only where it buys joint travel).
-The solver is built once per raster size and cached (``nlp_for(n)``).
+The solver is built once per raster size and cached (``nlp_for(n)``); ``plan_raster`` builds it mapped per waypoint
+(``RasterNLP(n, mapped=True)``: 0.02 s for the paper's 15-waypoint raster where the one-graph build takes 0.12 s;
+the same iterates, the joints equal to ~1e-15 rad; the one-graph build stays as the reference the tests and
+bench/bench_planner3d.py compare it with).
 
 Entry points: ``plan_raster(scene, ...) -> planfile.Plan`` and, for adaptive refinement, ``replan(plan, x_positions_m)``
 (same frames, limits, motion and options as an earlier plan, new waypoints).
@@ -81,11 +84,11 @@ def _waypoint_terms(fk, qa, qi, n_in, T_tcp) -> tuple[list, object]:
 class RasterNLP:
     """The IPOPT solver for rasters of ``n`` waypoints (parametric: targets in the bounds, normal/TCP/seed in p).
 
-    ``mapped=False``: the whole problem as one SX graph (the 2D planner's; its build grows with n: ~1.4 s for 100
+    ``mapped=False``: the whole problem as one SX graph (the reference; its build grows with n: ~1.4 s for 100
     waypoints, ~6 s for 400). ``mapped=True``: the same problem with one waypoint's constraints, cost and their
     derivatives as SX Functions ``map``-ped over the n waypoints inside an MX graph: the build is nearly independent
     of n (~0.05 s for 400), a solve as fast, the solution the same to ~1e-15 rad (same iterates:
-    bench/bench_planner3d.py compares both). The 3D area planner uses it."""
+    bench/bench_planner3d.py compares both). ``plan_raster`` uses it (2D and 3D)."""
 
     def __init__(self, n: int, mapped: bool = False):
         t0 = time.perf_counter()
@@ -486,7 +489,7 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
                                     f"{lo.tolist()}..{hi.tolist()} m (limits.workspace_min_m/max_m): move the tissue "
                                     f"(--tissue-pose)")
     Q, info = solve_raster(tg, tissue_x, frames.tcp_offset, branch=branch, margins=margins,
-                           tilt_tol_rad=tilt_tol_rad, mapped=prior.is_3d)
+                           tilt_tol_rad=tilt_tol_rad, mapped=True)     # (the one-graph NLP: a reference)
     t_timing = time.perf_counter()
     tm = raster_timing(tg.approach_m, tg.indent_m, Q[:, 0], Q[:, 1], motion, joint_limits)
     probes, prev = [], None

@@ -362,3 +362,25 @@ def test_look_many_is_look_in_turn(seed):
     f2, b2 = many.look_many(x, d, np.zeros(len(x)))
     assert list(f1) == f2.tolist() and list(b1) == b2.tolist()
     assert one.extrapolated == many.extrapolated > 0 and any(b1) and not all(b1)
+
+
+def test_a_moves_tape_is_what_its_steps_compute_bit_for_bit():
+    """robot.sim._Motion.uninterrupted (the tape the look-ahead reads) against step() itself: the same progress, s
+    and speed after every step, float for float, over random moves (short, long, started moving, ending within a
+    step, under one period's acceleration)."""
+    from robot.sim import _Motion
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        L = float(rng.choice([0.0, 1e-9, rng.uniform(0, 0.3)]))
+        m = _Motion(L, float(rng.choice([0.25, 1e-3, rng.uniform(1e-4, 1.0)])),
+                    float(rng.choice([1.2, rng.uniform(0.01, 5.0)])), None)
+        m.s, m.sdot = float(rng.uniform(0, L)) if rng.random() < 0.3 else 0.0, float(rng.uniform(0, m.v)) * (rng.random() < 0.3)
+        dt = float(rng.choice([0.002, 0.008]))
+        us, ss, vs = m.uninterrupted(dt)
+        got = []
+        while True:
+            done = m.step(dt)
+            got.append((m.progress.hex(), m.s.hex(), m.sdot.hex()))
+            if done:
+                break
+        assert got == [(u.hex(), s.hex(), v.hex()) for u, s, v in zip(us, ss, vs)]

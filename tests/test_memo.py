@@ -22,6 +22,12 @@ def cache(tmp_path, monkeypatch):
     memo.forget()
 
 
+def replace_height(sc, h):
+    return S.Scene(name=sc.name, tissue=S.Tissue(width_m=sc.tissue.width_m, length_m=sc.tissue.length_m, height_m=h,
+                                                 youngs_pa=sc.tissue.youngs_pa, poisson=sc.tissue.poisson),
+                   indenter=sc.indenter, analysis=sc.analysis)
+
+
 @pytest.fixture(scope="module")
 def coarse():
     return S.load("paper").prior().with_analysis(mesh_size_m=0.004)
@@ -119,3 +125,27 @@ def test_the_memo_outlives_the_process(cache, coarse):
     first, second = (o.split() for o in out)
     assert first[0] == "False" and second[0] == "True" and first[1] == second[1]
     assert float(second[1]) == contact.surface_model(coarse).force_n(0.03, 0.003)
+
+
+def test_recalled_3d_forces_are_the_models_own(cache, monkeypatch):
+    """The 3D half (fem.recall3d): the model's forces bit for bit, then from disk without the model; a refused
+    indentation raises every time (not remembered)."""
+    from fem import recall3d
+    from fem.contact3d import surface_model3d
+    sc = S.Scene(name="t3d", tissue=S.Tissue(width_m=0.03, length_m=0.024, height_m=0.015, youngs_pa=2500.0,
+                                             poisson=0.4),
+                 indenter=S.Indenter(shape="sphere", radius_m=0.004),
+                 analysis=S.Analysis(order=1, mesh_size_m=0.006, surface_refine=2.0, patch_m=0.02,
+                                     top_displacement_m=0.001))
+    model = surface_model3d(sc)
+    pts = [(0.015, 0.012, 0.0005), (0.017, 0.014, 0.0012)]
+    F = [recall3d.force_n(sc, *p) for p in pts]
+    assert F == [model.force_n(*p) for p in pts] and min(F) > 0
+    memo.forget()
+    monkeypatch.setattr(recall3d, "surface_model3d", lambda *a, **k: pytest.fail("the model was asked"))
+    assert recall3d.known(sc) and [recall3d.force_n(sc, *p) for p in pts] == F
+    assert not recall3d.known(replace_height(sc, 0.016))                          # another scene: nothing known
+    monkeypatch.setattr(recall3d, "surface_model3d", lambda *a, **k: model)
+    for _ in range(2):
+        with pytest.raises(ValueError):
+            recall3d.force_n(sc, 0.015, 0.012, 0.004)                         # at the tip radius: refused
