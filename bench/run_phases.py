@@ -7,7 +7,8 @@ cached figures) with wall-clock timers around its phases: planning (``plan_raste
 table, loading the surrogate table, the arm (``run_plan``: the simulated arm and the driver stepping every 2 ms
 period), the localizations (every round's and the final one) and the figure. What the timers do not cover (imports,
 the refinement's design, writing records and result.json) is reported as the rest. Appends one JSON line to
-OUT/phases.jsonl and prints it. The timers wrap the functions where the run command looks them up, so the same script
+OUT/phases.jsonl and prints it. The whole run's time includes writing what the process would write at its exit
+(fem.memo's remembered forces), in the rest. The timers wrap the functions where the run command looks them up, so the same script
 times an older checkout too (``PYTHONPATH=OLD python bench/run_phases.py ...`` from inside OLD).
 """
 from __future__ import annotations
@@ -70,6 +71,8 @@ def main() -> int:
     spent, calls = instrument()
     t_main = time.perf_counter()
     rc = app.cli.main(["run", a.scene, "--sim", "--out", str(run_dir)])
+    if "fem.memo" in sys.modules:       # what the process writes at its exit (remembered forces: fem.memo), timed
+        sys.modules["fem.memo"].save_all()
     wall = time.perf_counter() - T0
     row = {"label": a.label, "scene": a.scene, "rc": rc, "code": str(ROOT), "load_avg_1m": os.getloadavg()[0],
            "wall_s": wall, "before_main_s": t_main - T0, **{k: spent[k] for _, _, k, _ in PHASES},

@@ -5,19 +5,25 @@ localizer's tables), its force at each candidate of the refinement's design, the
 depth grid; 3,000 to 4,000 contact solves (0.6 s) in ``palpate run paper --sim``. A ``Memo`` keeps each answer
 exactly as computed (the same float64 bits) under its exact key (floats: a position, a depth), in memory and, with
 the disk cache on, in one file per question and model (``fem.diskcache``: ``<kind>-<digest of spec>.npz``, the
-spec naming the model's content and the code that computes the answer). An entry is only ever a function of its
-spec and key, so reading it back is the same as computing it again.
+spec naming the model's content and the code that computes the answer). An entry is a function of its spec and key
+on one machine's libraries, so reading it back is the same as computing it again (as for the disk cache's operators:
+a cache directory shared between machines of different BLAS builds would hold either machine's round-off).
 
 Files are written when the process ends (and when a memo leaves the in-memory registry): merged with what another
-process wrote meanwhile, atomically, the newest ``MAX_ROWS`` kept. A damaged or inconsistent file is ignored with
-a warning (and replaced at the next write); ``PALPATE_CACHE=0`` keeps memos in memory only.
+process wrote meanwhile, atomically, the newest ``MAX_ROWS`` kept. Two processes ending at the same moment may
+each write over the other's merge, and a process that ends without running its exit handlers (a forked child's
+``os._exit``, a kill) writes nothing: either loses entries, never correctness (they are computed again). A damaged
+or inconsistent file (not finite, wrong shapes) is ignored with a warning and replaced at the next write;
+``PALPATE_CACHE=0`` keeps memos in memory only.
 
-Used by the callers that ask the same questions run after run (planner.tissue_response, robot.simarm), not by
-fem's own queries: ``SurfaceModel.force_n`` always solves (``palpate predict`` and the benchmarks time the solver).
+Used by the callers that ask the same questions run after run (fem.recall, fem.recall3d), not by fem's own queries:
+``SurfaceModel.force_n`` always solves (``palpate predict`` and the benchmarks time the solver).
 """
 from __future__ import annotations
 
 import atexit
+import math
+import os
 import warnings
 from collections import OrderedDict
 
@@ -25,8 +31,11 @@ import numpy as np
 
 from . import diskcache
 
-MAX_ROWS = 200_000          # per file (a 32-node force row: 0.3 KB; a force: 24 bytes)
+MAX_ROWS = 20_000           # per file: a paper run adds about 1,500 to each of its prior's memos the first time
 MAX_OPEN = 16               # memos kept in memory (a study's truths each have their own)
+
+Key = tuple[float, ...]
+Row = tuple[float, ...]
 
 
 class Memo:
@@ -35,44 +44,45 @@ class Memo:
     def __init__(self, kind: str, spec: dict, n_key: int, width: int):
         self.kind, self.spec, self.n_key, self.width = kind, spec, n_key, width
         self.path = diskcache.entry_path(kind, spec) if diskcache.enabled() else None
-        self._rows: dict[tuple[float, ...], np.ndarray] | None = None
-        self._new: dict[tuple[float, ...], np.ndarray] = {}
+        self._rows: dict[Key, Row] | None = None
+        self._new: dict[Key, Row] = {}
 
-    def _load(self) -> dict:
+    def _load(self) -> dict[Key, Row]:
         if self._rows is None:
             self._rows = self._read()
         return self._rows
 
-    def _read(self) -> dict:
+    def _read(self) -> dict[Key, Row]:
         arrays = diskcache.read(self.path) if self.path is not None else None
         if arrays is None:
             return {}
         try:
             keys, rows = arrays["keys"], arrays["rows"]
             if (keys.ndim != 2 or rows.ndim != 2 or keys.shape != (len(rows), self.n_key)
-                    or rows.shape[1] != self.width or keys.dtype != np.float64 or rows.dtype != np.float64
-                    or not np.isfinite(keys).all()):
+                    or rows.shape[1] != self.width or keys.dtype != np.float64 or rows.dtype != np.float64):
                 raise ValueError(f"keys {keys.shape} {keys.dtype}, rows {rows.shape} {rows.dtype}: expected "
-                                 f"(n, {self.n_key}) and (n, {self.width}) finite float64")
+                                 f"(n, {self.n_key}) and (n, {self.width}) float64")
+            if not (np.isfinite(keys).all() and np.isfinite(rows).all()):
+                raise ValueError("an entry is not finite")
         except (KeyError, ValueError) as e:
             diskcache.stats["corrupt"] += 1
             warnings.warn(f"palpate cache: ignoring memo {self.path} ({type(e).__name__}: {e})", stacklevel=4)
             return {}
         diskcache.stats[f"{self.kind}_read"] += 1
-        rows = np.array(rows)
-        rows.flags.writeable = False
-        return dict(zip(map(tuple, keys.tolist()), rows))
+        return dict(zip(map(tuple, keys.tolist()), map(tuple, rows.tolist())))
 
     def __len__(self) -> int:
         return len(self._load())
 
-    def get(self, key: tuple[float, ...]) -> np.ndarray | None:
-        """The row stored under ``key`` (a read-only view; None when absent)."""
+    def get(self, key: Key) -> Row | None:
+        """The row stored under ``key`` (None when absent)."""
         return self._load().get(key)
 
-    def put(self, key: tuple[float, ...], row) -> None:
-        row = np.array(row, dtype=np.float64).reshape(self.width)
-        row.flags.writeable = False
+    def put(self, key: Key, row) -> None:
+        """Store ``row`` (``width`` finite floats) under ``key``."""
+        row = tuple(float(v) for v in np.ravel(row))
+        if len(row) != self.width or not all(map(math.isfinite, row)):
+            raise ValueError(f"memo {self.kind}: a row must be {self.width} finite floats, got {row}")
         self._load()[key] = row
         self._new[key] = row
         _DIRTY.add(self)
@@ -86,23 +96,26 @@ class Memo:
         merged.update(self._new)
         keys = list(merged)[-MAX_ROWS:]
         diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
-                                    "rows": np.array([merged[k] for k in keys]).reshape(len(keys), self.width)})
+                                    "rows": np.array([merged[k] for k in keys], dtype=np.float64)
+                                    .reshape(len(keys), self.width)})
         self._new = {}
 
 
-_OPEN: OrderedDict[str, Memo] = OrderedDict()
+_OPEN: OrderedDict[tuple, Memo] = OrderedDict()
 _DIRTY: set[Memo] = set()
 
 
 def memo(kind: str, spec: dict, n_key: int, width: int) -> Memo:
-    """The memo of ``kind`` and ``spec`` (one object per process while among the MAX_OPEN most recently asked for;
-    one leaving is written first)."""
-    where = diskcache.entry_path(kind, spec) if diskcache.enabled() else f"memory {kind}-{diskcache.digest(spec)}"
-    name = f"{where} {n_key} {width}"
-    m = _OPEN.pop(name, None) or Memo(kind, spec, n_key, width)
-    _OPEN[name] = m
-    while len(_OPEN) > MAX_OPEN:
-        _OPEN.popitem(last=False)[1].save()
+    """The memo of ``kind`` and ``spec`` (a flat dict of strings and numbers) in the disk cache as configured now:
+    one object per process while among the MAX_OPEN most recently asked for (one leaving is written first)."""
+    name = (kind, tuple(sorted(spec.items())), n_key, width, diskcache.enabled(), os.environ.get("PALPATE_CACHE_DIR"))
+    m = _OPEN.get(name)
+    if m is None:
+        m = _OPEN[name] = Memo(kind, spec, n_key, width)
+        while len(_OPEN) > MAX_OPEN:
+            _OPEN.popitem(last=False)[1].save()
+    else:
+        _OPEN.move_to_end(name)
     return m
 
 

@@ -8,13 +8,15 @@ from functools import lru_cache
 from .contact3d import surface_model3d
 from .memo import Memo, memo
 from .recall import remembered, solver_version
+from .scene_mesh import code_version
 from .scene_mesh3d import code_version3d
 
 
 @lru_cache(maxsize=64)
 def _spec(scene) -> dict:
-    # the whole scene (its tip too: an elastic tip's compliance is part of the force), fem's 3D code and the solver's
-    return {"scene3d": scene.key(), "code": code_version3d(), "solver": solver_version()}
+    # the whole scene (its tip too: an elastic tip's compliance is part of the force), fem's 3D code, the 2D code it
+    # shares (fem.contact's depth checks, fem.tip's rigid-or-elastic decision) and the solver's
+    return {"scene3d": scene.key(), "code": code_version3d(), "code2d": code_version(), "solver": solver_version()}
 
 
 def _memo(scene) -> Memo:

@@ -35,6 +35,7 @@ import numpy as np
 from core import ur5e
 from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
 from fem import recall
+from fem.contact import surface_model
 from fem.contact3d import surface_model3d
 from fem.scene import from_dict, load
 from planner import area
@@ -359,7 +360,8 @@ def _prior(scene):
 
 def default_force_model(prior):
     """fem's condensed surface model of the prior scene (built once per scene by fem, ~1 s; its answers remembered
-    between runs: fem.recall)."""
+    between runs: fem.recall). Built (or restored) here, so its errors come before any depth is asked."""
+    surface_model(prior)
     return functools.partial(recall.force_n, prior)
 
 

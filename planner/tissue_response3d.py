@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from fem import recall3d
+from fem.contact3d import surface_model3d
 from planner.tissue_response import loglog_depth, loglog_force
 
 N_NODES = 16
@@ -46,6 +47,7 @@ class PriorResponse3D:
             rows.append(row)
         self.rows = np.array(rows).reshape(-1, N_NODES)
         if depth_m is not None:
+            surface_model3d(prior)     # built (or restored) first: _exact takes a ValueError for a refused depth only
             d = np.asarray(depth_m, float)
             exact = np.array([_exact(prior, float(x), float(y), float(di))
                               for x, y, di in zip(np.asarray(x_m, float), np.asarray(y_m, float), d)])

@@ -44,8 +44,7 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: b
         sc = sc.with_analysis(mesh_size_m=mesh_m)
     width, height = sc.tissue.width_m, sc.tissue.height_m
     if sc.is_3d:
-        if not recall3d.known(sc):      # the truth's model built now (its errors before the run)
-            surface_model3d(sc)
+        surface_model3d(sc)        # built (or restored) now: its errors before the run, not as a force model's
         length, R = sc.tissue.length_m, sc.indenter.radius_m
         x0, x1, y0, y1 = patch_bounds(width, length, sc.analysis.patch_m)
 
@@ -60,9 +59,8 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: b
         return force3, width
     if hyperelastic:
         of = HyperelasticForce(sc).force_n
-    else:           # the truth's model built now (its errors before the run), unless it answered here before
-        if not recall.known(sc):
-            surface_model(sc)
+    else:
+        surface_model(sc)          # built (or restored) now: its errors before the run, not as a force model's
 
         def of(x_m: float, depth_m: float) -> float:
             return recall.force_n(sc, x_m, depth_m)

@@ -49,11 +49,24 @@ def test_rows_come_back_bit_for_bit_and_merge_across_writers(cache):
     c = memo.Memo("t", spec, 2, 3)
     assert len(c) == 50
     for k, r in zip(keys, rows):
-        assert c.get(k).tobytes() == r.tobytes()
+        assert [v.hex() for v in c.get(k)] == [v.hex() for v in r.tolist()]
     assert c.get((0.5, 0.25)) is None
     assert memo.Memo("t", {"what": "test", "v": 2}, 2, 3).get(keys[0]) is None      # another spec: another file
-    with pytest.raises(ValueError):
-        c.get(keys[0])[0] = 1.0              # read-only
+    with pytest.raises(ValueError, match="finite"):
+        c.put((0.5, 0.25), [1.0, float("nan"), 2.0])      # never stored: a file holds finite rows only
+    with pytest.raises(ValueError, match="3 finite"):
+        c.put((0.5, 0.25), [1.0, 2.0])
+
+
+def test_a_memo_leaving_the_registry_is_written(cache, monkeypatch):
+    monkeypatch.setattr(memo, "MAX_OPEN", 2)
+    first = memo.memo("t", {"n": 0}, 1, 1)
+    first.put((1.0,), 5.0)
+    assert memo.memo("t", {"n": 0}, 1, 1) is first                      # one object per memo while open
+    assert not first.path.exists()
+    memo.memo("t", {"n": 1}, 1, 1), memo.memo("t", {"n": 2}, 1, 1)     # the first leaves: written
+    assert first.path.exists() and memo.Memo("t", {"n": 0}, 1, 1).get((1.0,)) == (5.0,)
+    assert memo.memo("t", {"n": 0}, 1, 1) is not first                  # asked again: read from its file
 
 
 def test_a_full_file_keeps_the_newest(cache, monkeypatch):
@@ -63,25 +76,27 @@ def test_a_full_file_keeps_the_newest(cache, monkeypatch):
         m.put((float(i),), i)
     m.save()
     back = memo.Memo("t", {"cap": 1}, 1, 1)
-    assert len(back) == 10 and back.get((24.0,))[0] == 24.0 and back.get((14.0,)) is None
+    assert len(back) == 10 and back.get((24.0,)) == (24.0,) and back.get((15.0,)) == (15.0,)
+    assert back.get((14.0,)) is None
 
 
-@pytest.mark.parametrize("damage", ["garbage", "shape", "nan-key"])
+@pytest.mark.parametrize("damage", ["garbage", "shape", "nan-key", "nan-row"])
 def test_a_damaged_file_is_ignored_with_a_warning_and_replaced(cache, damage):
     spec = {"damaged": damage}
     path = diskcache.entry_path("t", spec)
     if damage == "garbage":
         path.write_bytes(b"not a zip file")
     else:
-        keys = np.array([[0.1, np.nan]]) if damage == "nan-key" else np.zeros((1, 3))
-        diskcache.write(path, {"keys": keys, "rows": np.zeros((1, 1))})
+        keys = {"nan-key": np.array([[0.1, np.nan]]), "shape": np.zeros((1, 3))}.get(damage, np.zeros((1, 2)))
+        rows = np.array([[np.nan]]) if damage == "nan-row" else np.zeros((1, 1))
+        diskcache.write(path, {"keys": keys, "rows": rows})
     m = memo.Memo("t", spec, 2, 1)
     with pytest.warns(UserWarning, match="palpate cache: ignoring"):
         assert len(m) == 0
     m.put((0.1, 0.2), 7.0)
     with pytest.warns(UserWarning, match="palpate cache: ignoring"):      # read again at the merge: still ignored
         m.save()
-    assert memo.Memo("t", spec, 2, 1).get((0.1, 0.2))[0] == 7.0          # and replaced
+    assert memo.Memo("t", spec, 2, 1).get((0.1, 0.2)) == (7.0,)          # and replaced
 
 
 def test_with_the_disk_cache_off_nothing_is_written(cache, monkeypatch):
@@ -90,20 +105,21 @@ def test_with_the_disk_cache_off_nothing_is_written(cache, monkeypatch):
     assert m.path is None
     m.put((1.0,), 2.0)
     memo.save_all()
-    assert m.get((1.0,))[0] == 2.0 and not list(cache.iterdir())
+    assert m.get((1.0,)) == (2.0,) and not list(cache.iterdir())
 
 
 def test_recalled_forces_are_the_models_own(cache, coarse, monkeypatch):
     """Remembered forces and force curves equal a fresh model's bit for bit; after the memo is written and
     forgotten, they come from disk without the model."""
-    model = contact.surface_model(coarse)
     x, depths = [0.012, 0.035, 0.0551], [0.001, 0.0025, 0.004]
     assert not recall.known(coarse)
     F = [[recall.force_n(coarse, xi, d) for d in depths] for xi in x]
-    assert F == [[model.force_n(xi, d) for d in depths] for xi in x]
     curve = recall.force_curve_n(coarse, 0.02, np.array(depths))
-    assert curve.tobytes() == model.force_curve_n(0.02, np.array(depths)).tobytes()
     memo.forget()
+    contact.forget_except(set())              # a fresh model (from the disk cache), not the one that answered
+    model = contact.surface_model(coarse)
+    assert F == [[model.force_n(xi, d) for d in depths] for xi in x]
+    assert curve.tobytes() == model.force_curve_n(0.02, np.array(depths)).tobytes()
 
     def no_model(*a, **k):
         raise AssertionError("the model was asked")
@@ -130,18 +146,19 @@ def test_the_memo_outlives_the_process(cache, coarse):
 def test_recalled_3d_forces_are_the_models_own(cache, monkeypatch):
     """The 3D half (fem.recall3d): the model's forces bit for bit, then from disk without the model; a refused
     indentation raises every time (not remembered)."""
-    from fem import recall3d
+    from fem import contact3d, recall3d
     from fem.contact3d import surface_model3d
     sc = S.Scene(name="t3d", tissue=S.Tissue(width_m=0.03, length_m=0.024, height_m=0.015, youngs_pa=2500.0,
                                              poisson=0.4),
                  indenter=S.Indenter(shape="sphere", radius_m=0.004),
                  analysis=S.Analysis(order=1, mesh_size_m=0.006, surface_refine=2.0, patch_m=0.02,
                                      top_displacement_m=0.001))
-    model = surface_model3d(sc)
     pts = [(0.015, 0.012, 0.0005), (0.017, 0.014, 0.0012)]
     F = [recall3d.force_n(sc, *p) for p in pts]
-    assert F == [model.force_n(*p) for p in pts] and min(F) > 0
     memo.forget()
+    contact3d._CACHE.clear()                  # a fresh model (from the disk cache), not the one that answered
+    model = surface_model3d(sc)
+    assert F == [model.force_n(*p) for p in pts] and min(F) > 0
     monkeypatch.setattr(recall3d, "surface_model3d", lambda *a, **k: pytest.fail("the model was asked"))
     assert recall3d.known(sc) and [recall3d.force_n(sc, *p) for p in pts] == F
     assert not recall3d.known(replace_height(sc, 0.016))                          # another scene: nothing known
@@ -149,3 +166,20 @@ def test_recalled_3d_forces_are_the_models_own(cache, monkeypatch):
     for _ in range(2):
         with pytest.raises(ValueError):
             recall3d.force_n(sc, 0.015, 0.012, 0.004)                         # at the tip radius: refused
+
+
+def test_a_remembered_truth_still_builds_its_model_first(cache, coarse, monkeypatch):
+    """The simulated truth's model is built (or restored) before the run even when its forces are remembered: a
+    model that cannot be built now (here: over a lowered DOF budget) stops the run at the start with fem's own error,
+    not as a force model that fails mid-run (the simulated arm takes a ValueError there as beyond the model's
+    range)."""
+    from fem.scene import SceneError
+    from robot.simarm import truth_force
+    f, _ = truth_force(coarse)
+    assert f(0.03, 0.003) == contact.surface_model(coarse).force_n(0.03, 0.003)
+    memo.forget()
+    contact.forget_except(set())
+    assert recall.known(coarse)
+    monkeypatch.setenv("PALPATE_MAX_DOFS", "1000")
+    with pytest.raises(SceneError, match="DOF"):
+        truth_force(coarse)
