@@ -496,8 +496,9 @@ class ArmModel:
             prog = [-1 - ended % 2] * n
         else:
             left = len(ss) - m.k                                    # the step that ends the motion
-            prog = [int(1000 * m.progress)] + [int(1000 * (ss[m.k + j - 1] / m.L)) if j < left else
-                                               -1 - (ended + 1) % 2 for j in range(1, n)]
+            k = max(min(n, left) - 1, 0)        # periods 1..k read the tape's progress, int(1000 * s / L) as step()'s
+            mid = (1000 * (np.array(ss[m.k:m.k + k], dtype=float) / m.L)).astype(np.int64).tolist()
+            prog = [int(1000 * m.progress)] + mid + [-1 - (ended + 1) % 2] * (n - 1 - k)
         return Lookahead(self, self.t_s, kicks, n, t, (seen_t, seen_pose, seen_w), prog, (pose[:n], w), fc[:n],
                          beyond[:n], relax)
 
