@@ -10,9 +10,10 @@ on one machine's libraries, so reading it back is the same as computing it again
 a cache directory shared between machines of different BLAS builds would hold either machine's round-off).
 
 Files are written when the process ends (and when a memo leaves the in-memory registry): merged with what another
-process wrote meanwhile, atomically, the newest ``MAX_ROWS`` kept. Two processes ending at the same moment may
-each write over the other's merge, and a process that ends without running its exit handlers (a forked child's
-``os._exit``, a kill) writes nothing: either loses entries, never correctness (they are computed again). A damaged
+process wrote meanwhile, under an exclusive lock on ``<file>.lock`` (POSIX ``flock``; where there is none, two
+processes ending at the same moment may each write over the other's merge), atomically, the newest ``MAX_ROWS``
+kept. A process that ends without running its exit handlers (a forked child's ``os._exit``, a kill) writes
+nothing. Either loses entries, never correctness: they are computed again. A damaged
 or inconsistent file (not finite, wrong shapes) is ignored with a warning and replaced at the next write;
 ``PALPATE_CACHE=0`` keeps memos in memory only.
 
@@ -22,14 +23,21 @@ Used by the callers that ask the same questions run after run (fem.recall, fem.r
 from __future__ import annotations
 
 import atexit
+import contextlib
 import math
 import os
 import warnings
 from collections import OrderedDict
+from pathlib import Path
 
 import numpy as np
 
 from . import diskcache
+
+try:
+    import fcntl
+except ImportError:                 # not POSIX: merges unlocked (see the module)
+    fcntl = None
 
 MAX_ROWS = 20_000           # per file: a paper run adds about 1,500 to each of its prior's memos the first time
 MAX_OPEN = 16               # memos kept in memory (a study's truths each have their own)
@@ -92,13 +100,32 @@ class Memo:
         _DIRTY.discard(self)
         if self.path is None or not self._new:
             return
-        merged = self._read()
-        merged.update(self._new)
-        keys = list(merged)[-MAX_ROWS:]
-        diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
-                                    "rows": np.array([merged[k] for k in keys], dtype=np.float64)
-                                    .reshape(len(keys), self.width)})
+        with _locked(self.path):
+            merged = self._read()
+            merged.update(self._new)
+            keys = list(merged)[-MAX_ROWS:]
+            diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
+                                        "rows": np.array([merged[k] for k in keys], dtype=np.float64)
+                                        .reshape(len(keys), self.width)})
         self._new = {}
+
+
+@contextlib.contextmanager
+def _locked(path: Path):
+    """An exclusive lock on ``path``'s lock file while a merge reads and writes it (none where flock is missing or
+    the lock file cannot be made: a read-only cache only warns when written, as diskcache does)."""
+    if fcntl is None:
+        yield
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        f = open(path.with_name(path.name + ".lock"), "a")
+    except OSError:
+        yield
+        return
+    with f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        yield
 
 
 _OPEN: OrderedDict[tuple, Memo] = OrderedDict()
