@@ -6,7 +6,8 @@ Runs ``palpate run SCENE --sim`` (a fresh output directory under OUT; the disk c
 cached figures) with wall-clock timers around its phases: planning (``plan_raster``, every round), the detectability
 table, loading the surrogate table, the arm (``run_plan``: the simulated arm and the driver stepping every 2 ms
 period), the localizations (every round's and the final one) and the figure. What the timers do not cover (imports,
-the refinement's design, writing records and result.json) is reported as the rest. Appends one JSON line to
+the refinement's design, writing records and result.json) is reported as the imports (``before_main_s``) and the rest (``rest_s``; the phases then add up to ``wall_s``: before
+session 30 ``rest_s`` held the imports too). Appends one JSON line to
 OUT/phases.jsonl and prints it. The whole run's time includes writing what the process would write at its exit
 (fem.memo's remembered forces), in the rest. The timers wrap the functions where the run command looks them up, so the same script
 times an older checkout too (``PYTHONPATH=OLD python bench/run_phases.py ...`` from inside OLD).
@@ -76,7 +77,7 @@ def main() -> int:
     wall = time.perf_counter() - T0
     row = {"label": a.label, "scene": a.scene, "rc": rc, "code": str(ROOT), "load_avg_1m": os.getloadavg()[0],
            "wall_s": wall, "before_main_s": t_main - T0, **{k: spent[k] for _, _, k, _ in PHASES},
-           "calls": dict(calls), "rest_s": wall - sum(spent.values())}
+           "calls": dict(calls), "rest_s": wall - (t_main - T0) - sum(spent.values())}
     with open(out / "phases.jsonl", "a") as f:
         f.write(json.dumps(row) + "\n")
     print(json.dumps(row, indent=1))

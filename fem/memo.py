@@ -6,8 +6,9 @@ depth grid; 3,000 to 4,000 contact solves (0.6 s) in ``palpate run paper --sim``
 exactly as computed (the same float64 bits) under its exact key (floats: a position, a depth), in memory and, with
 the disk cache on, in one file per question and model (``fem.diskcache``: ``<kind>-<digest of spec>.npz``, the
 spec naming the model's content and the code that computes the answer). An entry is a function of its spec and key
-on one machine's libraries, so reading it back is the same as computing it again (as for the disk cache's operators:
-a cache directory shared between machines of different BLAS builds would hold either machine's round-off).
+on one machine's libraries, so reading it back is the same as computing it again (as for the disk cache's operators,
+whose keys do not name scipy's or the BLAS's build either: a cache directory shared between machines, or kept across
+a library upgrade, may hold either build's round-off).
 
 Files are written when the process ends (and when a memo leaves the in-memory registry): merged with what another
 process wrote meanwhile, under an exclusive lock on ``<file>.lock`` (POSIX ``flock``; where there is none, two
@@ -54,6 +55,7 @@ class Memo:
         self.path = diskcache.entry_path(kind, spec) if diskcache.enabled() else None
         self._rows: dict[Key, Row] | None = None
         self._new: dict[Key, Row] = {}
+        self._used: set[Key] = set()         # keys read back here: kept before the others when a file is trimmed
 
     def _load(self) -> dict[Key, Row]:
         if self._rows is None:
@@ -84,26 +86,38 @@ class Memo:
 
     def get(self, key: Key) -> Row | None:
         """The row stored under ``key`` (None when absent)."""
-        return self._load().get(key)
+        row = self._load().get(key)
+        if row is not None:
+            self._used.add(key)
+        return row
 
     def put(self, key: Key, row) -> None:
         """Store ``row`` (``width`` finite floats) under ``key``."""
         row = tuple(float(v) for v in np.ravel(row))
         if len(row) != self.width or not all(map(math.isfinite, row)):
             raise ValueError(f"memo {self.kind}: a row must be {self.width} finite floats, got {row}")
-        self._load()[key] = row
+        rows = self._load()
+        rows[key] = row
         self._new[key] = row
         _DIRTY.add(self)
+        if len(rows) > 2 * MAX_ROWS:         # a long process (a serial study): written, then the newest kept
+            self.save()
+            for k in list(rows)[:len(rows) - MAX_ROWS]:
+                del rows[k]
 
     def save(self) -> None:
-        """Write the entries this process added (merged with the file as it is now; the newest MAX_ROWS kept)."""
+        """Write the entries this process added, merged with the file as it is now; beyond MAX_ROWS the entries
+        neither added nor read back here go first, then the oldest."""
         _DIRTY.discard(self)
         if self.path is None or not self._new:
             return
         with _locked(self.path):
             merged = self._read()
             merged.update(self._new)
-            keys = list(merged)[-MAX_ROWS:]
+            keys = list(merged)
+            if len(keys) > MAX_ROWS:
+                keep = self._used | self._new.keys()
+                keys = ([k for k in keys if k not in keep] + [k for k in keys if k in keep])[-MAX_ROWS:]
             diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
                                         "rows": np.array([merged[k] for k in keys], dtype=np.float64)
                                         .reshape(len(keys), self.width)})
@@ -124,7 +138,10 @@ def _locked(path: Path):
         yield
         return
     with f:
-        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX)
+        except OSError as e:            # a file system without locks (some NFS mounts): merged unlocked
+            warnings.warn(f"palpate cache: could not lock {f.name} ({e}); merging without the lock", stacklevel=4)
         yield
 
 

@@ -407,6 +407,7 @@ class Surrogate3D:
         for ax, even in ((0, False), (1, False), (2, False), (3, True)):
             T = _pad(T, ax, even)
         self.T = T
+        self._profiles: dict[tuple[float, float], np.ndarray] = {}
 
     def bounds(self) -> dict:
         """The box the table covers (a fit stays inside it): top clearance, diameter, the stone centre's (x, y)
@@ -416,13 +417,23 @@ class Surrogate3D:
                 "xs_m": (x0, x1), "ys_m": (y0, y1), "height_m": self.height_m}
 
     def profile(self, stone_depth_m: float, diam_m: float) -> np.ndarray:
-        """The candidate's padded profile (levels + 2, offsets + 2): the (log s, D) interpolation done once."""
-        s = max(float(stone_depth_m) - 0.5 * float(diam_m), 1e-6)
-        h_s = self.logs[1] - self.logs[0]
-        h_d = self.diam[1] - self.diam[0]
-        i_s, w_s = _catmull_rom(np.asarray((np.log(s) - self.logs[0]) / h_s), len(self.s))
-        i_d, w_d = _catmull_rom(np.asarray((float(diam_m) - self.diam[0]) / h_d), len(self.diam))
-        return np.einsum("i,j,ijkl->kl", w_s, w_d, self.T[np.ix_(i_s, i_d)])
+        """The candidate's padded profile (levels + 2, offsets + 2): the (log s, D) interpolation done once, and
+        remembered for the last few hundred (depth, D) (a finite-difference Jacobian's position and nuisance steps
+        ask for the same one: 7 of its 9 columns in the 3D fit). Read-only."""
+        key = (float(stone_depth_m), float(diam_m))
+        C = self._profiles.get(key)
+        if C is None:
+            s = max(key[0] - 0.5 * key[1], 1e-6)
+            h_s = self.logs[1] - self.logs[0]
+            h_d = self.diam[1] - self.diam[0]
+            i_s, w_s = _catmull_rom(np.asarray((np.log(s) - self.logs[0]) / h_s), len(self.s))
+            i_d, w_d = _catmull_rom(np.asarray((key[1] - self.diam[0]) / h_d), len(self.diam))
+            C = np.einsum("i,j,ijkl->kl", w_s, w_d, self.T[np.ix_(i_s, i_d)])
+            C.flags.writeable = False
+            if len(self._profiles) >= 512:
+                self._profiles.clear()
+            self._profiles[key] = C
+        return C
 
     def contrast(self, x_m, y_m, depth_m, xs_m: float, ys_m: float, stone_depth_m: float,
                  diam_m: float) -> np.ndarray:

@@ -187,15 +187,16 @@ def test_a_remembered_truth_still_builds_its_model_first(cache, coarse, monkeypa
 
 
 def test_writers_ending_together_keep_each_others_rows(cache):
-    """Two processes that write the same memo at the same moment: the merge runs under a lock, so the file ends
-    with both processes' rows (without it, each wrote over the other's merge: 3 of 3 trials lost one side)."""
-    code = ("import sys, time; from fem import memo; m = memo.Memo('t', {'race': int(sys.argv[1]) // 2}, 1, 1); "
-            "k = int(sys.argv[1]); [m.put((float(k * 100000 + i),), i) for i in range(8000)]; "
-            "t0 = float(sys.argv[2]); time.sleep(max(0.0, t0 - time.time())); m.save()")
+    """Two processes write the same memo, the second while the first is between reading the file and writing its
+    merge (its write held up 1 s): under the lock the second waits and merges the first's rows; unlocked (checked by
+    hand with ``memo.fcntl = None``) the first's write drops the second's rows every time."""
+    code = ("import sys, time; from fem import diskcache, memo; k, t0 = int(sys.argv[1]), float(sys.argv[2]); "
+            "m = memo.Memo('t', {'race': 1}, 1, 1); [m.put((float(k * 100000 + i),), i) for i in range(5000)]; "
+            "w = diskcache.write; diskcache.write = (lambda p, a: (time.sleep(1.0), w(p, a))) if k == 0 else w; "
+            "time.sleep(max(0.0, t0 + 0.3 * k - time.time())); m.save()")
     env = {"PALPATE_CACHE_DIR": str(cache), "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "1"}
-    for trial in range(3):
-        t0 = time.time() + 1.5
-        ps = [subprocess.Popen([sys.executable, "-c", code, str(2 * trial + k), str(t0)], env=env) for k in (0, 1)]
-        assert all(p.wait() == 0 for p in ps)
-        memo.forget()
-        assert len(memo.Memo("t", {"race": trial}, 1, 1)) == 16000
+    t0 = time.time() + 1.5
+    ps = [subprocess.Popen([sys.executable, "-c", code, str(k), str(t0)], env=env) for k in (0, 1)]
+    assert all(p.wait() == 0 for p in ps)
+    memo.forget()
+    assert len(memo.Memo("t", {"race": 1}, 1, 1)) == 10000
