@@ -104,6 +104,7 @@ class Memo:
             self.save()
             for k in list(rows)[:len(rows) - MAX_ROWS]:
                 del rows[k]
+            self._used &= rows.keys()
 
     def save(self) -> None:
         """Write the entries this process added, merged with the file as it is now; beyond MAX_ROWS the entries
