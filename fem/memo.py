@@ -107,8 +107,8 @@ class Memo:
             self._used &= rows.keys()
 
     def save(self) -> None:
-        """Write the entries this process added, merged with the file as it is now; beyond MAX_ROWS the entries
-        neither added nor read back here go first, then the oldest."""
+        """Write the entries this process added, merged with the file as it is now; beyond MAX_ROWS the oldest go
+        first of those neither added nor read back here, then of those only added, then of those read back."""
         _DIRTY.discard(self)
         if self.path is None or not self._new:
             return
@@ -117,8 +117,8 @@ class Memo:
             merged.update(self._new)
             keys = list(merged)
             if len(keys) > MAX_ROWS:
-                keep = self._used | self._new.keys()
-                keys = ([k for k in keys if k not in keep] + [k for k in keys if k in keep])[-MAX_ROWS:]
+                rank = {k: 1 for k in self._new} | {k: 2 for k in self._used}
+                keys = sorted(keys, key=lambda k: rank.get(k, 0))[-MAX_ROWS:]     # (stable: the oldest first)
             diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
                                         "rows": np.array([merged[k] for k in keys], dtype=np.float64)
                                         .reshape(len(keys), self.width)})

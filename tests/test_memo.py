@@ -81,6 +81,22 @@ def test_a_full_file_keeps_the_newest(cache, monkeypatch):
     assert back.get((14.0,)) is None
 
 
+def test_a_long_process_trims_its_memo_in_memory(cache, monkeypatch):
+    """Past twice the cap in memory (a serial study's prior): written, then the newest MAX_ROWS kept in memory; the
+    file holds the newest too, those read back here before the rest."""
+    monkeypatch.setattr(memo, "MAX_ROWS", 10)
+    m = memo.Memo("t", {"long": 1}, 1, 1)
+    for i in range(5):
+        m.put((float(i),), i)
+    assert m.get((0.0,)) == (0.0,)                       # read back: kept when the file is trimmed
+    for i in range(5, 21):
+        m.put((float(i),), i)
+    assert len(m) == 10 and m.get((20.0,)) == (20.0,) and m.get((10.0,)) is None
+    on_disk = memo.Memo("t", {"long": 1}, 1, 1)
+    assert len(on_disk) == 10 and on_disk.get((0.0,)) == (0.0,) and on_disk.get((20.0,)) == (20.0,)
+    assert on_disk.get((11.0,)) is None and on_disk.get((12.0,)) == (12.0,)
+
+
 @pytest.mark.parametrize("damage", ["garbage", "shape", "nan-key", "nan-row"])
 def test_a_damaged_file_is_ignored_with_a_warning_and_replaced(cache, damage):
     spec = {"damaged": damage}
