@@ -217,7 +217,10 @@ def test_real_client_connect_move_receive(scene_file, tmp_path):
             # protective stop through the test hook: ur_rtde sees it, commands fail at once, unlock needs 5 s
             assert ask("simcontroller protective-stop").startswith("simcontroller")
             _wait_for(r.isProtectiveStopped)
-            assert r.getSafetyMode() == 3 and not c.isProgramRunning()
+            assert r.getSafetyMode() == 3
+            # the control interface reads its own data stream, which may lag the receive interface's by a packet or
+            # two on a loaded host (seen once in a CI rehearsal: stopped on one stream, still running on the other)
+            _wait_for(lambda: not c.isProgramRunning())
             assert c.zeroFtSensor() is False
             assert ask("safetystatus") == "Safetystatus: PROTECTIVE_STOP"
             assert ask("unlock protective stop").startswith("Cannot unlock protective stop until 5s")
