@@ -1,6 +1,8 @@
 """Test-session settings: a private, empty disk cache (tests compute from scratch and never read a developer's
-~/.cache/palpate), single-threaded BLAS (2 shared cores), and a non-interactive matplotlib backend."""
+~/.cache/palpate; removed at the end), single-threaded BLAS (2 shared cores), and a non-interactive matplotlib backend."""
+import atexit
 import os
+import shutil
 import tempfile
 
 import pytest
@@ -10,6 +12,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
 _CACHE_DIR = tempfile.mkdtemp(prefix="palpate-test-cache-")
 os.environ["PALPATE_CACHE_DIR"] = _CACHE_DIR
+# removed when the session's process ends (each xdist worker has its own): with the 3D operators a session leaves
+# about 1.5 GB, and sessions left behind filled this machine's disk (72 GB in /tmp)
+atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
 
 # Tests that drive the simulated UR controller or sensor box in real time (sockets, 500 Hz data, watchdogs and
 # time-outs in wall-clock time): run on their own, after the rest, so no other test's CPU load delays their
