@@ -5,12 +5,12 @@
 Runs ``palpate run SCENE --sim`` (a fresh output directory under OUT; the disk cache as it is: run it twice for the
 cached figures) with wall-clock timers around its phases: planning (``plan_raster``, every round), the detectability
 table, loading the surrogate table, the arm (``run_plan``: the simulated arm and the driver stepping every 2 ms
-period), the localizations (every round's and the final one) and the figure. What the timers do not cover (imports,
-the refinement's design, writing records and result.json) is reported as the imports (``before_main_s``) and the rest (``rest_s``; the phases then add up to ``wall_s``: before
-session 30 ``rest_s`` held the imports too). Appends one JSON line to
-OUT/phases.jsonl and prints it. The whole run's time includes writing what the process would write at its exit
-(fem.memo's remembered forces), in the rest. The timers wrap the functions where the run command looks them up, so the same script
-times an older checkout too (``PYTHONPATH=OLD python bench/run_phases.py ...`` from inside OLD).
+period), the localizations (every round's and the final one) and the figure. The imports before ``main`` are
+``before_main_s``; what no timer covers (the refinement's design, result.json, writing what the process would write
+at its exit: fem.memo's remembered forces) is ``rest_s``, so the phases add up to ``wall_s`` (before session 30
+``rest_s`` held the imports too). Appends one JSON line to OUT/phases.jsonl and prints it. The timers wrap the
+functions where the run command looks them up, so the same script times an older checkout too
+(``PYTHONPATH=OLD python bench/run_phases.py ...`` from inside OLD).
 """
 from __future__ import annotations
 
