@@ -34,14 +34,24 @@ PHASES = (("planner.plan", "plan_raster", "plan_s", ("app.commands.run",)),
           ("planner.surrogate", "load_surrogate", "load_surrogate_s", ("app.commands.run", "planner.localize")),
           ("robot.driver", "run_plan", "arm_s", ("app.runexec",)),
           ("planner.localize", "localize", "localize_s", ("app.commands.run", "planner.refine")),
-          ("planner.plots_run", "plot_run", "figure_s", ()))
+          ("planner.plots_run", "plot_run", "figure_s", ()),        # before session 31: computed and drawn here
+          ("planner.plots_run", "run_figure", "figure_s", ()),      # since: computed here ...
+          ("app.figchild", "FigureChild.draw", "figure_s", ()),     # ... and drawn by the child (waited for here)
+          ("planner.draw_run", "draw_run", "figure_s", ("app.commands.run",)))   # or here (no child)
 
 
 def instrument() -> tuple[Counter, Counter]:
     spent, calls = Counter(), Counter()
     for mod, name, phase, users in PHASES:
-        m = importlib.import_module(mod)
-        f = getattr(m, name)
+        try:
+            m = importlib.import_module(mod)
+        except ImportError:             # an older checkout without it
+            continue
+        owner, _, name = name.rpartition(".")
+        m = getattr(m, owner) if owner else m
+        f = getattr(m, name, None)
+        if f is None:
+            continue
 
         @functools.wraps(f)
         def timed(*a, _f=f, _phase=phase, **k):
@@ -76,8 +86,9 @@ def main() -> int:
         sys.modules["fem.memo"].save_all()
     wall = time.perf_counter() - T0
     row = {"label": a.label, "scene": a.scene, "rc": rc, "code": str(ROOT), "load_avg_1m": os.getloadavg()[0],
-           "wall_s": wall, "before_main_s": t_main - T0, **{k: spent[k] for _, _, k, _ in PHASES},
+           "wall_s": wall, "before_main_s": t_main - T0,
            "calls": dict(calls), "rest_s": wall - (t_main - T0) - sum(spent.values())}
+    row.update({k: spent[k] for _, _, k, _ in PHASES})
     with open(out / "phases.jsonl", "a") as f:
         f.write(json.dumps(row) + "\n")
     print(json.dumps(row, indent=1))

@@ -38,7 +38,7 @@ class _Motion:
         self.L, self.v, self.a, self.interp = L, v, a, interp
         self.s, self.sdot, self.a_stop, self.stalled = 0.0, 0.0, None, False
         self.k = 0                # steps taken
-        self.plan = None          # the uninterrupted run's s, sdot, T_tcp, pose (rows) and tape entry after each step
+        self.plan = None          # the uninterrupted run's s, sdot, T_tcp and pose (rows) after each step
 
     def step(self, dt):
         self.k += 1
@@ -58,6 +58,10 @@ class _Motion:
     @property
     def progress(self):
         return self.s / self.L if self.L > 0 else 1.0
+
+    def tape_pose(self, i: int) -> tuple[np.ndarray, list[float]]:
+        """(T_tcp, pose) after the uninterrupted run's step ``i`` (from ``plan``)."""
+        return self.plan[2][i], self.plan[3][i].tolist()
 
     def uninterrupted(self, dt: float, max_steps: int = 1_000_000) -> tuple[list[float], list[float], list[float]]:
         """(progress, s, sdot) after each step of ``dt`` from now to the end if nothing stops, stalls or replaces
@@ -91,24 +95,26 @@ class _Motion:
         return out, ss, vs
 
 
-def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[dict, np.ndarray, np.ndarray]:
-    """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once:
-    ({u: (T_tcp, pose)}, the T_tcp of each step, the pose of each step as rows) -- what ``move_linear``'s interp and
-    ``ArmModel._pose`` compute per step, to round-off (the positions exactly; ``rel`` None: the orientation stays
-    T0's)."""
+def _linear_tape(T0, T1, rel, us: list[float]) -> tuple[np.ndarray, np.ndarray]:
+    """A linear move's poses at the progress values ``us`` of its uninterrupted run, computed at once: (the T_tcp of
+    each step, the pose of each step as rows) -- what ``move_linear``'s interp and ``ArmModel._pose`` compute per
+    step, to round-off (the positions exactly; ``rel`` None: the orientation stays T0's, and T1's at the end, so
+    each one's rotation vector is computed once: the same floats as row by row)."""
     u = np.asarray(us, dtype=float)
     T = np.zeros((len(u), 4, 4))
     T[:, 3, 3] = 1.0
     T[:, :3, 3] = T0[:3, 3] + u[:, None] * (T1[:3, 3] - T0[:3, 3])
+    end = u >= 1
     if rel is None:
         T[:, :3, :3] = T0[:3, :3]
+        T[end, :3, :3] = T1[:3, :3]
+        r0, r1 = ur5e.matrices_to_rotvecs(np.stack([T0[:3, :3], T1[:3, :3]]))
+        rv = np.where(end[:, None], r1, r0)
     else:
         T[:, :3, :3] = T0[:3, :3] @ ur5e.rotvecs_to_matrices(u[:, None] * rel)
-    end = u >= 1
-    T[end, :3, :3] = T1[:3, :3]
-    P = np.concatenate([T[:, :3, 3], ur5e.matrices_to_rotvecs(T[:, :3, :3])], axis=1)
-    poses = P.tolist()
-    return {float(ui): (T[i], poses[i]) for i, ui in enumerate(u)}, T, P
+        T[end, :3, :3] = T1[:3, :3]
+        rv = ur5e.matrices_to_rotvecs(T[:, :3, :3])
+    return T, np.concatenate([T[:, :3, 3], rv], axis=1)
 
 
 class ArmModel:
@@ -290,11 +296,12 @@ class ArmModel:
         L = max(dist, 0.1 * ur5e.rotation_angle(T0[:3, :3], T1[:3, :3]))
         rel = ur5e.matrix_to_rotvec(T0[:3, :3].T @ T1[:3, :3])       # ur5e.slerp_matrix's, made once per move
         turns = float(np.linalg.norm(rel)) >= 1e-12                  # below, rotvec_to_matrix(u rel) is I
-        tape: dict = {}
+        tape: dict = {}                  # progress -> the step's index in the tape
 
         def interp(u):
-            hit = tape.get(u)
-            if hit is not None:
+            i = tape.get(u)
+            if i is not None:
+                hit = m.tape_pose(i)
                 self.T_tcp, self._q_stale = hit[0], True
                 self._tape_pose = hit
                 return
@@ -308,9 +315,9 @@ class ArmModel:
         m = _Motion(L, speed, accel, interp)
         if self.tape:
             us, ss, vs = m.uninterrupted(self.period_s)
-            hits, Ts, P = _linear_tape(T0, T1, rel if turns else None, us)
-            tape.update(hits)
-            m.plan = (ss, vs, Ts, P, [hits[u] for u in us])
+            Ts, P = _linear_tape(T0, T1, rel if turns else None, us)
+            tape.update(zip(us, range(len(us))))
+            m.plan = (ss, vs, Ts, P)
         self._start(m, "linear")
 
     def move_joint(self, q, speed, accel) -> None:
@@ -456,7 +463,7 @@ class ArmModel:
         dt = self.period_s
         t = np.cumsum(np.concatenate([[self.t_s], np.full(n, dt)]))[1:]     # t_s += dt, n times
         if m is not None:
-            ss, vs, Ts, P, hits = m.plan
+            ss, vs, Ts, P = m.plan
             idx = np.minimum(np.arange(m.k, m.k + n), len(ss) - 1)
             pose = P[idx]
             x, y, d = self._tips_xyz(Ts[idx])
@@ -551,14 +558,14 @@ class ArmModel:
         self.t_s = float(la.t[k - 1])
         m = self.motion
         if m is not None:
-            ss, vs, Ts, poses, hits = m.plan
+            ss, vs = m.plan[0], m.plan[1]
             i = m.k + k - 1
             if i >= len(ss) - 1:            # the motion ended
-                hit = hits[-1]
+                hit = m.tape_pose(len(ss) - 1)
                 self.motion = None
                 self.motions_ended += 1
             else:
-                hit = hits[i]
+                hit = m.tape_pose(i)
                 m.s, m.sdot, m.k = ss[i], vs[i], m.k + k
             self.T_tcp, self._q_stale, self._tape_pose = hit[0], True, hit
         if la.relax:

@@ -29,6 +29,7 @@ from pathlib import Path
 from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
+from app.figchild import FigureChild
 from app.ftoptions import add_ft_options, check_ft
 from app.options import (
     MAX_TOTAL_PROBES,
@@ -54,6 +55,7 @@ from app.runexec import (
 )
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
+from planner.draw_run import draw_run
 from planner.localize import MIN_MEASUREMENTS, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
@@ -153,7 +155,11 @@ def _say(msg: str) -> None:
 
 
 def run(args) -> int:
+    with contextlib.ExitStack() as on_exit:     # ends a figure child not asked to draw (an error, a fault)
+        return _run(args, on_exit)
 
+
+def _run(args, on_exit: contextlib.ExitStack) -> int:
     t_wall = time.perf_counter()
     # ---- everything checked before OUT is touched
     out = Path(args.out)
@@ -196,10 +202,14 @@ def run(args) -> int:
         plan0 = saved
         if not three_d:
             _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+    fig_child = None
+    if not args.no_figure and not args.host:    # simulated: matplotlib loads in a child meanwhile (app.figchild)
+        fig_child = FigureChild()
+        on_exit.callback(fig_child.close)
     if three_d:       # the 3D flow (loaded for a block only: the 2D commands never import the 3D path)
         from app.commands.run3d import RunContext, run_block
         return run_block(args, RunContext(t_wall=t_wall, out=out, scene=scene, prior=prior, plan0=plan0, cond=cond,
-                                          opts=opts, resume=resume))
+                                          opts=opts, resume=resume, fig_child=fig_child))
     if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)
@@ -310,10 +320,14 @@ def run(args) -> int:
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and not args.no_figure:
-        from planner.plots_run import plot_run
-        plot_run(out / "fig_run.png", prior, loc, res.measurements, surrogate=sur,
-                 truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
-                 title=f"palpate run {args.scene}:\n{describe(loc)}")
+        from planner.plots_run import run_figure
+        fig = run_figure(prior, loc, res.measurements, surrogate=sur,
+                         truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
+                         title=f"palpate run {args.scene}:\n{describe(loc)}")
+        if fig_child is not None:
+            fig_child.draw(out / "fig_run.png", fig, _say)
+        else:
+            draw_run(out / "fig_run.png", fig)
     print((("STONE " if loc.detected else "NO STONE ") + describe(loc) if res is not None else
            f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
           + f"; {result['probes_used']} probes; results in {out}",

@@ -19,9 +19,11 @@ from pathlib import Path
 from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
+from app.figchild import FigureChild
 from app.runexec import RunAborted, choose_executor, new_stats, open_out, round_planner
 from core.contracts import Limits, Plan, PlanError
 from planner.area import probe_bounds
+from planner.draw_run3d import draw_run3d
 from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
@@ -40,6 +42,7 @@ class RunContext:
     cond: object             # robot.truth.TruthConditions (simulated arm) or None
     opts: dict               # run_options.json
     resume: bool
+    fig_child: FigureChild | None = None     # draws the figure (a simulated run: app.figchild); None: here
 
 
 def _say(msg: str) -> None:
@@ -130,10 +133,14 @@ def run_block(args, ctx: RunContext) -> int:
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
     if res is not None and not args.no_figure and res.measurements is not None:
-        from planner.plots_run3d import plot_run3d
-        plot_run3d(out / "fig_run.png", prior, loc, res.measurements, surrogate=sur,
-                   truth_stones=truth.stones if truth is not None else (), region=probe_bounds(prior),
-                   title=f"palpate run {args.scene}:\n{describe3d(loc)}")
+        from planner.plots_run3d import run_figure3d
+        fig = run_figure3d(prior, loc, res.measurements, surrogate=sur,
+                           truth_stones=truth.stones if truth is not None else (), region=probe_bounds(prior),
+                           title=f"palpate run {args.scene}:\n{describe3d(loc)}")
+        if ctx.fig_child is not None:
+            ctx.fig_child.draw(out / "fig_run.png", fig, _say)
+        else:
+            draw_run3d(out / "fig_run.png", fig)
     print((("STONE " if loc.detected else "NO STONE ") + describe3d(loc) if res is not None else
            f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
           + f"; {result['probes_used']} probes; results in {out}",
