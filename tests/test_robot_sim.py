@@ -337,3 +337,21 @@ def test_a_run_with_too_few_usable_probes_ends_without_an_estimate():
     res = adaptive(load("paper").prior(), execute, coarse_x_m=np.linspace(0.01, 0.06, 6))
     assert res.localization.detected is False and res.probes_used == 6
     assert res.stop_reason.startswith("too few usable measurements: 0 of 6 probes")
+
+
+def test_a_straight_moves_tape_reads_its_orientation_as_row_by_row():
+    """A move that keeps its orientation computes its rotation vector once (T0's, and T1's for the end rows): the
+    same floats as converting every row's matrix, near the tool-down rotation by pi too."""
+    from robot.sim import _linear_tape
+    rng = np.random.default_rng(11)
+    for trial in range(200):
+        rv = rng.normal(size=3)
+        rv *= (np.pi - rng.uniform(0, 1e-3) if trial % 2 else rng.uniform(0, np.pi)) / np.linalg.norm(rv)
+        T0 = ur5e.pose_to_T(list(rng.uniform(-0.5, 0.5, 3)) + list(rv))
+        T1 = T0.copy()
+        T1[:3, 3] += rng.uniform(-0.05, 0.05, 3)
+        T1[:3, :3] = T0[:3, :3] @ ur5e.rotvec_to_matrix(rng.normal(size=3) * 1e-15)   # the same to round-off
+        us = sorted(rng.uniform(0, 1, int(rng.integers(1, 400))).tolist()) + [1.0, 1.0]
+        T, P = _linear_tape(T0, T1, None, us)
+        assert np.array_equal(P[:, 3:], ur5e.matrices_to_rotvecs(T[:, :3, :3]))
+        assert np.array_equal(T[-1, :3, :3], T1[:3, :3]) and np.array_equal(T[0, :3, :3], T0[:3, :3])
