@@ -276,7 +276,6 @@ class Surrogate:
         self.levels = np.asarray(data["levels_m"])
         self.x0 = np.asarray(data["x0_m"])
         self.T = np.ascontiguousarray(np.asarray(data["table"]) * self.scale if self.scale != 1.0 else data["table"])
-        self._T3 = self.T.reshape(self.T.shape[0], self.T.shape[1], -1)     # (n s, n diam, the rest): a view
         self.W = float(data["width_m"])
         self.build_s = float(data.get("build_s", 0.0))
         self._slices: dict[tuple[float, float], np.ndarray] = {}
@@ -288,36 +287,46 @@ class Surrogate:
         return {"xs_m": (self.xs[0], self.W - self.xs[0]), "s_m": (self.s[0], self.s[-1]),
                 "diam_m": (self.diam[0], self.diam[-1])}
 
-    def _slice(self, s: float, diam_m: float) -> np.ndarray:
-        """The table interpolated to clearance ``s`` and diameter ``diam_m``: (nxs, nlev, nx0). Remembered for the
-        last few hundred (s, D): a fit's candidates and its Jacobian's x and nuisance steps ask for the same ones."""
-        key = (s, diam_m)
+    def _slice(self, s: float, diam_m: float, k0: int | None = None) -> np.ndarray:
+        """The table interpolated to clearance ``s`` and diameter ``diam_m``: (nxs, nlev, nx0); with ``k0`` its rows
+        k0 and k0 + 1 only (2, nlev, nx0): all a single stone's stencil reads (a third of the work on the shipped
+        tables; the same numbers as the whole slice's rows). Remembered for the last few hundred (s, D): a fit's
+        candidates and its Jacobian's x and nuisance steps ask for the same ones."""
+        C = self._slices.get((s, diam_m))
+        if C is not None:
+            return C if k0 is None else C[k0:k0 + 2]
+        key = (s, diam_m) if k0 is None else (s, diam_m, k0)
         C = self._slices.get(key)
         if C is None:
             i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
             i_d, w_d = _lagrange4(self.diam, diam_m)
-            C = self._blend(i_s, w_s, i_d, w_d)
+            C = self._blend(i_s, w_s, i_d, w_d, k0)
             if len(self._slices) >= 512:
                 self._slices.clear()
             self._slices[key] = C
         return C
 
-    def _blend(self, i_s: np.ndarray, w_s: np.ndarray, i_d: np.ndarray, w_d: np.ndarray) -> np.ndarray:
-        """sum over i, j of w_s[i] w_d[j] T[i_s[i], i_d[j]]: (nxs, nlev, nx0). The stencils are 4 consecutive
-        nodes, so the table is read through a view (a fancy index copied 0.8 MB: 4 times the time, the same sums)."""
-        v = self._T3[i_s[0]:i_s[0] + 4, i_d[0]:i_d[0] + 4]
-        return np.einsum("ij,ijm->m", np.outer(w_s, w_d), v).reshape(self.T.shape[2:])
+    def _blend(self, i_s: np.ndarray, w_s: np.ndarray, i_d: np.ndarray, w_d: np.ndarray,
+               k0: int | None = None) -> np.ndarray:
+        """sum over i, j of w_s[i] w_d[j] T[i_s[i], i_d[j]]: (nxs, nlev, nx0), or its rows k0, k0 + 1. The stencils
+        are 4 consecutive nodes, so the table is read through a view (a fancy index copied 0.8 MB: 4 times the
+        time, the same sums); each output element sums its 16 terms alike however many are computed."""
+        v = self.T[i_s[0]:i_s[0] + 4, i_d[0]:i_d[0] + 4]
+        if k0 is not None:
+            v = v[:, :, k0:k0 + 2]
+        return np.einsum("ij,ijm->m", np.outer(w_s, w_d), v.reshape(4, 4, -1)).reshape(v.shape[2:])
 
-    def _slice_slopes(self, s: float, diam_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """d/d(log s) and d/d(diam_m) of ``_slice`` (at fixed s and fixed diameter respectively), remembered alike."""
-        key = (s, diam_m)
+    def _slice_slopes(self, s: float, diam_m: float, k0: int) -> tuple[np.ndarray, np.ndarray]:
+        """d/d(log s) and d/d(diam_m) of ``_slice`` (at fixed s and fixed diameter respectively), rows k0 and
+        k0 + 1, remembered alike."""
+        key = (s, diam_m, k0)
         v = self._slopes.get(key)
         if v is None:
             i_s, w_s = _lagrange4(self.logs, float(np.log(s)))
             i_d, w_d = _lagrange4(self.diam, diam_m)
             dw_s, dw_d = _lagrange4_slope(self.logs, float(np.log(s))), _lagrange4_slope(self.diam, diam_m)
-            v = (self._blend(i_s, dw_s, i_d, w_d), self._blend(i_s, w_s, i_d, dw_d))
-            if len(self._slopes) >= 32:       # (a fit's Jacobians rarely revisit an (s, D): 95 kB each)
+            v = (self._blend(i_s, dw_s, i_d, w_d, k0), self._blend(i_s, w_s, i_d, dw_d, k0))
+            if len(self._slopes) >= 32:       # (a fit's Jacobians rarely revisit an (s, D))
                 self._slopes.clear()
             self._slopes[key] = v
         return v
@@ -328,27 +337,30 @@ class Surrogate:
         clearance, and the probe's depth. Exact for the interpolant (linear in xs, probe position and depth, cubic
         Lagrange in log s and diameter), one-sided at its nodes; 0 where the interpolant holds a clamped value."""
         st = _Stencil.of(self, x0_m, depth_m, [float(xs_m)])
+        k0 = int(st.k[0])
         s = stone_depth_m - 0.5 * diam_m
-        C = self._slice(max(s, 1e-6), float(diam_m))
-        Cs, CD = self._slice_slopes(max(s, 1e-6), float(diam_m)) if s > 1e-6 else (0.0 * C, 0.0 * C)
+        C = self._slice(max(s, 1e-6), float(diam_m), k0)                  # rows k0, k0 + 1
+        Cs, CD = self._slice_slopes(max(s, 1e-6), float(diam_m), k0) if s > 1e-6 else (0.0 * C, 0.0 * C)
         t = float(st.t[0])
-        dk = self.xs[st.k[0] + 1] - self.xs[st.k[0]]
+        dk = self.xs[k0 + 1] - self.xs[k0]
         dwk = 1.0 / dk if -1e-9 <= t <= 1.0 + 1e-9 else 0.0          # (inwards at an end)
         lev = self.levels
         du = np.where((st.d >= lev[0]) & (st.d <= lev[-1]), 1.0 / (lev[st.il + 1] - lev[st.il]), 0.0)
         h = self.x0[1] - self.x0[0]
         out = np.zeros((4, len(st.d)))
         vals = []
+        wl = st.wl
         for kk, wkk, xq_raw, ix, wx in st.nodes():
-            lo, hi = st.levels_of(C, kk, ix, wx)
-            vals.append(((1 - st.wl) * lo + st.wl * hi)[0])
-            kr, il, wl = kk[:, None], st.il, st.wl
-            d_xq = ((1 - wl) * (C[kr, il, ix + 1] - C[kr, il, ix]) + wl * (C[kr, il + 1, ix + 1] - C[kr, il + 1, ix]))
+            b = st.base(C, kk - k0, ix)
+            c00, c01, c10, c11 = st.corners(C, b)
+            lo, hi = (1 - wx) * c00 + wx * c01, (1 - wx) * c10 + wx * c11
+            vals.append(((1 - wl) * lo + wl * hi)[0])
+            d_xq = ((1 - wl) * (c01 - c00) + wl * (c11 - c10))
             inside = (xq_raw >= self.x0[0]) & (xq_raw <= self.x0[-1])
             out[0] -= wkk[0] * np.where(inside, d_xq / h, 0.0)[0]         # xq = x0 - xs + node: d xq / d xs = -1
             for j, T in ((1, Cs), (2, CD)):
-                a, b = st.levels_of(T, kk, ix, wx)
-                out[j] += wkk[0] * ((1 - wl) * a + wl * b)[0]
+                a, b2 = st.levels_at(T, b, wx)
+                out[j] += wkk[0] * ((1 - wl) * a + wl * b2)[0]
             out[3] += wkk[0] * (hi - lo)[0] * du
         out[0] = (-1.0 if st.mirror[0] else 1.0) * (out[0] + (vals[1] - vals[0]) * dwk)
         return out
@@ -359,10 +371,11 @@ class Surrogate:
     def contrast_many(self, x0_m, depth_m, xs_m, stone_depth_m: float, diam_m: float) -> np.ndarray:
         """``contrast`` for stones at each of the positions ``xs_m`` (same depth and size): (len(xs_m), n probes)."""
         st = _Stencil.of(self, x0_m, depth_m, xs_m)
-        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m))   # (nxs, nlev, nx0)
+        k0 = int(st.k[0]) if len(st.k) and (st.k == st.k[0]).all() else None    # one stencil: its two rows only
+        C = self._slice(max(stone_depth_m - 0.5 * diam_m, 1e-6), float(diam_m), k0)   # (nxs or 2, nlev, nx0)
         out = np.zeros((len(st.k), len(st.d)))
         for kk, wkk, _, ix, wx in st.nodes():
-            lo, hi = st.levels_of(C, kk, ix, wx)
+            lo, hi = st.levels_at(C, st.base(C, kk if k0 is None else kk - k0, ix), wx)
             out += wkk[:, None] * ((1 - st.wl) * lo + st.wl * hi)
         return out
 
@@ -410,10 +423,23 @@ class _Stencil:
             ix = np.minimum(np.floor(v).astype(int), len(x0) - 2)
             yield kk, wkk, xq_raw, ix, v - ix
 
-    def levels_of(self, T: np.ndarray, kk: np.ndarray, ix: np.ndarray, wx: np.ndarray):
-        """The table T (nxs, nlev, nx0) at the probes' positions in node kk: on the level below, and the one above."""
-        kr, il = kk[:, None], self.il
-        return ((1 - wx) * T[kr, il, ix] + wx * T[kr, il, ix + 1], (1 - wx) * T[kr, il + 1, ix] + wx * T[kr, il + 1, ix + 1])
+    def base(self, T: np.ndarray, kk: np.ndarray, ix: np.ndarray) -> np.ndarray:
+        """Flat indices into T (n, nlev, nx0; C-contiguous) of each probe's cell in row kk: level below, left end."""
+        return (kk[:, None] * T.shape[1] + self.il) * T.shape[2] + ix
+
+    @staticmethod
+    def corners(T: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """T at the cells ``b`` (``base``): (below left, below right, above left, above right) -- what
+        T[kk, il, ix], T[kk, il, ix + 1], T[kk, il + 1, ix], T[kk, il + 1, ix + 1] read, in one gather each."""
+        t = T.reshape(-1)
+        n = T.shape[2]
+        return t[b], t[b + 1], t[b + n], t[b + n + 1]
+
+    def levels_at(self, T: np.ndarray, b: np.ndarray, wx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """T at the probes' cells ``b`` (``base``), linear in the probe's position: on the level below, the one
+        above."""
+        c00, c01, c10, c11 = self.corners(T, b)
+        return (1 - wx) * c00 + wx * c01, (1 - wx) * c10 + wx * c11
 
 
 _MEM: dict[str, Surrogate] = {}

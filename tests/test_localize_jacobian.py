@@ -177,3 +177,28 @@ def test_at_the_tables_ends_the_slopes_point_inwards(paper_surrogate):
         S = sur.contrast_slopes(x0, d, xs, 0.02, 0.01)
         inward = (sur.contrast(x0, d, xs + step, 0.02, 0.01) - sur.contrast(x0, d, xs, 0.02, 0.01)) / step
         assert np.abs(S[0] - inward).max() < 1e-5 * np.abs(inward).max(), xs
+
+
+def test_a_single_stones_two_rows_are_the_whole_slices(paper_prior, paper_surrogate):
+    """One stone's contrast and slopes read only the two stone-position rows of a (s, D) slice of the table, blended
+    alone (planner.surrogate: a third of the work): the same numbers, bit for bit, as reading them from the whole
+    slice, whichever was blended first."""
+    from planner.surrogate import Surrogate
+    sur = paper_surrogate
+    rng = np.random.default_rng(8)
+    b = sur.bounds
+    for trial in range(60):
+        s = float(np.exp(rng.uniform(*np.log(b["s_m"]))))
+        D = float(rng.uniform(*b["diam_m"]))
+        x0, d = rng.uniform(0, sur.W, 30), rng.choice([0.003, 0.004, 0.0065], 30)
+        xs = float(rng.uniform(*b["xs_m"]))
+        rows_first, whole_first = (Surrogate.__new__(Surrogate) for _ in range(2))
+        for t in (rows_first, whole_first):
+            t.__dict__.update(sur.__dict__, _slices={}, _slopes={})
+        whole_first.contrast_many(x0, d, np.linspace(b["xs_m"][0], b["xs_m"][1], 7), s + D / 2, D)
+        k0 = int(np.clip(np.searchsorted(sur.xs, min(xs, sur.W - xs)) - 1, 0, len(sur.xs) - 2))
+        assert np.array_equal(rows_first._slice(s, D, k0), whole_first._slice(s, D)[k0:k0 + 2])
+        for fn in ("contrast", "contrast_slopes"):
+            a = getattr(rows_first, fn)(x0, d, xs, s + D / 2, D)
+            assert np.array_equal(a, getattr(whole_first, fn)(x0, d, xs, s + D / 2, D)), fn
+            assert np.isfinite(a).all() and np.abs(a).max() > 0
