@@ -10,7 +10,10 @@ What is timed:
 - each command in a fresh process (``python -m app.cli ...``, the same as the ``palpate`` script): wall clock, CPU
   time (user + system, of the child), and the time to its first line of output. *cold*: an empty disk cache
   (a fresh ``PALPATE_CACHE_DIR``); *cached*: the same command again on that cache.
-- the floor: ``python -c "import numpy"`` (an interpreter that loads numpy and does nothing else).
+- the floor: ``python -c "import numpy"`` (an interpreter that loads numpy and does nothing else); for ``run``, an
+  interpreter that imports what the run's own process needs (numpy, scipy.optimize, casadi), and the figure's child
+  process (``python -m app.figchild`` with an empty stdin: matplotlib and a first figure) until it is ready.
+  A simulated run's CPU time includes its figure child's (waited for), which works beside it: CPU may exceed wall.
 
 palpate's own modules are compiled to bytecode first (``compileall``, as ``pip install`` does for a regular install):
 with ``PYTHONDONTWRITEBYTECODE`` set (this machine sets it) an editable install would otherwise recompile every
@@ -44,9 +47,9 @@ import numpy as np  # noqa: E402
 
 N_WAYPOINTS = 100
 DEPTH_M = 0.003
-# what `palpate run` cannot do without: numpy, scipy.optimize (the localizer's fits), casadi (the planner) and
-# matplotlib's pyplot (the figure)
-RUN_LIBRARIES = "import numpy, scipy.optimize, casadi, matplotlib; matplotlib.use('Agg'); import matplotlib.pyplot"
+# what `palpate run`'s own process cannot do without: numpy, scipy.optimize (the localizer's fits), casadi (the
+# planner); the figure's matplotlib loads in a child meanwhile (app.figchild: timed as it starts, with an empty stdin)
+RUN_LIBRARIES = "import numpy, scipy.optimize, casadi"
 TARGETS = {"predict_whole_process_x": 1000.0, "predict_in_process_x": 3000.0, "run_sim_cached_naive": 1.0}
 
 
@@ -87,12 +90,13 @@ def time_command(argv: list[str], env: dict) -> dict:
 
 def floor(env: dict, repeats: int) -> dict:
     out = {}
-    for label, code in (("python", "pass"), ("python_numpy", "import numpy"),
-                        ("python_run_libraries", RUN_LIBRARIES)):
+    for label, args in (("python", ["-c", "pass"]), ("python_numpy", ["-c", "import numpy"]),
+                        ("python_run_libraries", ["-c", RUN_LIBRARIES]),
+                        ("figure_child_ready", ["-m", "app.figchild"])):
         ts = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            subprocess.run([sys.executable, "-c", code], env=env, check=True)
+            subprocess.run([sys.executable, *args], env=env, check=True, stdin=subprocess.DEVNULL, cwd=ROOT)
             ts.append(time.perf_counter() - t0)
         out[label] = statistics.median(ts)
     return out
@@ -240,10 +244,13 @@ def markdown(r: dict) -> str:
               f"+ {ip['fast_100_stresses_prior_cpu_s'] * 1e3:.1f} ms), "
               f"{r['best_possible_predict_with_work_ratio']:.0f}x."]
     if "python_run_libraries" in fl:
-        lines += ["", f"An interpreter that only imports what `palpate run` cannot do without (numpy, scipy.optimize for "
-                  f"the fits, casadi for the plans, matplotlib's pyplot for the figure) takes "
-                  f"{fl['python_run_libraries']:.3f} s: {fl['python_run_libraries'] / ip['naive_per_waypoint_s']:.2f} "
-                  f"of one naive re-solve before any work."]
+        lines += ["", f"An interpreter that only imports what `palpate run`'s own process cannot do without (numpy, "
+                  f"scipy.optimize for the fits, casadi for the plans) takes {fl['python_run_libraries']:.3f} s: "
+                  f"{fl['python_run_libraries'] / ip['naive_per_waypoint_s']:.2f} of one naive re-solve before any "
+                  f"work."]
+        if "figure_child_ready" in fl:
+            lines[-1] += (f" The figure's child process (`python -m app.figchild`: matplotlib's pyplot and a first "
+                          f"figure, on the other core meanwhile) takes {fl['figure_child_ready']:.3f} s to be ready.")
     pf = r["period_floor"]
     for key, row in r["commands"].items():
         if "periods" in row:
