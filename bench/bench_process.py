@@ -33,6 +33,7 @@ import argparse  # noqa: E402
 import compileall  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
+import shutil  # noqa: E402
 import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
@@ -197,6 +198,8 @@ def run(out_dir, quick: bool = False, repeats: int | None = None) -> dict:
                                                cpu_per_period_s=med["cpu_s"] / periods)
             print(f"  {name:20s} {phase:6s} wall {med['wall_s']:7.3f} s  cpu {med['cpu_s']:7.3f} s  "
                   f"first output {med['first_output_s']:.3f} s", flush=True)
+    for cache in work.glob("cache*"):       # the commands' disk caches: scratch (0.5 GB), not measurements
+        shutil.rmtree(cache, ignore_errors=True)
     ratio = {}
     for key, r in rows.items():
         k = N_WAYPOINTS if key.startswith("predict") else 1
