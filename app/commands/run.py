@@ -124,7 +124,10 @@ def add_parser(sub) -> None:
     p.add_argument("--fresh", action="store_true",
                    help="start afresh: move the files of a previous run in --out into OUT/previous-<UTC time>/")
     add_ft_options(p, sim_help="with the simulated arm")
-    p.add_argument("--no-figure", action="store_true")
+    p.add_argument("--no-figure", action="store_true",
+                   help="write no fig_run.png (a simulated run otherwise draws it in a child process that loads "
+                        "matplotlib on another core while the run works; next to a real arm it is drawn at the end, "
+                        "in this process)")
     p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
 
