@@ -406,9 +406,10 @@ class _Forward:
 
 def _jac(fw: _Forward, sig, p, nu) -> np.ndarray:
     """d residuals / d(xs_mm, log s_mm, D_mm, *free nuisance) (the stone's columns only with a stone ``p``)."""
-    J = np.vstack([-fw.force_jac(p, nu) / sig[:, None],
-                   np.c_[np.zeros((len(fw.extra(nu)), 3)), fw.extra_jac(nu)]])
-    return J[:, np.r_[np.arange(3) if p is not None else [], 3 + np.flatnonzero(fw.free)].astype(int)]
+    E = fw.extra_jac(nu)
+    J = np.vstack([-fw.force_jac(p, nu) / sig[:, None], np.hstack([np.zeros((len(E), 3)), E])])
+    cols = 3 + np.flatnonzero(fw.free)
+    return J[:, np.concatenate([np.arange(3), cols]) if p is not None else cols]
 
 
 def _jac_or_fd(jac):
@@ -489,7 +490,7 @@ def _depth_held(resid, jac, d_mm: float):
         J = jac(q(p))
         s = d_mm - 0.5 * p[1]
         dls_dD = -0.5 / s if s > 1e-3 else 0.0
-        return np.c_[J[:, 0], J[:, 2] + dls_dD * J[:, 1], J[:, 3:]]
+        return np.column_stack([J[:, 0], J[:, 2] + dls_dD * J[:, 1], J[:, 3:]])
     return r, r_jac
 
 
