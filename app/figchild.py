@@ -1,19 +1,24 @@
 """A run's figure drawn by a child process that imports matplotlib while the run works (issue 19).
 
-Importing matplotlib's pyplot takes about 0.3 s, a tenth of a cached ``palpate run paper --sim``; a child started
-when the run starts has it loaded by the time the estimate is known, on the machine's other core. The parent sends
-the figure's numbers (a planner.draw_run ``RunFigure`` or planner.draw_run3d ``RunFigure3D``, pickled over the child's stdin) and waits for the file.
+A process's first figure costs about 0.5 s more than the same figure drawn again (importing matplotlib's pyplot,
+the font cache and glyphs, the PNG writer, the layout's renderer: the child below is ready 0.50 s after it starts,
+bench/bench_process.py), about a seventh of a cached ``palpate run paper --sim``. A child started when the run starts
+has paid it, on the machine's other core, by the time the estimate is known. The parent sends the figure's numbers
+(a planner.draw_run ``RunFigure`` or planner.draw_run3d ``RunFigure3D``, pickled over the child's stdin) and waits
+for the file; the child imports palpate's modules from the parent's own ``sys.path``, so both draw with the same code.
 
 Used for simulated runs only: next to a real arm the control host's cores are left to the driver. If the child
-cannot draw (it failed, or gave no answer within ``FigureChild.timeout_s``), the parent says so in one line and
-draws in its own process, so a figure is never lost to the child. A child whose parent ends without sending reads
-the end of its stdin and exits.
+cannot be started, or cannot draw (it failed, wrote no file, or gave no answer within ``FigureChild.timeout_s``), the
+parent says so in one line and draws in its own process, so a figure is never lost to the child. A child not asked
+to draw (an error or a fault ended the run) finds its stdin closed once its warm-up is done, and exits; the parent
+does not wait for it.
 
     python -m app.figchild      # the child: reads one pickled (path, figure) from stdin, draws it, exits
 """
 from __future__ import annotations
 
 import io
+import json
 import os
 import pickle
 import subprocess
@@ -23,7 +28,9 @@ from pathlib import Path
 from planner.draw_run import RunFigure, draw_run
 from planner.draw_run3d import RunFigure3D, draw_run3d
 
-ROOT = Path(__file__).resolve().parents[1]
+# the child's start: the parent's module search path (its '' as its working directory), then this module as __main__
+START = ("import json, runpy, sys; sys.path[:] = json.loads(sys.argv[1]); "
+         "runpy.run_module('app.figchild', run_name='__main__', alter_sys=True)")
 
 
 def draw(path, fig: RunFigure | RunFigure3D) -> None:
@@ -37,48 +44,55 @@ def draw(path, fig: RunFigure | RunFigure3D) -> None:
 
 
 class FigureChild:
-    """A child started at construction; ``draw(path, fig, say)`` once, or ``close()``."""
+    """A child started at construction (``start``: None, with a warning, when it cannot be); ``draw(path, fig,
+    say)`` once, or ``close()``."""
 
     timeout_s = 60.0
 
     def __init__(self, cmd: list[str] | None = None):
-        env = dict(os.environ, MPLBACKEND="Agg")
-        env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + [p for p in [env.get("PYTHONPATH")] if p])
-        self.proc = subprocess.Popen(cmd or [sys.executable, "-m", "app.figchild"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        search = [os.path.abspath(p) if p else os.getcwd() for p in sys.path]
+        self.proc = subprocess.Popen(cmd or [sys.executable, "-c", START, json.dumps(search)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                                     env=dict(os.environ, MPLBACKEND="Agg"))
+
+    @classmethod
+    def start(cls, say, cmd: list[str] | None = None) -> FigureChild | None:
+        """A started child, or None (said in one line: the figure is then drawn in this process)."""
+        try:
+            return cls(cmd)
+        except OSError as e:            # no interpreter there, no process or file descriptor left
+            say(f"warning: no child process for the figure ({e}): it will be drawn in this process")
+            return None
 
     def draw(self, path, fig: RunFigure | RunFigure3D, say) -> str:
         """Draw ``fig`` to ``path`` in the child, else here; returns where it was drawn ("child" or "here")."""
         try:
             _, err = self.proc.communicate(pickle.dumps((str(path), fig)), timeout=self.timeout_s)
-            if self.proc.returncode == 0:
+            if self.proc.returncode == 0 and Path(path).is_file() and Path(path).stat().st_size > 0:
                 return "child"
-            why = (err.decode(errors="replace").strip().splitlines() or [f"exit status {self.proc.returncode}"])[-1]
+            why = (err.decode(errors="replace").strip().splitlines()
+                   or [f"exit status {self.proc.returncode}" if self.proc.returncode else "it wrote no file"])[-1]
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.communicate()
             why = f"no answer within {self.timeout_s:g} s"
-        except OSError as e:            # the child ended before reading (a broken pipe)
-            self.proc.kill()
-            self.proc.communicate()
-            why = str(e)
         say(f"warning: the figure's child process did not draw it ({why}): drawing it here")
         draw(path, fig)
         return "here"
 
     def close(self) -> None:
-        """End a child that was not asked to draw (its stdin closes: it reads the end and exits)."""
-        if self.proc.poll() is None:
+        """Let a child that was not asked to draw end: its stdin closes, and it exits when its warm-up is done (not
+        killed: matplotlib may be writing its font cache, under a lock file a kill would leave behind)."""
+        if self.proc.returncode is None and self.proc.stdin is not None and not self.proc.stdin.closed:
             try:
-                self.proc.communicate(b"", timeout=self.timeout_s)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.communicate()
+                self.proc.stdin.close()
+            except OSError:
+                pass
 
 
 def warm_up() -> None:
     """What a process's first figure pays once (matplotlib's import, the font cache and the font's glyphs, the PNG
-    writer, the layout's renderer: 0.4 s of a first 2D figure against 0.3 s for a second), paid now."""
+    writer, the layout's renderer), paid now."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -37,7 +37,9 @@ PHASES = (("planner.plan", "plan_raster", "plan_s", ("app.commands.run",)),
           ("planner.plots_run", "plot_run", "figure_s", ()),        # before session 31: computed and drawn here
           ("planner.plots_run", "run_figure", "figure_s", ()),      # since: computed here ...
           ("app.figchild", "FigureChild.draw", "figure_s", ()),     # ... and drawn by the child (waited for here)
-          ("planner.draw_run", "draw_run", "figure_s", ("app.commands.run",)))   # or here (no child)
+          ("planner.draw_run", "draw_run", "figure_s", ("app.commands.run",)),   # or here (no child)
+          ("planner.plots_run3d", "run_figure3d", "figure_s", ()),  # a 3D block's: computed here ...
+          ("planner.draw_run3d", "draw_run3d", "figure_s", ("app.commands.run3d",)))   # ... drawn here (no child)
 
 
 def instrument() -> tuple[Counter, Counter]:

@@ -384,3 +384,21 @@ def test_a_moves_tape_is_what_its_steps_compute_bit_for_bit():
             if done:
                 break
         assert got == [(u.hex(), s.hex(), v.hex()) for u, s, v in zip(us, ss, vs)]
+
+
+@pytest.mark.parametrize("periods", [1, 37])
+def test_the_records_do_not_depend_on_the_looks_length(tmp_path, monkeypatch, periods):
+    """The driver takes the leading quiet periods of whatever the simulator computed ahead, so how far it looks
+    (robot.driver.FF_PERIODS: 500) changes how many looks a run takes, never what it records."""
+    import robot.driver as driver_module
+    monkeypatch.setattr(driver_module, "FF_PERIODS", periods)
+    plan = make_plan(xs=(0.015, 0.035, 0.055), depth_m=0.003, motion=Motion(approach_height_m=0.006, dwell_s=0.3))
+
+    def arm():
+        made = make_sim(seed=12, surface_height_m=lambda x: 5e-4 + (x - 0.035) * math.tan(0.03),
+                        relaxation=Relaxation(0.25, 0.5))
+        made[0].sensor.drift[:3] += 0.004 * made[0].n_base
+        return made
+    a, b = _twin_runs(tmp_path, plan, arm)
+    assert all(r["status"] == "ok" for r in b["recs"])
+    _assert_same(a, b)

@@ -3,8 +3,10 @@ child that cannot draw costs a warning line, never the figure."""
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
+import pytest
 
 from app.figchild import FigureChild, draw
 from planner.draw_run import RunFigure
@@ -48,6 +50,23 @@ def test_child_draws_the_same_file_as_this_process(tmp_path):
         assert len(here) > 10_000 and child == here, name
 
 
+def test_the_child_draws_with_the_parents_code_wherever_it_is_started(tmp_path, monkeypatch):
+    """The child searches the parent's module path: a directory it is started from that holds other ``app`` or
+    ``planner`` packages (an old checkout) is not where its code comes from."""
+    for pkg in ("app", "planner"):
+        (tmp_path / pkg).mkdir()
+        (tmp_path / pkg / "__init__.py").write_text("raise ImportError('the wrong checkout')\n")
+    monkeypatch.chdir(tmp_path)
+    said = []
+    assert FigureChild().draw(tmp_path / "f.png", _fig2d(), said.append) == "child" and not said
+
+
+def test_a_child_that_cannot_start_costs_a_warning_not_the_run(tmp_path):
+    said = []
+    assert FigureChild.start(said.append, [str(tmp_path / "no-such-python")]) is None
+    assert len(said) == 1 and said[0].startswith("warning: no child process for the figure")
+
+
 def test_a_child_that_fails_or_hangs_costs_a_warning_not_the_figure(tmp_path):
     fails = [sys.executable, "-c", "import sys; sys.stdin.buffer.read(); print('ValueError: boom', file=sys.stderr); "
                                    "sys.exit(3)"]
@@ -61,10 +80,36 @@ def test_a_child_that_fails_or_hangs_costs_a_warning_not_the_figure(tmp_path):
     assert hangs.draw(tmp_path / "g.png", _fig3d(), said.append) == "here"
     assert (tmp_path / "g.png").stat().st_size > 10_000 and "no answer within 0.5 s" in said[0]
     assert hangs.proc.returncode is not None           # killed, not left running
+    silent = [sys.executable, "-c", "import sys; sys.stdin.buffer.read()"]     # ends well, draws nothing
+    said = []
+    assert FigureChild(silent).draw(tmp_path / "h.png", _fig2d(), said.append) == "here"
+    assert (tmp_path / "h.png").stat().st_size > 10_000 and "it wrote no file" in said[0]
 
 
-def test_an_unused_child_ends_when_closed(tmp_path):
+def test_an_unused_child_ends_when_closed_without_being_waited_for(tmp_path):
     c = FigureChild()
+    t = time.perf_counter()
     c.close()
-    assert c.proc.returncode == 0
     c.close()                                           # twice: nothing more to do
+    assert time.perf_counter() - t < 0.2                # not waited for (its warm-up takes about 0.5 s)
+    assert c.proc.wait(timeout=30) == 0                 # it ends on its own
+
+
+def test_only_a_simulated_run_with_a_figure_starts_a_child(tmp_path, monkeypatch):
+    """Next to a real arm (--host) the control host's cores are left to the driver: no child is started."""
+    import app.cli
+    import app.commands.run as run_command
+    started = []
+    monkeypatch.setattr(run_command.FigureChild, "start", classmethod(lambda cls, say, cmd=None: started.append(1)))
+
+    class Planned(Exception):
+        """Raised where the run plans: after the figure child is (or is not) started, before any arm is reached."""
+
+    def plan_raster(*a, **k):
+        raise Planned
+    monkeypatch.setattr(run_command, "plan_raster", plan_raster)
+    for i, (where, n) in enumerate(((["--host", "192.0.2.1"], 0), (["--sim", "--no-figure"], 0), (["--sim"], 1))):
+        args = app.cli.build_parser("run").parse_args(["run", "paper", *where, "--out", str(tmp_path / str(i))])
+        with pytest.raises(Planned):
+            args.func(args)
+        assert len(started) == n, where

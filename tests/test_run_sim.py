@@ -59,11 +59,13 @@ def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
     assert (tmp_path / "plan_round0.json").exists() and (tmp_path / "plan_round1.json").exists()
 
 
-def test_run_healthy_reports_no_stone(tmp_path, surrogate):
+def test_run_healthy_reports_no_stone(tmp_path, surrogate, capsys):
     assert main(["run", "healthy", "--sim", "--out", str(tmp_path)]) == 0
     r = json.loads((tmp_path / "result.json").read_text())
     assert r["detected"] is False and r["evidence"]["likelihood_ratio"] < r["evidence"]["threshold"]
-    assert r["probes_used"] == 15 and (tmp_path / "fig_run.png").exists()
+    assert r["probes_used"] == 15 and (tmp_path / "fig_run.png").stat().st_size > 10_000
+    err = capsys.readouterr().err            # the figure came from its child process (app.figchild)
+    assert "child process did not draw" not in err and "no child process for the figure" not in err
 
 
 def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):

@@ -207,8 +207,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
     fig_child = None
     if not args.no_figure and not args.host:    # simulated: matplotlib loads in a child meanwhile (app.figchild)
-        fig_child = FigureChild()
-        on_exit.callback(fig_child.close)
+        fig_child = FigureChild.start(_say)
+        if fig_child is not None:
+            on_exit.callback(fig_child.close)
     if three_d:       # the 3D flow (loaded for a block only: the 2D commands never import the 3D path)
         from app.commands.run3d import RunContext, run_block
         return run_block(args, RunContext(t_wall=t_wall, out=out, scene=scene, prior=prior, plan0=plan0, cond=cond,
