@@ -1,15 +1,14 @@
 """The figure of a run: measured against predicted force along the surface, and the estimate on the section.
 
-``run_figure`` computes what it shows (fem's prior curve, the fitted stone's contrast: planner.draw_run's
-``RunFigure``); ``plot_run`` computes and draws it in this process. ``app.figchild`` draws a ``RunFigure`` in a child
-process instead.
+``run_figure`` computes what it shows (fem's prior curve, the fitted stone's contrast): planner.draw_run's
+``RunFigure``, which ``planner.draw_run.draw_run`` draws, in the run's process or in a child (``app.figchild``).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from fem import recall
-from planner.draw_run import RunFigure, draw_run
+from planner.draw_run import RunFigure
 
 
 def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> RunFigure:
@@ -45,8 +44,3 @@ def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None
         sigma_depth_m=float(loc.sigma_depth_m), depth95_m=(float(iv[0]), float(iv[1])) if iv else None,
         truth_stones_m=[(float(s.x_m), float(s.depth_m), float(s.radius_m)) for s in truth_stones], title=title)
 
-
-def plot_run(path, prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> None:
-    """``run_figure`` drawn to ``path`` (planner.draw_run) in this process."""
-    draw_run(path, run_figure(prior, loc, meas, surrogate=surrogate, truth_stones=truth_stones, rounds=rounds,
-                              title=title))

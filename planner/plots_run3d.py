@@ -1,6 +1,6 @@
 """The figure of a 3D run (fig_run.png): ``run_figure3d`` computes what it shows (the fitted stone's contrast along
-two sections through the estimate: planner.draw_run3d's ``RunFigure3D``); ``plot_run3d`` computes and draws it in
-this process. ``app.figchild`` draws a ``RunFigure3D`` in a child process instead.
+two sections through the estimate): planner.draw_run3d's ``RunFigure3D``, which ``planner.draw_run3d.draw_run3d``
+draws, in the run's process or in a child (``app.figchild``).
 """
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 
-from planner.draw_run3d import SECTION_HALF_WIDTH_M, RunFigure3D, Section3D, draw_run3d
+from planner.draw_run3d import SECTION_HALF_WIDTH_M, RunFigure3D, Section3D
 
 
 def run_figure3d(prior, loc, meas, *, surrogate, truth_stones=(), region=None, title: str = "") -> RunFigure3D:
@@ -51,8 +51,3 @@ def run_figure3d(prior, loc, meas, *, surrogate, truth_stones=(), region=None, t
         region_m=tuple(float(v) for v in region) if region is not None else None,
         truth_stones_m=[(float(s.x_m), float(s.y_m), float(s.radius_m)) for s in truth_stones], title=title)
 
-
-def plot_run3d(path, prior, loc, meas, *, surrogate, truth_stones=(), region=None, title: str = "") -> None:
-    """``run_figure3d`` drawn to ``path`` (planner.draw_run3d) in this process."""
-    draw_run3d(path, run_figure3d(prior, loc, meas, surrogate=surrogate, truth_stones=truth_stones, region=region,
-                                  title=title))
