@@ -408,6 +408,7 @@ class Surrogate3D:
             T = _pad(T, ax, even)
         self.T = T
         self._profiles: dict[tuple[float, float], np.ndarray] = {}
+        self._stencils: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     def bounds(self) -> dict:
         """The box the table covers (a fit stays inside it): top clearance, diameter, the stone centre's (x, y)
@@ -435,16 +436,31 @@ class Surrogate3D:
             self._profiles[key] = C
         return C
 
+    def _stencil(self, key: tuple, make) -> tuple[np.ndarray, np.ndarray]:
+        """``make()`` (a Catmull-Rom stencil), remembered under ``key`` (the exact inputs it depends on) for the last
+        few dozen: a finite-difference Jacobian's steps move the stone's position (the radial stencil), the surface
+        (the probes' depth stencil) or neither, one parameter at a time. The same numbers as computing them again;
+        read-only."""
+        v = self._stencils.get(key)
+        if v is None:
+            if len(self._stencils) >= 64:
+                self._stencils.clear()
+            v = self._stencils[key] = make()
+            for a in v:
+                a.flags.writeable = False
+        return v
+
     def contrast(self, x_m, y_m, depth_m, xs_m: float, ys_m: float, stone_depth_m: float,
                  diam_m: float) -> np.ndarray:
         """The contrast (N) at probes (x_m, y_m, depth_m: arrays, broadcast) for a stone at (xs_m, ys_m),
         ``stone_depth_m`` (centre below the surface), ``diam_m``."""
         x, y, d = np.broadcast_arrays(np.asarray(x_m, float), np.asarray(y_m, float), np.asarray(depth_m, float))
         C = self.profile(stone_depth_m, diam_m)
-        r = np.hypot(x - float(xs_m), y - float(ys_m))
-        i_r, w_r = _catmull_rom(r / self.dr, self.nr)
+        i_r, w_r = self._stencil(("r", x.shape, x.tobytes(), y.tobytes(), float(xs_m), float(ys_m)),
+                                 lambda: _catmull_rom(np.hypot(x - float(xs_m), y - float(ys_m)) / self.dr, self.nr))
         h_l = self.levels[1] - self.levels[0]
-        i_l, w_l = _catmull_rom((d - self.levels[0]) / h_l, len(self.levels))
+        i_l, w_l = self._stencil(("depth", d.shape, d.tobytes()),
+                                 lambda: _catmull_rom((d - self.levels[0]) / h_l, len(self.levels)))
         vals = C[i_l[..., :, None], i_r[..., None, :]]
         return np.einsum("...a,...b,...ab->...", w_l, w_r, vals)
 

@@ -164,3 +164,25 @@ def test_a_calibration_is_applied_only_on_the_mesh_it_was_made_for(table, monkey
     assert np.array_equal(again[1], fac)
     stored = dict(sur.data, cal_mesh=s3.own_mesh(finer), cal_s_m=cal_s, cal_factor=2 * fac)
     assert np.array_equal(s3.calibration_for(finer, grid, stored)[1], 2 * fac)   # built for this mesh: its own
+
+
+def test_remembered_stencils_give_the_contrast_computed_afresh(table):
+    """The radial and depth stencils are remembered under their exact inputs (a Jacobian's steps repeat them): the
+    same contrast, bit for bit, as a table that remembers nothing, over repeated, broadcast and changed inputs."""
+    sur = table[0]
+    fresh = s3.Surrogate3D(sur.data, calibration=sur.calibration)
+    fresh.scale, fresh.T, fresh.abs_err_n = sur.scale, sur.T, sur.abs_err_n
+    rng = np.random.default_rng(4)
+    x0, x1, y0, y1 = sur.region
+    x, y = rng.uniform(x0, x1, 25), rng.uniform(y0, y1, 25)
+    d = rng.choice(sur.levels, 25)
+    s0, D0 = float(sur.s[1]), float(sur.diam[1])
+    for trial in range(40):
+        xs, ys = (float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))) if trial % 3 else (0.5 * (x0 + x1), y0)
+        dd = d if trial % 2 else d + 1e-4 * (trial % 5)
+        got = sur.contrast(x, y, dd, xs, ys, s0 + D0 / 2, D0)
+        fresh._stencils.clear()
+        assert np.array_equal(got, fresh.contrast(x, y, dd, xs, ys, s0 + D0 / 2, D0))
+    assert np.array_equal(sur.contrast(x[:3], y[0], d[0], xs, ys, s0 + D0 / 2, D0),          # broadcast inputs
+                          fresh.contrast(x[:3], np.full(3, y[0]), np.full(3, d[0]), xs, ys, s0 + D0 / 2, D0))
+    assert sur._stencils and not any(a.flags.writeable for v in sur._stencils.values() for a in v)
