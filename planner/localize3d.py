@@ -100,6 +100,20 @@ class _Forward3D:
         self.free = np.array([True, nuisance, enough, enough and np.ptp(meas.x_m[self.on]) > 0.01,
                               enough and np.ptp(meas.y_m[self.on]) > 0.01])
         self.levels = np.asarray(surrogate.levels, float)
+        self._memo_tables: dict[str, dict] = {}
+
+    def _memo(self, table: str, key: tuple, make):
+        """``make()``, remembered under ``key`` (the exact parameters it depends on): a finite-difference Jacobian
+        moves one parameter at a time, so most parts repeat the base point's (the prior's force unless the surface
+        moves, the contrast when only the scale or the drift does, the onsets' depths unless the scale does). The
+        same numbers as computing them again; callers do not modify the result."""
+        memo = self._memo_tables.setdefault(table, {})
+        v = memo.get(key)
+        if v is None:
+            if len(memo) >= 64:
+                memo.clear()
+            v = memo[key] = make()
+        return v
 
     def depth(self, nu) -> np.ndarray:
         return self.meas.depth_m + 1e-3 * (nu[2] + nu[3] * self.xc_m + nu[4] * self.yc_m)
@@ -115,19 +129,20 @@ class _Forward3D:
         return C
 
     def forces(self, stone, nu) -> np.ndarray:
-        d = self.depth(nu)
-        F = self.resp.force_n(d)
+        surf = (float(nu[2]), float(nu[3]), float(nu[4]))     # the true indentation depends on the surface only
+        d = self._memo("depth", surf, lambda: self.depth(nu))
+        F = self._memo("prior", surf, lambda: self.resp.force_n(d))
         if stone is not None:
-            F = F + self.contrast(stone, d)
+            F = F + self._memo("contrast", (*map(float, stone), *surf), lambda: self.contrast(stone, d))
         return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
 
     def extra(self, nu) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[2]:
             on = self.on
-            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
-            pred = (self.resp.depth_at_force_m(thr, on) - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on])
-                    + ONSET_BIAS_M)
+            d_thr = self._memo("onset", (float(nu[1]),),
+                               lambda: self.resp.depth_at_force_m(self.meas.onset_threshold_n[on] / math.exp(nu[1]), on))
+            pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on]) + ONSET_BIAS_M
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
         return np.concatenate(r)
 

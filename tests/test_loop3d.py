@@ -185,3 +185,30 @@ def test_peak_of_a_contrast_with_no_positive_probe_is_the_largest_probe():
     c2 = np.array([-3e-4, 2e-4, 1e-4])          # two positive within 5 mm of the largest: their weighted centroid
     px, py, pc = peak_estimate3d(x, y, c2, radius_m=0.02)
     assert px == pytest.approx((2e-4 * 0.02 + 1e-4 * 0.03) / 3e-4) and pc == 2e-4
+
+
+def test_the_forward_models_remembered_parts_give_its_numbers_afresh(sur):
+    """The 3D fit's forward model remembers its parts (the prior's force per surface, the contrast per stone and
+    surface, the onsets' depths per scale) across a Jacobian's one-parameter steps: the same residuals, bit for bit,
+    as a model that remembers nothing, along a finite-difference Jacobian's pattern of steps."""
+    from planner.localize3d import _Forward3D
+    truth = BLOCK.with_stones([STONE])
+    meas = _measure(s3.stone_model3d(truth), _grid(4), coarse_depths(np.full(16, DEPTH_M)), seed=2)
+    meas.onset_threshold_n = np.full(len(meas), 0.02)   # contact onsets (this fast arm records none): the
+    meas.onset_m = 2e-4 + 1e-5 * np.arange(len(meas))    # surface's residuals are then part of the model
+    prior = BLOCK.prior()
+    fw = _Forward3D(prior, meas, sur, nuisance=True)
+    assert fw.free[2]                                   # the onsets' part is exercised
+    base_nu = np.array([0.01, 0.05, 0.02, 0.01, -0.01])
+    base_stone = (STONE.x_m, STONE.y_m, STONE.depth_m, STONE.diameter_m)
+    for trial in range(30):
+        nu, stone = base_nu.copy(), list(base_stone)
+        if trial % 2:
+            nu[trial % 5] += 1e-5 * (1 + trial)
+        else:
+            stone[trial % 4] += 1e-6 * (1 + trial)
+        fresh = _Forward3D(prior, meas, sur, nuisance=True)
+        for s in (tuple(stone), None):
+            assert np.array_equal(fw.forces(s, nu), fresh.forces(s, nu))
+        assert np.array_equal(fw.extra(nu), fresh.extra(nu))
+    assert all(len(t) > 0 for t in fw._memo_tables.values()) and len(fw._memo_tables) == 4
