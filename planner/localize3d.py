@@ -38,6 +38,7 @@ from planner.localize import (
     ONSET_SIGMA_M,
     Localization,
     Measurements,
+    _Forward,
     dwell_relaxation,
 )
 from planner.tissue_response3d import PriorResponse3D
@@ -102,18 +103,10 @@ class _Forward3D:
         self.levels = np.asarray(surrogate.levels, float)
         self._memo_tables: dict[str, dict] = {}
 
-    def _memo(self, table: str, key: tuple, make):
-        """``make()``, remembered under ``key`` (the exact parameters it depends on): a finite-difference Jacobian
-        moves one parameter at a time, so most parts repeat the base point's (the prior's force unless the surface
-        moves, the contrast when only the scale or the drift does, the onsets' depths unless the scale does). The
-        same numbers as computing them again; callers do not modify the result."""
-        memo = self._memo_tables.setdefault(table, {})
-        v = memo.get(key)
-        if v is None:
-            if len(memo) >= 64:
-                memo.clear()
-            v = memo[key] = make()
-        return v
+    # the 2D model's memo of its parts (a Jacobian's one-parameter steps repeat most of them): here the prior's force
+    # unless the surface moves, the contrast when only the scale or the drift does, the onsets' depths unless the
+    # scale does
+    _memo = _Forward._memo
 
     def depth(self, nu) -> np.ndarray:
         return self.meas.depth_m + 1e-3 * (nu[2] + nu[3] * self.xc_m + nu[4] * self.yc_m)
