@@ -7,7 +7,8 @@ has paid it, on the machine's other core, by the time the estimate is known. The
 (a planner.draw_run ``RunFigure`` or planner.draw_run3d ``RunFigure3D``, pickled over the child's stdin) and waits
 for the file; the child imports palpate's modules from the parent's own ``sys.path``, so both draw with the same code.
 
-Used for simulated runs only: next to a real arm the control host's cores are left to the driver. If the child
+Used for simulated runs on two cores or more only: next to a real arm the control host's cores are left to the
+driver, and on one core the child would only compete with the run. If the child
 cannot be started, or cannot draw (it failed, wrote no file, or gave no answer within ``FigureChild.timeout_s``), the
 parent says so in one line and draws in its own process, so a figure is never lost to the child. A child not asked
 to draw (an error or a fault ended the run) finds its stdin closed once its warm-up is done, and exits; the parent
@@ -31,6 +32,14 @@ from planner.draw_run3d import RunFigure3D, draw_run3d
 # the child's start: the parent's module search path (its '' as its working directory), then this module as __main__
 START = ("import json, runpy, sys; sys.path[:] = json.loads(sys.argv[1]); "
          "runpy.run_module('app.figchild', run_name='__main__', alter_sys=True)")
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity, where the platform tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:          # no affinity call on this platform
+        return os.cpu_count() or 1
 
 
 def draw(path, fig: RunFigure | RunFigure3D) -> None:
@@ -57,7 +66,10 @@ class FigureChild:
 
     @classmethod
     def start(cls, say, cmd: list[str] | None = None) -> FigureChild | None:
-        """A started child, or None (said in one line: the figure is then drawn in this process)."""
+        """A started child, or None: on a single core (the child's 0.5 s warm-up would only compete with the run;
+        the figure is drawn in this process, as before) or, said in one line, when it cannot be started."""
+        if usable_cores() < 2:
+            return None
         try:
             return cls(cmd)
         except OSError as e:            # no interpreter there, no process or file descriptor left

@@ -61,7 +61,16 @@ def test_the_child_draws_with_the_parents_code_wherever_it_is_started(tmp_path, 
     assert FigureChild().draw(tmp_path / "f.png", _fig2d(), said.append) == "child" and not said
 
 
-def test_a_child_that_cannot_start_costs_a_warning_not_the_run(tmp_path):
+def test_no_child_on_a_single_core(monkeypatch):
+    import os
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    said = []
+    assert FigureChild.start(said.append) is None and not said      # a choice, not a failure: nothing to say
+
+
+def test_a_child_that_cannot_start_costs_a_warning_not_the_run(tmp_path, monkeypatch):
+    import os
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)      # two cores
     said = []
     assert FigureChild.start(said.append, [str(tmp_path / "no-such-python")]) is None
     assert len(said) == 1 and said[0].startswith("warning: no child process for the figure")
