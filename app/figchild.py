@@ -2,7 +2,7 @@
 
 A process's first figure costs about 0.5 s more than the same figure drawn again (importing matplotlib's pyplot,
 the font cache and glyphs, the PNG writer, the layout's renderer: the child below is ready 0.50 s after it starts,
-bench/bench_process.py), about a seventh of a cached ``palpate run paper --sim``. A child started when the run starts
+bench/bench_process.py), about a sixth of a cached (3.1 s) ``palpate run paper --sim``. A child started when the run starts
 has paid it, on the machine's other core, by the time the estimate is known. The parent sends the figure's numbers
 (a planner.draw_run ``RunFigure`` or planner.draw_run3d ``RunFigure3D``, pickled over the child's stdin) and waits
 for the file; the child imports palpate's modules from the parent's own ``sys.path``, so both draw with the same code.
