@@ -116,6 +116,7 @@ def warm_up() -> None:
     ax[1].scatter([0.0], [1.0], c=[0.5], cmap="RdBu_r")
     ax[1].set_title("b", fontsize=9)
     fig.tight_layout()
+    fig.set_layout_engine(None)
     fig.savefig(io.BytesIO(), format="png", dpi=110)
     plt.close(fig)
 

@@ -179,8 +179,10 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            # one process per trial: the study's parallelism is its trials (no forked fits inside them)
             rc = palpate(["run", str(d / "truth.toml"), "--plan", shared.plan_path, "--sim", "--seed", str(t.seed),
-                          "--budget-probes", str(t.budget), "--no-figure", "--out", str(d / "run")])
+                          "--budget-probes", str(t.budget), "--no-figure", "--fit-workers", "1",
+                          "--out", str(d / "run")])
     except Exception as e:  # noqa: BLE001 - a run that fails is a study's finding: counted, and the study goes on
         rc = -1
         err.write(f"\n{type(e).__name__}: {e}")

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from app.cell import print_preflight, read_confirmation
 from app.errors import UsageError
+from app.figchild import usable_cores
 from app.ftoptions import controller_pose, inmemory_source, linked_source
 from core.contracts import Plan
 from planner.plan import replan
@@ -151,6 +152,15 @@ def truth_conditions(args, scene=None) -> TruthConditions | None:
     except TruthError as e:
         opt = next((o for o, f in TRUTH_OPTIONS.items() if f in given and f in str(e)), None)
         raise UsageError(f"--{opt.replace('_', '-')} {given[TRUTH_OPTIONS[opt]]}: {e}" if opt else str(e)) from None
+
+
+def workers_for_fits(args) -> int:
+    """The processes the localizer's fits may use (planner.forkmap: the same estimates with any number):
+    ``--fit-workers``, else 2 in a simulated run on two or more cores and 1 next to a real arm (``--host``: its
+    process holds ur_rtde's threads and sockets, which a fork would copy; a larger --fit-workers is refused there)."""
+    if args.fit_workers is not None:
+        return args.fit_workers
+    return 2 if not args.host and usable_cores() >= 2 else 1
 
 
 def run_options(args, scene, cond: TruthConditions | None = None) -> dict:

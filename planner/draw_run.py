@@ -113,5 +113,6 @@ def draw_run(path, f: RunFigure) -> None:
     ax.set_ylabel("depth (mm)")
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=2)
     fig.tight_layout()
+    fig.set_layout_engine(None)   # laid out: else savefig draws the whole figure once more first (the same PNG)
     fig.savefig(path, dpi=110)
     plt.close(fig)

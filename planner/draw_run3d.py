@@ -106,5 +106,6 @@ def draw_run3d(path, f: RunFigure3D) -> None:
         a.legend(fontsize=7)
     fig.suptitle(f.title, fontsize=9)
     fig.tight_layout()
+    fig.set_layout_engine(None)   # laid out: else savefig draws the whole figure once more first (the same PNG)
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -38,6 +38,7 @@ from core.contracts import N_ZERO_AVERAGE
 from core.peak import parabola_peak
 from fem.contact import surface_model
 from planner.finite_strain_response import FiniteStrainRows, prior_finite_strain, unsupported
+from planner.forkmap import fork_map
 from planner.surrogate import load_surrogate
 from planner.tissue_response import PriorResponse
 
@@ -437,9 +438,10 @@ def _stone(p):
     return xs, s + 0.5 * D, D
 
 
-def _fit_no_stone(fw: _Forward, sig, v0=None):
+def _fit_no_stone(fw: _Forward, sig, v0=None, workers: int = 1):
     """The best no-stone model (nuisance only): from ``v0`` (or the prior's tissue) and from thicker and thinner
-    starts, so that a local minimum cannot make "no stone" look worse than it is (that would inflate the LR)."""
+    starts, so that a local minimum cannot make "no stone" look worse than it is (that would inflate the LR).
+    ``workers``: the starts' fits on that many processes (planner.forkmap; the same result)."""
     def resid(v):
         nu = fw.full(v)
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
@@ -451,10 +453,11 @@ def _fit_no_stone(fw: _Forward, sig, v0=None):
         starts += [np.array([0, 0, 0, 0, e, 0]) for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA)]
     if fw.free[5]:          # and the prior's tissue as a neo-Hookean solid
         starts.append(np.array([0, 0, 0, 0, 0, 1.0]))
+    def fit(nu):
+        return least_squares(resid, nu[fw.free], jac=_jac_or_fd(jac), bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
+                             x_scale=NUIS_X_SCALE[fw.free], diff_step=1e-5, max_nfev=200)
     best = None
-    for nu in starts:
-        sol = least_squares(resid, nu[fw.free], jac=_jac_or_fd(jac), bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]),
-                            x_scale=NUIS_X_SCALE[fw.free], diff_step=1e-5, max_nfev=200)
+    for sol in fork_map(fit, starts, workers):
         if best is None or sol.cost < best.cost:
             best = sol
     return best
@@ -494,29 +497,29 @@ def _depth_held(resid, jac, d_mm: float):
     return r, r_jac
 
 
-def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25) -> dict:
+def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, nhi, n: int = 25,
+                   workers: int = 1) -> dict:
     """Profile likelihood of the depth: chi2 minimised over (x, diameter, nuisance) with the depth held at each of
-    ``n`` values; the 68 % / 95 % intervals are where chi2 - chi2_min <= 1 / 4 (times the chi2/dof inflation)."""
+    ``n`` values; the 68 % / 95 % intervals are where chi2 - chi2_min <= 1 / 4 (times the chi2/dof inflation).
+    ``workers``: the depths' fits on that many processes (planner.forkmap; the same intervals)."""
     d_hat = dep * 1e3
     w = min(max(4 * sd * 1e3, 2.0), 20.0)
     grid = np.linspace(max(d_hat - w, math.exp(lo[1]) + lo[2] / 2), min(d_hat + w, H_mm - 2.0), n)
     grid = np.unique(np.append(grid, d_hat))
-    prof = []
-    for d in grid:
+    def chi2_at(d):
         r, r_jac = _depth_held(resid, jac, d)
         D0 = float(np.clip(q[2], lo[2], hi[2]))
         dlo, dhi = max(lo[2], 2 * (d - math.exp(hi[1]))), min(hi[2], 2 * (d - math.exp(lo[1])))
         if dhi - dlo <= 2e-6:          # the diameter has (next to) no room at this depth
-            prof.append(np.inf)
-            continue
+            return np.inf
         lb, ub = np.concatenate([[lo[0], dlo], nlo]), np.concatenate([[hi[0], dhi], nhi])
         x0 = np.concatenate([[q[0], float(np.clip(D0, dlo + 1e-6, dhi - 1e-6))], q[3:]])
         # the fit's optimum may sit on (or, by round-off, a hair beyond) a bound that this depth's box moved: start
         # inside (found by the mismatch study: "Initial guess is outside of provided bounds")
         sol = least_squares(r, np.clip(x0, lb, ub), jac=_jac_or_fd(r_jac), bounds=(lb, ub), diff_step=1e-4,
                             max_nfev=200)
-        prof.append(2 * sol.cost)
-    prof = np.array(prof)
+        return 2 * sol.cost
+    prof = np.array(fork_map(chi2_at, grid, workers))
     base = min(chi2_min, prof.min())
     out = {}
     k0 = int(np.argmin(prof))
@@ -549,7 +552,7 @@ def dwell_relaxation(meas: Measurements) -> tuple[float, float, int]:
 
 def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float = LR_THRESHOLD,
              model_rel_err: float = MODEL_REL_ERR, profile: bool = False, nuisance: bool = True,
-             finite_strain: bool | None = None) -> Localization:
+             finite_strain: bool | None = None, workers: int = 1) -> Localization:
     """Detect and locate a stone from ``meas`` given only the ``prior`` (stone-free) scene. ``profile``: also the
     profile-likelihood interval of the depth (``depth_interval_m``), honest where the Jacobian's is not (a deep
     stone's depth is strongly non-Gaussian: deeper-and-bigger is hard to rule out). ``nuisance``: fit the tissue's
@@ -573,11 +576,12 @@ def localize(prior, meas: Measurements, surrogate=None, *, lr_threshold: float =
     else:
         # on a copy: the stored fit's profile reads the measurements later, whatever the caller does to its arrays
         meas = Measurements(**{k: np.array(getattr(meas, k)) for k in Measurements.FIELDS})
-        loc, profile_args = _fit_stone(prior, meas, surrogate, lr_threshold, model_rel_err, nuisance, finite_strain)
+        loc, profile_args = _fit_stone(prior, meas, surrogate, lr_threshold, model_rel_err, nuisance, finite_strain,
+                                       workers)
         _LAST_FIT["fit"] = (key, surrogate, (loc, profile_args))
     loc = copy.deepcopy(loc)
     if profile:
-        loc.depth_interval_m = _depth_profile(*profile_args)
+        loc.depth_interval_m = _depth_profile(*profile_args, workers=workers)
     return loc
 
 
@@ -588,12 +592,12 @@ _LAST_FIT: dict = {}
 
 
 def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_rel_err: float, nuisance: bool,
-               finite_strain: bool | None) -> tuple[Localization, tuple]:
+               finite_strain: bool | None, workers: int = 1) -> tuple[Localization, tuple]:
     """The fit and its report without the depth's profile; and the profile's arguments."""
     fw = _Forward(prior, meas, surrogate, nuisance, finite_strain)
     nf = int(fw.free.sum())
     sig_a = np.sqrt(meas.sigma_n ** 2 + MODEL_ABS_ERR_N ** 2)
-    h0 = _fit_no_stone(fw, sig_a)
+    h0 = _fit_no_stone(fw, sig_a, workers=workers)
     nu0 = fw.full(h0.x)
     # the contrast for the peak and the model-error allowance: against the prior's thickness on the fitted surface
     # (and the fitted finite-strain factor), with only a scale and the drift fitted (linear): a no-stone fit's
@@ -613,7 +617,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     # noise + model error (relative to the contrast seen, so fixed during the fit)
     sig = np.sqrt(meas.sigma_n ** 2 + (model_rel_err * np.maximum(contrast, 0.0)) ** 2 + MODEL_ABS_ERR_N ** 2)
     w = 1.0 / sig ** 2
-    h0 = _fit_no_stone(fw, sig, h0.x)
+    h0 = _fit_no_stone(fw, sig, h0.x, workers)
     chi2_0 = 2.0 * h0.cost
     nu0 = fw.full(h0.x)
     b = surrogate.bounds
@@ -649,7 +653,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     # with it free each fit took 1.6 times the iterations); the best is then polished with it free
     held = bool(fw.free[5])         # a is the last free nuisance parameter
     k_fit = len(lo) + len(nlo) - int(held)
-    best, a_best = None, 0.0
+    tasks = []                      # (q0, the held amplitude)
     for nu_s, n_starts in starts:
         d0 = fw.depth(nu_s)
         P0 = fw.resp.force_n(d0, nu_s[4])
@@ -675,19 +679,24 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
             nu[0] = coef[1] * 1e3
             if fw.free[1] and coef[0] > 0:
                 nu[1] = float(np.clip(math.log(coef[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
-            q0 = np.concatenate([p, nu[fw.free]])
+            tasks.append((np.concatenate([p, nu[fw.free]]), nu[5]))
 
-            def resid_held(qh, a=nu[5]):
-                return resid(np.append(qh, a)) if held else resid(qh)
+    def fit_start(task):
+        q0, a = task
 
-            def jac_held(qh, a=nu[5]):
-                return jac(np.append(qh, a))[:, :-1] if held else jac(qh)
-            sol = least_squares(resid_held, q0[:k_fit], jac=_jac_or_fd(jac_held),
-                                bounds=(np.concatenate([lo, nlo])[:k_fit], np.concatenate([hi, nhi])[:k_fit]),
-                                x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:k_fit],
-                                diff_step=1e-4, max_nfev=300)
-            if best is None or sol.cost < best.cost:
-                best, a_best = sol, nu[5]
+        def resid_held(qh):
+            return resid(np.append(qh, a)) if held else resid(qh)
+
+        def jac_held(qh):
+            return jac(np.append(qh, a))[:, :-1] if held else jac(qh)
+        return least_squares(resid_held, q0[:k_fit], jac=_jac_or_fd(jac_held),
+                             bounds=(np.concatenate([lo, nlo])[:k_fit], np.concatenate([hi, nhi])[:k_fit]),
+                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]])[:k_fit],
+                             diff_step=1e-4, max_nfev=300)
+    best, a_best = None, 0.0
+    for sol, (_, a) in zip(fork_map(fit_start, tasks, workers), tasks):
+        if best is None or sol.cost < best.cost:
+            best, a_best = sol, a
     fs_gain = float("nan")
     if held:
         best = least_squares(resid, np.append(best.x, a_best), jac=_jac_or_fd(jac),

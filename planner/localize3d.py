@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from planner.forkmap import fork_map
 from planner.localize import (
     DRIFT_SIGMA_N_PER_S,
     MIN_MEASUREMENTS,
@@ -162,24 +163,27 @@ def peak_estimate3d(x, y, c, radius_m: float = PEAK_RADIUS_M) -> tuple[float, fl
     return float(np.sum(w * x[near]) / np.sum(w)), float(np.sum(w * y[near]) / np.sum(w)), float(c[k])
 
 
-def _fit_no_stone(fw: _Forward3D, sig, v0=None):
+def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
     def resid(v):
         nu = fw.full(v)
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
+
+    def fit(v):
+        return least_squares(resid, v, bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]), x_scale=NUIS_X_SCALE[fw.free],
+                             diff_step=1e-5, max_nfev=200)
     best = None
-    for v in [np.zeros(int(fw.free.sum()))] + ([v0] if v0 is not None else []):
-        sol = least_squares(resid, v, bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]), x_scale=NUIS_X_SCALE[fw.free],
-                            diff_step=1e-5, max_nfev=200)
+    for sol in fork_map(fit, [np.zeros(int(fw.free.sum()))] + ([v0] if v0 is not None else []), workers):
         if best is None or sol.cost < best.cost:
             best = sol
     return best
 
 
 def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR_THRESHOLD3D,
-               nuisance: bool = True, n_starts: int = 4) -> Localization3D:
+               nuisance: bool = True, n_starts: int = 4, workers: int = 1) -> Localization3D:
     """Detect and locate a spherical stone from ``meas`` given only the ``prior`` (stone-free) block and the
     ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale and the true surface (offset and
-    tilts, from the contact onsets) jointly with the stone (default); False: only the drift."""
+    tilts, from the contact onsets) jointly with the stone (default); False: only the drift. ``workers``: the
+    fits' starts on that many processes (planner.forkmap: the same estimate)."""
     if prior.stones:
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
     if not prior.is_3d:
@@ -191,7 +195,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     rel_err = float(getattr(surrogate, "rel_err", 0.02))
     abs_err = float(getattr(surrogate, "abs_err_n", MODEL_ABS_ERR_N))
     sig_a = np.sqrt(meas.sigma_n ** 2 + abs_err ** 2)
-    h0 = _fit_no_stone(fw, sig_a)
+    h0 = _fit_no_stone(fw, sig_a, workers=workers)
     nu0 = fw.full(h0.x)
     A = fw.resp.force_n(fw.depth(nu0))[:, None]
     wa = 1.0 / sig_a
@@ -204,7 +208,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
 
     sig = np.sqrt(meas.sigma_n ** 2 + (rel_err * np.maximum(contrast, 0.0)) ** 2 + abs_err ** 2)
     w = 1.0 / sig ** 2
-    h0 = _fit_no_stone(fw, sig, h0.x)
+    h0 = _fit_no_stone(fw, sig, h0.x, workers)
     chi2_0 = 2.0 * h0.cost
     nu0 = fw.full(h0.x)
     b = surrogate_bounds(surrogate)
@@ -233,16 +237,20 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
                     cf = np.linalg.lstsq(M * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
                     cands.append((float(np.sum(w * (meas.force_n - M @ cf) ** 2)), p, cf))
     cands.sort(key=lambda t: t[0])
-    best = None
+    starts = []
     for _, p, cf in cands[:n_starts]:
         nu = nu0.copy()
         nu[0] = cf[1] * 1e3
         if fw.free[1] and cf[0] > 0:
             nu[1] = float(np.clip(math.log(cf[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))
-        q0 = np.concatenate([p, nu[fw.free]])
-        sol = least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
-                            x_scale=np.concatenate([[1.0, 1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
-                            max_nfev=300)
+        starts.append(np.concatenate([p, nu[fw.free]]))
+
+    def fit(q0):
+        return least_squares(resid, q0, bounds=(np.concatenate([lo, nlo]), np.concatenate([hi, nhi])),
+                             x_scale=np.concatenate([[1.0, 1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
+                             max_nfev=300)
+    best = None
+    for sol in fork_map(fit, starts, workers):
         if best is None or sol.cost < best.cost:
             best = sol
     q = best.x

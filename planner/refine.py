@@ -124,10 +124,11 @@ def converged(loc: Localization, target_m: float) -> bool:
 
 def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int = 45, n_refine: int = 10,
              target_m: float = 5e-4, motion=None, surrogate=None, margin_m: float = 0.005, progress=None,
-             weak_lr: float = WEAK_LR, strategy: str = "design") -> AdaptiveResult:
+             weak_lr: float = WEAK_LR, strategy: str = "design", workers: int = 1) -> AdaptiveResult:
     """Run the loop. ``plan_round(x_m) -> plan`` makes a plan (None: position-only, ``execute`` gets the positions);
     ``execute(plan_or_x, round_index) -> list of probe records`` (the driver's dicts). ``prior`` has no stones.
-    ``strategy``: "design" (design_positions) or "raster" (refine_positions: an even, finer raster around it)."""
+    ``strategy``: "design" (design_positions) or "raster" (refine_positions: an even, finer raster around it).
+    ``workers``: the fits of each localization on that many processes (planner.forkmap: the same estimates)."""
     if prior.stones:
         raise ValueError("adaptive() takes the prior scene (no stones)")
     W = prior.tissue.width_m
@@ -150,7 +151,7 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
                       f"no tissue gives: see probes.jsonl's status, reason and implausible)")
             say(f"round {k}: {len(x)} probes ({used} in all): {reason}")
             break
-        loc = localize(prior, meas, surrogate)
+        loc = localize(prior, meas, surrogate, workers=workers)
         dep = [p.depth_m for p in plan.probes] if plan is not None else list(m.depth_m)
         rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.to_dict(), plan,
                             time.perf_counter() - t0))

@@ -99,10 +99,11 @@ def converged3d(loc: Localization3D, target_m: float) -> bool:
 
 
 def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, budget_probes: int = 100,
-               n_refine: int = 16, target_m: float = 5e-4, progress=None, weak_lr: float = WEAK_LR) -> AdaptiveResult:
+               n_refine: int = 16, target_m: float = 5e-4, progress=None, weak_lr: float = WEAK_LR,
+               workers: int = 1) -> AdaptiveResult:
     """Run the loop over a block. ``plan_round(xy (n x 2)) -> plan``; ``execute(plan, round_index) -> records``;
     ``region`` (x0, x1, y0, y1): where refinement probes may go (the planner's probed area). ``prior`` has no
-    stones."""
+    stones. ``workers``: each localization's fits on that many processes (planner.forkmap: the same estimates)."""
     if prior.stones:
         raise ValueError("adaptive3d() takes the prior scene (no stones)")
     say = progress or (lambda msg: None)
@@ -122,7 +123,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
                       f"and implausible)")
             say(f"round {k}: {len(xy)} probes ({used} in all): {reason}")
             break
-        loc = localize3d(prior, meas, surrogate)
+        loc = localize3d(prior, meas, surrogate, workers=workers)
         rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
                             len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
         say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc))

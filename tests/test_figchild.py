@@ -122,3 +122,46 @@ def test_only_a_simulated_run_with_a_figure_starts_a_child(tmp_path, monkeypatch
         with pytest.raises(Planned):
             args.func(args)
         assert len(started) == n, where
+
+
+@pytest.mark.parametrize("where, cores, workers", [(["--sim"], 2, 2), (["--sim"], 1, 1),
+                                                   (["--host", "192.0.2.1"], 2, 1), (["--sim", "--fit-workers", "3"], 1, 3),
+                                                   (["--sim", "--fit-workers", "1"], 2, 1),
+                                                   (["--host", "192.0.2.1", "--fit-workers", "1"], 2, 1)])
+def test_only_a_simulated_run_forks_its_fits(tmp_path, monkeypatch, where, cores, workers):
+    """The localizer's fits go on two processes (planner.forkmap) in a simulated run on two cores, or on
+    --fit-workers; next to a real arm the driver's process never forks (it holds ur_rtde's threads and sockets), nor
+    by default on one core."""
+    import app.cli
+    import app.commands.run as run_command
+    import app.runexec
+    monkeypatch.setattr(run_command.FigureChild, "start", classmethod(lambda cls, say, cmd=None: None))
+    monkeypatch.setattr(app.runexec, "usable_cores", lambda: cores)
+    monkeypatch.setattr(run_command, "choose_executor", lambda *a: (None, "test arm", None))
+    seen = []
+
+    class Probing(Exception):
+        """Raised where the run starts probing: the fits' workers are decided by then."""
+
+    def adaptive(*a, **k):
+        seen.append(k["workers"])
+        raise Probing
+    monkeypatch.setattr(run_command, "adaptive", adaptive)
+    args = app.cli.build_parser("run").parse_args(["run", "paper", *where, "--out", str(tmp_path / "run")])
+    with pytest.raises(Probing):
+        args.func(args)
+    assert seen == [workers]
+
+
+@pytest.mark.parametrize("value, what", [("2", "next to a real arm"), ("0", "--fit-workers"), ("x", "--fit-workers")])
+def test_a_real_arms_run_refuses_more_fit_workers(tmp_path, capsys, value, what):
+    """--fit-workers above 1 with --host, or not a count from 1: a line naming the option (after argparse's usage
+    for a malformed value), exit 2, nothing written."""
+    from app.cli import main
+    try:
+        rc = main(["run", "paper", "--host", "192.0.2.1", "--fit-workers", value, "--out", str(tmp_path / "run")])
+    except SystemExit as e:          # argparse's own refusal
+        rc = e.code
+    err = capsys.readouterr().err
+    assert rc == 2 and what in err.strip().splitlines()[-1] and "Traceback" not in err
+    assert not (tmp_path / "run").exists()

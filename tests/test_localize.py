@@ -267,6 +267,22 @@ def test_the_final_report_reuses_the_last_fit(prior):
 
 
 
+@pytest.mark.parametrize("stone", [Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012), None])
+def test_fits_on_two_processes_give_the_same_localization(prior, stone):
+    """planner.forkmap: the starts, the no-stone fits and the depth profile's points split over a forked child give
+    the serial localization exactly (every field, the profile interval included), with and without a stone."""
+    import planner.localize as L
+    meas = synth(prior, stone, np.linspace(0.005, 0.065, 21), seed=5)
+    out = []
+    for workers in (1, 2):
+        L._LAST_FIT.clear()
+        out.append(localize(prior, meas, ToySurrogate(), profile=True, workers=workers))
+    L._LAST_FIT.clear()
+    assert _same(*out) == []
+    assert out[0].detected == (stone is not None)
+    assert set(out[0].depth_interval_m) == {"68", "95"}
+
+
 def test_the_design_columns_are_remembered_exactly(prior, monkeypatch):
     """prior_and_thickness_slope remembers each model's force per point (fem.recall: the refinement design asks for
     the same grid every round): asked again, in another order, the same numbers without a solve; and they are the

@@ -92,6 +92,17 @@ def test_localize3d_finds_the_stone_and_refuses_the_truth(sur):
         localize3d(truth, meas, sur)
 
 
+def test_fits_on_two_processes_give_the_same_localization3d(sur):
+    """planner.forkmap: the starts and the no-stone fits split over a forked child give the serial estimate exactly."""
+    import dataclasses
+    meas = _measure(s3.stone_model3d(BLOCK.with_stones([STONE])), _grid(5), DEPTH_M, seed=2)
+    a, b = (localize3d(BLOCK.prior(), meas, sur, workers=w) for w in (1, 2))
+    assert a.detected
+    for f in dataclasses.fields(a):
+        u, v = getattr(a, f.name), getattr(b, f.name)
+        assert (np.array_equal(u, v, equal_nan=True) if isinstance(u, np.ndarray) else repr(u) == repr(v)), f.name
+
+
 @pytest.mark.parametrize("scale", [1.0, 1.25, 0.8])
 def test_healthy_block_gives_no_stone(sur, scale):
     """Healthy tissue, also 25 % stiffer and 20 % softer than the prior: no stone, and the fitted stiffness scale

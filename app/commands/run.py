@@ -52,6 +52,7 @@ from app.runexec import (
     round_planner,
     run_options,
     truth_conditions,
+    workers_for_fits,
 )
 from core.contracts import SENSORS, Plan
 from planner.detectability import detectability
@@ -128,6 +129,10 @@ def add_parser(sub) -> None:
                    help="write no fig_run.png (a simulated run otherwise draws it in a child process that loads "
                         "matplotlib on another core while the run works; next to a real arm it is drawn at the end, "
                         "in this process)")
+    p.add_argument("--fit-workers", type=int_range(1, 64), metavar="N",
+                   help="processes for the localizer's independent fits, forked from this one (the same estimates "
+                        "with any N; default: 2 in a simulated run on two or more cores, else 1; next to a real arm "
+                        "(--host) only 1: a fork would copy ur_rtde's threads and sockets)")
     p.add_argument("--json", metavar="PATH", help="also write result.json here ('-': standard output)")
     p.set_defaults(func=run)
 
@@ -176,6 +181,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     belief = load_scene(args.prior, "--prior").prior() if args.prior else None
     cond = truth_conditions(args, scene)
     check_ft(args, sim=not args.host, real_host=bool(args.host))
+    if args.host and args.fit_workers not in (None, 1):
+        raise UsageError(f"--fit-workers {args.fit_workers}: next to a real arm (--host) the fits run in the driver's "
+                         f"own process (a fork would copy ur_rtde's threads and sockets): give 1 or leave it out")
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
@@ -261,13 +269,15 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         return execute(plan_or_x, k)
 
     plan_round = round_planner(plan0, out)
+    # (not while the table is built in the background: both cores are the build's)
+    fit_workers = 1 if isinstance(sur, PendingSurrogate) else workers_for_fits(args)
 
     status, fault = "ok", None
     try:
         res = adaptive(prior, execute_timed, coarse_x_m=[p.x_m for p in plan0.probes], plan_round=plan_round,
                        budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                        target_m=args.target_uncertainty_m, surrogate=sur, progress=_say,
-                       strategy=args.strategy)
+                       strategy=args.strategy, workers=fit_workers)
         stats["clean_end"] = True      # probing ended without a fault: the control script is stopped at the end
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
@@ -288,7 +298,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if res is not None:
         # the final estimate once more, with the depth's profile-likelihood interval (prior + measurements only)
         if res.measurements is not None and len(res.measurements) >= MIN_MEASUREMENTS:
-            loc = res.localization = localize(prior, res.measurements, sur, profile=True)
+            loc = res.localization = localize(prior, res.measurements, sur, profile=True, workers=fit_workers)
         else:
             loc = res.localization
         result.update(loc.to_dict())

@@ -20,7 +20,7 @@ from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.figchild import FigureChild
-from app.runexec import RunAborted, choose_executor, new_stats, open_out, round_planner
+from app.runexec import RunAborted, choose_executor, new_stats, open_out, round_planner, workers_for_fits
 from core.contracts import Limits, Plan, PlanError
 from planner.area import probe_bounds
 from planner.draw_run3d import draw_run3d
@@ -89,7 +89,8 @@ def run_block(args, ctx: RunContext) -> int:
         res = adaptive3d(prior, execute_timed, coarse_xy_m=[(p.x_m, p.y_m) for p in plan0.probes],
                          plan_round=plan_round, surrogate=sur, region=probe_bounds(prior),
                          budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
-                         target_m=args.target_uncertainty_m, progress=_say)
+                         target_m=args.target_uncertainty_m, progress=_say,
+                         workers=workers_for_fits(args))
         stats["clean_end"] = True
     except RunAborted as e:
         status, fault = "fault", e.report.to_dict()
