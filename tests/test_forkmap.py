@@ -4,6 +4,10 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -118,3 +122,87 @@ def test_an_items_exception_is_raised_as_the_loop_would():
     """Item 3 is the child's: it fails there, the parent computes the child's items and raises the loop's error."""
     with pytest.raises(KeyError, match="item 3"):
         fork_map(_raises_everywhere, range(6), workers=2)
+
+
+def _interrupted_in_child(x):
+    if os.getpid() != PARENT:
+        raise KeyboardInterrupt
+    return x + 1
+
+
+def _ctrl_c_in_child(x):
+    if os.getpid() != PARENT:
+        os.kill(os.getpid(), signal.SIGINT)     # the child's SIGINT is the default action: it just ends
+        time.sleep(5)
+    return x + 1
+
+
+@pytest.mark.parametrize("fn", [_interrupted_in_child, _ctrl_c_in_child])
+def test_an_interrupted_child_never_unwinds_into_the_caller(fn):
+    """A child interrupted anywhere ends through os._exit (its caller's code, atexit handlers and buffers are the
+    parent's alone); the parent computes its items."""
+    assert fork_map(fn, range(5), workers=2) == [x + 1 for x in range(5)]
+    assert os.getpid() == PARENT
+
+
+def _ctrl_c_in_parent(x):
+    if os.getpid() == PARENT and x == 0:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(1)                       # (the interrupt is raised here)
+    if os.getpid() != PARENT:
+        time.sleep(5)
+    return x
+
+
+def test_ctrl_c_in_the_parent_ends_the_children():
+    t = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        fork_map(_ctrl_c_in_parent, range(6), workers=3)
+    assert time.perf_counter() - t < 4      # the children were killed, not waited for
+
+
+def _hangs_in_child(x):
+    if os.getpid() != PARENT:
+        time.sleep(60)
+    return -x
+
+
+def test_a_child_that_does_not_answer_is_killed_and_its_items_computed_here(monkeypatch):
+    import planner.forkmap as fm
+    monkeypatch.setattr(fm, "CHILD_TIMEOUT_S", 0.5)
+    t = time.perf_counter()
+    assert fork_map(_hangs_in_child, range(4), workers=2) == [0, -1, -2, -3]
+    assert time.perf_counter() - t < 5
+
+
+def test_a_child_dies_with_its_parent(tmp_path):
+    """Linux: a run killed outright (SIGKILL) leaves no fits computing (PR_SET_PDEATHSIG)."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("PR_SET_PDEATHSIG is Linux's")
+    pidfile = tmp_path / "child.pid"
+    code = (f"import os, sys, time; sys.path.insert(0, {str(Path(__file__).parents[1])!r})\n"
+            "from planner.forkmap import fork_map\n"
+            "parent = os.getpid()\n"
+            "def f(x):\n"
+            "    if os.getpid() != parent:\n"
+            f"        open({str(pidfile)!r}, 'w').write(str(os.getpid())); time.sleep(60)\n"
+            "    else:\n"
+            "        time.sleep(60)\n"
+            "fork_map(f, [0, 1], 2)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code])
+    try:
+        for _ in range(200):
+            if pidfile.exists() and pidfile.read_text():
+                break
+            time.sleep(0.05)
+        child = int(pidfile.read_text())
+    finally:
+        proc.kill()
+        proc.wait()
+    for _ in range(100):                    # the child is init's now: gone once the kernel has killed it
+        if not Path(f"/proc/{child}").exists() or "Z" in Path(f"/proc/{child}/stat").read_text().split()[2]:
+            break
+        time.sleep(0.05)
+    else:
+        os.kill(child, signal.SIGKILL)
+        pytest.fail("the child outlived its killed parent")

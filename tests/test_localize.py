@@ -300,3 +300,17 @@ def test_the_design_columns_are_remembered_exactly(prior, monkeypatch):
     assert np.all(dP1 != 0.0)
     P3, _ = tr.prior_and_thickness_slope(prior, x, 0.003)            # the same points at another depth
     assert P3.tolist() == [surface_model(prior).force_n(float(v), 0.003) for v in x] and np.all(P3 < P1)
+
+
+def test_the_forked_fits_answer(prior, monkeypatch):
+    """The two-process localization above really takes children's results (none recomputed by the parent)."""
+    import planner.forkmap as fm
+    got = []
+    collect = fm._collect
+    monkeypatch.setattr(fm, "_collect", lambda pid, r: got.append(collect(pid, r)) or got[-1])
+    import planner.localize as L
+    L._LAST_FIT.clear()
+    localize(prior, synth(prior, Stone(x_m=0.032, depth_m=0.020, diameter_m=0.012), np.linspace(0.005, 0.065, 21),
+                          seed=5), ToySurrogate(), profile=True, workers=2)
+    L._LAST_FIT.clear()
+    assert len(got) >= 4 and all(g is not None for g in got)
