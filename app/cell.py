@@ -32,6 +32,8 @@ from app.options import (
     check_output_dir,
     check_output_file,
     float_range,
+    host_name,
+    int_range,
     load_scene,
     positive_float,
 )
@@ -65,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog="examples:\n  palpate-cell --host 192.168.1.10 --plan plan.json --out run/\n"
                                        "  palpate-cell --sim --plan plan.json --out run/ --truth paper")
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--host", help="robot controller IP (ur_rtde)")
+    src.add_argument("--host", type=host_name, help="robot controller IP (ur_rtde)")
     src.add_argument("--sim", nargs="?", const="inmemory", choices=["inmemory", "controller"],
                      help="simulated arm: inmemory (default) or controller (loopback UR controller + real ur_rtde)")
     p.add_argument("--plan", required=True, help="plan.json from `palpate plan`")
@@ -86,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("simulation (--sim)")
     g.add_argument("--truth", help="TRUE scene for the simulator: built-in name or TOML")
     g.add_argument("--sensor", default="nano17", choices=list(SENSORS), help="sensor preset (default nano17)")
-    g.add_argument("--seed", type=int, default=0)
+    g.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0)
     g.add_argument("--force-model", choices=["fem", "standin"], default="fem",
                    help="tissue force: fem for the true scene (default) or a Hertz-like stand-in")
     g.add_argument("--sim-mesh-m", type=positive_float, default=None,

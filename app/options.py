@@ -81,6 +81,13 @@ def int_range(lo: int, hi: int | None = None):
     return parse
 
 
+def host_name(s: str) -> str:
+    """A controller's host name or IP address: not empty (an unset shell variable), no spaces."""
+    if not s.strip() or any(c.isspace() for c in s):
+        raise argparse.ArgumentTypeError(f"must be a host name or IP address, got {s!r}")
+    return s
+
+
 def grid_counts(s: str) -> tuple[int, int]:
     """``NXxNY``: waypoints along x and y of an area raster, each >= 1, at most MAX_WAYPOINTS in all."""
     parts = s.lower().split("x")
@@ -179,13 +186,20 @@ def is_measured(path: str | Path) -> bool:
         return True
     if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in p.parents):
         return True
-    return p.name == "run.json" and (p.parent / "probes.jsonl").exists()
+    if p.name == "run.json" and (p.parent / "probes.jsonl").exists():
+        return True
+    # what a run resumes from (its options, its rounds' plans) and reports: another command must not replace them
+    run_dir = (p.parent / "probes.jsonl").exists() or (p.parent / "run_options.json").exists()
+    return run_dir and (p.name in RUN_OWN_NAMES or p.name.startswith("plan_round"))
+
+
+RUN_OWN_NAMES = ("run_options.json", "result.json")
 
 
 def refuse_measured(path: str | None, option: str) -> None:
     if path and path != "-" and is_measured(path):
-        raise UsageError(f"{option} {path}: would overwrite a run's measured data (probes.jsonl, raw/, run.json); "
-                         f"choose another path")
+        raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl, raw/, run.json, "
+                         f"run_options.json, plan_round*.json, result.json); choose another path")
 
 
 def load_scene(spec: str, option: str = "scene") -> Scene:

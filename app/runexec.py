@@ -146,6 +146,9 @@ def truth_conditions(args, scene=None) -> TruthConditions | None:
         return None
     try:
         cond = conditions_of(args.scene).replace(**given)
+        if "relaxation_tau_s" in given and not cond.relaxation_fraction:
+            raise UsageError(f"--truth-relaxation-tau-s {given['relaxation_tau_s']:g}: the truth does not relax (give "
+                             f"--truth-relaxation [FRACTION], or relaxation_fraction in the scene's [truth] table)")
         if scene is not None:
             cond.check_scene(scene)
         return cond

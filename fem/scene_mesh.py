@@ -77,7 +77,7 @@ def max_dofs() -> int:
         return MAX_DOFS
     try:
         n = int(float(v))
-    except ValueError:
+    except (ValueError, OverflowError):      # not a number; inf
         raise SceneError(f"PALPATE_MAX_DOFS={v!r} must be a positive integer") from None
     if n <= 0:
         raise SceneError(f"PALPATE_MAX_DOFS={v!r} must be a positive integer")

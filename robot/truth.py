@@ -33,6 +33,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from fem.scene import BUILTIN
+
 DEFAULT_RELAXATION = (0.25, 2.0)      # (fraction, tau_s) when relaxation is on without values
 
 
@@ -114,9 +116,13 @@ class TruthConditions:
 
 
 def conditions_of(scene_spec) -> TruthConditions:
-    """The ``[truth]`` table of a scene TOML file (``scene_spec`` a path ending in .toml); the ideal world for a
-    built-in scene name, a Scene object or a file without the table."""
-    if not isinstance(scene_spec, (str, Path)) or not str(scene_spec).endswith(".toml"):
+    """The ``[truth]`` table of a scene TOML file (any file ``fem.scene.load`` reads: a path ending in .toml or an
+    existing file, whatever its name); the ideal world for a built-in scene name, a Scene object or a file without
+    the table."""
+    if not isinstance(scene_spec, (str, Path)):
+        return TruthConditions()
+    p = Path(scene_spec)
+    if str(scene_spec) in BUILTIN or not (p.suffix == ".toml" or p.is_file()):
         return TruthConditions()
     try:
         d = tomllib.loads(Path(scene_spec).read_text())

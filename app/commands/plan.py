@@ -129,6 +129,8 @@ def run(args) -> int:
     check_output_file(args.out, "--out")
     check_output_dir(args.plots, "--plots")
     check_output_file(args.json, "--json")
+    if args.json and args.out and args.json != "-" and Path(args.json).absolute() == Path(args.out).absolute():
+        raise UsageError(f"--json {args.json}: is the plan's own file (--out); give another path or '-'")
     scene = load_scene(args.scene)
     tip = scene.indenter.radius_m
     if not args.depth_limit_m < tip:

@@ -189,7 +189,10 @@ def run(args) -> int:
         return lambda done, total: print(f"  {label}: {done}/{total} waypoints ({time.perf_counter() - t0:.1f} s)",
                                          file=sys.stderr, flush=True)
 
-    main = predict(sc, xs, args.depth_m, stresses=stresses, progress=progress(sc.name))
+    try:         # fem refuses a waypoint the checks above cannot see (a stone the tip would crush the tissue onto)
+        main = predict(sc, xs, args.depth_m, stresses=stresses, progress=progress(sc.name))
+    except ValueError as e:
+        raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
     out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "margin_m": args.margin_m,
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
            "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}

@@ -38,6 +38,7 @@ from app.options import (
     check_output_file,
     finite_float,
     grid_counts,
+    host_name,
     int_range,
     load_scene,
     positive_float,
@@ -101,18 +102,20 @@ def add_parser(sub) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--sim", nargs="?", const="inmemory", choices=["inmemory", "controller"],
                      help="simulated arm (default): inmemory, or controller (the loopback UR controller)")
-    src.add_argument("--host", help="a real UR controller's IP (ur_rtde)")
+    src.add_argument("--host", type=host_name, help="a real UR controller's IP (ur_rtde)")
     p.add_argument("--yes", action="store_true", help="do not ask before moving a real arm")
     p.add_argument("--sensor", default="nano17", choices=list(SENSORS),
                    help="simulated sensor preset (default nano17)")
-    p.add_argument("--seed", type=int, default=0, help="simulated sensor noise seed")
+    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
+                   help="simulated sensor noise seed, 0..4294967295 (default 0)")
     p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS),
                    help=f"2D: coarse raster waypoints, 2..{MAX_WAYPOINTS} (default 15)")
     p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
                    help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
                         f"{DEFAULT_GRID3D[0]}x{DEFAULT_GRID3D[1]})")
-    p.add_argument("--refine-waypoints", type=int_range(1, MAX_WAYPOINTS),
-                   help=f"waypoints per refinement round (default 2D 10, 3D {DEFAULT_REFINE3D})")
+    p.add_argument("--refine-waypoints", type=int_range(3, MAX_WAYPOINTS),
+                   help=f"waypoints per refinement round, at least 3 (a 3D block: 4; default 2D 10, 3D "
+                        f"{DEFAULT_REFINE3D})")
     p.add_argument("--budget-probes", type=int_range(2, MAX_TOTAL_PROBES),
                    help="probe budget over all rounds, at least the coarse raster's waypoints (default 2D 45, 3D "
                         f"{DEFAULT_BUDGET3D})")
@@ -153,6 +156,9 @@ def _dimension_defaults(args, scene, prior) -> bool:
         args.grid = args.grid or DEFAULT_GRID3D
     else:
         args.waypoints = args.waypoints or 15
+    if three_d and args.refine_waypoints is not None and args.refine_waypoints < 4:
+        raise UsageError(f"--refine-waypoints {args.refine_waypoints}: a 3D block's refinement round needs at least 4 "
+                         f"waypoints (its design fits x, y, depth and size)")
     args.refine_waypoints = args.refine_waypoints or (DEFAULT_REFINE3D if three_d else 10)
     args.budget_probes = args.budget_probes or (DEFAULT_BUDGET3D if three_d else 45)
     return three_d
@@ -184,6 +190,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if args.host and args.fit_workers not in (None, 1):
         raise UsageError(f"--fit-workers {args.fit_workers}: next to a real arm (--host) the fits run in the driver's "
                          f"own process (a fork would copy ur_rtde's threads and sockets): give 1 or leave it out")
+    if args.plan and (args.waypoints is not None or args.grid is not None):
+        raise UsageError(f"--plan {args.plan}: the plan holds the coarse raster; drop "
+                         f"{'--waypoints' if args.waypoints is not None else '--grid'}")
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
