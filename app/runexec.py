@@ -15,6 +15,7 @@ from app.errors import UsageError
 from app.figchild import usable_cores
 from app.ftoptions import controller_pose, inmemory_source, linked_source
 from core.contracts import Plan
+from fem.scene import BUILTIN
 from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
@@ -145,7 +146,7 @@ def truth_conditions(args, scene=None) -> TruthConditions | None:
     if args.host:
         return None
     try:
-        cond = conditions_of(args.scene).replace(**given)
+        cond = (TruthConditions() if args.scene in BUILTIN else conditions_of(args.scene)).replace(**given)
         if "relaxation_tau_s" in given and not cond.relaxation_fraction:
             raise UsageError(f"--truth-relaxation-tau-s {given['relaxation_tau_s']:g}: the truth does not relax (give "
                              f"--truth-relaxation [FRACTION], or relaxation_fraction in the scene's [truth] table)")

@@ -20,7 +20,7 @@ from fem.contact import surface_model
 from fem.contact3d import surface_model3d
 from fem.hypertruth import HyperelasticForce
 from fem.mesh3d import patch_bounds
-from fem.scene import Scene, load
+from fem.scene import BUILTIN, Scene, load
 from robot.sim import ArmModel
 from robot.simfaults import inject_arm, parse
 from robot.simforce import standin_force_model
@@ -88,7 +88,10 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
     controller, external sensor faults to the simulated Net F/T box). ``conditions``: what the world adds to the
     scene (robot.truth); None: the ``[truth]`` table of a
     TOML ``truth`` (ideal for anything else)."""
-    cond = conditions_of(truth) if conditions is None else conditions
+    if conditions is not None:
+        cond = conditions
+    else:        # a built-in scene's name has no [truth] table (even if a file of that name lies here)
+        cond = TruthConditions() if isinstance(truth, str) and truth in BUILTIN else conditions_of(truth)
     tissue_pose = list(tissue_pose or Frames().tissue_pose_base)
     length = None
     if force == "fem":

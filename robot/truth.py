@@ -33,8 +33,6 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from fem.scene import BUILTIN
-
 DEFAULT_RELAXATION = (0.25, 2.0)      # (fraction, tau_s) when relaxation is on without values
 
 
@@ -116,13 +114,14 @@ class TruthConditions:
 
 
 def conditions_of(scene_spec) -> TruthConditions:
-    """The ``[truth]`` table of a scene TOML file (any file ``fem.scene.load`` reads: a path ending in .toml or an
-    existing file, whatever its name); the ideal world for a built-in scene name, a Scene object or a file without
-    the table."""
+    """The ``[truth]`` table of a scene TOML file (as ``fem.scene.load`` reads one: a path ending in .toml or an
+    existing file, whatever its name); the ideal world for a name that is no file, a Scene object or a file without
+    the table. (A built-in scene's name that is also a file here: callers that know fem's built-ins pass the name
+    only when it is not one of them, as fem.scene.load takes the built-in.)"""
     if not isinstance(scene_spec, (str, Path)):
         return TruthConditions()
     p = Path(scene_spec)
-    if str(scene_spec) in BUILTIN or not (p.suffix == ".toml" or p.is_file()):
+    if not (p.suffix == ".toml" or p.is_file()):
         return TruthConditions()
     try:
         d = tomllib.loads(Path(scene_spec).read_text())
