@@ -101,3 +101,15 @@ def test_a_sweep_without_stones_writes_no_nan(tmp_path):
     assert row["min_gap_m"] is None
     json.dumps(row, allow_nan=False)
     assert all(not (isinstance(v, float) and not math.isfinite(v)) for v in row.values())
+
+
+@pytest.mark.parametrize("argv, opt", [
+    (["simulate", "paper", "--x-m", "0.03"], "--x-m"),                  # load A: the indentation's options
+    (["simulate", "paper", "--load", "uniform", "--depth-m", "0.003"], "--depth-m"),
+    (["simulate", "paper", "--indenter-radius-m", "0.003"], "--indenter-radius-m"),
+    (["predict", "block3d", "--waypoints", "5"], "--waypoints"),        # a block's waypoints are a grid
+    (["predict", "block3d", "--grid", "2x2", "--margin-m", "0.03"], "--margin-m"),
+])
+def test_options_that_would_be_ignored_are_refused(capsys, argv, opt):
+    rc, line = _run(argv, capsys)
+    assert rc == 2 and opt in line

@@ -67,12 +67,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
                                                   "healthy) or a TOML file")
-    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), default=50, metavar="N",
-                   help=f"number of waypoints, 2..{MAX_WAYPOINTS} (default 50)")
+    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), metavar="N",
+                   help=f"2D scenes: number of waypoints, 2..{MAX_WAYPOINTS} (default 50)")
     p.add_argument("--depth-m", type=positive_float, default=DEFAULT_DEPTH_M,
                    help=f"indentation depth at every waypoint (default {DEFAULT_DEPTH_M})")
-    p.add_argument("--margin-m", type=finite_float, default=DEFAULT_MARGIN_M,
-                   help=f"keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
+    p.add_argument("--margin-m", type=finite_float,
+                   help=f"2D scenes: keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
     p.add_argument("--compare", metavar="SCENE", default="prior",
                    help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML, or 'none'")
     p.add_argument("--grid", metavar="NXxNY",
@@ -167,8 +167,14 @@ def run(args) -> int:
         raise UsageError("--plots needs the stresses (drop --force-only)")
     sc, ref = _scenes(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
+        for opt, v in (("--waypoints", args.waypoints), ("--margin-m", args.margin_m)):
+            if v is not None:
+                raise UsageError(f"{opt} {v}: scene {sc.name!r} is a 3D block: its waypoints are a grid over the probed "
+                                 f"patch less the tip radius (--grid NXxNY)")
         from app.commands import sim3d  # the 3D path (scipy.linalg, CHOLMOD): loaded for a 3D scene only
         return sim3d.run_predict(args, sc, ref)
+    args.waypoints = args.waypoints or 50
+    args.margin_m = DEFAULT_MARGIN_M if args.margin_m is None else args.margin_m
     if args.grid is not None:
         raise UsageError(f"--grid {args.grid}: scene {sc.name!r} is a 2D section (no tissue.length_m); use "
                          f"--waypoints N")

@@ -102,6 +102,12 @@ def run(args) -> int:
     check_output_file(args.vtu, "--vtu")
     if args.vtu and not args.vtu.lower().endswith(".vtu"):
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
+    if args.load == "uniform":       # the indentation's options have no meaning for load A: refused, not ignored
+        given = [o for o, v in (("--x-m", args.x_m), ("--y-m", args.y_m), ("--depth-m", args.depth_m),
+                                ("--indenter-radius-m", args.indenter_radius_m)) if v is not None]
+        if given:
+            raise UsageError(f"{given[0]}: an option of --load indent; --load uniform (the default) moves the whole top "
+                             f"surface down by the scene's analysis.top_displacement_m")
     sc = _scene(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         if args.indenter_radius_m is not None:
