@@ -36,7 +36,7 @@ from .mesh3d import Mesh3D, patch_bounds
 from .model3d import Model3D, build_model3d, fixed_bottom
 from .scene import Indenter, SceneError
 from .scene_mesh3d import code_version3d, mesh_for3d
-from .stress3d import components3d, recovery_operator3d
+from .stress3d import components3d, point_operator3d, recovery_operator3d
 from .tip import TIP_TOLERANCE, rigid_tip_bound, treated_as_rigid
 from .tip3d import TipCompliance3D, load_or_build_tip3d
 
@@ -50,8 +50,8 @@ class IndentResult3D:
     y_m: float
     depth_m: float
     force_n: float
-    max_von_mises_pa: float
-    max_von_mises_at_m: tuple[float, float, float]   # (x_m, y_m, depth below the surface in m) of the maximum
+    max_von_mises_pa: float     # the maximum over the tissue elements' stress points under the tip
+    max_von_mises_at_m: tuple[float, float, float]   # (x_m, y_m, depth below the surface in m) of that point
     contact_radius_m: float     # the contact's mean radius (edge midway between the contact and the next free node)
     contact_x_m: np.ndarray     # patch nodes under the tip's footprint
     contact_y_m: np.ndarray
@@ -121,7 +121,8 @@ class SurfaceModel3D:
     """A 3D scene's condensed probed-patch response: build once, then ``indent`` any waypoint in milliseconds.
 
     stress_band_m: depth below the surface (and horizontal reach from the tip axis) over which the maximum von
-    Mises stress is searched (default 2 R). compliance: restored from disk (``from_arrays``); K is then factorized
+    Mises stress in the tissue is searched (default 2 R), over the elements' stress points
+    (fem.stress3d.point_operator3d). compliance: restored from disk (``from_arrays``); K is then factorized
     only when fields are asked for. tip: an elastic tip's compliance (default: fem.tip3d's, from the disk cache)."""
 
     def __init__(self, scene, model: Model3D | None = None, rigid_tip: str | bool = "auto",
@@ -263,17 +264,18 @@ class SurfaceModel3D:
         return condensed_displacements(self.model, self.fac, F_patch)
 
     def _band_op(self):
-        """(nodes, recovery operator) for every node within band_m below the probed patch (grown by band_m
-        sideways): built once, then each waypoint takes the rows of the nodes under its tip."""
+        """(stress-point positions X, their stress operator, the patch nodes' stress operator): the stress points
+        (fem.stress3d.point_operator3d) of the tissue's elements whose centre lies within band_m below the probed
+        patch (grown by band_m sideways), and the nodal stresses of the patch's top nodes (the contact pressure);
+        built once, then each waypoint takes the rows under its tip."""
         if self._band is None:
             mesh, b = self.mesh, self.band_m
             x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, self.scene.analysis.patch_m)
-            X = mesh.nodes
-            nodes = np.flatnonzero((X[:, 2] >= mesh.height_m - b - 1e-12) & (X[:, 0] >= x0 - b) & (X[:, 0] <= x1 + b)
-                                   & (X[:, 1] >= y0 - b) & (X[:, 1] <= y1 + b))
-            pos = np.full(mesh.n_nodes, -1)
-            pos[nodes] = np.arange(len(nodes))
-            self._band = (nodes, pos, recovery_operator3d(self.model, nodes).tocsr())
+            c = mesh.nodes[mesh.tets[:, :4]].mean(axis=1)
+            els = np.flatnonzero((mesh.region == 0) & (c[:, 2] >= mesh.height_m - b) & (c[:, 0] >= x0 - b)
+                                 & (c[:, 0] <= x1 + b) & (c[:, 1] >= y0 - b) & (c[:, 1] <= y1 + b))
+            Rp, X = point_operator3d(self.model, els)
+            self._band = (X, Rp.tocsr(), recovery_operator3d(self.model, self.patch).tocsr())
         return self._band
 
     def indent(self, x_m: float, y_m: float, depth_m: float, stresses: bool = True) -> IndentResult3D:
@@ -289,25 +291,19 @@ class SurfaceModel3D:
             for k, (idx, f, _) in enumerate(sols):
                 F[idx, k] = f
             U = self.displacements(F)
-            nodes, pos, Rb = self._band_op()
+            X, Rb, Rtop = self._band_op()
         out = []
-        mesh, X, b = self.mesh, self.mesh.nodes, self.band_m
+        mesh, b = self.mesh, self.band_m
         for k, ((idx, f, gap), (x_m, y_m, depth_m)) in enumerate(zip(sols, pts)):
             active = f > 0
             vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
             if U is not None and active.any():
-                inside = (np.abs(X[nodes, 0] - x_m) <= b) & (np.abs(X[nodes, 1] - y_m) <= b)
-                near = nodes[inside]
-                s6 = _stress_at(Rb, pos[near], U[:, k])
-                s = components3d(s6)
-                j = int(np.argmax(s["von_mises_pa"]))
-                vm_max = float(s["von_mises_pa"][j])
+                near = np.flatnonzero((np.abs(X[:, 0] - x_m) <= b) & (np.abs(X[:, 1] - y_m) <= b))
+                vm = components3d(_stress_at(Rb, near, U[:, k]))["von_mises_pa"]
+                j = int(np.argmax(vm))
+                vm_max = float(vm[j])
                 at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
-                wpos = pos[self.patch[idx]]
-                if inside[wpos].all():                       # the window's patch nodes in the near box (R <= b):
-                    szz = s6[(np.cumsum(inside) - 1)[wpos], 2]   # their rows of the same recovery
-                else:
-                    szz = _stress_at(Rb, wpos, U[:, k])[:, 2]
+                szz = _stress_at(Rtop, idx, U[:, k])[:, 2]
                 pressure = np.where(active, np.maximum(-szz, 0.0), 0.0)
             out.append(IndentResult3D(
                 x_m=x_m, y_m=y_m, depth_m=depth_m,
@@ -327,7 +323,7 @@ class SurfaceModel3D:
 
 
 def _stress_at(R, node_pos: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """(n, 6) stresses at the nodes in rows ``node_pos`` of the recovery operator R, for displacement u."""
+    """(n, 6) stresses at the points (nodes) in rows ``node_pos`` of the stress operator R, for displacement u."""
     return (R[(6 * node_pos[:, None] + np.arange(6)).ravel()] @ u).reshape(-1, 6)
 
 

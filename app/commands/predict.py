@@ -42,8 +42,10 @@ The reference defaults to SCENE's prior: the same tissue, tip and analysis witho
 knows before probing). --compare NAME uses another scene as the reference (its tissue and stones, SCENE's tip and
 analysis options); --compare none skips it.
 
-The maximum von Mises stress is searched over the nodes within 2 R (R: tip radius) below the surface. Waypoints
-run from --margin-m to width - --margin-m, ends included.
+The maximum von Mises stress is searched within 2 R (R: tip radius) below the surface: over the nodes in 2D, over
+the stress points of the tissue's elements on a 3D block (4 per element, where a quadratic element's stress is most
+accurate; within +1.5 to +4 % of Hertz's maximum for a sphere). Waypoints run from --margin-m to width - --margin-m,
+ends included.
 
 figures (--plots DIR):
   fig11_predict.png   force (left axis) and max von Mises (right axis) against tip position for SCENE (solid) and
