@@ -37,6 +37,7 @@ from app.options import (
     load_scene,
     positive_float,
 )
+from app.parser import Parser
 from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
@@ -62,7 +63,7 @@ class ControllerPortsUnavailable(Exception):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="palpate-cell", description="Run a palpation plan on a UR arm (or a simulated "
+    p = Parser(prog="palpate-cell", description="Run a palpation plan on a UR arm (or a simulated "
                                 "one) over ur_rtde.", formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="examples:\n  palpate-cell --host 192.168.1.10 --plan plan.json --out run/\n"
                                        "  palpate-cell --sim --plan plan.json --out run/ --truth paper")

@@ -16,6 +16,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 from app.errors import EXIT_USAGE, guarded  # noqa: E402
+from app.parser import Parser  # noqa: E402
 
 # name -> one-line help (the module app.commands.<name> is imported only when its subcommand runs)
 COMMANDS = {
@@ -42,7 +43,7 @@ Add --debug to any command to see a traceback instead of a one-line error."""
 
 def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """The parser, with the full options of the ``chosen`` subcommand only."""
-    p = argparse.ArgumentParser(prog="palpate", description="Robotic palpation: predict, plan, probe, locate.",
+    p = Parser(prog="palpate", description="Robotic palpation: predict, plan, probe, locate.",
                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_ in COMMANDS.items():

@@ -1,7 +1,8 @@
 """Option values and output paths, checked before any work (issue 13).
 
 Numeric options: argparse ``type=`` functions (``finite_float``, ``positive_float``, ``float_range(lo, hi)``,
-``int_range(lo, hi)``). A bad value ends in argparse's one-line ``prog: error: argument --opt: message`` and exit 2;
+``int_range(lo, hi)``). A bad value ends in one line, ``prog: error: argument --opt: message (see prog --help)``
+(``app.parser.Parser``: argparse without its usage block) and exit 2;
 the message gives the value and what is allowed. Cross-option rules (a minimum below a limit, a budget above the
 waypoints) are checked by the commands with ``UsageError``.
 
@@ -20,7 +21,8 @@ import os
 from pathlib import Path
 
 from app.errors import UsageError
-from fem.scene import Scene, SceneError, load
+from fem.scene import BUILTIN, Scene, SceneError, load
+from robot.truth import TruthError, conditions_of
 
 MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the planning NLP and fem cost explode
 MAX_TOTAL_PROBES = 10000    # a run's probe budget
@@ -203,9 +205,16 @@ def refuse_measured(path: str | None, option: str) -> None:
 
 
 def load_scene(spec: str, option: str = "scene") -> Scene:
-    """fem.scene.load, with an unreadable file (binary, latin-1, a directory) named in a one-line error."""
+    """fem.scene.load, with an unreadable file (binary, latin-1, a directory) named in a one-line error; a scene
+    file's ``[truth]`` table (the simulated world's conditions, robot.truth) is checked too, whichever command reads
+    the file, so a mistyped condition is refused before it could be relied on."""
     try:
-        return load(spec)
+        scene = load(spec)
+        if spec not in BUILTIN:
+            conditions_of(spec)
+        return scene
+    except TruthError as e:
+        raise UsageError(f"{option} {spec}: {e}") from None
     except UnicodeDecodeError as e:
         raise UsageError(f"{option} {spec}: not a UTF-8 text (TOML) file ({e.reason} at byte {e.start})") from None
     except IsADirectoryError:

@@ -136,6 +136,10 @@ class Plan:
         if d.get("version") not in READABLE_PLAN_VERSIONS:
             raise PlanError(f"plan version {d.get('version')!r} is not supported (this palpate reads "
                             f"{', '.join(map(str, READABLE_PLAN_VERSIONS))})")
+        unknown = sorted(set(d) - {f.name for f in dataclasses.fields(Plan)})
+        if unknown:
+            raise PlanError(f"plan field(s) {', '.join(map(repr, unknown))} unknown: a plan has "
+                            f"{', '.join(f.name for f in dataclasses.fields(Plan))}")
         if not isinstance(d.get("scene"), dict):
             raise PlanError(f"plan field 'scene' must be a table of the prior scene, got {type(d.get('scene')).__name__}")
         try:

@@ -155,6 +155,12 @@ def grid_positions(region: Region, *, grid: tuple[int, int] | None = None,
     elif not (spacing_m and math.isfinite(spacing_m) and spacing_m > 0):
         raise PlanError(f"--spacing-m must be positive, got {spacing_m}")
     x0, x1, y0, y1 = region.bounds()
+    if grid is not None:
+        for axis, n, lo, hi, other in (("x", nx, x0, x1, f"1x{ny}"), ("y", ny, y0, y1, f"{nx}x1")):
+            if n > 1 and not hi > lo:
+                raise PlanError(f"{region.option}: the region spans {lo:g}..{hi:g} m in {axis}, so the grid's {n} "
+                                f"points along {axis} would repeat each probe: widen it, or give --grid {other} "
+                                f"for a line")
     xs = axis_positions(x0, x1, n=None if grid is None else nx, spacing_m=spacing_m)
     ys = axis_positions(y0, y1, n=None if grid is None else ny, spacing_m=spacing_m)
     rows, cols = (a.ravel() for a in np.meshgrid(np.arange(len(ys)), np.arange(len(xs)), indexing="ij"))

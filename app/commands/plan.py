@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +154,12 @@ def run(args) -> int:
                 raise UsageError(f"{opt} is for a 3D block; {scene.name!r} is a 2D section (no tissue.length_m): "
                                  f"give --waypoints or --spacing-m")
     margin_m = 0.005 if (args.margin_m is None and not is_3d) else args.margin_m
+    if not is_3d and (args.x_min_m is not None or args.x_max_m is not None):
+        lo = args.x_min_m if args.x_min_m is not None else margin_m
+        hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
+        if not lo < hi:
+            raise UsageError(f"--x-min-m {lo:g} must be below --x-max-m {hi:g} (m): the raster's interval is empty, "
+                             f"so every waypoint would repeat one probe")
     if args.spacing_m is not None and not is_3d:
         lo = args.x_min_m if args.x_min_m is not None else margin_m
         hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
@@ -209,18 +216,19 @@ def run(args) -> int:
     s = summary(plan, out, figs)
     write_json(args.json, s)
     sv = plan.notes["solver"]
+    stream = sys.stderr if args.json == "-" else sys.stdout      # --json -: standard output holds the JSON alone
     print(f"planned {s['n_probes']} probes on {plan.scene['name']}: depth {s['depth_m']['min'] * 1e3:.2f}-"
           f"{s['depth_m']['max'] * 1e3:.2f} mm, predicted force {s['predicted_force_n']['min']:.3g}-"
           f"{s['predicted_force_n']['max']:.3g} N (limit {limits.force_limit_n:g} N), "
           f"execution ~{plan.total_time_s:.1f} s; IPOPT {sv['status']} in {sv['iterations']} iterations, "
-          f"{sv['solve_s'] * 1e3:.0f} ms -> {out}")
+          f"{sv['solve_s'] * 1e3:.0f} ms -> {out}", file=stream)
     if is_3d:
         r = plan.notes["raster"]
         print(f"raster: {r['order']}, tool travel between probes {r['travel_m'] * 1e3:.0f} mm (row-major "
               f"{r['travel_row_major_m'] * 1e3:.0f} mm, no order below {r['travel_lower_bound_m'] * 1e3:.0f} mm); "
-              f"planning took {plan.notes['times_s']['total']:.2f} s")
+              f"planning took {plan.notes['times_s']['total']:.2f} s", file=stream)
     for f in figs:
-        print(f"figure: {f}")
+        print(f"figure: {f}", file=stream)
     return 0
 
 

@@ -253,6 +253,13 @@ def _compare_names(args, sc) -> list[str]:
 def _run_uniform(args) -> int:
     t0 = time.perf_counter()
     sc = _scene(args)
+    others = {}
+    for name in _compare_names(args, sc):       # checked before anything is solved
+        if name != args.scene:
+            others[name] = load_scene(name, "--compare")
+            if others[name].is_3d:
+                raise UsageError(f"--compare {name}: a 3D block (tissue.length_m); {args.scene} is a 2D section "
+                                 f"and --compare takes 2D sections (for blocks: palpate predict SCENE --compare)")
     want_field = bool(args.plots or args.vtu)
     res = solve_uniform(sc, full_field=want_field, rigid_stones=_rigid(args))
     mesh = res.model.mesh
@@ -279,7 +286,7 @@ def _run_uniform(args) -> int:
             if name == args.scene:
                 other, r = sc, res
             else:
-                other = dataclasses.replace(load_scene(name, "--compare"), analysis=sc.analysis)
+                other = dataclasses.replace(others[name], analysis=sc.analysis)
                 r = solve_uniform(other, full_field=False, rigid_stones=_rigid(args))
             compare.append((other, r.surface))
         out["compare"] = [{"scene": o.name, "peak": prof.to_dict()["peak"]} for o, prof in compare]

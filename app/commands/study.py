@@ -9,6 +9,7 @@ options start another set beside it. Each invocation appends a line to ``DIR/run
 from __future__ import annotations
 
 import argparse
+import contextlib
 import hashlib
 import json
 import os
@@ -146,7 +147,8 @@ def run(args) -> int:
     study = {"accuracy": run_accuracy_study, "mismatch": run_mismatch_study, "detect": run_detect_study,
              "sweep": run_sweep_study, "accuracy3d": run_accuracy3d_study}[args.study]
     t0 = time.time()
-    summary = study(args, scene, runner, out)
+    with contextlib.redirect_stdout(sys.stderr if args.json == "-" else sys.stdout):   # --json -: the JSON alone
+        summary = study(args, scene, runner, out)
     _log_invocation(out, args, t0, summary)
     write_json(args.json, summary)
     return 1 if summary.get("failures") else 0

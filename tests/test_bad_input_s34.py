@@ -1,0 +1,94 @@
+"""Bad input left over from session 33's review, refused since session 34: one line naming the option or field,
+exit 2, nothing written; and ``--json -`` leaving standard output to the JSON alone."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from app.cli import main
+from core.contracts import Plan, PlanError
+from fem.scene import load
+from planner.area import Region, grid_positions
+from planner.plan import plan_raster
+
+SCENE_2D = """[tissue]
+width_m = 0.07
+height_m = 0.05
+youngs_pa = 2500.0
+poisson = 0.4
+"""
+
+
+def _run(argv, capsys) -> tuple[int, str, str]:
+    try:
+        rc = main(argv)
+    except SystemExit as e:
+        rc = e.code
+    out, err = capsys.readouterr()
+    assert "Traceback" not in err
+    return rc, out, err
+
+
+@pytest.mark.parametrize("argv, opt", [
+    (["run", "paper", "--sim", "--seed", "-1", "--out", "x"], "--seed"),
+    (["predict", "paper", "--waypoints", "1"], "--waypoints"),
+    (["plan", "paper"], "--out"),
+    (["simulate", "paper", "--load", "sideways"], "--load"),
+])
+def test_a_usage_error_is_one_line(capsys, argv, opt):
+    """argparse's refusals come without its usage block: one line, the option, where the help is."""
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1
+    assert opt in err and f"palpate {argv[0]} --help" in err
+
+
+def test_a_plan_with_an_unknown_field_is_refused(tmp_path):
+    plan = plan_raster(load("paper").prior(), n_waypoints=3)
+    d = plan.to_dict()
+    assert Plan.from_dict(json.loads(json.dumps(d))).probes == plan.probes
+    d["prbes"] = d.pop("probes")
+    with pytest.raises(PlanError, match="'prbes' unknown"):
+        Plan.from_dict(d)
+
+
+def test_a_degenerate_region_or_interval_is_refused(tmp_path, capsys):
+    out = tmp_path / "plan.json"
+    rc, _, err = _run(["plan", "block3d", "--grid", "4x4", "--region", "0.03,0.02,0.03,0.05", "--out", str(out)],
+                      capsys)
+    assert rc == 2 and "--region" in err and "1x4" in err and not out.exists()
+    rc, _, err = _run(["plan", "paper", "--x-min-m", "0.03", "--x-max-m", "0.03", "--out", str(out)], capsys)
+    assert rc == 2 and "--x-min-m" in err and not out.exists()
+    P, _, _ = grid_positions(Region.rectangle(0.03, 0.02, 0.03, 0.05), grid=(1, 4))   # a line is a 1 x N grid
+    assert len({tuple(p) for p in P}) == 4
+
+
+def test_plan_json_to_stdout_is_the_json_alone(tmp_path, capsys):
+    rc, out, err = _run(["plan", "paper", "--waypoints", "3", "--out", str(tmp_path / "p.json"), "--json", "-"],
+                        capsys)
+    assert rc == 0 and json.loads(out)["n_probes"] == 3 and "planned 3 probes" in err
+
+
+@pytest.mark.parametrize("argv", [["plan", "--waypoints", "3", "--out", "{d}/p.json"], ["predict", "--waypoints", "3"],
+                                  ["simulate"]])
+def test_a_scene_files_truth_table_is_checked_by_every_command(tmp_path, capsys, argv):
+    f = tmp_path / "s.toml"
+    f.write_text(SCENE_2D + "\n[truth]\nsurface_ofset_m = 0.001\n")
+    rc, _, err = _run([argv[0], str(f), *[a.format(d=tmp_path) for a in argv[1:]]], capsys)
+    assert rc == 2 and "surface_ofset_m" in err and "[truth]" in err
+    f.write_text(SCENE_2D + "\n[truth]\nsurface_offset_m = 0.001\n")          # a valid table: accepted
+    rc, _, err = _run([argv[0], str(f), *[a.format(d=tmp_path) for a in argv[1:]], "--quiet"]
+                      if argv[0] == "predict" else [argv[0], str(f), *[a.format(d=tmp_path) for a in argv[1:]]],
+                      capsys)
+    assert rc == 0, err
+
+
+def test_a_simulated_sensor_that_cannot_enforce_the_limit_is_refused_first(tmp_path, capsys):
+    rc, _, err = _run(["run", "paper", "--sim", "--sensor", "ur5e-builtin", "--out", str(tmp_path / "run")], capsys)
+    assert rc == 2 and "--sensor ur5e-builtin" in err and "nano17" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_simulate_compares_2d_sections_only(tmp_path, capsys):
+    rc, _, err = _run(["simulate", "paper", "--compare", "block3d", "--plots", str(tmp_path / "figs")], capsys)
+    assert rc == 2 and "--compare block3d" in err and not (tmp_path / "figs").exists()
