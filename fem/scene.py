@@ -212,7 +212,7 @@ def _validate_stones_2d(scene: Scene) -> None:
                              f"the top or bottom (height_m={t.height_m})")
         for j in range(i):
             o = scene.stones[j]
-            if math.hypot(s.x_m - o.x_m, s.depth_m - o.depth_m) <= r + o.radius_m:
+            if math.hypot(s.x_m - o.x_m, s.depth_m - o.depth_m) <= (r + o.radius_m) * (1 + 1e-9):  # decimal inputs
                 raise SceneError(f"{w} touches or overlaps stone[{j}]")
 
 
@@ -237,7 +237,7 @@ def _validate_stones_3d(scene: Scene) -> None:
                              f"the top or bottom (height_m={t.height_m})")
         for j in range(i):
             o = scene.stones[j]
-            if math.dist((s.x_m, s.y_m, s.depth_m), (o.x_m, o.y_m, o.depth_m)) <= r + o.radius_m:
+            if math.dist((s.x_m, s.y_m, s.depth_m), (o.x_m, o.y_m, o.depth_m)) <= (r + o.radius_m) * (1 + 1e-9):
                 raise SceneError(f"{w} touches or overlaps stone[{j}]")
 
 

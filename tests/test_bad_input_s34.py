@@ -8,7 +8,7 @@ import pytest
 
 from app.cli import main
 from core.contracts import Plan, PlanError
-from fem.scene import load
+from fem.scene import SceneError, load
 from planner.area import Region, grid_positions
 from planner.plan import plan_raster
 
@@ -92,3 +92,16 @@ def test_a_simulated_sensor_that_cannot_enforce_the_limit_is_refused_first(tmp_p
 def test_simulate_compares_2d_sections_only(tmp_path, capsys):
     rc, _, err = _run(["simulate", "paper", "--compare", "block3d", "--plots", str(tmp_path / "figs")], capsys)
     assert rc == 2 and "--compare block3d" in err and not (tmp_path / "figs").exists()
+
+
+@pytest.mark.parametrize("toml", [
+    SCENE_2D + "[[stone]]\nx_m = 0.025\ndepth_m = 0.025\ndiameter_m = 0.010\n"
+               "[[stone]]\nx_m = 0.035\ndepth_m = 0.025\ndiameter_m = 0.010\n",
+    SCENE_2D + "length_m = 0.07\n[[stone]]\nx_m = 0.025\ny_m = 0.03\ndepth_m = 0.025\ndiameter_m = 0.010\n"
+               "[[stone]]\nx_m = 0.035\ny_m = 0.03\ndepth_m = 0.025\ndiameter_m = 0.010\n"])
+def test_stones_that_touch_in_decimal_are_refused(tmp_path, toml):
+    """0.035 - 0.025 is 0.010000000000000002 in binary: touching as written is touching."""
+    f = tmp_path / "s.toml"
+    f.write_text(toml)
+    with pytest.raises(SceneError, match=r"stone\[1\] touches or overlaps stone\[0\]"):
+        load(str(f))
