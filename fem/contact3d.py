@@ -337,13 +337,25 @@ def _contact_radius(xy: np.ndarray, centre, active: np.ndarray) -> float:
     return float(0.5 * (inner + beyond.min())) if len(beyond) else float(inner)
 
 
+def _surface3d_spec(scene, options: dict) -> dict:
+    tissue = dataclasses.replace(scene, indenter=dataclasses.replace(scene.indenter, youngs_pa=None,
+                                                                      poisson=Indenter().poisson))
+    return _surface_spec(tissue, options, code_version3d())     # the tissue's compliance does not depend on the tip
+
+
+def surface3d_cached(scene, **options) -> bool:
+    """Whether ``surface_model3d(scene, **options)`` would come from memory or the disk cache (no assembly and no
+    factorization for forces): what a command tells its user before a long build."""
+    key = (scene.key(), tuple(sorted(options.items())))
+    return key in _CACHE or (diskcache.enabled() and diskcache.entry_path("surface3d",
+                                                                           _surface3d_spec(scene, options)).exists())
+
+
 def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> SurfaceModel3D:
     """A SurfaceModel3D restored from the disk cache (its compliance; the model is assembled only when fields are
     asked for), else built and stored."""
     mesh = mesh_for3d(scene, use=use)
-    tissue = dataclasses.replace(scene, indenter=dataclasses.replace(scene.indenter, youngs_pa=None,
-                                                                      poisson=Indenter().poisson))
-    spec = _surface_spec(tissue, options, code_version3d())     # the tissue's compliance does not depend on the tip
+    spec = _surface3d_spec(scene, options)
     return diskcache.load_or_build(
         "surface3d", spec, build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
         to_arrays=SurfaceModel3D.to_arrays,

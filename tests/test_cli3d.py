@@ -66,9 +66,17 @@ def test_simulate_uniform_and_indent_3d(small, tmp_path, capsys):
     assert "force:" in capsys.readouterr().out
 
 
-def test_predict_grid_3d(small, tmp_path):
+def test_predict_grid_3d(small, tmp_path, capsys, monkeypatch):
     out = tmp_path / "p.json"
     assert main(["predict", small, "--grid", "5x5", "--depth-m", "0.001", "--json", str(out), "--force-only"]) == 0
+    err = capsys.readouterr().err        # the disk cache is off here: each model is built, and says so first
+    assert "palpate predict: small3d: building its 3D model (an estimated" in err and "block3d's" in err
+    monkeypatch.setenv("PALPATE_CACHE", "1")
+    main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json"), "--quiet"])
+    assert capsys.readouterr().err == ""                                  # --quiet: no progress lines
+    main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json")])
+    err = capsys.readouterr().err.splitlines()           # cached now: only the stresses' factorization is announced
+    assert len(err) == 2 and all("need the model's factorization" in e for e in err), err
     d = json.loads(out.read_text())
     w = d["waypoints"]
     assert len(w["x_m"]) == len(w["y_m"]) == len(d["ratio"]) == 25

@@ -17,8 +17,8 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from fem.contact3d import check_waypoint3d, surface_model3d
-from fem.mesh3d import patch_bounds
+from fem.contact3d import check_waypoint3d, surface3d_cached, surface_model3d
+from fem.mesh3d import estimate_nodes3d, patch_bounds
 from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recovery_operator3d
 from fem.uniform3d import solve_uniform3d
@@ -97,6 +97,7 @@ def _indent(args, sc, rigid) -> int:
               file=sys.stderr)
         return 2
     t0 = time.perf_counter()
+    announce(sc, "simulate", stresses=True, rigid_stones=rigid)
     m = surface_model3d(sc, rigid_stones=rigid)
     t1 = time.perf_counter()
     r = m.indent(args.x_m, args.y_m, args.depth_m)
@@ -163,8 +164,27 @@ def grid(sc, nx: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
     return axis(x0, x1, nx), axis(y0, y1, ny)
 
 
-def _predict(sc, xs, ys, depth_m, stresses: bool) -> dict:
+REFERENCE_BUILD = "block3d's 138,000 DOFs take about 35 s on 2 cores"    # README, "In 3D"; measured 2026-11-26
+
+
+def announce(sc, command: str, stresses: bool, **options) -> None:
+    """One progress line on stderr before a 3D model's long work: its build when it is not cached, and the
+    factorization stresses need in every process (a cached model holds the compliance only)."""
+    dofs = estimate_nodes3d(sc)["dofs"]
+    if not surface3d_cached(sc, **options):
+        print(f"palpate {command}: {sc.name}: building its 3D model (an estimated {dofs:,.0f} DOFs: mesh, assembly, "
+              f"sparse factorization; {REFERENCE_BUILD}), kept in the disk cache for the next run", file=sys.stderr,
+              flush=True)
+    elif stresses:
+        print(f"palpate {command}: {sc.name}: the stresses under the tip need the model's factorization (an "
+              f"estimated {dofs:,.0f} DOFs; {REFERENCE_BUILD}; predict --force-only does without)", file=sys.stderr,
+              flush=True)
+
+
+def _predict(sc, xs, ys, depth_m, stresses: bool, quiet: bool = False) -> dict:
     t0 = time.perf_counter()
+    if not quiet:
+        announce(sc, "predict", stresses)
     m = surface_model3d(sc)
     t1 = time.perf_counter()
     pts = [(float(x), float(y), depth_m) for y in ys for x in xs]
@@ -209,7 +229,7 @@ def run_predict(args, sc, ref) -> int:
         print(f"palpate predict: {e}", file=sys.stderr)
         return 2
     stresses = not args.force_only
-    main = _predict(sc, xs, ys, args.depth_m, stresses)
+    main = _predict(sc, xs, ys, args.depth_m, stresses, args.quiet)
     out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "grid": [nx, ny],
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
            "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}
@@ -217,7 +237,7 @@ def run_predict(args, sc, ref) -> int:
     if stresses:
         maps["max_von_mises_pa"] = np.reshape(main["max_von_mises_pa"], (ny, nx))
     if ref is not None:
-        rd = _predict(ref, xs, ys, args.depth_m, stresses)
+        rd = _predict(ref, xs, ys, args.depth_m, stresses, args.quiet)
         out["reference_scene"], out["reference"] = ref.name, rd
         ratio = np.asarray(main["force_n"]) / np.asarray(rd["force_n"])
         out["ratio"] = ratio.tolist()
