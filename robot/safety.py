@@ -204,8 +204,11 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             for name, pose, want in (("approach_pose", p.approach_pose, -mo.approach_height_m),
                                      ("indent_pose", p.indent_pose, p.depth_m)):
                 x, y, d = tf.xy_depth(pose)
-                if max(abs(x - p.x_m), abs(d - want), abs(y - p.y_m)) > POSE_TOL_M or tf.tilt(pose) > MAX_TILT_RAD:
-                    why = f"{name} does not match x_m/y_m/depth_m/approach height in the tissue frame"
+                off = max(abs(x - p.x_m), abs(d - want), abs(y - p.y_m))
+                if off > POSE_TOL_M or tf.tilt(pose) > MAX_TILT_RAD:
+                    why = (f"{name} does not match x_m/y_m/depth_m/approach height in the tissue frame given by "
+                           f"frames.tissue_pose_base and frames.tcp_offset (off by {off:.3g} m, tilted "
+                           f"{tf.tilt(pose):.3g} rad; frames edited after planning? plan again)")
                     break
                 try:
                     check_pose(lim, tf, pose, mo.probe_speed_m_s, min(mo.probe_accel_m_s2, lim.accel_m_s2))
