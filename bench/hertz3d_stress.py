@@ -18,6 +18,10 @@ the maximum's search (bench-out/hertz3d-s34):
 - a quadratic tetrahedron's stress is linear inside it and least accurate at its vertices. Over the degree-2 rule's
   four points per element the maximum is +4.1 / +3.6 / +1.5 % at 0.1R / 0.07R / 0.05R surface elements (the nodes:
   +16.4 / +18.4 / +8.1 %), at 0.45-0.51 a deep (Hertz: about 0.5 a); fem.contact3d now searches those points;
+- an independent review on other scenes (nu 0.3-0.49, d/R 0.02-0.1, offset tips; bench-out/hertz3d-s34/review)
+  found the stress-point maximum +1 to +12 % high with 3 or more elements per contact radius, mesh noise of a few
+  percent from one tip position to the next, up to +21 % at 2 and false peaks at 1.4 (hence
+  fem.contact3d.STRESS_RESOLVED and the commands' warning);
 - the pressure (-sigma_zz at the surface nodes) keeps its bias: the discrete surface traction itself oscillates at
   these meshes (a patch recovery from the stress points and the mortar's multipliers were no better).
 2D (quadratic edges, all loads positive) is not affected.

@@ -63,7 +63,11 @@ def test_simulate_uniform_and_indent_3d(small, tmp_path, capsys):
                       "contact_radius_m"}
     assert d["y_m"] == 0.021 and d["force_n"] > 0 and set(d["max_von_mises_at"]) == {"x_m", "y_m", "depth_m"}
     assert 0 < d["contact_radius_m"] < 0.004
-    assert "force:" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "force:" in out
+    # 2 mm elements under a contact radius of about 2 mm: the maximum von Mises is flagged as not resolved
+    assert d["contact_radius_over_element"] == pytest.approx(d["contact_radius_m"] / 0.002)
+    assert d["contact_radius_over_element"] < 3 and "warning: the contact radius spans" in err
 
 
 def test_predict_grid_3d(small, tmp_path, capsys, monkeypatch):
@@ -73,10 +77,11 @@ def test_predict_grid_3d(small, tmp_path, capsys, monkeypatch):
     assert "palpate predict: small3d: building its 3D model (an estimated" in err and "block3d's" in err
     monkeypatch.setenv("PALPATE_CACHE", "1")
     main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json"), "--quiet"])
-    assert capsys.readouterr().err == ""                                  # --quiet: no progress lines
+    err = capsys.readouterr().err.splitlines()          # --quiet: no progress lines; warnings stay (2 mm elements)
+    assert len(err) == 2 and all("warning: the contact radius spans" in e for e in err), err
     main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json")])
-    err = capsys.readouterr().err.splitlines()           # cached now: only the stresses' factorization is announced
-    assert len(err) == 2 and all("need the model's factorization" in e for e in err), err
+    err = [e for e in capsys.readouterr().err.splitlines() if "warning" not in e]
+    assert len(err) == 2 and all("need the model's factorization" in e for e in err), err   # cached now
     d = json.loads(out.read_text())
     w = d["waypoints"]
     assert len(w["x_m"]) == len(w["y_m"]) == len(d["ratio"]) == 25

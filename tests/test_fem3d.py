@@ -12,7 +12,7 @@ from fem import condense
 from fem import scene as S
 from fem.assembly import Material
 from fem.assembly3d import body_force3d, elasticity_matrix3d, element_dofs3d, gradients3d, strain_matrices3d
-from fem.contact3d import SurfaceModel3D, check_waypoint3d, patch_nodes, surface_model3d, tip_profile3d
+from fem.contact3d import STRESS_RESOLVED, SurfaceModel3D, check_waypoint3d, patch_nodes, surface_model3d, tip_profile3d
 from fem.elements3d import EDGES, quadrature, shape
 from fem.mesh3d import Mesh3D, _orient, mesh_block
 from fem.model3d import Model3D, build_model3d, fixed_bottom
@@ -279,6 +279,8 @@ def test_hertz_sphere_coarse():
     assert r.max_von_mises_pa == pytest.approx(vm_axis.max(), rel=0.06)
     assert 0.35 * a_f < r.max_von_mises_at_m[2] < 0.65 * a_f
     assert np.hypot(r.max_von_mises_at_m[0] - W / 2, r.max_von_mises_at_m[1] - W / 2) < 0.5 * a_f
+    assert r.contact_radius_over_element == pytest.approx(r.contact_radius_m / (0.01 / 20.0))
+    assert r.contact_radius_over_element > STRESS_RESOLVED        # resolved, by the measure the commands warn with
 
 
 def _mirrored(mesh, axis: int):

@@ -44,8 +44,9 @@ analysis options); --compare none skips it.
 
 The maximum von Mises stress is searched within 2 R (R: tip radius) below the surface: over the nodes in 2D, over
 the stress points of the tissue's elements on a 3D block (4 per element, where a quadratic element's stress is most
-accurate; within +1.5 to +4 % of Hertz's maximum for a sphere). Waypoints run from --margin-m to width - --margin-m,
-ends included.
+accurate; against Hertz for a sphere +1 to +12 % high once the contact radius spans 3 or more of the patch's
+elements, and a warning below that, where it can be 20 % off; JSON contact_radius_over_element). Waypoints run from
+--margin-m to width - --margin-m, ends included.
 
 figures (--plots DIR):
   fig11_predict.png   force (left axis) and max von Mises (right axis) against tip position for SCENE (solid) and

@@ -60,9 +60,9 @@ EXAMPLES = """examples:
 
 3D scenes (tissue.length_m given: block3d, ...): --load uniform reports the von Mises map over the top face and its
 peak (x_m, y_m); --load indent needs --x-m, --y-m and --depth-m and reports the maximum von Mises over the stress
-points of the tissue's elements (4 per element, where a quadratic element's stress is most accurate: within +1.5 to
-+4 % of Hertz for a sphere; the figures' and the VTU's nodal fields average each element's values at the nodes and
-peak 8-18 % higher on such meshes); figures fig3d_*.png (top-face maps and a section through the stone or the tip),
+points of the tissue's elements (4 per element, where a quadratic element's stress is most accurate: +1 to +12 %
+above Hertz for a sphere once the contact radius spans 3 or more of the patch's elements, with a warning below
+that; the figures' and the VTU's nodal fields average each element's values at the nodes and peak higher); figures fig3d_*.png (top-face maps and a section through the stone or the tip),
 VTU with tetrahedra."""
 
 
