@@ -24,13 +24,14 @@ import json
 import sys
 from pathlib import Path
 
-from app.commands.output import write_json
+from app.commands.output import json_alone, write_json
 from app.errors import UsageError, guarded
 from app.ftoptions import add_ft_options, check_ft, controller_pose, inmemory_source, linked_source
 from app.isolate import ChildDied, ChildTimeout, run_in_child
 from app.options import (
     check_output_dir,
     check_output_file,
+    check_simulated_sensor,
     float_range,
     host_name,
     int_range,
@@ -175,7 +176,10 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser().parse_args(argv)
     except SystemExit as e:           # argparse's usage errors (a bad option value): its message, exit 2
         return e.code if isinstance(e.code, int) else EXIT_USAGE
-    return guarded("palpate-cell", lambda: _main(args), debug=args.debug)
+    def main_json():
+        with json_alone(args.json):             # --json -: standard output holds the JSON alone
+            return _main(args)
+    return guarded("palpate-cell", main_json, debug=args.debug)
 
 
 def _main(args) -> int:
@@ -187,6 +191,8 @@ def _main(args) -> int:
             "probes.jsonl", "run.json"):
         raise UsageError(f"--json {args.json}: would overwrite the run's own {Path(args.json).name}")
     plan = Plan.load(args.plan)
+    if args.sim:               # the simulated sensor is this preset: a run the driver would stop is refused first
+        check_simulated_sensor(args.sensor, plan.limits.force_limit_n)
     if args.inject and not args.sim:
         raise UsageError("--inject needs --sim")
     try:
@@ -201,6 +207,10 @@ def _main(args) -> int:
     if on_ft and args.ft.kind != "netft":
         raise UsageError(f"--inject {on_ft[0]}: a fault of the simulated Net F/T box, only with --ft netft")
     args.inject = [f.text() for f in faults]
+    if args.truth and not (args.sim and args.force_model == "fem"):
+        raise UsageError(f"--truth {args.truth}: the true scene is for a simulated arm with fem's force (--sim, "
+                         f"--force-model fem); " + ("a real arm has none" if not args.sim else
+                                                     "the stand-in force has no scene"))
     if args.sim and args.force_model == "fem":
         truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
         if args.sim_mesh_m is not None:

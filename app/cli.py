@@ -45,6 +45,8 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     """The parser, with the full options of the ``chosen`` subcommand only."""
     p = Parser(prog="palpate", description="Robotic palpation: predict, plan, probe, locate.",
                                 epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--debug", action="store_true", dest="debug_any", help="show a traceback on errors (also after "
+                                                                           "the command)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
     for name, help_ in COMMANDS.items():
         if name == chosen:
@@ -68,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
-    return guarded("palpate", lambda: args.func(args), debug=getattr(args, "debug", False))
+    return guarded("palpate", lambda: args.func(args), debug=getattr(args, "debug", False) or args.debug_any)
 
 
 if __name__ == "__main__":

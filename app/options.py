@@ -21,6 +21,7 @@ import os
 from pathlib import Path
 
 from app.errors import UsageError
+from core.contracts import HARD_FORCE_LIMIT_N, NOISE_SIGMA_FACTOR, SENSORS
 from fem.scene import BUILTIN, Scene, SceneError, load
 from robot.truth import TruthError, conditions_of
 
@@ -204,6 +205,22 @@ def refuse_measured(path: str | None, option: str) -> None:
                          f"run_options.json, plan_round*.json, result.json); choose another path")
 
 
+def check_simulated_sensor(name: str, force_limit_n: float) -> None:
+    """UsageError unless the simulated sensor preset ``name`` lets the driver enforce ``force_limit_n``: the driver
+    refuses to probe when NOISE_SIGMA_FACTOR times its measured filtered free-air noise reaches half the limit
+    (robot.driver). Judged here on the preset's white noise with no credit for the filter (drift and the short
+    sample raise the measured filtered noise to 0.3-0.65 of the white noise on ur5e-builtin), so a simulated run that
+    passes this check is not refused by the driver for its sensor."""
+    spec = SENSORS[name]
+    need = 2 * NOISE_SIGMA_FACTOR * spec.noise_std_n
+    if need >= force_limit_n:
+        ok = [n for n, s in SENSORS.items() if 2 * NOISE_SIGMA_FACTOR * s.noise_std_n < force_limit_n]
+        raise UsageError(f"--sensor {name}: its noise ({spec.noise_std_n:g} N per axis) is too large for the force "
+                         f"limit {force_limit_n:g} N: the driver needs {NOISE_SIGMA_FACTOR:g} noise sigmas below half "
+                         f"the limit (it would stop before probing); allowed: {', '.join(ok)}"
+                         + (f", or a plan whose force limit exceeds {need:g} N" if need < HARD_FORCE_LIMIT_N else ""))
+
+
 def load_scene(spec: str, option: str = "scene") -> Scene:
     """fem.scene.load, with an unreadable file (binary, latin-1, a directory) named in a one-line error; a scene
     file's ``[truth]`` table (the simulated world's conditions, robot.truth) is checked too, whichever command reads
@@ -211,7 +228,7 @@ def load_scene(spec: str, option: str = "scene") -> Scene:
     try:
         scene = load(spec)
         if spec not in BUILTIN:
-            conditions_of(spec)
+            conditions_of(spec).check_scene(scene)
         return scene
     except TruthError as e:
         raise UsageError(f"{option} {spec}: {e}") from None

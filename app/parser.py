@@ -9,4 +9,15 @@ class Parser(argparse.ArgumentParser):
     usage block first); subcommands' parsers are of the same class (argparse's default for ``add_subparsers``)."""
 
     def error(self, message: str):
+        message = message.replace("\r", "\\r").replace("\n", "\\n")      # a value with a newline stays one line
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_args(self, args=None, namespace=None):
+        """argparse's, with arguments no parser knows refused by the chosen subcommand's parser (so the line names
+        ``palpate predict``, not ``palpate``)."""
+        ns, extra = self.parse_known_args(args, namespace)
+        if extra:
+            sub = next((a for a in self._actions if isinstance(a, argparse._SubParsersAction)), None)
+            chosen = sub.choices.get(getattr(ns, sub.dest, None)) if sub is not None else None
+            (chosen or self).error(f"unrecognized arguments: {' '.join(extra)}")
+        return ns

@@ -29,7 +29,12 @@ from robot.truth import TruthConditions, TruthError, conditions_of
 
 class RunAborted(RuntimeError):
     def __init__(self, report):
-        super().__init__(f"the arm run ended with status {report.status}: {report.fault or report.problems}")
+        f = report.fault
+        what = (str(f.get("message") or getattr(f.get("kind"), "value", f.get("kind")))
+                + (f" (probe {f['probe_index']})" if f.get("probe_index") is not None else "")
+                + (f"; motion stopped by {f['stopped_by']}" if f.get("stopped_by") else "")) if f else \
+            "; ".join(map(str, report.problems))
+        super().__init__(f"the arm run ended with status {report.status}: {what}")
         self.report = report
 
 

@@ -41,6 +41,7 @@ READABLE_PLAN_VERSIONS = (1, 2)
 # Hard caps: no plan may ask for more, whatever its limits say; the planner's options, Plan.check and the driver's
 # guard (robot.safety) use these same constants.
 HARD_FORCE_LIMIT_N = 10.0          # contact force
+MIN_PROBE_SPACING_M = 1e-5         # neighbouring raster points closer than this are one spot for a UR5e (+-0.03 mm)
 HARD_DEPTH_LIMIT_M = 0.02          # indentation below the undeformed surface (the tip radius is the other cap)
 HARD_TOOL_SPEED_M_S = 0.25         # tool speed in free air
 HARD_PROBE_SPEED_M_S = 0.01        # tool speed inside tissue
@@ -133,9 +134,12 @@ class Plan:
     def from_dict(d: dict) -> "Plan":
         if not isinstance(d, dict):
             raise PlanError("a plan must be a JSON object")
-        if d.get("version") not in READABLE_PLAN_VERSIONS:
+        if type(d.get("version")) is not int or d["version"] not in READABLE_PLAN_VERSIONS:   # not True, not 2.0
             raise PlanError(f"plan version {d.get('version')!r} is not supported (this palpate reads "
                             f"{', '.join(map(str, READABLE_PLAN_VERSIONS))})")
+        if d["version"] == 1 and "options" in d:
+            raise PlanError("plan field 'options' is version 2's (version 1 kept its options in 'notes'): set "
+                            "\"version\": 2 or move them into 'notes'")
         unknown = sorted(set(d) - {f.name for f in dataclasses.fields(Plan)})
         if unknown:
             raise PlanError(f"plan field(s) {', '.join(map(repr, unknown))} unknown: a plan has "

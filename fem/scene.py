@@ -204,16 +204,23 @@ def _validate_stones_2d(scene: Scene) -> None:
                              f"(a 2D section): give tissue.length_m for a 3D scene, or drop y_m")
         _check_stone_material(w, s)
         r = s.radius_m
-        if s.x_m - r <= 0 or s.x_m + r >= t.width_m:
-            raise SceneError(f"{w} (x_m={s.x_m}, diameter_m={s.diameter_m}) leaves the tissue sideways "
+        if _touches(s.x_m, r, t.width_m):
+            raise SceneError(f"{w} (x_m={s.x_m}, diameter_m={s.diameter_m}) touches or leaves the tissue sideways "
                              f"(width_m={t.width_m})")
-        if s.depth_m - r <= 0 or s.depth_m + r >= t.height_m:
-            raise SceneError(f"{w} (depth_m={s.depth_m}, diameter_m={s.diameter_m}) leaves the tissue through "
+        if _touches(s.depth_m, r, t.height_m):
+            raise SceneError(f"{w} (depth_m={s.depth_m}, diameter_m={s.diameter_m}) touches or leaves the tissue through "
                              f"the top or bottom (height_m={t.height_m})")
         for j in range(i):
             o = scene.stones[j]
             if math.hypot(s.x_m - o.x_m, s.depth_m - o.depth_m) <= (r + o.radius_m) * (1 + 1e-9):  # decimal inputs
                 raise SceneError(f"{w} touches or overlaps stone[{j}]")
+
+
+def _touches(centre_m: float, radius_m: float, size_m: float) -> bool:
+    """Whether a stone's extent [centre - radius, centre + radius] reaches a face at 0 or size_m, within a relative
+    1e-9 (as written in decimals, a stone touching a face is touching: 0.045 + 0.005 is below 0.05 in binary)."""
+    tol = 1e-9 * size_m
+    return centre_m - radius_m <= tol or centre_m + radius_m >= size_m - tol
 
 
 def _validate_stones_3d(scene: Scene) -> None:
@@ -229,11 +236,11 @@ def _validate_stones_3d(scene: Scene) -> None:
         r = s.radius_m
         for name, lo_hi, extent in (("x_m", s.x_m, "width_m"), ("y_m", s.y_m, "length_m")):
             size = getattr(t, extent)
-            if lo_hi - r <= 0 or lo_hi + r >= size:
-                raise SceneError(f"{w} ({name}={lo_hi}, diameter_m={s.diameter_m}) leaves the tissue sideways "
+            if _touches(lo_hi, r, size):
+                raise SceneError(f"{w} ({name}={lo_hi}, diameter_m={s.diameter_m}) touches or leaves the tissue sideways "
                                  f"({extent}={size})")
-        if s.depth_m - r <= 0 or s.depth_m + r >= t.height_m:
-            raise SceneError(f"{w} (depth_m={s.depth_m}, diameter_m={s.diameter_m}) leaves the tissue through "
+        if _touches(s.depth_m, r, t.height_m):
+            raise SceneError(f"{w} (depth_m={s.depth_m}, diameter_m={s.diameter_m}) touches or leaves the tissue through "
                              f"the top or bottom (height_m={t.height_m})")
         for j in range(i):
             o = scene.stones[j]

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.contracts import PlanError
+from core.contracts import MIN_PROBE_SPACING_M, PlanError
 
 EDGE_TOL_M = 1e-9       # points on a region's edge count as inside (to this tolerance)
 
@@ -157,10 +157,10 @@ def grid_positions(region: Region, *, grid: tuple[int, int] | None = None,
     x0, x1, y0, y1 = region.bounds()
     if grid is not None:
         for axis, n, lo, hi, other in (("x", nx, x0, x1, f"1x{ny}"), ("y", ny, y0, y1, f"{nx}x1")):
-            if n > 1 and not hi > lo:
+            if n > 1 and not hi - lo >= MIN_PROBE_SPACING_M * (n - 1):
                 raise PlanError(f"{region.option}: the region spans {lo:g}..{hi:g} m in {axis}, so the grid's {n} "
-                                f"points along {axis} would repeat each probe: widen it, or give --grid {other} "
-                                f"for a line")
+                                f"points along {axis} would lie under {MIN_PROBE_SPACING_M:g} m apart (one spot for "
+                                f"the arm): widen it, or give --grid {other} for a line")
     xs = axis_positions(x0, x1, n=None if grid is None else nx, spacing_m=spacing_m)
     ys = axis_positions(y0, y1, n=None if grid is None else ny, spacing_m=spacing_m)
     rows, cols = (a.ravel() for a in np.meshgrid(np.arange(len(ys)), np.arange(len(xs)), indexing="ij"))

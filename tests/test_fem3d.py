@@ -430,7 +430,7 @@ def test_bad_waypoints_refused():
     (lambda d: d["stone"][0].pop("y_m"), r"stone\[0\]\.y_m is missing"),
     (lambda d: d["tissue"].pop("length_m"), r"stone\[0\]\.y_m = 0\.035 places a sphere"),
     (lambda d: d["indenter"].update(shape="cylinder"), r"indenter\.shape must be 'sphere' or 'flat' in a 3D"),
-    (lambda d: d["stone"][0].update(y_m=0.065), r"stone\[0\] \(y_m=0\.065, diameter_m=0\.015\) leaves"),
+    (lambda d: d["stone"][0].update(y_m=0.065), r"stone\[0\] \(y_m=0\.065, diameter_m=0\.015\) touches or leaves"),
     (lambda d: d["analysis"].update(patch_m=0.08), r"analysis\.patch_m = 0\.08 is wider"),
     (lambda d: d["analysis"].update(formulation="mixed"), r"formulation = 'mixed' is 2D only"),
     (lambda d: d["tissue"].update(length_m=-1.0), r"tissue\.length_m must be a positive"),

@@ -16,7 +16,7 @@ import time
 import traceback
 from pathlib import Path
 
-from app.commands.output import write_json
+from app.commands.output import json_alone, write_json
 from app.options import check_output_dir, check_output_file, refuse_measured
 
 # name -> (script, what it measures); run in this order
@@ -85,6 +85,11 @@ def _call(name: str, mod, out: Path, quick: bool):
 
 
 def run(args) -> int:
+    with json_alone(args.json):                 # --json -: standard output holds the JSON alone
+        return _run(args)
+
+
+def _run(args) -> int:
     try:
         bdir = bench_dir(args.bench_dir)
     except FileNotFoundError as e:

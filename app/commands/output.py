@@ -1,17 +1,37 @@
 """Shared by the subcommands: ``--json PATH`` (``-`` for standard output) writing."""
 from __future__ import annotations
 
+import contextlib
 import json
+import sys
 from pathlib import Path
+
+_JSON_OUT = []       # the standard output ``json_alone`` kept for the JSON while the rest went to stderr
+
+
+@contextlib.contextmanager
+def json_alone(dest: str | None):
+    """With ``--json -``: while the block runs, whatever it prints to standard output goes to stderr, and only
+    ``write_json("-", ...)`` writes to standard output (which then holds the JSON alone); otherwise nothing changes."""
+    if dest != "-":
+        yield
+        return
+    _JSON_OUT.append(sys.stdout)
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            yield
+    finally:
+        _JSON_OUT.pop()
 
 
 def write_json(dest: str | None, data: dict) -> None:
-    """Write ``data`` as JSON to ``dest``; ``-`` prints it; None or "" writes nothing."""
+    """Write ``data`` as JSON to ``dest``; ``-`` prints it (to the standard output ``json_alone`` kept); None or ""
+    writes nothing."""
     if not dest:
         return
     text = json.dumps(data, indent=1)
     if dest == "-":
-        print(text)
+        print(text, file=_JSON_OUT[-1] if _JSON_OUT else sys.stdout)
     else:
         Path(dest).parent.mkdir(parents=True, exist_ok=True)
         Path(dest).write_text(text + "\n")

@@ -28,6 +28,7 @@ from core.contracts import (
     HARD_PROBE_SPEED_M_S,
     HARD_TOOL_SPEED_M_S,
     MAX_DWELL_S,
+    MIN_PROBE_SPACING_M,
     Frames,
     Limits,
     Motion,
@@ -157,9 +158,13 @@ def run(args) -> int:
     if not is_3d and (args.x_min_m is not None or args.x_max_m is not None):
         lo = args.x_min_m if args.x_min_m is not None else margin_m
         hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
-        if not lo < hi:
-            raise UsageError(f"--x-min-m {lo:g} must be below --x-max-m {hi:g} (m): the raster's interval is empty, "
-                             f"so every waypoint would repeat one probe")
+        n = args.waypoints or (2 if args.spacing_m else 11)
+        if not hi - lo >= MIN_PROBE_SPACING_M * (n - 1):
+            given = " and ".join(o for o, v in (("--x-min-m", args.x_min_m), ("--x-max-m", args.x_max_m))
+                                 if v is not None)
+            raise UsageError(f"{given}: the raster's interval [{lo:g}, {hi:g}] m (the other end from the margin "
+                             f"{margin_m:g} m when not given) is too short for {n} waypoints at least "
+                             f"{MIN_PROBE_SPACING_M:g} m apart (one spot for the arm)")
     if args.spacing_m is not None and not is_3d:
         lo = args.x_min_m if args.x_min_m is not None else margin_m
         hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m

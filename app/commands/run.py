@@ -36,6 +36,7 @@ from app.options import (
     MAX_WAYPOINTS,
     check_output_dir,
     check_output_file,
+    check_simulated_sensor,
     finite_float,
     grid_counts,
     host_name,
@@ -55,8 +56,8 @@ from app.runexec import (
     truth_conditions,
     workers_for_fits,
 )
-from core.contracts import SENSORS, Limits, Plan, sensor_spec
-from planner.detectability import detectability, sensor_usable
+from core.contracts import SENSORS, Limits, Plan
+from planner.detectability import detectability
 from planner.draw_run import draw_run
 from planner.localize import MIN_MEASUREMENTS, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
@@ -212,12 +213,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if args.budget_probes < n_coarse:
         raise UsageError(f"--budget-probes {args.budget_probes} must be at least the coarse raster's {n_coarse} "
                          f"waypoints")
-    limit_n = plan0.limits.force_limit_n if plan0 is not None else Limits().force_limit_n
-    usable, reason = sensor_usable(sensor_spec(args.sensor), limit_n)
-    if not usable and not args.host:      # the simulated sensor is this preset: its arm run could only fault
-        raise UsageError(f"--sensor {args.sensor}: {reason} (allowed here: "
-                         f"{', '.join(n for n in SENSORS if sensor_usable(sensor_spec(n), limit_n)[0])}, or a "
-                         f"--plan with a higher force limit)")
+    if not args.host:          # the simulated sensor is this preset: a run the driver would stop is refused first
+        check_simulated_sensor(args.sensor, plan0.limits.force_limit_n if plan0 is not None else
+                               Limits().force_limit_n)
     opts = run_options(args, scene, cond)
     resume = check_resume(out, opts, args.fresh)
     if resume and (out / "plan_round0.json").exists():

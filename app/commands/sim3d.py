@@ -97,7 +97,8 @@ def _indent(args, sc, rigid) -> int:
               file=sys.stderr)
         return 2
     t0 = time.perf_counter()
-    announce(sc, "simulate", stresses=True, rigid_stones=rigid)
+    if not args.quiet:
+        announce(sc, "simulate", stresses=True, rigid_stones=rigid)
     m = surface_model3d(sc, rigid_stones=rigid)
     t1 = time.perf_counter()
     r = m.indent(args.x_m, args.y_m, args.depth_m)

@@ -76,6 +76,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="uniform: the whole top edge moved down by analysis.top_displacement_m (default); "
                         "indent: a probe tip pressed in at --x-m")
     p.add_argument("--json", metavar="PATH", help="write the machine-readable result here ('-': stdout)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr (3D: before a model's build)")
     p.add_argument("--plots", metavar="DIR", help="write the figures (listed above) into DIR")
     p.add_argument("--vtu", metavar="PATH", help="write displacement, stress and strain fields as VTU (ParaView)")
     p.add_argument("--compare", nargs="*", metavar="SCENE",
@@ -253,8 +254,11 @@ def _compare_names(args, sc) -> list[str]:
 def _run_uniform(args) -> int:
     t0 = time.perf_counter()
     sc = _scene(args)
+    names = _compare_names(args, sc)
+    if names and not args.plots:
+        raise UsageError("--compare needs --plots DIR (where the comparison figure goes)")
     others = {}
-    for name in _compare_names(args, sc):       # checked before anything is solved
+    for name in names:                          # checked before anything is solved
         if name != args.scene:
             others[name] = load_scene(name, "--compare")
             if others[name].is_3d:
@@ -277,10 +281,6 @@ def _run_uniform(args) -> int:
         out["files"]["vtu"] = str(write_result_vtu(args.vtu, res))
 
     compare = []
-    names = _compare_names(args, sc)
-    if names and not args.plots:
-        print("palpate simulate: --compare needs --plots DIR (where the figure goes)", file=sys.stderr)
-        return 2
     if names:
         for name in names:
             if name == args.scene:

@@ -9,7 +9,6 @@ options start another set beside it. Each invocation appends a line to ``DIR/run
 from __future__ import annotations
 
 import argparse
-import contextlib
 import hashlib
 import json
 import os
@@ -18,7 +17,7 @@ import sys
 import time
 from pathlib import Path
 
-from app.commands.output import write_json
+from app.commands.output import json_alone, write_json
 from app.errors import UsageError
 from app.mismatch import Shared, make_plan
 from app.mismatch import run_trial as run_mismatch_trial
@@ -105,7 +104,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--healthy", type=int_range(0, 100000),
                    help="accuracy, mismatch: healthy scenes (default 40, --quick 10)")
     p.add_argument("--seed", type=int_range(0, 2 ** 31), default=1, help="the study's seed (default 1)")
-    p.add_argument("--sensor", default="nano17", choices=["nano17", "ur5e-builtin"])
+    p.add_argument("--sensor", choices=["nano17", "ur5e-builtin"],
+                   help="accuracy, detect, accuracy3d: the simulated sensor (default nano17; mismatch and sweep use "
+                        "none of their own and refuse it)")
     p.add_argument("--budget-probes", type=int_range(15, 10000),
                    help="probes per trial (default: accuracy 45, mismatch 25)")
     p.add_argument("--hyperelastic", action="store_true",
@@ -143,11 +144,17 @@ def run(args) -> int:
         raise UsageError(f"--scene {args.scene}: the {args.study} study needs a "
                          f"{'3D block (tissue.length_m)' if three_d else '2D section'}, this is "
                          f"{'a 3D block' if scene.is_3d else 'a 2D section'}")
+    if args.sensor is not None and args.study in ("mismatch", "sweep"):
+        raise UsageError(f"--sensor {args.sensor}: the {args.study} study does not take a sensor ("
+                         + ("its trials run with nano17's noise, bias and drift" if args.study == "mismatch" else
+                            "it checks fem's solutions, no probing") + "); --sensor is for accuracy, detect and "
+                         "accuracy3d")
+    args.sensor = args.sensor or "nano17"
     runner = runner_of(args)
     study = {"accuracy": run_accuracy_study, "mismatch": run_mismatch_study, "detect": run_detect_study,
              "sweep": run_sweep_study, "accuracy3d": run_accuracy3d_study}[args.study]
     t0 = time.time()
-    with contextlib.redirect_stdout(sys.stderr if args.json == "-" else sys.stdout):   # --json -: the JSON alone
+    with json_alone(args.json):                 # --json -: standard output holds the JSON alone
         summary = study(args, scene, runner, out)
     _log_invocation(out, args, t0, summary)
     write_json(args.json, summary)
