@@ -6,11 +6,14 @@ import json
 
 import pytest
 
+from app.cell import main as cell
 from app.cli import main
+from app.runexec import RunAborted
 from core.contracts import Plan, PlanError
 from fem.scene import SceneError, load
 from planner.area import Region, grid_positions
 from planner.plan import plan_raster
+from robot.driver import FaultKind
 
 SCENE_2D = """[tissue]
 width_m = 0.07
@@ -93,7 +96,6 @@ def test_a_simulated_sensor_that_cannot_enforce_the_limit_is_refused_first(tmp_p
     rc, _, err = _run(["run", "paper", "--sim", "--sensor", "ur5e-builtin", "--plan", str(tmp_path / "p10.json"),
                        "--out", str(tmp_path / "run")], capsys)
     assert rc == 2 and "force limit 10 N" in err and "a plan whose" not in err and not (tmp_path / "run").exists()
-    from app.cell import main as cell
     rc = cell(["--sim", "--sensor", "ur5e-builtin", "--plan", str(tmp_path / "p10.json"), "--out", str(tmp_path / "c")])
     err = capsys.readouterr().err
     assert rc == 2 and "--sensor ur5e-builtin" in err and not (tmp_path / "c").exists()
@@ -162,7 +164,6 @@ def test_argparse_lines_name_the_subcommand_and_stay_one_line(capsys):
 
 
 def test_cell_json_to_stdout_is_the_json_alone_and_its_truth_is_checked(tmp_path, capsys):
-    from app.cell import main as cell
     plan = tmp_path / "p.json"
     plan_raster(load("paper").prior(), n_waypoints=3).save(plan)
     rc = cell(["--sim", "--force-model", "standin", "--plan", str(plan), "--out", str(tmp_path / "c"), "--json", "-"])
@@ -183,9 +184,6 @@ def test_a_study_that_takes_no_sensor_refuses_one(tmp_path, capsys):
 
 
 def test_an_aborted_run_says_what_faulted_in_words():
-    from app.runexec import RunAborted
-    from robot.driver import FaultKind
-
     class Report:
         status, problems = "fault", []
         fault = {"kind": FaultKind.SENSOR_NOISE, "message": "sensor_noise: free-air force noise 0.5 N",
