@@ -81,19 +81,20 @@ def point_operator3d(model, elements: np.ndarray) -> tuple[sp.csr_matrix, np.nda
     pts = stress_points()
     q = len(pts)
     X = np.einsum("qa,mai->mqi", shape(mesh.order, pts), mesh.nodes[mesh.tets[els]]).reshape(-1, 3)
-    shape_ = (6 * q * len(els), mesh.n_dofs)
-    parts, dofs = [], element_dofs3d(mesh)
+    dofs = element_dofs3d(mesh)
+    ne = dofs.shape[1]
+    data, cols = [], []          # each row holds its element's ne DOFs once: the CSR arrays directly, in row order
     for a in range(0, len(els), CHUNK):
         e = els[a:a + CHUNK]
         G, _ = gradients3d(mesh, pts, e)                               # (m, q, nen, 3)
         B = np.einsum("mkl,mqln->mqkn", model.D[e], strain_matrices3d(G))   # (m, q, 6, ne)
-        m, _, _, ne = B.shape
-        rows = (6 * q * (a + np.arange(m)))[:, None, None, None] + (6 * np.arange(q))[None, :, None, None] \
-            + np.arange(6)[None, None, :, None]
-        cols = dofs[e][:, None, None, :]
-        parts.append(sp.csr_matrix((B.ravel(), (np.broadcast_to(rows, B.shape).ravel(),
-                                                np.broadcast_to(cols, B.shape).ravel())), shape=shape_))
-    return (sum(parts[1:], parts[0]) if parts else sp.csr_matrix(shape_)), X
+        data.append(B.ravel())
+        cols.append(np.broadcast_to(dofs[e][:, None, None, :], B.shape).ravel())
+    n_rows = 6 * q * len(els)
+    R = sp.csr_matrix((np.concatenate(data) if data else np.zeros(0),
+                       np.concatenate(cols) if cols else np.zeros(0, dtype=np.int64),
+                       np.arange(0, ne * n_rows + 1, ne)), shape=(n_rows, mesh.n_dofs))
+    return R, X
 
 
 def components3d(s6: np.ndarray) -> dict[str, np.ndarray]:
