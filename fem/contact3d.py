@@ -48,6 +48,11 @@ MAX_PATCH_NODES = 16_000
 STRESS_RESOLVED = 3.0
 
 
+def patch_element_m(scene) -> float:
+    """The element size on the probed patch, m (fem.mesh3d: mesh_size_m / surface_refine)."""
+    return scene.analysis.mesh_size_m / scene.analysis.surface_refine
+
+
 @dataclass
 class IndentResult3D:
     x_m: float
@@ -300,12 +305,14 @@ class SurfaceModel3D:
             X, Rb, Rtop = self._band_op()
         out = []
         mesh, b = self.mesh, self.band_m
-        h = self.scene.analysis.mesh_size_m / self.scene.analysis.surface_refine     # the patch's element size
+        h = patch_element_m(self.scene)
         for k, ((idx, f, gap), (x_m, y_m, depth_m)) in enumerate(zip(sols, pts)):
             active = f > 0
             vm_max, at, pressure = 0.0, (x_m, y_m, 0.0), np.zeros(len(idx))
+            near = np.zeros(0, dtype=np.int64)
             if U is not None and active.any():
                 near = np.flatnonzero((np.abs(X[:, 0] - x_m) <= b) & (np.abs(X[:, 1] - y_m) <= b))
+            if len(near):               # (none only if no tissue element lies under the tip within the band)
                 vm = components3d(_stress_at(Rb, near, U[:, k]))["von_mises_pa"]
                 j = int(np.argmax(vm))
                 vm_max = float(vm[j])

@@ -17,7 +17,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from fem.contact3d import STRESS_RESOLVED, check_waypoint3d, surface3d_cached, surface_model3d
+from fem.contact3d import STRESS_RESOLVED, check_waypoint3d, patch_element_m, surface3d_cached, surface_model3d
 from fem.mesh3d import estimate_nodes3d, patch_bounds
 from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recovery_operator3d
@@ -147,7 +147,7 @@ def warn_unresolved(sc, command: str, rows) -> None:
     contact radius spanning fewer than STRESS_RESOLVED of the patch's elements."""
     k = [r.contact_radius_over_element for r in rows if r.max_von_mises_pa > 0]
     if k and min(k) < STRESS_RESOLVED:
-        h = sc.analysis.mesh_size_m / sc.analysis.surface_refine
+        h = patch_element_m(sc)
         print(f"palpate {command}: {sc.name}: warning: the contact radius spans {min(k):.2g} of the patch's elements "
               f"({h * 1e3:.3g} mm) at its smallest, under {STRESS_RESOLVED:g}: the maximum von Mises is not resolved "
               f"there (up to about 20 % off, false peaks near the contact's edge below 2); raise "
