@@ -16,7 +16,9 @@ convergence: block3d (stone 15 mm at 25 mm depth under (35, 35) mm; spherical ti
 P2; top-patch size h_top = mesh_size_m / surface_refine), the forces at the benchmark's 100 waypoints (a 10 x 10
 grid over the central 40 x 40 mm, depth 3 mm) and the load A peak; errors against the finest mesh run.
 waypoints: the default block3d mesh: set-up (mesh, assemble, factor + condense, with CHOLMOD's parts), the disk
-cache's store and reload (a fresh process), per-waypoint force-only and with-stresses times, peak memory.
+cache's store and reload (a fresh process), per-waypoint force-only and with-stresses times, peak memory; then a
+third process whose stresses come from the factor the reload stored (fem.interior_factor): its first stress query
+and the same 100 batched maxima, compared bitwise.
 """
 from __future__ import annotations
 
@@ -82,6 +84,7 @@ def one_convergence(level: str) -> dict:
     mesh = mesh_for3d(sc, use=False)
     t1 = time.perf_counter()
     model = build_model3d(sc, mesh=mesh)
+    model.K                                     # assembled here (Model3D assembles on first use)
     t2 = time.perf_counter()
     sm = SurfaceModel3D(sc, model=model)
     t3 = time.perf_counter()
@@ -103,7 +106,9 @@ def one_convergence(level: str) -> dict:
 
 
 def one_waypoints(cache_dir: str, phase: str) -> dict:
-    """phase "build": cold set-up and store; "reload": a fresh process restoring from the disk cache."""
+    """phase "build": cold set-up and store; "reload": a fresh process restoring from the disk cache (its first
+    stress query factorizes once and stores the factor's interior columns); "refactor-free": another fresh process,
+    whose stresses come from that stored factor (fem.interior_factor)."""
     os.environ["PALPATE_CACHE_DIR"] = cache_dir
     from fem.contact3d import surface_model3d
     from fem.scene import load
@@ -123,32 +128,36 @@ def one_waypoints(cache_dir: str, phase: str) -> dict:
         tf.append(time.perf_counter() - s)
     s = time.perf_counter()
     sm.indent(0.035, 0.035, DEPTH_M)
-    first_stress_s = time.perf_counter() - s        # assembles the model and factorizes K once
+    first_stress_s = time.perf_counter() - s        # "reload": assembles the model and factorizes K once
     tsx, fast = [], []
     for x, y in grid:
         s = time.perf_counter()
         fast.append(sm.indent(x, y, DEPTH_M, stresses=True))
         tsx.append(time.perf_counter() - s)
     s = time.perf_counter()
-    sm.indent_many([(x, y, DEPTH_M) for x, y in grid], stresses=True)
+    batch = sm.indent_many([(x, y, DEPTH_M) for x, y in grid], stresses=True)
     batched = time.perf_counter() - s
+    out.update({"forces_n": forces, "force_only_ms": {"median": 1e3 * float(np.median(tf)),
+                                                       "max": 1e3 * float(np.max(tf))},
+                "with_stresses_ms": {"median": 1e3 * float(np.median(tsx)), "max": 1e3 * float(np.max(tsx))},
+                "with_stresses_batched_100_ms_each": 1e3 * batched / len(grid),
+                "batched_max_von_mises_pa": [r.max_von_mises_pa for r in batch],
+                "first_stress_query_s": first_stress_s, "factor_from_cache": "K" not in vars(sm.model)})
+    if phase != "reload":
+        return {**out, "peak_rss_gb": _rss_gb()}
     fac = sm.fac                               # the same waypoints by the full back-substitution (forward + back)
-    sm._fac = _FullSolveOnly(fac)
+    interior = sm.interior
+    sm.interior, sm._fac = (lambda: None), _FullSolveOnly(fac)
     tfull, dvm = [], []
     for (x, y), r in zip(grid[::5], fast[::5]):
         s = time.perf_counter()
         rf = sm.indent(x, y, DEPTH_M, stresses=True)
         tfull.append(time.perf_counter() - s)
         dvm.append(abs(r.max_von_mises_pa / rf.max_von_mises_pa - 1))
-    sm._fac = fac
-    return {**out, "forces_n": forces, "force_only_ms": {"median": 1e3 * float(np.median(tf)),
-                                                          "max": 1e3 * float(np.max(tf))},
-            "with_stresses_ms": {"median": 1e3 * float(np.median(tsx)), "max": 1e3 * float(np.max(tsx))},
-            "with_stresses_batched_100_ms_each": 1e3 * batched / len(grid),
-            "full_solve_path_ms": {"median": 1e3 * float(np.median(tfull)), "max": 1e3 * float(np.max(tfull)),
-                                   "n": len(tfull), "max_rel_diff_von_mises": float(max(dvm))},
-            "ordering": getattr(fac, "ordering", "superlu"),
-            "first_stress_query_s": first_stress_s, "peak_rss_gb": _rss_gb()}
+    sm.interior, sm._fac = interior, fac
+    return {**out, "full_solve_path_ms": {"median": 1e3 * float(np.median(tfull)), "max": 1e3 * float(np.max(tfull)),
+                                          "n": len(tfull), "max_rel_diff_von_mises": float(max(dvm))},
+            "ordering": getattr(fac, "ordering", "superlu"), "peak_rss_gb": _rss_gb()}
 
 
 class _FullSolveOnly:
@@ -199,6 +208,7 @@ def one_solver(method: str, level: str) -> dict:
     from fem.scene_mesh3d import mesh_for3d
     sc = _level_scene(level)[0]
     model = build_model3d(sc, mesh=mesh_for3d(sc, use=False))
+    model.K                                     # assembled before the memory baseline and the timer
     fixed = np.unique(fixed_bottom(model))
     free = np.setdiff1d(np.arange(model.n_dofs), fixed)
     contact = model.reduced_index(3 * patch_nodes(model.mesh, sc.analysis.patch_m) + 2)
@@ -404,6 +414,7 @@ def table(out: Path) -> str:
     if way:
         b = [r for r in way if r["phase"] == "build"][-1]
         rl = [r for r in way if r["phase"] == "reload"][-1]
+        rf = ([r for r in way if r["phase"] == "refactor-free"] or [None])[-1]
         lines += ["block3d default mesh, benchmark:", "",
                   f"- set-up (cold, no cache): {b['setup_or_reload_s']:.1f} s: {json.dumps(b['timings_s'])}; peak "
                   f"memory {b['peak_rss_gb']:.2f} GB (load avg {b['load_avg']:.1f})",
@@ -420,6 +431,14 @@ def table(out: Path) -> str:
                      f"{rl['full_solve_path_ms']['max_rel_diff_von_mises']:.1e} (ordering: {rl['ordering']})"
                      if "full_solve_path_ms" in rl else ""),
                   f"- peak memory of the reload + 320 queries process: {rl['peak_rss_gb']:.2f} GB"]
+        if rf is not None:
+            same = rf.get("batched_max_von_mises_pa") == rl.get("batched_max_von_mises_pa")
+            lines.append(f"- a later process, the factor's interior columns from the disk cache (no assembly: "
+                         f"{rf['factor_from_cache']}): first stress query {rf['first_stress_query_s']:.2f} s, per "
+                         f"waypoint with stresses median {rf['with_stresses_ms']['median']:.1f} ms, batched "
+                         f"{rf['with_stresses_batched_100_ms_each']:.1f} ms each; the 100 batched maxima "
+                         f"{'bitwise equal to' if same else 'DIFFERENT from'} the reload's; peak memory "
+                         f"{rf['peak_rss_gb']:.2f} GB")
         if conv:
             err = np.max(np.abs(np.asarray(rl["forces_n"]) / F_ref - 1))
             lines.append(f"- force error against {ref['level']}: max over the 100 waypoints {err:.2%}")
@@ -479,6 +498,7 @@ def main(argv=None) -> int:
         with tempfile.TemporaryDirectory() as d:
             _spawn(out, "waypoints", d, "build")
             _spawn(out, "waypoints", d, "reload")
+            _spawn(out, "waypoints", d, "refactor-free")
     elif a.what == "hertz":
         _spawn(out, "hertz", *(a.rest or ["0.05"]))
     elif a.what == "solvers":

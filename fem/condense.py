@@ -35,6 +35,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .contact import SchurFactor
+from .interior_factor import InteriorFactor
 
 
 def available() -> bool:
@@ -107,11 +108,10 @@ class _CholmodDirect:
                     ("is_monotonic", ctypes.c_int), ("itype", ctypes.c_int), ("xtype", ctypes.c_int),
                     ("dtype", ctypes.c_int), ("useGPU", ctypes.c_int)]
 
-    def trailing_block(self, F, p: np.ndarray, nc: int) -> np.ndarray | None:
-        """The trailing nc x nc block of L (lower triangle; Fortran order) read in place from cvxopt's supernodal
-        factor F of an n x n matrix factorized in the order p: no copy of the factor. None when F is not a real
-        supernodal LL' "long" factor in the order p, or its layout is not the one this reads (the caller then
-        converts the factor with cvxopt's getfactor)."""
+    def layout(self, F, p: np.ndarray) -> tuple[np.ndarray, ...] | None:
+        """(super, pi, px, s, x): views of cvxopt's supernodal factor F of an n x n matrix factorized in the order
+        p, in place (no copy; valid while F lives). None when F is not a real supernodal LL' "long" factor in the
+        order p, or its layout is not the one this reads."""
         try:
             ptr = self._capsule(F, b"CHOLMOD FACTOR D L")
         except ValueError:
@@ -119,8 +119,7 @@ class _CholmodDirect:
         f = self.Factor.from_address(ptr)
         n = len(p)
         if not (f.n == n and f.minor == n and f.is_super == 1 and f.is_ll == 1 and f.itype == 2 and f.xtype == 1
-                and f.dtype == 0 and f.nsuper > 0 and f.Perm and f.super and f.pi and f.px and f.s and f.x
-                and 0 < nc <= n):
+                and f.dtype == 0 and f.nsuper > 0 and f.Perm and f.super and f.pi and f.px and f.s and f.x):
             return None
 
         def longs(addr, count):
@@ -136,7 +135,23 @@ class _CholmodDirect:
         s = longs(f.s, int(f.ssize))
         if s.min() < 0 or s.max() >= n:
             return None
+        first, width = pi[:-1], np.diff(sup)      # each supernode's rows start with its own columns
+        if not (np.array_equal(s[first], sup[:-1]) and np.array_equal(s[first + width - 1], sup[1:] - 1)):
+            return None
         x = np.ctypeslib.as_array(ctypes.cast(f.x, ctypes.POINTER(ctypes.c_double)), shape=(int(f.xsize),))
+        return sup, pi, px, s, x
+
+    def trailing_block(self, F, p: np.ndarray, nc: int) -> np.ndarray | None:
+        """The trailing nc x nc block of L (lower triangle; Fortran order) read in place from cvxopt's supernodal
+        factor F of an n x n matrix factorized in the order p: no copy of the factor. None when F is not a real
+        supernodal LL' "long" factor in the order p, or its layout is not the one this reads (the caller then
+        converts the factor with cvxopt's getfactor)."""
+        n = len(p)
+        lay = self.layout(F, p) if 0 < nc <= n else None
+        if lay is None:
+            return None
+        sup, pi, px, s, x = lay
+        ns = len(sup) - 1
         c0 = n - nc
         Lcc = np.zeros((nc, nc), order="F")
         for k in range(int(np.searchsorted(sup, c0, side="right")) - 1, ns):   # the supernodes holding columns >= c0
@@ -204,47 +219,82 @@ def interior_order(Kff, interior: np.ndarray, A=None, ordering: str = "auto") ->
     raise ValueError(f"ordering must be 'auto', 'metis' or 'amd', got {ordering!r}")
 
 
+_OPTIONS = {"supernodal": 2, "postorder": False, "nmethods": 1}
+
+
+@contextlib.contextmanager
+def _cholmod_options():
+    """CHOLMOD's options for the condensing factorizations (supernodal, the given order kept), restored after."""
+    import cvxopt.cholmod as chm
+    saved = dict(chm.options)
+    chm.options.update(_OPTIONS)
+    try:
+        yield
+    finally:
+        chm.options.clear()
+        chm.options.update(saved)
+
+
+def _ordered(K, free: np.ndarray, contact: np.ndarray, ordering: str):
+    """(A: K_ff's lower triangle as a cvxopt spmatrix, p: the factor's order with the contact DOFs last, c: the
+    contact DOFs' positions in ``free``, the ordering's name) for K_ff = K[free][:, free]."""
+    import cvxopt
+    pos = np.full(K.shape[0], -1)
+    pos[free] = np.arange(len(free))
+    c = pos[contact]
+    if np.any(c < 0):
+        raise ValueError("a contact DOF is not free")
+    Kff = K[free][:, free]
+    low = sp.tril(Kff).tocoo()
+    A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
+                        cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
+    is_c = np.zeros(len(free), bool)
+    is_c[c] = True
+    name = ordering if ordering != "auto" else ("metis" if metis_available() else "amd")
+    return A, np.concatenate([interior_order(Kff, np.flatnonzero(~is_c), A, name), c]), c, name
+
+
+def _numeric(A, p: np.ndarray):
+    """CHOLMOD's supernodal factor of A in the order p (under CholmodSchur's options), the order checked kept."""
+    import cvxopt
+    import cvxopt.cholmod as chm
+    F = chm.symbolic(A, p=cvxopt.matrix(p))
+    chm.numeric(A, F)
+    probe = cvxopt.matrix(np.arange(len(p), dtype=float))
+    chm.solve(F, probe, sys=7)                      # probe = P (0..n-1): the order used
+    if not np.array_equal(np.asarray(probe).ravel().astype(np.int64), p):
+        raise RuntimeError("CHOLMOD reordered the Schur factorization; cannot read the Schur complement")
+    return F
+
+
 class CholmodSchur:
     """K_ff = K[free][:, free] factorized by CHOLMOD with the contact DOFs (positions ``contact`` in the full
     numbering, a subset of ``free``) last. ``compliance``: (n_c, n_c) = S^-1, in the order of ``contact``;
     ``solve``: K_ff^-1 rhs; ``solve_contact``: the same for a right-hand side on the contact DOFs only, by the
     backward sweep alone (the factorization for both is redone on first use, see the module docstring).
     ``ordering``: the interior's, see ``interior_order``; ``compliance=False`` skips forming it (None: a model whose
-    compliance came from the disk cache needs only the factor for its fields)."""
+    compliance came from the disk cache needs only the factor for its fields). ``interior``: also copy the factor's
+    interior columns out (``interior``: fem.interior_factor, for stresses without a second factorization; None
+    when not asked or not readable in place)."""
 
-    _OPTIONS = {"supernodal": 2, "postorder": False, "nmethods": 1}
-
-    def __init__(self, K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto", compliance: bool = True):
+    def __init__(self, K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto", compliance: bool = True,
+                 interior: bool = False):
         import cvxopt
         import cvxopt.cholmod as chm
         self._cvx, self._chm = cvxopt, chm
         t0 = time.perf_counter()
-        pos = np.full(K.shape[0], -1)
-        pos[free] = np.arange(len(free))
-        c = pos[contact]
-        if np.any(c < 0):
-            raise ValueError("a contact DOF is not free")
-        Kff = K[free][:, free]
-        low = sp.tril(Kff).tocoo()
+        self._A, p, c, self.ordering = _ordered(K, free, contact, ordering)
         n, nc = len(free), len(c)
-        self._A = cvxopt.spmatrix(cvxopt.matrix(low.data), cvxopt.matrix(low.row.astype(np.int64)),
-                                  cvxopt.matrix(low.col.astype(np.int64)), size=low.shape)
-        is_c = np.zeros(n, bool)
-        is_c[c] = True
-        self.ordering = ordering if ordering != "auto" else ("metis" if metis_available() else "amd")
-        p = np.concatenate([interior_order(Kff, np.flatnonzero(~is_c), self._A, self.ordering), c])
         t1 = time.perf_counter()
         self._p = cvxopt.matrix(p)
         self.p = p
         with self._options():
-            self._F = chm.symbolic(self._A, p=self._p)
-            chm.numeric(self._A, self._F)
-            probe = cvxopt.matrix(np.arange(n, dtype=float))
-            chm.solve(self._F, probe, sys=7)                      # probe = P (0..n-1): the order used
-            if not np.array_equal(np.asarray(probe).ravel().astype(np.int64), p):
-                raise RuntimeError("CHOLMOD reordered the Schur factorization; cannot read the Schur complement")
+            self._F = _numeric(self._A, p)
             t2 = time.perf_counter()
             direct = _CholmodDirect.get()
+            layout = direct.layout(self._F, p) if interior and direct is not None else None
+            self.interior = None if layout is None else InteriorFactor.from_layout(p, nc, *layout)
+            del layout
             Lcc = direct.trailing_block(self._F, p, nc) if direct is not None else None
             self.extract = "in place" if Lcc is not None else "getfactor"
             if Lcc is None:
@@ -285,17 +335,8 @@ class CholmodSchur:
         Lcc[rows, cols] = np.asarray(vals[start:]).ravel()
         return Lcc
 
-    @contextlib.contextmanager
     def _options(self):
-        """CHOLMOD's options for this factorization (supernodal, the given order kept), restored afterwards."""
-        chm = self._chm
-        saved = dict(chm.options)
-        chm.options.update(self._OPTIONS)
-        try:
-            yield
-        finally:
-            chm.options.clear()
-            chm.options.update(saved)
+        return _cholmod_options()
 
     def _factor(self):
         if not self._factored:
@@ -372,12 +413,29 @@ def factorize_spd(K):
 
 
 def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto", ordering: str = "auto",
-          compliance: bool = True):
+          compliance: bool = True, interior: bool = False):
     """The condensation of K_ff onto ``contact``: CholmodSchur ("cholmod", or "auto" when cvxopt is installed; its
     interior ``ordering``, see ``interior_order``; ``compliance=False``: not formed) or fem.contact.SchurFactor
     ("superlu"). Both have ``compliance``, ``solve``, ``free`` and ``c``; CholmodSchur also ``solve_contact``."""
     if method == "cholmod" or (method == "auto" and available()):
-        return CholmodSchur(K, free, contact, ordering, compliance)
+        return CholmodSchur(K, free, contact, ordering, compliance, interior)
     if method in ("superlu", "auto"):
         return SchurFactor(K, free, contact)
     raise ValueError(f"method must be 'auto', 'cholmod' or 'superlu', got {method!r}")
+
+
+def interior_factor(K, free: np.ndarray, contact: np.ndarray, ordering: str = "auto") -> InteriorFactor | None:
+    """The interior columns (fem.interior_factor) of K_ff's Cholesky factor with ``contact`` last: one ordering
+    and numeric factorization by CHOLMOD, the columns copied out of the supernodal factor read in place, the factor
+    freed. None without cvxopt or when the factor's layout cannot be read in place (callers then solve with
+    CholmodSchur or SuperLU). Displacements for forces on ``contact`` then need the condensed compliance for the
+    contact rows (``InteriorFactor.sweep``)."""
+    direct = _CholmodDirect.get() if available() else None
+    if direct is None:
+        return None
+    A, p, c, _ = _ordered(K, free, contact, ordering)
+    with _cholmod_options():
+        F = _numeric(A, p)
+    layout = direct.layout(F, p)
+    return None if layout is None else InteriorFactor.from_layout(p, len(c), *layout)
+

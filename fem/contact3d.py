@@ -9,8 +9,10 @@ nodes ordered last (fem.contact.SchurFactor), so the trailing block of the facto
 and the condensed compliance C (patch-node downward displacement per downward nodal force) is its inverse. A
 waypoint (x, y, depth) is then the LCP  gap = q + C_ww f >= 0, f >= 0, gap . f = 0  over the patch nodes under the
 tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from the contact
-forces by the backward sweep alone (fem.condense.CholmodSchur.solve_contact: forces on the patch, ordered last, leave
-the forward sweep to the dense trailing block), several waypoints in one sweep.
+forces by the backward sweep alone through the factor's interior columns (fem.interior_factor: forces on the patch,
+ordered last, give the patch's displacements C f and leave only the interior to sweep), several waypoints in one
+sweep. Those columns are kept in the disk cache beside the compliance once stresses have been asked for (1.3 GB
+on block3d), so a later process's stresses cost a sweep, not a new factorization.
 
 A tip fem treats as rigid (fem.tip.treated_as_rigid: no modulus, or its Hertz relative compliance below
 TIP_TOLERANCE, 4.5e-5 for the 60 MPa tip on 2.5 kPa tissue) is rigid. A softer spherical tip is elastic
@@ -21,20 +23,24 @@ depend on the tip: it is cached under the scene with a rigid tip, the elastic ti
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from . import diskcache
-from .condense import schur
+from .condense import interior_factor, schur
 from .contact import STONE_LAYER_MAX, _surface_spec, check_depth, condensed_displacements
 from .guards import check_finite
+from .interior_factor import InteriorFactor
 from .lcp import solve_lcp
 from .mesh3d import Mesh3D, patch_bounds
 from .model3d import Model3D, build_model3d, fixed_bottom
 from .scene import Indenter, SceneError
+from .scene_mesh import sources_version
 from .scene_mesh3d import code_version3d, mesh_for3d
 from .stress3d import components3d, point_operator3d, recovery_operator3d
 from .tip import TIP_TOLERANCE, rigid_tip_bound, treated_as_rigid
@@ -139,7 +145,7 @@ class SurfaceModel3D:
     def __init__(self, scene, model: Model3D | None = None, rigid_tip: str | bool = "auto",
                  tip_tolerance: float = TIP_TOLERANCE, stress_band_m: float | None = None,
                  rigid_stones: str | bool = "auto", solver: str = "auto", *, compliance: np.ndarray | None = None,
-                 mesh: Mesh3D | None = None, tip: TipCompliance3D | None = None):
+                 mesh: Mesh3D | None = None, tip: TipCompliance3D | None = None, keep_interior: bool = False):
         t0 = time.perf_counter()
         if not scene.is_3d:
             raise SceneError(f"scene {scene.name!r} is 2D (no tissue.length_m): use fem.contact.SurfaceModel")
@@ -163,6 +169,8 @@ class SurfaceModel3D:
         self._model = model if compliance is None else None     # restored: the model is built when fields are asked
         if compliance is None and model is None:
             self._model = build_model3d(scene, mesh=mesh, rigid_stones=rigid_stones)
+        if compliance is None:
+            self._model.K                                       # assembled here (timed as the set-up's)
         self.mesh = self._model.mesh if self._model is not None else (mesh if mesh is not None else model.mesh)
         t1 = time.perf_counter()
         self.patch = patch_nodes(self.mesh, scene.analysis.patch_m)
@@ -173,6 +181,10 @@ class SurfaceModel3D:
         self.xy = self.mesh.nodes[self.patch, :2]
         self._fac = None
         self._band = None
+        self._interior: InteriorFactor | None = None
+        self._interior_unreadable = False       # CHOLMOD's factor could not be read in place: not tried again
+        self._keep_interior = keep_interior
+        self.interior_cache: tuple[dict, bool | None] | None = None   # (spec, use): where the factor is kept
         if compliance is None:
             compliance = self.fac.compliance
             if not np.all(np.isfinite(compliance)):
@@ -206,16 +218,48 @@ class SurfaceModel3D:
             self._model = build_model3d(self.scene, mesh=self.mesh, rigid_stones=self._rigid_stones)
         return self._model
 
+    def _free_contact(self) -> tuple[np.ndarray, np.ndarray]:
+        """(the model's free reduced DOFs, the patch nodes' vertical reduced DOFs)."""
+        model = self.model
+        return (np.setdiff1d(np.arange(model.n_dofs), np.unique(fixed_bottom(model))),
+                model.reduced_index(3 * self.patch + 2))
+
     @property
     def fac(self):
         """The condensing factorization (fem.condense.schur; made on first use after a cache restore)."""
         if self._fac is None:
-            model = self.model
-            fixed = np.unique(fixed_bottom(model))
-            free = np.setdiff1d(np.arange(model.n_dofs), fixed)
-            self._fac = schur(model.K, free, model.reduced_index(3 * self.patch + 2), self._solver,
-                              compliance=not hasattr(self, "C"))      # restored from disk: the factor only
+            free, contact = self._free_contact()
+            self._fac = schur(self.model.K, free, contact, self._solver,
+                              compliance=not hasattr(self, "C"),      # restored from disk: the factor only
+                              interior=self._keep_interior and self._interior is None)
+            if getattr(self._fac, "interior", None) is not None:    # taken over (kept here, not twice)
+                self._interior, self._fac.interior = self._interior or self._fac.interior, None
         return self._fac
+
+    def interior(self) -> InteriorFactor | None:
+        """The factor's interior columns for the stresses' backward sweep (fem.interior_factor): from memory (kept
+        from the compliance's factorization with ``keep_interior``), the disk cache (``interior_cache``, set by
+        load_or_build_surface3d) or one new factorization, then stored; None with the SuperLU solver, without
+        cvxopt, or when CHOLMOD's factor cannot be read in place."""
+        if self._interior is None and self._solver != "superlu" and not self._interior_unreadable:
+            spec, use = self.interior_cache if self.interior_cache is not None else (None, False)
+            free, contact = self._free_contact()
+            c = np.searchsorted(free, contact)                  # the contact DOFs' positions among the free ones
+
+            def restore(arrays):
+                f = InteriorFactor.from_arrays(arrays)
+                if f.n != len(free) or not np.array_equal(f.p[f.n - f.nc:], c):
+                    raise ValueError(f"a factor of {f.n} DOFs ({f.nc} on the patch) that does not fit this model "
+                                     f"({len(free)}, {len(c)})")
+                return f
+            if spec is not None:
+                self._interior = diskcache.load("factor3d", spec, restore, use=use, mmap=True)
+            if self._interior is None:
+                self._interior = interior_factor(self.model.K, free, contact)
+                self._interior_unreadable = self._interior is None
+                if self._interior is not None and spec is not None:
+                    self._interior = _stored(self._interior, spec, use, restore)
+        return self._interior
 
     # -- one waypoint --------------------------------------------------------------------------------------------
     def _window(self, x_m: float, y_m: float) -> np.ndarray:
@@ -271,23 +315,52 @@ class SurfaceModel3D:
                             f"scene {self.scene.name!r}: force at x_m={x_m}, y_m={y_m}, depth_m={depth_m}")
 
     def displacements(self, F_patch: np.ndarray) -> np.ndarray:
-        """Full displacement vectors (3N, k) for downward nodal forces F_patch (n_patch, k) on the patch nodes."""
-        return condensed_displacements(self.model, self.fac, F_patch)
+        """Full displacement vectors (3N, k) for downward nodal forces F_patch (n_patch, k) on the patch nodes: the
+        patch's own from the compliance (C f, reading the rows of the nodes each column loads), the rest by the
+        interior sweep (``interior``); without it by the condensing factorization (``fac``)."""
+        F_patch = np.asarray(F_patch, dtype=float).reshape(len(self.patch), -1)
+        itf = self.interior()
+        if itf is None:
+            return condensed_displacements(self.model, self.fac, F_patch)
+        x_c = np.zeros(F_patch.shape)
+        for k in range(F_patch.shape[1]):
+            nz = np.flatnonzero(F_patch[:, k])
+            x_c[:, k] = -(F_patch[nz, k] @ self.C[nz])          # C is symmetric: its rows are its columns
+        X = np.empty((itf.n, F_patch.shape[1]))
+        X[itf.p] = itf.sweep(x_c)
+        if not np.isfinite(X).all():
+            raise FloatingPointError(f"scene {self.scene.name!r}: the displacements are not finite (a damaged disk "
+                                     f"cache entry? delete it, or set PALPATE_CACHE=0)")
+        free, _ = self._free_contact()
+        Y = np.zeros((self.model.n_dofs, F_patch.shape[1]))
+        Y[free] = X
+        return self.model.P @ Y
 
     def _band_op(self):
         """(stress-point positions X, their stress operator, the patch nodes' stress operator): the stress points
         (fem.stress3d.point_operator3d) of the tissue's elements whose centre lies within band_m below the probed
         patch (grown by band_m sideways), and the nodal stresses of the patch's top nodes (the contact pressure);
-        built once, then each waypoint takes the rows under its tip."""
+        built once, then each waypoint takes the rows under its tip. Kept in the disk cache beside the factor (kind
+        ``band3d``, 0.2 GB on block3d; its key adds the stress recovery's sources), memory-mapped."""
         if self._band is None:
-            mesh, b = self.mesh, self.band_m
-            x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, self.scene.analysis.patch_m)
-            c = mesh.nodes[mesh.tets[:, :4]].mean(axis=1)
-            els = np.flatnonzero((mesh.region == 0) & (c[:, 2] >= mesh.height_m - b) & (c[:, 0] >= x0 - b)
-                                 & (c[:, 0] <= x1 + b) & (c[:, 1] >= y0 - b) & (c[:, 1] <= y1 + b))
-            Rp, X = point_operator3d(self.model, els)
-            self._band = (X, Rp.tocsr(), recovery_operator3d(self.model, self.patch).tocsr())
+            if self.interior_cache is None:
+                self._band = self._build_band()
+            else:
+                spec, use = self.interior_cache
+                n_rows, n_cols = 6 * len(self.patch), 3 * self.mesh.n_nodes
+                self._band = diskcache.load_or_build(
+                    "band3d", {**spec, "band_m": self.band_m, "recovery": _recovery_version()}, self._build_band,
+                    to_arrays=_band_arrays, from_arrays=lambda a: _band_from(a, n_rows, n_cols), use=use, mmap=True)
         return self._band
+
+    def _build_band(self) -> tuple[np.ndarray, sp.csr_matrix, sp.csr_matrix]:
+        mesh, b = self.mesh, self.band_m
+        x0, x1, y0, y1 = patch_bounds(mesh.width_m, mesh.length_m, self.scene.analysis.patch_m)
+        c = mesh.nodes[mesh.tets[:, :4]].mean(axis=1)
+        els = np.flatnonzero((mesh.region == 0) & (c[:, 2] >= mesh.height_m - b) & (c[:, 0] >= x0 - b)
+                             & (c[:, 0] <= x1 + b) & (c[:, 1] >= y0 - b) & (c[:, 1] <= y1 + b))
+        Rp, X = point_operator3d(self.model, els)
+        return X, Rp.tocsr(), recovery_operator3d(self.model, self.patch).tocsr()
 
     def indent(self, x_m: float, y_m: float, depth_m: float, stresses: bool = True) -> IndentResult3D:
         return self.indent_many([(x_m, y_m, depth_m)], stresses=stresses)[0]
@@ -314,10 +387,13 @@ class SurfaceModel3D:
                 near = np.flatnonzero((np.abs(X[:, 0] - x_m) <= b) & (np.abs(X[:, 1] - y_m) <= b))
             if len(near):               # (none only if no tissue element lies under the tip within the band)
                 vm = components3d(_stress_at(Rb, near, U[:, k]))["von_mises_pa"]
+                szz = _stress_at(Rtop, idx, U[:, k])[:, 2]
+                if not (np.isfinite(vm).all() and np.isfinite(szz).all()):
+                    raise FloatingPointError(f"scene {self.scene.name!r}: the stresses under the tip are not finite "
+                                             f"(a damaged disk cache entry? delete it, or set PALPATE_CACHE=0)")
                 j = int(np.argmax(vm))
                 vm_max = float(vm[j])
                 at = (float(X[near[j], 0]), float(X[near[j], 1]), float(mesh.height_m - X[near[j], 2]))
-                szz = _stress_at(Rtop, idx, U[:, k])[:, 2]
                 pressure = np.where(active, np.maximum(-szz, 0.0), 0.0)
             a = _contact_radius(self.xy[idx], (x_m, y_m), active)
             out.append(IndentResult3D(
@@ -335,6 +411,32 @@ class SurfaceModel3D:
         F = np.zeros((len(self.patch), 1))
         F[idx, 0] = f
         return check_finite(self.displacements(F)[:, 0], f"scene {self.scene.name!r}: displacements")
+
+
+@functools.lru_cache(maxsize=1)
+def _recovery_version() -> str:
+    """The stress recovery's own sources (not in the 3D code version): a key part of the band operators' entry."""
+    return sources_version(("stress3d.py", "elements3d.py", "assembly3d.py"), "band3d 1")
+
+
+def _band_arrays(band) -> dict[str, np.ndarray]:
+    X, Rb, Rt = band
+    return {"X": X, **{f"{name}_{part}": getattr(R, part) for name, R in (("Rb", Rb), ("Rt", Rt))
+                       for part in ("data", "indices", "indptr")}}
+
+
+def _band_from(a: dict[str, np.ndarray], n_top_rows: int, n_cols: int):
+    """The band operators from ``_band_arrays``' arrays (memory maps used as they are); ValueError when they do not
+    fit the model (``n_top_rows``: 6 per patch node; ``n_cols``: 3 per mesh node)."""
+    X = np.asarray(a["X"])
+    ops = []
+    for name, rows in (("Rb", 6 * len(X)), ("Rt", n_top_rows)):
+        data, ind, ptr = (np.asarray(a[f"{name}_{p}"]) for p in ("data", "indices", "indptr"))
+        if (X.ndim != 2 or X.shape[1] != 3 or len(ptr) != rows + 1 or ptr[0] != 0 or ptr[-1] != len(data)
+                or len(ind) != len(data) or (len(ind) and (ind.min() < 0 or ind.max() >= n_cols))):
+            raise ValueError(f"the stored {name} operator does not fit the model")
+        ops.append(sp.csr_matrix((data, ind, ptr), shape=(rows, n_cols)))
+    return X, ops[0], ops[1]
 
 
 def _stress_at(R, node_pos: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -366,24 +468,49 @@ def surface3d_cached(scene, **options) -> bool:
                                                                            _surface3d_spec(scene, options)).exists())
 
 
-def load_or_build_surface3d(scene, options: dict, use: bool | None = None) -> SurfaceModel3D:
+def load_or_build_surface3d(scene, options: dict, use: bool | None = None,
+                            stresses: bool = False) -> SurfaceModel3D:
     """A SurfaceModel3D restored from the disk cache (its compliance; the model is assembled only when fields are
-    asked for), else built and stored."""
+    asked for), else built and stored. ``stresses``: a build keeps its factorization's interior columns and stores
+    them (the stresses then need no second factorization)."""
     mesh = mesh_for3d(scene, use=use)
     spec = _surface3d_spec(scene, options)
-    return diskcache.load_or_build(
-        "surface3d", spec, build=lambda: SurfaceModel3D(scene, mesh=mesh, **options),
+    m = diskcache.load_or_build(
+        "surface3d", spec, build=lambda: SurfaceModel3D(scene, mesh=mesh, keep_interior=stresses, **options),
         to_arrays=SurfaceModel3D.to_arrays,
         from_arrays=lambda arrays: SurfaceModel3D.from_arrays(scene, arrays, mesh=mesh, **options), use=use,
         mmap=True)
+    m.interior_cache = (spec, use)      # the stresses' factor is kept under the same key (kind "factor3d")
+    if m._interior is not None:
+        m._interior = _stored(m._interior, spec, use, InteriorFactor.from_arrays)
+    return m
+
+
+def _stored(f: InteriorFactor, spec: dict, use: bool | None, restore) -> InteriorFactor:
+    """``f`` written to the disk cache (kind "factor3d") and read back memory-mapped, so the process does not keep
+    its copy (1.3 GB on block3d) in memory; ``f`` itself when the cache is off or the write failed."""
+    if not diskcache.enabled(use):
+        return f
+    diskcache.write(diskcache.entry_path("factor3d", spec), f.to_arrays())
+    return diskcache.load("factor3d", spec, restore, use=use, mmap=True) or f
+
+
+def factor3d_cached(scene, **options) -> bool:
+    """Whether the stresses of ``surface_model3d(scene, **options)`` would come without a factorization (the
+    factor's interior columns in memory or the disk cache): what a command tells its user before a long build."""
+    key = (scene.key(), tuple(sorted(options.items())))
+    if key in _CACHE and _CACHE[key]._interior is not None:
+        return True
+    return diskcache.enabled() and diskcache.entry_path("factor3d", _surface3d_spec(scene, options)).exists()
 
 
 _CACHE: dict[tuple, SurfaceModel3D] = {}
 
 
-def surface_model3d(scene, cache: bool | None = None, **options) -> SurfaceModel3D:
-    """The SurfaceModel3D of a scene, built once per scene content and options (in memory), kept on disk."""
+def surface_model3d(scene, cache: bool | None = None, stresses: bool = False, **options) -> SurfaceModel3D:
+    """The SurfaceModel3D of a scene, built once per scene content and options (in memory), kept on disk.
+    ``stresses``: the caller will ask for stresses (a build then keeps what they need: load_or_build_surface3d)."""
     key = (scene.key(), tuple(sorted(options.items())))
     if key not in _CACHE:
-        _CACHE[key] = load_or_build_surface3d(scene, options, use=cache)
+        _CACHE[key] = load_or_build_surface3d(scene, options, use=cache, stresses=stresses)
     return _CACHE[key]

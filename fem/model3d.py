@@ -7,6 +7,7 @@ reduced_index, partition), so fem.model.Factored factorizes both (CHOLMOD here).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,17 +35,21 @@ class Model3D:
     centres: list[tuple[float, float, float]]   # stone centres (x, y, z)
     rigid: list[bool]                           # per stone
     D: np.ndarray = field(init=False)           # (M, 6, 6)
-    K: sp.csr_matrix = field(init=False)        # reduced stiffness (n_red x n_red)
     P: sp.csr_matrix = field(init=False)        # full DOFs = P @ reduced DOFs
 
     dim = 3
 
     def __post_init__(self):
         self.D = element_D3d(self.mesh, self.materials)
+        self.P = self._prolongation()
+
+    @functools.cached_property
+    def K(self) -> sp.csc_matrix:
+        """The reduced stiffness (n_red x n_red), assembled on first use: stresses from a stored factor and
+        compliance need D and P only."""
         el = deformable_elements(self.mesh.region, self.rigid)
         Kfull = stiffness3d(self.mesh, self.D, elements=None if len(el) == len(self.mesh.region) else el)
-        self.P = self._prolongation()
-        self.K = (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
+        return (self.P.T @ Kfull @ self.P).tocsc() if any(self.rigid) else Kfull.tocsc()
 
     def _owner(self) -> np.ndarray:
         """(N,) the rigid stone each node moves with (its elements' nodes, boundary included), -1 for the rest."""
@@ -56,7 +61,7 @@ class Model3D:
 
     @property
     def n_dofs(self) -> int:
-        return self.K.shape[0]
+        return self.P.shape[1]
 
     def reduced_index(self, full_dofs: np.ndarray) -> np.ndarray:
         """Reduced DOF numbers of full DOFs that belong to deformable nodes (identity rows of P)."""

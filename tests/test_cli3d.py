@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
+from fem import contact3d
 
 SMALL = """name = "small3d"
 [tissue]
@@ -81,7 +82,23 @@ def test_predict_grid_3d(small, tmp_path, capsys, monkeypatch):
     assert len(err) == 2 and all("warning: the contact radius spans" in e for e in err), err
     main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json")])
     err = [e for e in capsys.readouterr().err.splitlines() if "warning" not in e]
-    assert len(err) == 2 and all("need the model's factorization" in e for e in err), err   # cached now
+    assert err == []          # the models and the factors their stresses use are in memory: nothing to announce
+    cache = tmp_path / "cache"
+
+    def again() -> list[str]:
+        contact3d._CACHE.clear()
+        main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json")])
+        return [e for e in capsys.readouterr().err.splitlines() if "warning" not in e]
+    for f in cache.glob("factor3d-*.npz"):
+        f.unlink()
+    err = again()             # not on disk (the first models were built with the cache off): built, factors kept
+    assert len(err) == 2 and all("building its 3D model" in e for e in err), err
+    assert len(list(cache.glob("factor3d-*.npz"))) == 2 and again() == []
+    for f in cache.glob("factor3d-*.npz"):
+        f.unlink()
+    err = again()             # the compliance cached, the factor not: one factorization, announced, then kept
+    assert len(err) == 2 and all("need the model's factorization once" in e for e in err), err
+    assert len(list(cache.glob("factor3d-*.npz"))) == 2 and again() == []
     d = json.loads(out.read_text())
     w = d["waypoints"]
     assert len(w["x_m"]) == len(w["y_m"]) == len(d["ratio"]) == 25

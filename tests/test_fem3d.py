@@ -332,19 +332,26 @@ class _FullSolveOnly:
 
 @pytest.mark.skipif(not condense.available(), reason="cvxopt (CHOLMOD) is not installed")
 def test_stresses_by_the_backward_sweep_equal_the_full_solve(stone_scene, monkeypatch):
-    """Stresses under the tip from the backward sweep alone (the forward sweep of patch forces touches only the
-    trailing block) equal those of the full back-substitution to round-off: displacements, the maximum von Mises
-    and where it is, the contact pressures; a rigid stone in the model (its prolongation) included. Two waypoints
-    at once take CHOLMOD's multi-column sweep (fem.condense._CholmodDirect), one waypoint cvxopt's."""
+    """Stresses under the tip from the backward sweep alone through the factor's interior columns (the patch's
+    displacements from the compliance: fem.interior_factor) equal those of the full back-substitution to round-off:
+    displacements, the maximum von Mises and where it is, the contact pressures; a rigid stone in the model (its
+    prolongation) included. So does the condensing factorization's own sweep (CholmodSchur.solve_contact, the
+    fallback when the factor cannot be read in place: two waypoints at once take CHOLMOD's multi-column sweep,
+    fem.condense._CholmodDirect, one waypoint cvxopt's)."""
     m = SurfaceModel3D(stone_scene)
     pts = [(0.015, 0.015, 0.0008), (0.0112, 0.0171, 0.0006)]
     fast = m.indent_many(pts)
     u_fast = m.full_field(*pts[1])
+    assert m.interior() is not None or condense._CholmodDirect.get() is None
+    monkeypatch.setattr(m, "interior", lambda: None)
+    schur = m.indent_many(pts)
+    u_schur = m.full_field(*pts[1])
     monkeypatch.setattr(m, "_fac", _FullSolveOnly(m.fac))
     full = m.indent_many(pts)
     u_full = m.full_field(*pts[1])
     assert np.abs(u_fast - u_full).max() < 1e-10 * np.abs(u_full).max()
-    for a, b in zip(fast, full):
+    assert np.abs(u_schur - u_full).max() < 1e-10 * np.abs(u_full).max()
+    for a, b in [*zip(fast, full), *zip(schur, full)]:
         assert a.max_von_mises_pa > 0 and a.max_von_mises_at_m == b.max_von_mises_at_m
         assert a.max_von_mises_pa == pytest.approx(b.max_von_mises_pa, rel=1e-10)
         assert np.allclose(a.pressure_pa, b.pressure_pa, rtol=1e-9, atol=1e-10 * b.pressure_pa.max())
@@ -410,8 +417,10 @@ def test_cache_restores_the_compliance_bitwise(tmp_path, monkeypatch):
     assert b.force_n(0.015, 0.012, 0.0005) == a.force_n(0.015, 0.012, 0.0005)
     assert b.indent(0.015, 0.012, 0.0005).max_von_mises_pa == pytest.approx(
         a.indent(0.015, 0.012, 0.0005).max_von_mises_pa, rel=1e-9)
-    if condense.available():                        # fields after a restore: the factor, no second compliance
-        assert b.fac.compliance is None
+    if condense._CholmodDirect.get() is not None:  # fields after a restore: the interior factor, no compliance
+        assert b._fac is None and b.interior() is not None
+    if condense.available():
+        assert b.fac.compliance is None             # the condensing factorization after a restore: no compliance
 
 
 def test_bad_waypoints_refused():

@@ -17,7 +17,14 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from fem.contact3d import STRESS_RESOLVED, check_waypoint3d, patch_element_m, surface3d_cached, surface_model3d
+from fem.contact3d import (
+    STRESS_RESOLVED,
+    check_waypoint3d,
+    factor3d_cached,
+    patch_element_m,
+    surface3d_cached,
+    surface_model3d,
+)
 from fem.mesh3d import estimate_nodes3d, patch_bounds
 from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recovery_operator3d
@@ -26,7 +33,7 @@ from fem.uniform3d import solve_uniform3d
 FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
 FIG_INDENT = ("fig3d_indent_surface.png", "fig3d_indent_section.png")
 FIG_PREDICT = "fig3d_predict.png"
-BATCH = 50             # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
+BATCH = 100            # waypoints per batched sweep (memory: a few n_dofs x BATCH doubles; one read of the factor each)
 
 
 def _mesh_dict(mesh, model) -> dict:
@@ -99,7 +106,7 @@ def _indent(args, sc, rigid) -> int:
     t0 = time.perf_counter()
     if not args.quiet:
         announce(sc, "simulate", stresses=True, rigid_stones=rigid)
-    m = surface_model3d(sc, rigid_stones=rigid)
+    m = surface_model3d(sc, stresses=True, rigid_stones=rigid)
     t1 = time.perf_counter()
     r = m.indent(args.x_m, args.y_m, args.depth_m)
     t2 = time.perf_counter()
@@ -184,23 +191,23 @@ REFERENCE_BUILD = "block3d's 138,000 DOFs take about 35 s on 2 cores"    # READM
 
 def announce(sc, command: str, stresses: bool, **options) -> None:
     """One progress line on stderr before a 3D model's long work: its build when it is not cached, and the
-    factorization stresses need in every process (a cached model holds the compliance only)."""
+    factorization stresses need once when the factor they use is not cached (fem.contact3d.factor3d_cached)."""
     dofs = estimate_nodes3d(sc)["dofs"]
     if not surface3d_cached(sc, **options):
         print(f"palpate {command}: {sc.name}: building its 3D model (an estimated {dofs:,.0f} DOFs: mesh, assembly, "
               f"sparse factorization; {REFERENCE_BUILD}), kept in the disk cache for the next run", file=sys.stderr,
               flush=True)
-    elif stresses:
-        print(f"palpate {command}: {sc.name}: the stresses under the tip need the model's factorization (an "
-              f"estimated {dofs:,.0f} DOFs; {REFERENCE_BUILD}; predict --force-only does without)", file=sys.stderr,
-              flush=True)
+    elif stresses and not factor3d_cached(sc, **options):
+        print(f"palpate {command}: {sc.name}: the stresses under the tip need the model's factorization once (an "
+              f"estimated {dofs:,.0f} DOFs; {REFERENCE_BUILD}; kept in the disk cache for the next run; predict "
+              f"--force-only does without)", file=sys.stderr, flush=True)
 
 
 def _predict(sc, xs, ys, depth_m, stresses: bool, quiet: bool = False) -> dict:
     t0 = time.perf_counter()
     if not quiet:
         announce(sc, "predict", stresses)
-    m = surface_model3d(sc)
+    m = surface_model3d(sc, stresses=stresses)
     t1 = time.perf_counter()
     pts = [(float(x), float(y), depth_m) for y in ys for x in xs]
     rows = []

@@ -1,0 +1,15 @@
+#!/bin/bash
+PY=/root/.pyenv/versions/3.11.7/bin/python3
+OUT=/work/main/bench-out/ab-s35
+for spec in "predict new 4" "predict old 4" "predict new 5" "simulate new 3" "simulate old 3"; do
+  set -- $spec
+  cmd=$1; v=$2; r=$3
+  D=$([ $v = old ] && echo /tmp/ab-old || echo /work/main)
+  cd $D
+  if [ $cmd = predict ]; then args="predict block3d --grid 10x10 --depth-m 0.003"; else args="simulate block3d --load indent --x-m 0.035 --y-m 0.035 --depth-m 0.003"; fi
+  s=$(date +%s.%N)
+  PYTHONPATH=$D $PY -m app.cli $args --quiet --json $OUT/$cmd-$v-$r.json > /dev/null 2>>$OUT/stderr.txt
+  rc=$?
+  e=$(date +%s.%N)
+  echo "$cmd $v $r rc=$rc $(echo "$e - $s" | bc) load=$(cut -d' ' -f1 /proc/loadavg)" | tee -a $OUT/ab.txt
+done
