@@ -367,6 +367,17 @@ class SurfaceModel3D:
 
     def indent_many(self, waypoints, stresses: bool = True) -> list[IndentResult3D]:
         """Several waypoints (x_m, y_m, depth_m); their displacement fields come from one batched solve."""
+        return self._indent_batch(waypoints, stresses)[0]
+
+    def indent_with_field(self, x_m: float, y_m: float, depth_m: float) -> tuple[IndentResult3D, np.ndarray]:
+        """One waypoint with its stresses and its full displacement vector (3N,), both from one sweep (``indent``
+        then ``full_field`` would sweep twice)."""
+        (r,), U = self._indent_batch([(x_m, y_m, depth_m)], stresses=True)
+        u = U[:, 0] if U is not None else np.zeros(self.model.P.shape[0])
+        return r, check_finite(u, f"scene {self.scene.name!r}: displacements")
+
+    def _indent_batch(self, waypoints, stresses: bool) -> tuple[list[IndentResult3D], np.ndarray | None]:
+        """``indent_many``'s results and the displacement fields (3N, k) they came from (None: none needed)."""
         pts = [tuple(float(v) for v in w) for w in waypoints]
         sols = [self.contact_forces(*p) for p in pts]
         U = None
@@ -403,7 +414,7 @@ class SurfaceModel3D:
                 contact_radius_m=a, contact_radius_over_element=a / h, contact_x_m=self.xy[idx, 0],
                 contact_y_m=self.xy[idx, 1], pressure_pa=pressure, nodal_force_n=f, gap_m=gap,
                 rigid_tip=self.rigid_tip, tip_note=self.tip_note))
-        return out
+        return out, U
 
     def full_field(self, x_m: float, y_m: float, depth_m: float) -> np.ndarray:
         """Full displacement vector (3N,) for one waypoint: one more back-substitution."""

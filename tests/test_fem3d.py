@@ -342,6 +342,8 @@ def test_stresses_by_the_backward_sweep_equal_the_full_solve(stone_scene, monkey
     pts = [(0.015, 0.015, 0.0008), (0.0112, 0.0171, 0.0006)]
     fast = m.indent_many(pts)
     u_fast = m.full_field(*pts[1])
+    one, u_one = m.indent_with_field(*pts[1])         # the stresses and the field from one sweep: the same
+    assert one.max_von_mises_pa == m.indent(*pts[1]).max_von_mises_pa and np.array_equal(u_one, u_fast)
     assert m.interior() is not None or condense._CholmodDirect.get() is None
     monkeypatch.setattr(m, "interior", lambda: None)
     schur = m.indent_many(pts)

@@ -108,10 +108,9 @@ def _indent(args, sc, rigid) -> int:
         announce(sc, "simulate", stresses=True, rigid_stones=rigid)
     m = surface_model3d(sc, stresses=True, rigid_stones=rigid)
     t1 = time.perf_counter()
-    r = m.indent(args.x_m, args.y_m, args.depth_m)
+    r, u = m.indent_with_field(args.x_m, args.y_m, args.depth_m)
     t2 = time.perf_counter()
     model, mesh = m.model, m.mesh
-    u = m.full_field(args.x_m, args.y_m, args.depth_m)
     top = mesh.top
     surf = SurfaceMap(mesh.nodes[top, 0], mesh.nodes[top, 1],
                       components3d((recovery_operator3d(model, top) @ u).reshape(-1, 6)))
