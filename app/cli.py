@@ -15,8 +15,9 @@ import sys
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-from app.errors import EXIT_USAGE, guarded  # noqa: E402
+from app.errors import EXIT_USAGE, UsageError, guarded  # noqa: E402
 from app.parser import Parser  # noqa: E402
+from fem import cachesize  # noqa: E402
 
 # name -> one-line help (the module app.commands.<name> is imported only when its subcommand runs)
 COMMANDS = {
@@ -27,6 +28,7 @@ COMMANDS = {
     "bench": "run time against error, skips, scaling, stress tests",
     "study": "accuracy and detectability studies on dask.distributed (serial, LocalCluster or a cluster)",
     "ft": "read an ATI Net F/T box for a while: rate, lost records, mean and noise per axis",
+    "cache": "what the disk cache holds (by kind, size, last use); prune or clear it",
 }
 
 EPILOG = """examples:
@@ -37,7 +39,10 @@ EPILOG = """examples:
   palpate run paper --sim --out run/                       plan, probe with the simulated arm, locate the stone
   palpate study accuracy --out study/ --quick              the accuracy study on a dask LocalCluster
   palpate ft --ft netft:192.168.1.1 --ft-range-n 25 --ft-range-nm 0.25   check an ATI Net F/T box
+  palpate cache                                            the disk cache: where, how big, what; prune, clear
 scenes: a built-in name (paper, paper-left, paper-right, paper-deep, healthy) or a TOML file (see README).
+environment: PALPATE_CACHE_DIR (the disk cache; default ~/.cache/palpate), PALPATE_CACHE=0 (no disk cache),
+  PALPATE_CACHE_MAX_BYTES (its size bound in bytes; default 20e9: the entries used least recently go first).
 Add --debug to any command to see a traceback instead of a one-line error."""
 
 
@@ -70,7 +75,25 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
-    return guarded("palpate", lambda: args.func(args), debug=getattr(args, "debug", False) or args.debug_any)
+    return guarded("palpate", lambda: check_environment() or args.func(args),
+                   debug=getattr(args, "debug", False) or args.debug_any)
+
+
+CACHE_SWITCH = {"1": True, "true": True, "yes": True, "on": True, "0": False, "false": False, "no": False,
+                "off": False}
+
+
+def check_environment() -> None:
+    """The environment variables palpate reads, checked before a command starts (a bad value would otherwise surface
+    deep in a run, or be taken as a default)."""
+    use = os.environ.get("PALPATE_CACHE")
+    if use is not None and use.strip() and use.strip().lower() not in CACHE_SWITCH:
+        raise UsageError(f"PALPATE_CACHE={use!r}: give 0 (no disk cache) or 1 (the default); also accepted: "
+                         f"{', '.join(k for k in CACHE_SWITCH if k not in '01')}")
+    try:
+        cachesize.max_bytes()
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 if __name__ == "__main__":

@@ -6,7 +6,8 @@ numpy ``.npz`` file (no pickle) named ``<kind>-<digest of spec>.npz``.
 
 Location: ``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``PALPATE_CACHE=0`` disables it. Writes are atomic
 (temporary file + rename); an unreadable or inconsistent entry is ignored with a warning and rebuilt. A read-only
-or full disk only warns.
+or full disk only warns. Its size is bounded (``$PALPATE_CACHE_MAX_BYTES``): reading or writing an entry marks it
+used, and after a write the entries used least recently go (fem.cachesize).
 """
 from __future__ import annotations
 
@@ -22,6 +23,8 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
+
+from fem import cachesize
 
 T = TypeVar("T")
 Arrays = dict[str, np.ndarray]
@@ -72,6 +75,17 @@ def write(path: Path, arrays: Arrays) -> None:
             raise
     except OSError as e:   # a read-only or full disk must not stop an analysis
         warnings.warn(f"palpate cache: could not write {path}: {e}", stacklevel=3)
+        return
+    if _in_cache(path):
+        try:
+            cachesize.after_write(path)
+        except ValueError as e:            # a bad bound: the entry is kept, nothing is removed
+            warnings.warn(f"palpate cache: not pruned: {e}", stacklevel=3)
+
+
+def _in_cache(path: Path) -> bool:
+    """Whether ``path`` is an entry of the cache directory (not, e.g., a table shipped with the source)."""
+    return path.parent == cache_dir()
 
 
 def _mapped(path: Path) -> Arrays:
@@ -107,14 +121,20 @@ def read(path: Path, mmap: bool = False) -> Arrays | None:
         return None
     try:
         if mmap:
-            return _mapped(path)
-        with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            arrays = _mapped(path)
+        else:
+            with np.load(path, allow_pickle=False) as z:
+                arrays = {k: z[k] for k in z.files}
+    except FileNotFoundError:   # removed since (another process pruning the cache): a miss
+        return None
     except Exception as e:  # noqa: BLE001 - any damage means: ignore the entry and rebuild
         stats["corrupt"] += 1
         warnings.warn(f"palpate cache: ignoring unreadable entry {path} ({type(e).__name__}: {e}); rebuilding",
                       stacklevel=3)
         return None
+    if _in_cache(path):
+        cachesize.mark_used(path)
+    return arrays
 
 
 def load_or_build(kind: str, spec: dict, build: Callable[[], T], to_arrays: Callable[[T], Arrays],

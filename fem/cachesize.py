@@ -1,0 +1,175 @@
+"""How large the disk cache may grow, and what leaves it when it is full: the entries used least recently.
+
+Every entry is derived (a mesh, a factor, remembered forces, a table): removing one costs its rebuild, never a
+result. A 3D model with stresses keeps about 2 GB on disk and every change of fem's code makes new keys, so without a
+bound the cache grows until the disk is full.
+
+- **Use** is an entry's modification time: ``fem.diskcache`` sets it when it writes an entry and when it reads one
+  (``mark_used``), so the oldest time is the entry used least recently.
+- **The bound** is ``$PALPATE_CACHE_MAX_BYTES`` (bytes, e.g. ``20e9``; default ``DEFAULT_MAX_BYTES``). After each write
+  (``after_write``) the entries used least recently are removed until the cache's entries fit, except what this
+  process has read or written (``in_use``): a run never loses what it is working with, so the bound is soft; when
+  those alone exceed it a warning says so once.
+- **Partial writes** (``*.tmp`` of a writer that was killed) older than ``STALE_TMP_S`` are removed by the same pass.
+- Lock files (fem.memo's ``*.npz.lock``, empty) and resumable builds (``*.parts`` directories) are never removed
+  here; ``palpate cache clear`` removes lock files of the entries it clears.
+
+Another process may hold an entry that this one removes: on POSIX an open or memory-mapped file stays readable until
+closed; one it reads later is a miss, rebuilt. Two processes pruning at once only remove a little more.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+ENV = "PALPATE_CACHE_MAX_BYTES"
+DEFAULT_MAX_BYTES = 20e9          # about ten 3D models with their stresses (2 GB each), the 2D ones beside them
+STALE_TMP_S = 3600.0              # a partial write older than this belongs to a writer that is gone
+_ENTRY = re.compile(r"^(?P<kind>.+?)-[0-9a-f]{12,}\.npz$")
+
+_in_use: set[str] = set()         # entries this process read or wrote (never removed by its own pruning)
+_warned: set[str] = set()
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One cache entry: its file, kind (the name before the key), size and last use (modification time, s since the
+    epoch)."""
+    path: Path
+    kind: str
+    size_bytes: int
+    used_s: float
+
+
+@dataclass(frozen=True)
+class PruneReport:
+    removed: tuple[Entry, ...]     # entries removed, least recently used first
+    stale_tmp: tuple[Path, ...]    # partial writes removed
+    left_bytes: int                # what the entries take after pruning
+    left_entries: int
+    in_use_bytes: int              # of that, what the pruning process holds (kept whatever the bound)
+
+    @property
+    def removed_bytes(self) -> int:
+        return sum(e.size_bytes for e in self.removed)
+
+
+def max_bytes() -> float:
+    """The bound from $PALPATE_CACHE_MAX_BYTES (a number of bytes, >= 0), else DEFAULT_MAX_BYTES; ValueError naming
+    the variable for anything else."""
+    text = os.environ.get(ENV)
+    if text is None or not text.strip():
+        return DEFAULT_MAX_BYTES
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and v >= 0):
+        raise ValueError(f"{ENV}={text!r}: give the disk cache's size bound in bytes, a finite number >= 0 "
+                         "(e.g. 20e9 for 20 GB; unset: 20e9)")
+    return v
+
+
+def size_text(n: float) -> str:
+    """A size in bytes as a person reads it (GB from 10 MB, else MB; decimal units)."""
+    return f"{n / 1e9:.2f} GB" if n >= 1e7 else f"{n / 1e6:.2f} MB"
+
+
+def kind_of(path: Path) -> str | None:
+    """The kind of an entry's file name (``<kind>-<hex key>.npz``), None for any other file."""
+    m = _ENTRY.match(path.name)
+    return m.group("kind") if m else None
+
+
+def entries(root: Path) -> list[Entry]:
+    """The entries in ``root``, least recently used first (none when it does not exist)."""
+    out = []
+    try:
+        items = list(os.scandir(root))
+    except FileNotFoundError:
+        return []
+    for d in items:
+        kind = kind_of(Path(d.name))
+        if kind is None:
+            continue
+        try:
+            if not d.is_file(follow_symlinks=False):
+                continue
+            st = d.stat(follow_symlinks=False)
+        except FileNotFoundError:          # removed meanwhile by another process
+            continue
+        out.append(Entry(Path(d.path), kind, int(st.st_size), float(st.st_mtime)))
+    out.sort(key=lambda e: (e.used_s, e.path.name))
+    return out
+
+
+def partial_writes(root: Path, older_than_s: float = STALE_TMP_S, now: float | None = None) -> list[Path]:
+    """Partial writes (``*.tmp``) in ``root`` last touched more than ``older_than_s`` ago."""
+    now = time.time() if now is None else now
+    out = []
+    for p in root.glob("*.tmp") if root.is_dir() else ():
+        try:
+            if now - p.stat().st_mtime > older_than_s:
+                out.append(p)
+        except FileNotFoundError:
+            continue
+    return sorted(out)
+
+
+def mark_used(path: Path) -> None:
+    """``path`` (an entry just read or written) is in use by this process and now its most recently used entry. A
+    cache on a read-only file system keeps its old times."""
+    _in_use.add(os.fspath(path))
+    try:
+        os.utime(path)
+    except OSError:
+        pass
+
+
+def remove(path: Path) -> bool:
+    """Whether ``path`` is gone (removed now, or by another process first)."""
+    try:
+        path.unlink()
+    except FileNotFoundError:
+        pass
+    except OSError as e:                   # read-only, or held open where that forbids it
+        warnings.warn(f"palpate cache: could not remove {path}: {e}", stacklevel=3)
+        return False
+    return True
+
+
+def prune(root: Path, limit_bytes: float, keep=None, now: float | None = None) -> PruneReport:
+    """Remove the entries of ``root`` used least recently until the rest take at most ``limit_bytes``, sparing
+    ``keep`` (paths; default: what this process has in use); and partial writes older than STALE_TMP_S."""
+    keep = _in_use if keep is None else {os.fspath(p) for p in keep}
+    stale = tuple(p for p in partial_writes(root, now=now) if remove(p))
+    ents = entries(root)
+    total = sum(e.size_bytes for e in ents)
+    removed, left = [], []
+    for e in ents:
+        if total > limit_bytes and os.fspath(e.path) not in keep and remove(e.path):
+            removed.append(e)
+            total -= e.size_bytes
+        else:
+            left.append(e)
+    return PruneReport(tuple(removed), stale, total, len(left),
+                       sum(e.size_bytes for e in left if os.fspath(e.path) in keep))
+
+
+def after_write(path: Path) -> PruneReport:
+    """After ``path`` was written to the cache: mark it used, prune the cache to its bound; warn once per cache
+    directory when what this process uses exceeds the bound by itself."""
+    mark_used(path)
+    limit = max_bytes()
+    report = prune(path.parent, limit)
+    if report.left_bytes > limit and os.fspath(path.parent) not in _warned:
+        _warned.add(os.fspath(path.parent))
+        warnings.warn(f"palpate cache: {path.parent} holds {size_text(report.left_bytes)}, above its bound of "
+                      f"{size_text(limit)} ({ENV}); {size_text(report.in_use_bytes)} of it in use by this process "
+                      f"(kept): raise the bound or expect rebuilds", stacklevel=3)
+    return report

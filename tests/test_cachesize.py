@@ -1,0 +1,210 @@
+"""The disk cache's size bound (fem.cachesize, used by fem.diskcache) and `palpate cache`: the entries used least
+recently go first, what the writing process uses is kept, reads mark use (not of files outside the cache), partial
+writes of dead writers go, the bound is read from the environment or refused with one line."""
+from __future__ import annotations
+
+import json
+import os
+import time
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from app.cli import main
+from fem import cachesize, diskcache
+
+
+@pytest.fixture
+def cdir(tmp_path, monkeypatch):
+    d = tmp_path / "cache"
+    d.mkdir()
+    monkeypatch.setenv("PALPATE_CACHE_DIR", str(d))
+    monkeypatch.delenv("PALPATE_CACHE", raising=False)
+    monkeypatch.delenv(cachesize.ENV, raising=False)
+    monkeypatch.setattr(cachesize, "_in_use", set())
+    monkeypatch.setattr(cachesize, "_warned", set())
+    return d
+
+
+def _entry(d, kind: str, key: int, size: int, age_s: float, now: float):
+    """A fake entry file of ``size`` bytes last used ``age_s`` before ``now``."""
+    p = d / f"{kind}-{key:020x}.npz"
+    p.write_bytes(b"x" * size)
+    os.utime(p, (now - age_s, now - age_s))
+    return p
+
+
+def test_prune_removes_least_recently_used_first_and_spares_what_is_kept(cdir):
+    now = time.time()
+    ps = [_entry(cdir, "mesh", i, 100, age_s=1000 - 10 * i, now=now) for i in range(10)]   # ps[0] the oldest
+    r = cachesize.prune(cdir, 650, keep={ps[0]})
+    # 1000 bytes, bound 650: four go, the oldest but ps[0] (kept)
+    assert [e.path for e in r.removed] == ps[1:5]
+    assert r.left_bytes == 600 and r.left_entries == 6 and r.in_use_bytes == 100
+    assert sorted(p.name for p in cdir.iterdir()) == sorted(p.name for p in [ps[0], *ps[5:]])
+    assert cachesize.prune(cdir, 650, keep=()).removed == ()                  # within the bound: nothing more
+
+
+def test_the_bound_cannot_remove_what_is_kept(cdir):
+    now = time.time()
+    ps = [_entry(cdir, "surface3d", i, 500, age_s=100 - i, now=now) for i in range(3)]
+    r = cachesize.prune(cdir, 0, keep=set(ps))
+    assert r.removed == () and r.left_bytes == 1500 and r.in_use_bytes == 1500
+    assert all(p.exists() for p in ps)
+
+
+def test_a_write_prunes_the_others_and_warns_once_when_its_own_exceed_the_bound(cdir, monkeypatch):
+    now = time.time()
+    old = [_entry(cdir, "mesh", i, 4000, age_s=3600 + i, now=now) for i in range(3)]
+    monkeypatch.setenv(cachesize.ENV, "6000")
+    a = {"x": np.arange(100.0)}                                    # about 1 kB as .npz
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                              # within the bound: no warning
+        diskcache.write(diskcache.entry_path("k1", {"a": 1}), a)
+    # 12 kB + 1 kB over 6 kB: the two oldest go (the newest of the old, 4 kB, stays)
+    assert [p.exists() for p in old] == [True, False, False]
+    monkeypatch.setenv(cachesize.ENV, "100")
+    with pytest.warns(UserWarning, match="above its bound.*in use by this process"):
+        diskcache.write(diskcache.entry_path("k2", {"a": 2}), a)
+    assert not old[0].exists()                                     # not in use: removed
+    left = sorted(p.name.split("-")[0] for p in cdir.glob("*.npz"))
+    assert left == ["k1", "k2"]                                    # this process's own are kept
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                              # warned once per directory
+        diskcache.write(diskcache.entry_path("k3", {"a": 3}), a)
+
+
+def test_reading_an_entry_marks_it_used_but_not_a_file_outside_the_cache(cdir, tmp_path):
+    p = diskcache.entry_path("mesh", {"n": 1})
+    diskcache.write(p, {"x": np.zeros(3)})
+    os.utime(p, (1e9, 1e9))
+    cachesize._in_use.clear()
+    assert diskcache.read(p) is not None
+    assert p.stat().st_mtime > time.time() - 60 and os.fspath(p) in cachesize._in_use
+    os.utime(p, (1e9, 1e9))
+    assert diskcache.read(p, mmap=True) is not None and p.stat().st_mtime > 1e9
+    shipped = tmp_path / "data" / "surrogate-0123456789abcdef.npz"          # e.g. a table shipped with the source
+    shipped.parent.mkdir()
+    np.savez(shipped, x=np.zeros(2))
+    os.utime(shipped, (1e9, 1e9))
+    assert diskcache.read(shipped) is not None
+    assert shipped.stat().st_mtime == 1e9 and os.fspath(shipped) not in cachesize._in_use
+
+
+def test_an_entry_removed_before_it_is_opened_is_a_quiet_miss(cdir, monkeypatch):
+    p = diskcache.entry_path("mesh", {"n": 2})
+    diskcache.write(p, {"x": np.zeros(3)})
+
+    def gone(path):
+        raise FileNotFoundError(path)
+    monkeypatch.setattr(diskcache, "_mapped", gone)
+    corrupt = diskcache.stats["corrupt"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert diskcache.read(p, mmap=True) is None
+    assert diskcache.stats["corrupt"] == corrupt
+
+
+def test_partial_writes_of_dead_writers_go_and_live_ones_stay(cdir):
+    now = time.time()
+    dead, live = cdir / "factor3d-abc.x1.tmp", cdir / "factor3d-abc.x2.tmp"
+    for p, age in ((dead, cachesize.STALE_TMP_S + 60), (live, 5)):
+        p.write_bytes(b"y" * 10)
+        os.utime(p, (now - age, now - age))
+    r = cachesize.prune(cdir, 1e12, keep=())
+    assert r.stale_tmp == (dead,) and not dead.exists() and live.exists()
+
+
+def test_only_entry_files_count(cdir):
+    now = time.time()
+    e = _entry(cdir, "forces", 7, 50, 10, now)
+    (cdir / (e.name + ".lock")).write_bytes(b"")
+    (cdir / "surrogate-0123456789abcdef.parts").mkdir()               # a resumable build: never an entry
+    (cdir / "surrogate-0123456789abcdef.parts" / "stone_001.npz").write_bytes(b"z" * 999)
+    (cdir / "notes.txt").write_text("mine")
+    assert [(x.kind, x.size_bytes) for x in cachesize.entries(cdir)] == [("forces", 50)]
+    cachesize.prune(cdir, 0, keep=())
+    assert not e.exists() and (cdir / (e.name + ".lock")).exists() and (cdir / "notes.txt").exists()
+    assert (cdir / "surrogate-0123456789abcdef.parts" / "stone_001.npz").exists()
+
+
+@pytest.mark.parametrize("text", ["abc", "-1", "nan", "inf", "1e9 bytes"])
+def test_a_bad_bound_is_refused_naming_the_variable(monkeypatch, text):
+    monkeypatch.setenv(cachesize.ENV, text)
+    with pytest.raises(ValueError, match=f"{cachesize.ENV}=.*bytes"):
+        cachesize.max_bytes()
+
+
+@pytest.mark.parametrize("text, value", [("5e9", 5e9), ("0", 0.0), ("  ", cachesize.DEFAULT_MAX_BYTES),
+                                         ("123456", 123456.0)])
+def test_the_bound_from_the_environment(monkeypatch, text, value):
+    monkeypatch.setenv(cachesize.ENV, text)
+    assert cachesize.max_bytes() == value
+
+
+@settings(max_examples=200, deadline=None)
+@given(sizes=st.lists(st.integers(0, 1000), min_size=0, max_size=12), limit=st.integers(0, 8000),
+       data=st.data())
+def test_prune_property(tmp_path_factory, sizes, limit, data):
+    """Whatever the sizes, ages and kept set: nothing kept goes; the rest fits the bound unless only kept entries
+    are left to remove; what goes is never more recently used than an unkept entry that stays; pruning stops as soon
+    as the bound is met."""
+    d = tmp_path_factory.mktemp("c")
+    now = time.time()
+    ages = data.draw(st.lists(st.integers(1, 10 ** 6), min_size=len(sizes), max_size=len(sizes), unique=True))
+    ps = [_entry(d, "k", i, s, a, now) for i, (s, a) in enumerate(zip(sizes, ages))]
+    keep = set(data.draw(st.lists(st.sampled_from(ps), unique=True)) if ps else [])
+    r = cachesize.prune(d, limit, keep=keep)
+    gone = {e.path for e in r.removed}
+    assert not gone & keep and all(not p.exists() for p in gone)
+    left = [p for p in ps if p not in gone]
+    assert r.left_bytes == sum(p.stat().st_size for p in left)
+    assert r.left_bytes <= limit or all(p in keep for p in left)
+    used = {p: now - a for p, a in zip(ps, ages)}
+    stay = [used[p] for p in left if p not in keep]
+    assert all(used[p] < min(stay) for p in gone) if stay and gone else True
+    if r.removed:           # before the last removal the rest did not fit
+        assert r.left_bytes + r.removed[-1].size_bytes > limit
+
+
+def test_cli_lists_prunes_and_clears(cdir, capsys, tmp_path):
+    now = time.time()
+    m = [_entry(cdir, "mesh", i, 1000, 100 + i, now) for i in range(3)]
+    f = [_entry(cdir, "factor3d", i, 5000, 10 + i, now) for i in range(2)]
+    (cdir / (f[0].name + ".lock")).write_bytes(b"")
+    out = tmp_path / "list.json"
+    assert main(["cache", "--json", str(out), "--entries"]) == 0
+    d = json.loads(out.read_text())
+    assert d["entries"] == 5 and d["total_bytes"] == 13000
+    assert d["kinds"]["mesh"] == {**d["kinds"]["mesh"], "entries": 3, "size_bytes": 3000}
+    assert d["kinds"]["factor3d"]["size_bytes"] == 10000 and len(d["entry_list"]) == 5
+    assert "factor3d" in capsys.readouterr().out
+    # prune to 11 kB: the three meshes (the least recently used) go first, two of them suffice
+    assert main(["cache", "prune", "--max-bytes", "11000", "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert [os.path.basename(e["path"]) for e in d["removed"]] == [m[2].name, m[1].name]
+    assert d["left_bytes"] == 11000 and m[0].exists()
+    assert main(["cache", "clear", "--kind", "factor3d"]) == 0
+    assert not any(p.exists() for p in f) and not (cdir / (f[0].name + ".lock")).exists() and m[0].exists()
+    assert main(["cache", "clear"]) == 0
+    assert not list(cdir.glob("*.npz"))
+
+
+@pytest.mark.parametrize("argv, env, needle", [
+    (["cache", "clear", "--kind", "nope"], {}, "--kind nope: no entries of that kind"),
+    (["cache", "prune", "--max-bytes", "-5"], {}, "--max-bytes"),
+    (["cache", "--kind", "mesh"], {}, "--kind mesh: only for `palpate cache clear`"),
+    (["cache", "clear", "--max-bytes", "5"], {}, "--max-bytes 5: only for `palpate cache prune`"),
+    (["cache"], {cachesize.ENV: "lots"}, f"{cachesize.ENV}='lots'"),
+    (["cache"], {"PALPATE_CACHE": "of"}, "PALPATE_CACHE='of'"),
+])
+def test_cli_bad_input_is_one_line_and_exit_2(cdir, capsys, monkeypatch, argv, env, needle):
+    _entry(cdir, "mesh", 1, 10, 10, time.time())
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1 and "Traceback" not in err
