@@ -94,6 +94,10 @@ def check_environment() -> None:
         cachesize.max_bytes()
     except ValueError as e:
         raise UsageError(str(e)) from None
+    where = os.environ.get("PALPATE_CACHE_DIR")
+    if where and os.path.exists(where) and not os.path.isdir(where):
+        raise UsageError(f"PALPATE_CACHE_DIR={where!r}: not a directory; give the disk cache's directory (made if "
+                         f"absent; unset: ~/.cache/palpate)")
 
 
 if __name__ == "__main__":

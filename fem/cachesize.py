@@ -10,12 +10,19 @@ bound the cache grows until the disk is full.
   (``after_write``) the entries used least recently are removed until the cache's entries fit, except what this
   process has read or written (``in_use``): a run never loses what it is working with, so the bound is soft; when
   those alone exceed it a warning says so once.
-- **Partial writes** (``*.tmp`` of a writer that was killed) older than ``STALE_TMP_S`` are removed by the same pass.
+  Entries used within the last ``RECENT_S`` are spared too (another command or a study's worker is likely using
+  them). The directory is listed at most every ``RESCAN_S`` while this process's own estimate of the total (the last
+  listing plus what it wrote since) stays within the bound: a study writing thousands of small entries does not list
+  a large directory after each.
+- **Partial writes** of palpate's own (``<kind>-<key>.<random>.tmp``) older than ``STALE_TMP_S`` are removed by the
+  same pass; no other file is touched: only names of the entries' exact form count (``kind_of``), so a cache
+  directory shared with other files loses none of them.
 - Lock files (fem.memo's ``*.npz.lock``, empty) and resumable builds (``*.parts`` directories) are never removed
-  here; ``palpate cache clear`` removes lock files of the entries it clears.
+  here; ``palpate cache clear`` removes both (a lock file only when no process holds it).
 
 Another process may hold an entry that this one removes: on POSIX an open or memory-mapped file stays readable until
-closed; one it reads later is a miss, rebuilt. Two processes pruning at once only remove a little more.
+closed (its space is freed only then); one it reads later is a miss, rebuilt. Two processes pruning at once only
+remove a little more.
 """
 from __future__ import annotations
 
@@ -27,13 +34,27 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+try:
+    import fcntl
+except ImportError:                   # not POSIX: lock files are never removed
+    fcntl = None
+
 ENV = "PALPATE_CACHE_MAX_BYTES"
 DEFAULT_MAX_BYTES = 20e9          # about ten 3D models with their stresses (2 GB each), the 2D ones beside them
 STALE_TMP_S = 3600.0              # a partial write older than this belongs to a writer that is gone
-_ENTRY = re.compile(r"^(?P<kind>.+?)-[0-9a-f]{12,}\.npz$")
+RECENT_S = 600.0                  # entries used this recently are spared (other processes may be using them)
+RESCAN_S = 60.0                   # after a write, the directory is listed again at most this often (within bound)
+# <kind>-<16 or 20 hex digits>[-cal-<mesh size>-<grade>].npz (fem.diskcache.entry_path; the surrogate tables and
+# the 3D table's mesh calibrations), and their partial writes <entry stem>.<random>.tmp (tempfile.mkstemp)
+_ENTRY = re.compile(r"^(?P<kind>[a-z][a-z0-9]*)-(?:[0-9a-f]{20}|[0-9a-f]{16})(?P<cal>-cal-[0-9.e+-]+-[0-9.e+-]+)?"
+                    r"\.npz$")
+_PARTIAL = re.compile(r"^(?P<stem>[a-z][a-z0-9]*-(?:[0-9a-f]{20}|[0-9a-f]{16})(?:-cal-[0-9.e+-]+-[0-9.e+-]+)?)"
+                      r"\.[A-Za-z0-9_]+\.tmp$")
+KIND_NAME = re.compile(r"^[a-z][a-z0-9]*(?:-cal)?$")
 
 _in_use: set[str] = set()         # entries this process read or wrote (never removed by its own pruning)
 _warned: set[str] = set()
+_scanned: dict[str, tuple[float, int]] = {}   # directory -> (when listed, bytes of entries then + written since)
 
 
 @dataclass(frozen=True)
@@ -83,7 +104,7 @@ def size_text(n: float) -> str:
 def kind_of(path: Path) -> str | None:
     """The kind of an entry's file name (``<kind>-<hex key>.npz``), None for any other file."""
     m = _ENTRY.match(path.name)
-    return m.group("kind") if m else None
+    return None if m is None else m.group("kind") + ("-cal" if m.group("cal") else "")
 
 
 def entries(root: Path) -> list[Entry]:
@@ -109,12 +130,13 @@ def entries(root: Path) -> list[Entry]:
 
 
 def partial_writes(root: Path, older_than_s: float = STALE_TMP_S, now: float | None = None) -> list[Path]:
-    """Partial writes (``*.tmp``) in ``root`` last touched more than ``older_than_s`` ago."""
+    """palpate's partial writes (``<entry stem>.<random>.tmp`` files) in ``root`` last touched more than
+    ``older_than_s`` ago."""
     now = time.time() if now is None else now
     out = []
     for p in root.glob("*.tmp") if root.is_dir() else ():
         try:
-            if now - p.stat().st_mtime > older_than_s:
+            if _PARTIAL.match(p.name) and p.is_file() and not p.is_symlink() and now - p.stat().st_mtime > older_than_s:
                 out.append(p)
         except FileNotFoundError:
             continue
@@ -131,6 +153,24 @@ def mark_used(path: Path) -> None:
         pass
 
 
+def remove_lock(path: Path) -> bool:
+    """Remove a lock file (fem.memo's) unless a process holds it (taken without waiting first; where there is no
+    flock, kept). Whether it is gone."""
+    if fcntl is None:
+        return False
+    try:
+        with open(path, "a") as f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                return False                # held: a memo merge is running
+            return remove(path)
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+
+
 def remove(path: Path) -> bool:
     """Whether ``path`` is gone (removed now, or by another process first)."""
     try:
@@ -143,16 +183,20 @@ def remove(path: Path) -> bool:
     return True
 
 
-def prune(root: Path, limit_bytes: float, keep=None, now: float | None = None) -> PruneReport:
+def prune(root: Path, limit_bytes: float, keep=None, now: float | None = None,
+          recent_s: float = 0.0) -> PruneReport:
     """Remove the entries of ``root`` used least recently until the rest take at most ``limit_bytes``, sparing
-    ``keep`` (paths; default: what this process has in use); and partial writes older than STALE_TMP_S."""
+    ``keep`` (paths; default: what this process has in use) and entries used within ``recent_s``; and partial writes
+    older than STALE_TMP_S."""
     keep = _in_use if keep is None else {os.fspath(p) for p in keep}
+    now = time.time() if now is None else now
     stale = tuple(p for p in partial_writes(root, now=now) if remove(p))
     ents = entries(root)
     total = sum(e.size_bytes for e in ents)
     removed, left = [], []
     for e in ents:
-        if total > limit_bytes and os.fspath(e.path) not in keep and remove(e.path):
+        spared = os.fspath(e.path) in keep or now - e.used_s < recent_s
+        if total > limit_bytes and not spared and remove(e.path):
             removed.append(e)
             total -= e.size_bytes
         else:
@@ -161,15 +205,29 @@ def prune(root: Path, limit_bytes: float, keep=None, now: float | None = None) -
                        sum(e.size_bytes for e in left if os.fspath(e.path) in keep))
 
 
-def after_write(path: Path) -> PruneReport:
-    """After ``path`` was written to the cache: mark it used, prune the cache to its bound; warn once per cache
-    directory when what this process uses exceeds the bound by itself."""
+def after_write(path: Path) -> PruneReport | None:
+    """After ``path`` was written to the cache: mark it used, and prune the cache to its bound (sparing what this
+    process uses and what was used within RECENT_S) unless it was listed less than RESCAN_S ago and this process's
+    estimate of its size (that listing plus what it wrote since) is within the bound (None then); warn once per
+    cache directory when the spared entries alone exceed the bound."""
     mark_used(path)
     limit = max_bytes()
-    report = prune(path.parent, limit)
-    if report.left_bytes > limit and os.fspath(path.parent) not in _warned:
-        _warned.add(os.fspath(path.parent))
+    d = os.fspath(path.parent)
+    try:
+        size = path.stat().st_size
+    except OSError:
+        size = 0
+    when, total = _scanned.get(d, (-math.inf, 0))
+    now = time.time()
+    if total + size <= limit and now - when < RESCAN_S:
+        _scanned[d] = (when, total + size)
+        return None
+    report = prune(path.parent, limit, now=now, recent_s=RECENT_S)
+    _scanned[d] = (now, report.left_bytes)
+    if report.left_bytes > limit and d not in _warned:
+        _warned.add(d)
         warnings.warn(f"palpate cache: {path.parent} holds {size_text(report.left_bytes)}, above its bound of "
                       f"{size_text(limit)} ({ENV}); {size_text(report.in_use_bytes)} of it in use by this process "
-                      f"(kept): raise the bound or expect rebuilds", stacklevel=3)
+                      f"and the rest used within the last {RECENT_S / 60:g} minutes (kept): raise the bound or expect "
+                      f"rebuilds", stacklevel=3)
     return report

@@ -20,7 +20,8 @@ compliance came from the disk cache, factorized for its fields) the factor read 
 Displacements for forces on the contact DOFs only (``solve_contact``): the forward sweep L y = P b of such a
 right-hand side touches only the trailing block (y is zero on the interior), so y_c = L_cc^-1 b_c is a dense
 product with the kept L_cc^-1 and only the backward sweep L^T x = y goes through the sparse factor: half the work
-of a full solve, the same answer to round-off. Without cvxopt: fem.contact.SchurFactor (SuperLU).
+of a full solve, the same answer to round-off. Without cvxopt: fem.schur_lu.SchurFactor (SuperLU; the 2D surface
+model's compliance is always made by it).
 """
 from __future__ import annotations
 
@@ -34,8 +35,8 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .contact import SchurFactor
 from .interior_factor import InteriorFactor
+from .schur_lu import SchurFactor
 
 
 def available() -> bool:
@@ -415,7 +416,7 @@ def factorize_spd(K):
 def schur(K, free: np.ndarray, contact: np.ndarray, method: str = "auto", ordering: str = "auto",
           compliance: bool = True, interior: bool = False):
     """The condensation of K_ff onto ``contact``: CholmodSchur ("cholmod", or "auto" when cvxopt is installed; its
-    interior ``ordering``, see ``interior_order``; ``compliance=False``: not formed) or fem.contact.SchurFactor
+    interior ``ordering``, see ``interior_order``; ``compliance=False``: not formed) or fem.schur_lu.SchurFactor
     ("superlu"). Both have ``compliance``, ``solve``, ``free`` and ``c``; CholmodSchur also ``solve_contact``."""
     if method == "cholmod" or (method == "auto" and available()):
         return CholmodSchur(K, free, contact, ordering, compliance, interior)

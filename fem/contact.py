@@ -15,13 +15,16 @@ its own active-set loop, refactorizing every iteration. The two must agree to ro
 
 ``surface_model`` keeps SurfaceModels in memory and on disk (fem.diskcache, keyed by the scene's content, the
 options and the code version). What is stored is the compliance C of the top surface (and an elastic tip's arc
-compliance), see ``SurfaceModel.to_arrays``. SuperLU's factors cannot be pickled and rebuilding a solver from
-stored L/U factors is slower in scipy than refactoring, so the factorization is *not* stored: a restored
-SurfaceModel answers force queries (the LCP needs only C) at once and factorizes K on the first request for fields
-(stresses, displacements). The restored C is bitwise the C a fresh build computes (tests check it).
+compliance), see ``SurfaceModel.to_arrays``; a restored SurfaceModel answers force queries (the LCP needs only C) at
+once. Fields (stresses without the influence operators, displacements) need the interior of a factorization: the
+first request makes one (CHOLMOD, with the top last) and stores its interior columns beside C (kind ``factor``,
+fem.interior_factor: SuperLU's factors could not be stored), so a later process sweeps through them with no assembly
+and no factorization; without cvxopt the SuperLU factorization serves, made again in each process. The restored C
+is bitwise the C a fresh build computes (tests check it).
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass
@@ -34,7 +37,8 @@ from .influence import Influence, band_nodes, fits
 from .lcp import solve_lcp
 from .model import Model, build_model
 from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
-from .scene_mesh import check_surface_budget, code_version, mesh_for
+from .scene_mesh import check_surface_budget, code_version, mesh_for, sources_version
+from .schur_lu import SchurFactor
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TIP_TOLERANCE, TipCompliance, contact_scene, rigid_tip_bound
 
@@ -103,39 +107,6 @@ def condensed_displacements(model, fac, F: np.ndarray) -> np.ndarray:
     return model.P @ Y
 
 
-class SchurFactor:
-    """K_ff factorized with the contact DOFs ordered last, so that the trailing block of L U is the Schur
-    complement S = K_cc - K_ci K_ii^-1 K_ic and the condensed compliance is exactly S^-1: no multi-right-hand-side
-    solve. The interior keeps SuperLU's fill-reducing ordering (taken from a first factorization)."""
-
-    def __init__(self, K, free: np.ndarray, contact: np.ndarray):
-        import scipy.sparse.linalg as spla
-        Kff = K[free][:, free].tocsc()
-        pos = np.full(K.shape[0], -1)
-        pos[free] = np.arange(len(free))
-        c = pos[contact]
-        opts = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}   # SPD: no pivoting
-        order = np.argsort(spla.splu(Kff, permc_spec="MMD_AT_PLUS_A", **opts).perm_c)
-        is_c = np.zeros(len(free), bool)
-        is_c[c] = True
-        self.p = np.concatenate([order[~is_c[order]], c])
-        self.lu = spla.splu(Kff[self.p][:, self.p].tocsc(), permc_spec="NATURAL", **opts)
-        n, nc = len(free), len(c)
-        if not (np.array_equal(self.lu.perm_r, np.arange(n)) and np.array_equal(self.lu.perm_c, np.arange(n))):
-            raise RuntimeError("SuperLU reordered the Schur factorization; cannot read the Schur complement")
-        L = self.lu.L.tocsc()[n - nc:, n - nc:].toarray()
-        U = self.lu.U.tocsc()[n - nc:, n - nc:].toarray()
-        S = L @ U
-        self.compliance = np.linalg.inv(0.5 * (S + S.T))
-        self.free, self.c = free, c
-
-    def solve(self, rhs_free: np.ndarray) -> np.ndarray:
-        """K_ff^-1 rhs for rhs given on the free DOFs (n_free,) or (n_free, k)."""
-        x = np.empty_like(rhs_free, dtype=float)
-        x[self.p] = self.lu.solve(np.asfortranarray(rhs_free[self.p]))
-        return x
-
-
 class SurfaceModel:
     """A scene's condensed top-surface response: build once, then ``indent`` any waypoint in about a millisecond.
 
@@ -170,7 +141,10 @@ class SurfaceModel:
                              f"surface (smaller mesh_size_m or larger surface_refine)")
         self.top_red = self.model.reduced_index(2 * self.top + 1)
         self._free, self._fac = free, None
+        self._interior, self._interior_tried = None, False
+        self.interior_cache: tuple[dict, bool | None] | None = None     # (spec, use): where ``interior`` is kept
         if compliance is None:
+            from .condense import SchurFactor  # scipy: a build (a restored model forces with numpy alone)
             self._fac = SchurFactor(self.model.K, free, self.top_red)
             compliance = self._fac.compliance
         if not np.all(np.isfinite(compliance)):
@@ -218,16 +192,65 @@ class SurfaceModel:
         return cls(scene, model=model, compliance=C, tip=tip, **options)
 
     @property
-    def fac(self) -> SchurFactor:
-        """The factorization (made on first use when the compliance came from the disk cache)."""
+    def fac(self):
+        """The SuperLU factorization (fem.schur_lu.SchurFactor; made on first use when the compliance came from
+        the disk cache): the fields' solver when the factor's interior columns cannot be had (``interior``)."""
         if self._fac is None:
             self._fac = SchurFactor(self.model.K, self._free, self.top_red)
         return self._fac
 
+    def interior(self):
+        """The interior columns of K_ff's Cholesky factor with the top's vertical DOFs last (fem.interior_factor):
+        from memory, the disk cache (kind ``factor``, under the surface model's key: ``interior_cache``, set by
+        load_or_build_surface) or one CHOLMOD factorization, then stored. A restored model's fields then cost
+        C f and one backward sweep, with no assembly and no factorization. None without cvxopt or when CHOLMOD's
+        factor cannot be read in place (tried once): the fields then come from ``fac``."""
+        if self._interior is None and not self._interior_tried:
+            self._interior_tried = True
+            from .condense import interior_factor  # CHOLMOD and scipy: only when a field is asked for
+            from .interior_factor import InteriorFactor
+            pos = np.full(self.model.n_dofs, -1)
+            pos[self._free] = np.arange(len(self._free))
+            c = pos[self.top_red]
+
+            def restore(arrays):
+                f = InteriorFactor.from_arrays(arrays)
+                if f.n != len(self._free) or not np.array_equal(f.p[f.n - f.nc:], c):
+                    raise ValueError(f"a factor of {f.n} DOFs ({f.nc} on the top) that does not fit this model "
+                                     f"({len(self._free)}, {len(c)})")
+                return f
+
+            def build():
+                f = interior_factor(self.model.K, self._free, self.top_red)
+                if f is None:
+                    raise _NoFactor
+                return f
+            spec, use = self.interior_cache if self.interior_cache is not None else (None, False)
+            try:
+                self._interior = build() if spec is None else diskcache.load_or_build(
+                    "factor", {**spec, "factor": _factor_version()}, build, to_arrays=InteriorFactor.to_arrays,
+                    from_arrays=restore, use=use)
+            except _NoFactor:
+                self._interior = None
+        return self._interior
+
     # -- fields from contact forces (one back-substitution per waypoint, batched when many) ----------------------
     def displacements(self, F_top: np.ndarray) -> np.ndarray:
-        """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes."""
-        return condensed_displacements(self.model, self.fac, F_top)
+        """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes: the top's
+        own from the compliance (-C F), the interior's by the stored factor's backward sweep (``interior``); else
+        by the SuperLU factorization (``fac``)."""
+        F_top = np.asarray(F_top, dtype=float).reshape(len(self.top), -1)
+        itf = self.interior()
+        if itf is None:
+            return condensed_displacements(self.model, self.fac, F_top)
+        X = np.empty((itf.n, F_top.shape[1]))
+        X[itf.p] = itf.sweep(-(self.C @ F_top))
+        if not np.isfinite(X).all():
+            raise FloatingPointError(f"scene {self.scene.name!r}: the displacements are not finite (a damaged disk "
+                                     f"cache entry? delete it, or set PALPATE_CACHE=0)")
+        Y = np.zeros((self.model.n_dofs, F_top.shape[1]))
+        Y[self._free] = X
+        return self.model.P @ Y
 
     def _band(self) -> tuple[np.ndarray, np.ndarray, object, object]:
         """(band nodes, their Poisson ratios, recovery operators on the full displacements: band, top)."""
@@ -494,7 +517,19 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
         return diskcache.load_or_build("influence", ispec, build=build, to_arrays=Influence.to_arrays,
                                        from_arrays=read, use=use, mmap=True)
     sm._influence_cache = influence_cache                                  # noqa: SLF001 (the cache's hook)
+    sm.interior_cache = (spec, use)         # the fields' factor is kept under the same key (kind "factor")
     return sm
+
+
+@functools.lru_cache(maxsize=1)
+def _factor_version() -> str:
+    """The stored factor's own sources (not in the 2D code version, which keys the compliance): a key part of the
+    ``factor`` entries."""
+    return sources_version(("condense.py", "interior_factor.py"), "factor 1")
+
+
+class _NoFactor(Exception):
+    """CHOLMOD's factor cannot be had here (no cvxopt, or its layout unreadable): nothing to store."""
 
 
 _CACHE: dict[tuple, SurfaceModel] = {}

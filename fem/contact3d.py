@@ -5,7 +5,7 @@ traction-free except where the tip presses. Small-strain, small-sliding contact:
 at a top node is measured vertically at the node's undeformed (x, y).
 
 As in 2D (fem.contact), per scene: the model is factorized once with the vertical DOFs of the probed patch's top
-nodes ordered last (fem.contact.SchurFactor), so the trailing block of the factors is the Schur complement on them
+nodes ordered last (fem.schur_lu.SchurFactor), so the trailing block of the factors is the Schur complement on them
 and the condensed compliance C (patch-node downward displacement per downward nodal force) is its inverse. A
 waypoint (x, y, depth) is then the LCP  gap = q + C_ww f >= 0, f >= 0, gap . f = 0  over the patch nodes under the
 tip's footprint (q: the tip's profile), solved exactly by fem.lcp. Stresses under the tip come from the contact

@@ -23,8 +23,8 @@ from .scene import Scene, SceneError
 
 FORMAT = 2
 # the modules whose code decides what the cache stores (meshes here, surface operators in fem.contact)
-_SOURCES = ("scene_mesh.py", "mesh.py", "assembly.py", "elements.py", "model.py", "contact.py", "tip.py", "influence.py",
-            "stress.py", "guards.py")
+_SOURCES = ("scene_mesh.py", "mesh.py", "assembly.py", "elements.py", "model.py", "contact.py", "schur_lu.py", "tip.py",
+            "influence.py", "stress.py", "guards.py")
 
 
 @functools.lru_cache(maxsize=1)

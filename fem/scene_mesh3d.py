@@ -19,7 +19,7 @@ from .scene_mesh import max_dofs, sources_version
 
 FORMAT = 1
 _SOURCES = ("scene_mesh3d.py", "mesh3d.py", "assembly3d.py", "elements3d.py", "model3d.py", "contact3d.py", "condense.py",
-            "tip3d.py", "interior_factor.py")
+            "tip3d.py", "interior_factor.py", "schur_lu.py")
 
 
 @functools.lru_cache(maxsize=1)

@@ -31,9 +31,11 @@ ROBOT_FEM_USERS = {"robot.simarm"}
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
            "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "pymetis", "planner.plots_plan", "planner.plots_run",
            "planner.plots_accuracy", "importlib.metadata", "distributed",
-           "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d", "tomllib")
+           "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d", "tomllib",
+           "fem.condense", "fem.interior_factor")
 # scipy.sparse: a cached model predicts with numpy alone (issue 19); app.commands.sim3d and run3d: the 3D path
-# (scipy.linalg, CHOLMOD) loaded for a 3D scene only; tomllib: TOML scenes only (4 ms of a cached predict's start-up)
+# (scipy.linalg, CHOLMOD) loaded for a 3D scene only; tomllib: TOML scenes only (4 ms of a cached predict's start-up);
+# fem.condense, fem.interior_factor (scipy.sparse, scipy.linalg, CHOLMOD): a 2D surface model's fields only
 
 
 def modules() -> dict[str, Path]:

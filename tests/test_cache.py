@@ -133,3 +133,58 @@ def test_a_restored_3d_compliance_is_memory_mapped_and_gives_the_fresh_forces(cd
     poisoned = contact3d.load_or_build_surface3d(small, {})
     with pytest.raises(FloatingPointError):
         poisoned.force_n(*pts[0])
+
+
+def _loads(sm, n: int = 3) -> np.ndarray:
+    """Downward nodal forces on the top: n columns, a few nodes each under different x."""
+    F = np.zeros((len(sm.top), n))
+    for k, x in enumerate(np.linspace(0.02, 0.05, n)):
+        near = np.argsort(np.abs(sm.x - x))[:5]
+        F[near, k] = np.linspace(1.0, 2.0, 5) * 1e-3
+    return F
+
+
+def test_2d_fields_come_from_the_stored_factor_without_assembly(cdir):
+    """The 2D fields' factor (kind ``factor``): equal to the SuperLU solve to round-off; a later process (the
+    in-memory cache cleared) reads it and neither assembles nor factorizes, with bitwise the same fields."""
+    sc = _scene()
+    fresh = contact.surface_model(sc)
+    F = _loads(fresh)
+    U = fresh.displacements(F)
+    ref = contact.condensed_displacements(fresh.model, fresh.fac, F)        # SuperLU, the full solve's path
+    assert np.max(np.abs(U - ref)) <= 1e-9 * np.max(np.abs(ref))
+    assert len(list(cdir.glob("factor-*.npz"))) == 1
+    contact._CACHE.clear()
+    restored = contact.surface_model(sc)
+    U2 = restored.displacements(F)
+    assert np.array_equal(U2, U)
+    assert "K" not in vars(restored.model) and restored._fac is None       # no assembly, no factorization
+    u = restored.full_field(0.035, 0.004)
+    assert np.array_equal(u, fresh.full_field(0.035, 0.004))
+
+
+def test_a_2d_factor_entry_that_does_not_fit_is_rebuilt(cdir):
+    sc = _scene()
+    F = _loads(contact.surface_model(sc))
+    U = contact.surface_model(sc).displacements(F)
+    path = next(cdir.glob("factor-*.npz"))
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    a["p"] = a["p"][::-1].copy()                                            # another order: the top not last
+    np.savez(path, **a)
+    contact._CACHE.clear()
+    with pytest.warns(UserWarning, match="palpate cache: ignoring.*does not fit"):
+        again = contact.surface_model(sc).displacements(F)
+    assert np.array_equal(again, U)
+
+
+def test_without_cholmod_the_2d_fields_come_from_superlu(cdir, monkeypatch):
+    from fem import condense
+    calls = []
+    monkeypatch.setattr(condense, "interior_factor", lambda *a, **k: calls.append(1))   # returns None
+    sm = contact.surface_model(_scene())
+    F = _loads(sm, 2)
+    U = sm.displacements(F)
+    assert np.array_equal(U, contact.condensed_displacements(sm.model, sm.fac, F))
+    sm.displacements(F)
+    assert calls == [1] and not list(cdir.glob("factor-*.npz"))             # tried once, nothing stored

@@ -26,6 +26,7 @@ def cdir(tmp_path, monkeypatch):
     monkeypatch.delenv(cachesize.ENV, raising=False)
     monkeypatch.setattr(cachesize, "_in_use", set())
     monkeypatch.setattr(cachesize, "_warned", set())
+    monkeypatch.setattr(cachesize, "_scanned", {})
     return d
 
 
@@ -108,27 +109,74 @@ def test_an_entry_removed_before_it_is_opened_is_a_quiet_miss(cdir, monkeypatch)
     assert diskcache.stats["corrupt"] == corrupt
 
 
-def test_partial_writes_of_dead_writers_go_and_live_ones_stay(cdir):
+def test_partial_writes_of_dead_writers_go_and_nothing_else(cdir):
     now = time.time()
-    dead, live = cdir / "factor3d-abc.x1.tmp", cdir / "factor3d-abc.x2.tmp"
-    for p, age in ((dead, cachesize.STALE_TMP_S + 60), (live, 5)):
+    key = f"{7:020x}"
+    dead, live = cdir / f"factor3d-{key}.x1ab_9.tmp", cdir / f"factor3d-{key}.x2cd.tmp"
+    foreign = [cdir / "firefox-download.tmp", cdir / f"mesh-{key}.tmp", cdir / "notes-0123456789abcdef0123.tmp"]
+    for p, age in [(dead, cachesize.STALE_TMP_S + 60), (live, 5)] + [(f, 10 * cachesize.STALE_TMP_S) for f in foreign]:
         p.write_bytes(b"y" * 10)
         os.utime(p, (now - age, now - age))
-    r = cachesize.prune(cdir, 1e12, keep=())
+    (cdir / f"surface-{key}.zz.tmp").mkdir()                       # a directory of that name: not ours to remove
+    os.utime(cdir / f"surface-{key}.zz.tmp", (now - 1e5, now - 1e5))
+    r = cachesize.prune(cdir, 0, keep=())
     assert r.stale_tmp == (dead,) and not dead.exists() and live.exists()
+    assert all(f.exists() for f in foreign) and (cdir / f"surface-{key}.zz.tmp").is_dir()
 
 
 def test_only_entry_files_count(cdir):
     now = time.time()
     e = _entry(cdir, "forces", 7, 50, 10, now)
+    cal = cdir / "surrogate3d-0123456789abcdef-cal-0.004-1.5.npz"     # the 3D table's mesh calibration
+    cal.write_bytes(b"c" * 30)
     (cdir / (e.name + ".lock")).write_bytes(b"")
-    (cdir / "surrogate-0123456789abcdef.parts").mkdir()               # a resumable build: never an entry
-    (cdir / "surrogate-0123456789abcdef.parts" / "stone_001.npz").write_bytes(b"z" * 999)
-    (cdir / "notes.txt").write_text("mine")
-    assert [(x.kind, x.size_bytes) for x in cachesize.entries(cdir)] == [("forces", 50)]
+    (cdir / f"mesh-{1:020x}.npz").mkdir()                            # a directory named like an entry
+    user = ["scan-202401011200.npz", "run-20240101-123456789012.npz", "Mesh-0123456789abcdef.npz", "notes.txt",
+            "x-0123456789abcdef0.npz"]
+    for name in user:
+        (cdir / name).write_text("mine")
+    assert sorted((x.kind, x.size_bytes) for x in cachesize.entries(cdir)) == [("forces", 50), ("surrogate3d-cal", 30)]
     cachesize.prune(cdir, 0, keep=())
-    assert not e.exists() and (cdir / (e.name + ".lock")).exists() and (cdir / "notes.txt").exists()
-    assert (cdir / "surrogate-0123456789abcdef.parts" / "stone_001.npz").exists()
+    assert not e.exists() and not cal.exists() and (cdir / (e.name + ".lock")).exists()
+    assert all((cdir / name).exists() for name in user) and (cdir / f"mesh-{1:020x}.npz").is_dir()
+
+
+def test_entries_used_recently_by_any_process_are_spared_after_a_write(cdir, monkeypatch):
+    now = time.time()
+    recent = _entry(cdir, "surface", 1, 5000, cachesize.RECENT_S / 2, now)       # another command's, just used
+    old = _entry(cdir, "surface", 2, 5000, 2 * cachesize.RECENT_S, now)
+    monkeypatch.setenv(cachesize.ENV, "3000")
+    with pytest.warns(UserWarning, match="used within the last"):
+        diskcache.write(diskcache.entry_path("k", {"a": 1}), {"x": np.zeros(10)})
+    assert recent.exists() and not old.exists()
+
+
+def test_a_directory_within_its_bound_is_listed_once_per_rescan_interval(cdir, monkeypatch):
+    calls = []
+    real = cachesize.entries
+    monkeypatch.setattr(cachesize, "entries", lambda root: calls.append(root) or real(root))
+    for i in range(20):
+        diskcache.write(diskcache.entry_path("k", {"i": i}), {"x": np.zeros(10)})
+    assert len(calls) == 1                                          # 20 writes, one listing
+    monkeypatch.setenv(cachesize.ENV, "1")                          # over the bound: every write lists and prunes
+    with pytest.warns(UserWarning, match="above its bound"):
+        diskcache.write(diskcache.entry_path("k", {"i": 20}), {"x": np.zeros(10)})
+    diskcache.write(diskcache.entry_path("k", {"i": 21}), {"x": np.zeros(10)})
+    assert len(calls) == 3
+    monkeypatch.setenv(cachesize.ENV, "1e12")
+    monkeypatch.setattr(cachesize, "_scanned", {str(cdir): (time.time() - cachesize.RESCAN_S - 1, 0)})
+    diskcache.write(diskcache.entry_path("k", {"i": 22}), {"x": np.zeros(10)})
+    assert len(calls) == 4                                          # the interval passed: listed again
+
+
+def test_remove_lock_spares_a_held_lock(cdir):
+    import fcntl
+    lock = cdir / f"forces-{3:020x}.npz.lock"
+    lock.write_bytes(b"")
+    with open(lock, "a") as f:
+        fcntl.flock(f, fcntl.LOCK_EX)
+        assert not cachesize.remove_lock(lock) and lock.exists()
+    assert cachesize.remove_lock(lock) and not lock.exists()
 
 
 @pytest.mark.parametrize("text", ["abc", "-1", "nan", "inf", "1e9 bytes"])
@@ -189,22 +237,43 @@ def test_cli_lists_prunes_and_clears(cdir, capsys, tmp_path):
     assert d["left_bytes"] == 11000 and m[0].exists()
     assert main(["cache", "clear", "--kind", "factor3d"]) == 0
     assert not any(p.exists() for p in f) and not (cdir / (f[0].name + ".lock")).exists() and m[0].exists()
-    assert main(["cache", "clear"]) == 0
-    assert not list(cdir.glob("*.npz"))
+    capsys.readouterr()
+    assert main(["cache", "clear", "--kind", "factor3d"]) == 0                  # again: nothing left, not an error
+    assert "no entries of kind factor3d (present: mesh)" in capsys.readouterr().out
+    import fcntl
+    held, orphan = cdir / (m[0].name + ".lock"), cdir / f"forces-{9:020x}.npz.lock"
+    held.write_bytes(b"")
+    orphan.write_bytes(b"")
+    parts = cdir / f"surrogate-{5:016x}.parts"
+    parts.mkdir()
+    (parts / "stone_001.npz").write_bytes(b"p" * 100)
+    mine = cdir / "notes.parts"                                               # not a table build's name
+    mine.mkdir()
+    with open(held, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)                                        # a memo merge running
+        assert main(["cache", "clear", "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert not list(cdir.glob("*.npz")) and not parts.exists() and not orphan.exists() and mine.is_dir()
+    assert held.exists() and d["lock_files_held"] == [str(held)] and d["resumable_builds_removed"] == [str(parts)]
 
 
 @pytest.mark.parametrize("argv, env, needle", [
-    (["cache", "clear", "--kind", "nope"], {}, "--kind nope: no entries of that kind"),
+    (["cache", "clear", "--kind", "Factor3D"], {}, "--kind 'Factor3D': a kind is a lower-case name"),
     (["cache", "prune", "--max-bytes", "-5"], {}, "--max-bytes"),
     (["cache", "--kind", "mesh"], {}, "--kind mesh: only for `palpate cache clear`"),
     (["cache", "clear", "--max-bytes", "5"], {}, "--max-bytes 5: only for `palpate cache prune`"),
     (["cache"], {cachesize.ENV: "lots"}, f"{cachesize.ENV}='lots'"),
     (["cache"], {"PALPATE_CACHE": "of"}, "PALPATE_CACHE='of'"),
+    (["plan", "paper", "--out", "PLAN"], {cachesize.ENV: "lots"}, f"{cachesize.ENV}='lots'"),   # any command
+    (["plan", "paper", "--out", "PLAN"], {"PALPATE_CACHE_DIR": "FILE"}, "PALPATE_CACHE_DIR="),
 ])
-def test_cli_bad_input_is_one_line_and_exit_2(cdir, capsys, monkeypatch, argv, env, needle):
+def test_cli_bad_input_is_one_line_and_exit_2(cdir, capsys, monkeypatch, tmp_path, argv, env, needle):
     _entry(cdir, "mesh", 1, 10, 10, time.time())
+    (tmp_path / "FILE").write_text("not a directory")
+    argv = [str(tmp_path / "plan.json") if a == "PLAN" else a for a in argv]
     for k, v in env.items():
-        monkeypatch.setenv(k, v)
+        monkeypatch.setenv(k, str(tmp_path / v) if v == "FILE" else v)
     assert main(argv) == 2
+    assert not (tmp_path / "plan.json").exists()
     err = capsys.readouterr().err.strip()
     assert needle in err and len(err.splitlines()) == 1 and "Traceback" not in err

@@ -9,9 +9,11 @@ from pathlib import Path
 
 FEM = Path(__file__).resolve().parent.parent / "fem"
 LAZY_OK = ("gmsh", "meshio", "matplotlib", "scipy.sparse", "cvxopt", "pymetis",    # heavy imports that may stay
-           "importlib.metadata", "tomllib")   # 10 and 4 ms of start-up: a gmsh without a stated version, TOML scenes
-# inside functions (scipy: a model from the disk cache predicts with numpy alone, issue 19; cvxopt: CHOLMOD, 3D
-# only; pymetis: the ordering CHOLMOD gets, 3D only)
+           "importlib.metadata", "tomllib",   # 10 and 4 ms of start-up: a gmsh without a stated version, TOML scenes
+           ".condense", ".interior_factor")
+# inside functions (scipy: a model from the disk cache predicts with numpy alone, issue 19; cvxopt: CHOLMOD;
+# pymetis: the ordering CHOLMOD gets; fem.condense and fem.interior_factor, which load scipy.sparse and scipy.linalg:
+# the 2D surface model's builds and fields, not its cached force queries)
 
 
 def _is_lazy_ok(module: str) -> bool:

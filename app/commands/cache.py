@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -30,9 +31,11 @@ def add_parser(sub) -> None:
                               "  prune   remove the entries used least recently until the rest fit the bound\n"
                               "          (--max-bytes, else $PALPATE_CACHE_MAX_BYTES), and partial writes over an "
                               "hour old\n"
-                              "  clear   remove every entry (or those of --kind), with their lock files; run it "
-                              "when no\n"
-                              "          palpate command is running (a running one would rebuild what it loses)\n"
+                              "  clear   remove every entry, lock file no process holds, partial write and "
+                              "resumable\n"
+                              "          table build (*.parts); with --kind only the entries of those kinds (and "
+                              "their\n"
+                              "          free lock files). A command running meanwhile rebuilds what it loses\n"
                               "examples:\n"
                               "  palpate cache\n"
                               "  palpate cache list --entries --json cache.json\n"
@@ -75,6 +78,8 @@ def _listing(root: Path, ents: list[cachesize.Entry], with_entries: bool) -> dic
            "lock_files": len(list(root.glob("*.lock"))) if root.is_dir() else 0,
            "partial_writes": [str(p) for p in cachesize.partial_writes(root, older_than_s=0.0)],
            "resumable_builds": sorted(str(p) for p in root.glob("*.parts")) if root.is_dir() else []}
+    out["resumable_builds_bytes"] = sum(f.stat().st_size for b in out["resumable_builds"] for f in Path(b).rglob("*")
+                                        if f.is_file())
     if with_entries:
         out["entry_list"] = [{"path": str(e.path), "kind": e.kind, "size_bytes": e.size_bytes,
                               "last_used_utc": _utc(e.used_s)} for e in ents]
@@ -100,7 +105,9 @@ def _print_listing(d: dict) -> None:
     if d["partial_writes"]:
         extra.append(f"{len(d['partial_writes'])} partial writes (a writer's, or left by one that was killed)")
     if d["resumable_builds"]:
-        extra.append(f"{len(d['resumable_builds'])} resumable table builds (*.parts: kept until their table is done)")
+        extra.append(f"{len(d['resumable_builds'])} resumable table builds (*.parts, "
+                     f"{cachesize.size_text(d['resumable_builds_bytes'])}: outside the bound; `palpate cache clear` "
+                     f"removes them)")
     if extra:
         print("  also: " + "; ".join(extra))
 
@@ -126,17 +133,33 @@ def run(args) -> int:
         else:
             ents = cachesize.entries(root)
             if args.kind:
+                bad = [k for k in args.kind if not cachesize.KIND_NAME.match(k)]
+                if bad:
+                    raise UsageError(f"--kind {bad[0]!r}: a kind is a lower-case name such as mesh or factor3d "
+                                     f"(`palpate cache` lists those present)")
                 present = sorted({e.kind for e in ents})
-                unknown = [k for k in args.kind if k not in present]
-                if unknown:
-                    raise UsageError(f"--kind {unknown[0]}: no entries of that kind in {root} (present: "
-                                     f"{', '.join(present) or 'none'})")
+                for k in args.kind:
+                    if k not in present:
+                        print(f"disk cache {root}: no entries of kind {k} (present: {', '.join(present) or 'none'})")
                 ents = [e for e in ents if e.kind in args.kind]
             gone = [e for e in ents if cachesize.remove(e.path)]
-            for e in gone:
-                Path(os.fspath(e.path) + ".lock").unlink(missing_ok=True)
-            stale = [] if args.kind else [p for p in cachesize.partial_writes(root) if cachesize.remove(p)]
+            locks = [Path(os.fspath(e.path) + ".lock") for e in gone]
+            parts = []
+            if not args.kind:               # everything: orphan lock files, partial writes, resumable builds too
+                locks = sorted(root.glob("*.npz.lock")) if root.is_dir() else []
+                parts = sorted(p for p in root.glob("*.parts") if p.is_dir() and not p.is_symlink()
+                               and cachesize.kind_of(p.with_suffix(".npz")))
+            held = [str(p) for p in locks if p.exists() and not cachesize.remove_lock(p)]
+            for p in parts:
+                shutil.rmtree(p, ignore_errors=True)
+            stale = [] if args.kind else [p for p in cachesize.partial_writes(root, older_than_s=0.0)
+                                          if cachesize.remove(p)]
             d = _removed(root, gone, stale, None)
+            d.update({"resumable_builds_removed": [str(p) for p in parts], "lock_files_held": held})
+            if parts:
+                print(f"  and {len(parts)} resumable table builds (*.parts)")
+            if held:
+                print(f"  {len(held)} lock files kept: a palpate process holds them")
     write_json(args.json, d)
     return 0
 
