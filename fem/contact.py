@@ -24,6 +24,7 @@ is bitwise the C a fresh build computes (tests check it).
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -36,7 +37,7 @@ from .guards import check_finite, check_not_inverted
 from .influence import Influence, band_nodes, fits
 from .lcp import solve_lcp
 from .model import Model, build_model
-from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
+from .scene import STRAIN_MAX, STRAIN_WARN, Indenter, SceneError
 from .scene_mesh import check_surface_budget, code_version, mesh_for, sources_version
 from .schur_lu import SchurFactor
 from .stress import components, nodal_poisson, recovery_operator
@@ -207,8 +208,7 @@ class SurfaceModel:
         factor cannot be read in place (tried once): the fields then come from ``fac``."""
         if self._interior is None and not self._interior_tried:
             self._interior_tried = True
-            from .condense import interior_factor  # CHOLMOD and scipy: only when a field is asked for
-            from .interior_factor import InteriorFactor
+            from .interior_factor import InteriorFactor  # scipy.linalg: only when a field is asked for
             pos = np.full(self.model.n_dofs, -1)
             pos[self._free] = np.arange(len(self._free))
             c = pos[self.top_red]
@@ -218,9 +218,12 @@ class SurfaceModel:
                 if f.n != len(self._free) or not np.array_equal(f.p[f.n - f.nc:], c):
                     raise ValueError(f"a factor of {f.n} DOFs ({f.nc} on the top) that does not fit this model "
                                      f"({len(self._free)}, {len(c)})")
+                if not np.isfinite(f.x).all():
+                    raise ValueError("a factor with values that are not finite")
                 return f
 
             def build():
+                from .condense import interior_factor  # CHOLMOD: only to factorize
                 f = interior_factor(self.model.K, self._free, self.top_red)
                 if f is None:
                     raise _NoFactor
@@ -228,8 +231,7 @@ class SurfaceModel:
             spec, use = self.interior_cache if self.interior_cache is not None else (None, False)
             try:
                 self._interior = build() if spec is None else diskcache.load_or_build(
-                    "factor", {**spec, "factor": _factor_version()}, build, to_arrays=InteriorFactor.to_arrays,
-                    from_arrays=restore, use=use)
+                    "factor", spec, build, to_arrays=InteriorFactor.to_arrays, from_arrays=restore, use=use)
             except _NoFactor:
                 self._interior = None
         return self._interior
@@ -517,8 +519,17 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
         return diskcache.load_or_build("influence", ispec, build=build, to_arrays=Influence.to_arrays,
                                        from_arrays=read, use=use, mmap=True)
     sm._influence_cache = influence_cache                                  # noqa: SLF001 (the cache's hook)
-    sm.interior_cache = (spec, use)         # the fields' factor is kept under the same key (kind "factor")
+    sm.interior_cache = (_factor_spec(scene, options), use)                # the fields' factor (kind "factor")
     return sm
+
+
+def _factor_spec(scene, options: dict) -> dict:
+    """What the fields' factor depends on: the tissue and its stones (the stiffness and the top), whether stones are
+    made rigid, fem's code and the factor's own (not the tip, the stress band or the use of influence operators:
+    ``simulate`` and ``predict`` share one entry)."""
+    tissue = dataclasses.replace(scene, name="", indenter=Indenter())
+    return {"scene": tissue.key(), "rigid_stones": options.get("rigid_stones", "auto"), "code": code_version(),
+            "factor": _factor_version()}
 
 
 @functools.lru_cache(maxsize=1)

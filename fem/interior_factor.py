@@ -68,6 +68,9 @@ class InteriorFactor:
         consistent, each supernode's rows its own columns first, then strictly increasing, all within the matrix
         (what the sweep indexes; the values themselves are checked by the callers' finite-result checks)."""
         a = {k: np.asarray(arrays[k]) for k in ("p", "nc", "sup", "pi", "px", "s", "x")}
+        if not (all(a[k].ndim == 1 and a[k].dtype.kind in "iu" for k in ("p", "nc", "sup", "pi", "px", "s"))
+                and a["nc"].shape == (1,) and a["x"].ndim == 1 and a["x"].dtype == np.float64):
+            raise ValueError("the stored interior factor's arrays have the wrong types or shapes")
         nc, n = int(a["nc"][0]), len(a["p"])
         sup, pi, px, s = a["sup"], a["pi"], a["px"], a["s"]
         ks = len(sup) - 1

@@ -132,18 +132,35 @@ def _locked(path: Path):
     if fcntl is None:
         yield
         return
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        f = open(path.with_name(path.name + ".lock"), "a")
-    except OSError:
-        yield
-        return
-    with f:
+    lock = path.with_name(path.name + ".lock")
+    for _ in range(100):
         try:
-            fcntl.flock(f, fcntl.LOCK_EX)
-        except OSError as e:            # a file system without locks (some NFS mounts): merged unlocked
-            warnings.warn(f"palpate cache: could not lock {f.name} ({e}); merging without the lock", stacklevel=4)
-        yield
+            path.parent.mkdir(parents=True, exist_ok=True)
+            f = open(lock, "a")
+        except OSError:
+            yield
+            return
+        with f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX)
+            except OSError as e:            # a file system without locks (some NFS mounts): merged unlocked
+                warnings.warn(f"palpate cache: could not lock {f.name} ({e}); merging without the lock",
+                              stacklevel=4)
+                yield
+                return
+            if _same_file(f, lock):         # not removed (``palpate cache clear``) while this process waited
+                yield
+                return
+    raise RuntimeError(f"palpate cache: {lock} kept being replaced; cannot lock it")
+
+
+def _same_file(f, path: Path) -> bool:
+    """Whether the open file ``f`` is still the file at ``path`` (a lock taken on a removed file locks nothing)."""
+    try:
+        a, b = os.fstat(f.fileno()), os.stat(path)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
 
 
 _OPEN: OrderedDict[tuple, Memo] = OrderedDict()

@@ -188,3 +188,32 @@ def test_without_cholmod_the_2d_fields_come_from_superlu(cdir, monkeypatch):
     assert np.array_equal(U, contact.condensed_displacements(sm.model, sm.fac, F))
     sm.displacements(F)
     assert calls == [1] and not list(cdir.glob("factor-*.npz"))             # tried once, nothing stored
+
+
+def test_a_2d_factor_entry_with_values_not_finite_is_rebuilt(cdir):
+    sc = _scene()
+    F = _loads(contact.surface_model(sc))
+    U = contact.surface_model(sc).displacements(F)
+    path = next(cdir.glob("factor-*.npz"))
+    with np.load(path) as z:
+        a = {k: z[k] for k in z.files}
+    a["x"][len(a["x"]) // 2] = np.nan
+    np.savez(path, **a)
+    contact._CACHE.clear()
+    with pytest.warns(UserWarning, match="palpate cache: ignoring.*not finite"):
+        again = contact.surface_model(sc).displacements(F)
+    assert np.array_equal(again, U)
+
+
+def test_models_differing_only_in_what_the_factor_does_not_see_share_it(cdir):
+    """The tip, the stress band and the influence operators' use do not change K: one factor entry serves all."""
+    sc = _scene()
+    F = _loads(contact.surface_model(sc))
+    U = contact.surface_model(sc).displacements(F)
+    other = contact.surface_model(S.load("paper").with_analysis(mesh_size_m=0.004), stress_band_m=0.006,
+                                  use_influence=False)
+    assert other is not contact.surface_model(sc)
+    assert np.array_equal(other.displacements(F), U) and len(list(cdir.glob("factor-*.npz"))) == 1
+    stiffer = dataclasses.replace(sc, tissue=dataclasses.replace(sc.tissue, youngs_pa=2 * sc.tissue.youngs_pa))
+    contact.surface_model(stiffer).displacements(F)
+    assert len(list(cdir.glob("factor-*.npz"))) == 2                            # K changed: another entry

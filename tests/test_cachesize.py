@@ -277,3 +277,43 @@ def test_cli_bad_input_is_one_line_and_exit_2(cdir, capsys, monkeypatch, tmp_pat
     assert not (tmp_path / "plan.json").exists()
     err = capsys.readouterr().err.strip()
     assert needle in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_a_memo_lock_removed_while_waited_for_is_taken_again(cdir):
+    """A merge waiting on a lock file that `palpate cache clear` removed must not lock the removed file (a second
+    merge would lock the new one and both would run): it locks the file now at the path."""
+    import fcntl
+    import threading
+
+    from fem import memo
+    entry = cdir / f"forces-{4:020x}.npz"
+    lock = cdir / (entry.name + ".lock")
+    holder = open(lock, "a")
+    fcntl.flock(holder, fcntl.LOCK_EX)                  # a first merge holds the lock
+    inside = threading.Event()
+
+    def waiter():
+        with memo._locked(entry):
+            inside.set()
+            time.sleep(0.3)
+    t = threading.Thread(target=waiter)
+    t.start()
+    time.sleep(0.2)                                     # the waiter is blocked on the first file
+    lock.unlink()                                       # removed meanwhile (as a clear racing the merge would)
+    fcntl.flock(holder, fcntl.LOCK_UN)
+    holder.close()
+    assert inside.wait(5)
+    probe = open(lock, "a")                             # the file now at the path: held by the waiter
+    with pytest.raises(OSError):
+        fcntl.flock(probe, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    t.join()
+    fcntl.flock(probe, fcntl.LOCK_EX | fcntl.LOCK_NB)   # released after
+    probe.close()
+
+
+def test_clear_leaves_lock_files_that_are_not_palpates(cdir):
+    (cdir / "mydata.npz").write_bytes(b"d")
+    (cdir / "mydata.npz.lock").write_bytes(b"")
+    (cdir / f"forces-{5:020x}.npz.lock").write_bytes(b"")
+    assert main(["cache", "clear"]) == 0
+    assert sorted(p.name for p in cdir.iterdir()) == ["mydata.npz", "mydata.npz.lock"]

@@ -163,6 +163,10 @@ def test_corrupt_structure_is_refused():
         arrays[key][index] = value
         with pytest.raises(ValueError):
             InteriorFactor.from_arrays(arrays)
+    for key, bad in (("nc", np.array(12)), ("s", good["s"].astype(float)), ("x", good["x"].astype(np.float32)),
+                     ("p", good["p"].reshape(1, -1))):                    # wrong types or shapes: not an IndexError
+        with pytest.raises(ValueError, match="types or shapes"):
+            InteriorFactor.from_arrays({**good, key: bad})
 
 
 def test_a_factor_from_another_model_is_rebuilt(tmp_path, monkeypatch):

@@ -4,7 +4,7 @@ The disk cache keeps what fem and the planner derive once and reuse: meshes, fac
 surrogate tables, the forces a run asked before. Each entry can be rebuilt; removing one costs that rebuild (seconds
 for a 2D model, a minute or two for a 3D one with stresses), never a result. It lives in $PALPATE_CACHE_DIR (default
 ~/.cache/palpate) and is bounded by $PALPATE_CACHE_MAX_BYTES (bytes; default 20e9): after each write the entries used
-least recently go, except what the writing process uses.
+least recently go, except what the writing process uses and what any process used in the last 10 minutes.
 """
 from __future__ import annotations
 
@@ -44,7 +44,9 @@ def add_parser(sub) -> None:
                        formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("action", nargs="?", default="list", choices=ACTIONS, help="list (default), prune or clear")
     p.add_argument("--max-bytes", type=nonnegative_float, metavar="N",
-                   help="prune: the size to prune to, in bytes (e.g. 5e9); default $PALPATE_CACHE_MAX_BYTES or 20e9")
+                   help="prune: the size to prune to, in bytes (e.g. 5e9); default $PALPATE_CACHE_MAX_BYTES or 20e9. "
+                        "Unlike the pruning after a write it spares nothing: a command running meanwhile rebuilds "
+                        "what it loses")
     p.add_argument("--kind", action="append", metavar="KIND",
                    help="clear: only entries of this kind (repeatable; `palpate cache` lists the kinds present)")
     p.add_argument("--entries", action="store_true", help="list: every entry, not only the kinds")
@@ -146,7 +148,8 @@ def run(args) -> int:
             locks = [Path(os.fspath(e.path) + ".lock") for e in gone]
             parts = []
             if not args.kind:               # everything: orphan lock files, partial writes, resumable builds too
-                locks = sorted(root.glob("*.npz.lock")) if root.is_dir() else []
+                locks = sorted(p for p in root.glob("*.npz.lock") if cachesize.kind_of(p.with_suffix(""))) \
+                    if root.is_dir() else []
                 parts = sorted(p for p in root.glob("*.parts") if p.is_dir() and not p.is_symlink()
                                and cachesize.kind_of(p.with_suffix(".npz")))
             held = [str(p) for p in locks if p.exists() and not cachesize.remove_lock(p)]
