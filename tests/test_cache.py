@@ -163,17 +163,25 @@ def test_2d_fields_come_from_the_stored_factor_without_assembly(cdir):
     assert np.array_equal(u, fresh.full_field(0.035, 0.004))
 
 
-def test_a_2d_factor_entry_that_does_not_fit_is_rebuilt(cdir):
+def _damage(arrays: dict) -> None:
+    arrays["x"][len(arrays["x"]) // 2] = np.nan
+
+
+@pytest.mark.parametrize("damage, why", [
+    (lambda a: a.update(p=a["p"][::-1].copy()), "does not fit"),      # another order: the top not last
+    (_damage, "not finite"),
+])
+def test_a_2d_factor_entry_that_does_not_fit_or_is_not_finite_is_rebuilt(cdir, damage, why):
     sc = _scene()
     F = _loads(contact.surface_model(sc))
     U = contact.surface_model(sc).displacements(F)
     path = next(cdir.glob("factor-*.npz"))
     with np.load(path) as z:
         a = {k: z[k] for k in z.files}
-    a["p"] = a["p"][::-1].copy()                                            # another order: the top not last
+    damage(a)
     np.savez(path, **a)
     contact._CACHE.clear()
-    with pytest.warns(UserWarning, match="palpate cache: ignoring.*does not fit"):
+    with pytest.warns(UserWarning, match=f"palpate cache: ignoring.*{why}"):
         again = contact.surface_model(sc).displacements(F)
     assert np.array_equal(again, U)
 
@@ -188,21 +196,6 @@ def test_without_cholmod_the_2d_fields_come_from_superlu(cdir, monkeypatch):
     assert np.array_equal(U, contact.condensed_displacements(sm.model, sm.fac, F))
     sm.displacements(F)
     assert calls == [1] and not list(cdir.glob("factor-*.npz"))             # tried once, nothing stored
-
-
-def test_a_2d_factor_entry_with_values_not_finite_is_rebuilt(cdir):
-    sc = _scene()
-    F = _loads(contact.surface_model(sc))
-    U = contact.surface_model(sc).displacements(F)
-    path = next(cdir.glob("factor-*.npz"))
-    with np.load(path) as z:
-        a = {k: z[k] for k in z.files}
-    a["x"][len(a["x"]) // 2] = np.nan
-    np.savez(path, **a)
-    contact._CACHE.clear()
-    with pytest.warns(UserWarning, match="palpate cache: ignoring.*not finite"):
-        again = contact.surface_model(sc).displacements(F)
-    assert np.array_equal(again, U)
 
 
 def test_models_differing_only_in_what_the_factor_does_not_see_share_it(cdir):
