@@ -9,7 +9,7 @@ import numpy as np
 from .guards import check_finite
 from .model3d import Model3D, build_model3d, fixed_bottom
 from .results3d import SurfaceMap, UniformResult3D
-from .stress3d import components3d, recovery_operator3d
+from .stress3d import components3d, recover3d
 from .uniform import solve_prescribed
 
 
@@ -27,11 +27,11 @@ def solve_uniform3d(scene, model: Model3D | None = None, full_field: bool = True
     fac, u_red, u, Ku, residual = solve_prescribed(scene, model, fixed, values)
     t2 = time.perf_counter()
     reaction = -Ku[top_z].sum()
-    surf = components3d((recovery_operator3d(model, top) @ u).reshape(-1, 6))
+    surf = components3d(recover3d(model, u, top))
     nodal = None
     if full_field:
-        nodal = components3d((recovery_operator3d(model) @ u).reshape(-1, 6))
-        eps = (recovery_operator3d(model, strain=True) @ u).reshape(-1, 6)
+        nodal = components3d(recover3d(model, u))
+        eps = recover3d(model, u, strain=True)
         nodal.update({k: eps[:, i] for i, k in enumerate(("exx", "eyy", "ezz", "gyz", "gxz", "gxy"))})
     t3 = time.perf_counter()
     check_finite(u, f"load A on scene {scene.name!r}: displacements")

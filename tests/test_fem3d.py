@@ -17,7 +17,7 @@ from fem.elements3d import EDGES, quadrature, shape
 from fem.mesh3d import Mesh3D, _orient, mesh_block
 from fem.model3d import Model3D, build_model3d, fixed_bottom
 from fem.scene_mesh3d import mesh_for3d
-from fem.stress3d import point_operator3d, recovery_operator3d
+from fem.stress3d import point_operator3d, recover3d, recovery_operator3d
 from fem.uniform3d import solve_uniform3d
 
 
@@ -533,3 +533,22 @@ def test_schur_block_read_in_place_for_every_split():
         if condense._CholmodDirect.get() is not None:
             assert fac.extract == "in place"
         assert np.abs(fac.compliance - np.linalg.inv(S)).max() < 1e-10 * np.abs(np.linalg.inv(S)).max()
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_matrix_free_recovery_equals_the_operator(order):
+    """recover3d (one displacement vector, no operator built) gives the operator's product to round-off: all nodes,
+    a subset (the top, which meets the stone-free tissue only, and nodes on a stone's surface, where the tissue side
+    counts), stresses and strains; a random field so that no element's contribution can hide."""
+    mesh = mesh_block(0.03, 0.024, 0.015, [(0.015, 0.012, 0.007, 0.004)], 0.006, 3.0, order)
+    model = _model(mesh, E=2500.0, nu=0.4)
+    u = np.random.default_rng(3).standard_normal(mesh.n_dofs) * 1e-4
+    stone = np.unique(mesh.tets[mesh.region == 1])
+    for nodes in (None, mesh.top, stone[::3]):
+        for strain in (False, True):
+            ref = (recovery_operator3d(model, nodes, strain=strain) @ u).reshape(-1, 6)
+            got = recover3d(model, u, nodes, strain=strain)
+            assert got.shape == ref.shape
+            assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max()
+    with pytest.raises(ValueError, match="displacement vector"):
+        recover3d(model, u[:-1])

@@ -27,7 +27,7 @@ from fem.contact3d import (
 )
 from fem.mesh3d import estimate_nodes3d, patch_bounds
 from fem.results3d import SurfaceMap, quadratic_peak
-from fem.stress3d import components3d, recovery_operator3d
+from fem.stress3d import components3d, recover3d
 from fem.uniform3d import solve_uniform3d
 
 FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
@@ -42,8 +42,8 @@ def _mesh_dict(mesh, model) -> dict:
 
 
 def _nodal(model, u) -> dict:
-    nodal = components3d((recovery_operator3d(model) @ u).reshape(-1, 6))
-    eps = (recovery_operator3d(model, strain=True) @ u).reshape(-1, 6)
+    nodal = components3d(recover3d(model, u))
+    eps = recover3d(model, u, strain=True)
     nodal.update({k: eps[:, i] for i, k in enumerate(("exx", "eyy", "ezz", "gyz", "gxz", "gxy"))})
     return nodal
 
@@ -113,7 +113,7 @@ def _indent(args, sc, rigid) -> int:
     model, mesh = m.model, m.mesh
     top = mesh.top
     surf = SurfaceMap(mesh.nodes[top, 0], mesh.nodes[top, 1],
-                      components3d((recovery_operator3d(model, top) @ u).reshape(-1, 6)))
+                      components3d(recover3d(model, u, top)))
     out = {"scene": sc.name, "load": "indent", **r.to_dict(), "indenter": dataclasses.asdict(sc.indenter),
            "analysis": dataclasses.asdict(sc.analysis), "rigid_stones": [bool(x) for x in model.rigid],
            **surf.to_dict(), "mesh": {**_mesh_dict(mesh, model), "contact_candidates": int(len(m.patch))},
