@@ -29,10 +29,9 @@ def primary_region(mesh) -> np.ndarray:
     return primary
 
 
-def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = False) -> sp.csr_matrix:
-    """Sparse (6 n, 3N) operator: full displacement -> the six stress (or strain) components at ``nodes`` (all
-    nodes when None), row 6 i + k for the i-th requested node."""
-    mesh = model.mesh
+def _averaging(mesh, nodes: np.ndarray | None):
+    """What nodal recovery averages over: (the nodes, each node's row or -1, (elements, local nodes) that count
+    (the node asked for and the element in its primary region), the elements with any, each node's count)."""
     nodes = np.arange(mesh.n_nodes) if nodes is None else np.asarray(nodes)
     primary = primary_region(mesh)
     want = np.full(mesh.n_nodes, -1)
@@ -41,6 +40,14 @@ def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = F
     els = np.flatnonzero(hit.any(axis=1))
     count = np.zeros(mesh.n_nodes)
     np.add.at(count, mesh.tets[els][hit[els]], 1.0)
+    return nodes, want, hit, els, count
+
+
+def recovery_operator3d(model, nodes: np.ndarray | None = None, strain: bool = False) -> sp.csr_matrix:
+    """Sparse (6 n, 3N) operator: full displacement -> the six stress (or strain) components at ``nodes`` (all
+    nodes when None), row 6 i + k for the i-th requested node."""
+    mesh = model.mesh
+    nodes, want, hit, els, count = _averaging(mesh, nodes)
     shape = (6 * len(nodes), mesh.n_dofs)
     out = sp.csr_matrix(shape)
     for a in range(0, len(els), CHUNK):          # in blocks of elements: the triplets of all at once would take
@@ -57,14 +64,7 @@ def recover3d(model, u: np.ndarray, nodes: np.ndarray | None = None, strain: boo
     u = np.asarray(u, dtype=float).ravel()
     if u.shape != (mesh.n_dofs,):
         raise ValueError(f"a displacement vector of {mesh.n_dofs} entries, got {u.shape}")
-    nodes = np.arange(mesh.n_nodes) if nodes is None else np.asarray(nodes)
-    primary = primary_region(mesh)
-    want = np.full(mesh.n_nodes, -1)
-    want[nodes] = np.arange(len(nodes))
-    hit = (want[mesh.tets] >= 0) & (mesh.region[:, None] == primary[mesh.tets])
-    els = np.flatnonzero(hit.any(axis=1))
-    count = np.zeros(mesh.n_nodes)
-    np.add.at(count, mesh.tets[els][hit[els]], 1.0)
+    nodes, want, hit, els, count = _averaging(mesh, nodes)
     dofs = element_dofs3d(mesh)
     out = np.zeros((len(nodes), 6))
     for a in range(0, len(els), CHUNK):
