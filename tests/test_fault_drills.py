@@ -80,8 +80,13 @@ def test_drill_ends_safe_with_records_kept(name, tmp_path, scene_path):
         assert name.startswith("partition"), name
     if name.startswith("partition") or name.startswith("freeze"):
         # a silent link: the record first, then nothing sent; the controller's watchdog stops the motion (a frozen
-        # controller's state is asked once it runs again, above)
-        assert not res.fault["stopped"] and "silent link" in " ".join(res.fault["notes"])
+        # controller's state is asked once it runs again, above). At rest a partition may instead be seen by
+        # ur_rtde's own receive time-out first, when the driver's loop is slow to count 100 stale periods (a
+        # loaded machine: measured with two busy processes on the 2 cores, at session 35's code as at 36's): the
+        # link reported down, waited for, reconnect() refused by the partition; nothing commanded either way
+        notes = " ".join(res.fault["notes"])
+        down = name == "partition-rest" and "reconnect() failed" in notes
+        assert not res.fault["stopped"] and ("silent link" in notes or down), res.fault
     if name.startswith("partition"):
         assert res.watchdog_at_s is not None and res.watchdog_at_s - res.fault_at_s < 0.25 + 0.2, res
     if name == "remote-off-rest":
