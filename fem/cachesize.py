@@ -75,10 +75,6 @@ class PruneReport:
     left_entries: int
     in_use_bytes: int              # of that, what the pruning process holds (kept whatever the bound)
 
-    @property
-    def removed_bytes(self) -> int:
-        return sum(e.size_bytes for e in self.removed)
-
 
 def max_bytes() -> float:
     """The bound from $PALPATE_CACHE_MAX_BYTES (a number of bytes, >= 0), else DEFAULT_MAX_BYTES; ValueError naming

@@ -145,7 +145,6 @@ class SurfaceModel:
         self._interior, self._interior_tried = None, False
         self.interior_cache: tuple[dict, bool | None] | None = None     # (spec, use): where ``interior`` is kept
         if compliance is None:
-            from .condense import SchurFactor  # scipy: a build (a restored model forces with numpy alone)
             self._fac = SchurFactor(self.model.K, free, self.top_red)
             compliance = self._fac.compliance
         if not np.all(np.isfinite(compliance)):
@@ -202,7 +201,7 @@ class SurfaceModel:
 
     def interior(self):
         """The interior columns of K_ff's Cholesky factor with the top's vertical DOFs last (fem.interior_factor):
-        from memory, the disk cache (kind ``factor``, under the surface model's key: ``interior_cache``, set by
+        from memory, the disk cache (kind ``factor``, keyed by the tissue: ``interior_cache``, set by
         load_or_build_surface) or one CHOLMOD factorization, then stored. A restored model's fields then cost
         C f and one backward sweep, with no assembly and no factorization. None without cvxopt or when CHOLMOD's
         factor cannot be read in place (tried once): the fields then come from ``fac``."""
