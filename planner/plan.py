@@ -36,11 +36,9 @@ from core import ur5e
 from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
 from fem import recall
 from fem.contact import surface_model
-from fem.contact3d import surface_model3d
 from fem.scene import from_dict, load
 from planner import area
 from planner import kinematics as kin
-from planner.depth3d import ContactDepths3D
 from planner.raster import (
     Targets,
     choose_depths,
@@ -457,7 +455,9 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
         # fail fast, before fem builds its model (~1-5 s): every waypoint reachable down to the depth limit
         seed_configurations(targets(x, np.full(x.shape, limits.depth_limit_m), frames.tissue_pose_base,
                                     motion.approach_height_m, y_m=y), tissue_x, frames.tcp_offset, branch)
-        if prior.is_3d:
+        if prior.is_3d:             # the 3D model's code (fem.contact3d: 25 ms of imports) for a block only
+            from fem.contact3d import surface_model3d
+            from planner.depth3d import ContactDepths3D
             solver = ContactDepths3D(surface_model3d(prior))
             force_n, depth_for = solver.force_n, solver.depth_for
         else:

@@ -27,7 +27,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 
 @dataclass(frozen=True)
@@ -109,6 +108,7 @@ def dask_client(runner: Runner):
 
 
 def _bar(runner: Runner, total: int, done: int, desc: str):
+    from tqdm import tqdm  # only where pieces run (a run that reads its tables never does)
     return tqdm(total=total, initial=done, desc=desc, unit="piece", file=sys.stderr, disable=not runner.progress,
                 smoothing=0.1, dynamic_ncols=True)
 

@@ -31,7 +31,6 @@ import socket
 import time
 from collections import deque
 from dataclasses import dataclass
-from urllib.request import urlopen
 
 import numpy as np
 
@@ -85,6 +84,7 @@ class NetFtCalibration:
 def fetch_calibration(host: str, timeout_s: float = HTTP_TIMEOUT_S, port: int = 80) -> NetFtCalibration:
     """The box's calibration from ``http://HOST/netftapi2.xml``. OSError (unreachable) or ValueError (not a Net
     F/T configuration page, other units)."""
+    from urllib.request import urlopen  # http, ssl and email: only next to a real box (15 ms of a simulated run)
     with urlopen(f"http://{host}:{port}/netftapi2.xml", timeout=timeout_s) as resp:
         return NetFtCalibration.from_xml(resp.read().decode("utf-8", "replace"))
 

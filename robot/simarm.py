@@ -15,11 +15,9 @@ import numpy as np
 
 from core import ur5e
 from core.contracts import Frames
-from fem import recall, recall3d
+from fem import recall
 from fem.contact import surface_model
-from fem.contact3d import surface_model3d
 from fem.hypertruth import HyperelasticForce
-from fem.mesh3d import patch_bounds
 from fem.scene import BUILTIN, Scene, load
 from robot.sim import ArmModel
 from robot.simfaults import inject_arm, parse
@@ -43,7 +41,10 @@ def truth_force(truth: Scene | str, mesh_m: float | None = None, hyperelastic: b
     if mesh_m:
         sc = sc.with_analysis(mesh_size_m=mesh_m)
     width, height = sc.tissue.width_m, sc.tissue.height_m
-    if sc.is_3d:
+    if sc.is_3d:                   # fem's 3D code (25 ms of imports) for a block only
+        from fem import recall3d
+        from fem.contact3d import surface_model3d
+        from fem.mesh3d import patch_bounds
         surface_model3d(sc)        # built (or restored) now: its errors before the run, not as a force model's
         length, R = sc.tissue.length_m, sc.indenter.radius_m
         x0, x1, y0, y1 = patch_bounds(width, length, sc.analysis.patch_m)

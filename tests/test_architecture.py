@@ -32,10 +32,13 @@ LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dash
            "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "pymetis", "planner.plots_plan", "planner.plots_run",
            "planner.plots_accuracy", "importlib.metadata", "distributed",
            "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d", "tomllib",
-           "fem.condense", "fem.interior_factor")
+           "fem.condense", "fem.interior_factor", "urllib.request", "tqdm",
+           "fem.contact3d", "fem.recall3d", "fem.mesh3d", "planner.depth3d")
 # scipy.sparse: a cached model predicts with numpy alone (issue 19); app.commands.sim3d and run3d: the 3D path
 # (scipy.linalg, CHOLMOD) loaded for a 3D scene only; tomllib: TOML scenes only (4 ms of a cached predict's start-up);
-# fem.condense, fem.interior_factor (scipy.sparse, scipy.linalg, CHOLMOD): a 2D surface model's fields only
+# fem.condense, fem.interior_factor (scipy.sparse, scipy.linalg, CHOLMOD): a 2D surface model's fields only;
+# fem.contact3d, fem.recall3d, fem.mesh3d, planner.depth3d: fem's 3D code (25 ms) where a scene is a block;
+# urllib.request (http, ssl, email: 15 ms): a real Net F/T box's calibration only; tqdm: where a study's pieces run
 
 
 def modules() -> dict[str, Path]:
@@ -163,5 +166,16 @@ def test_predict_and_simulate_start_without_scipy():
     scipy when a model is assembled or factorized (a cached scene predicts with numpy alone: test_influence)."""
     code = ("import sys, app.commands.predict, app.commands.simulate; "
             "print(sorted({k.split('.')[0] for k in sys.modules} & {'scipy', 'cvxopt', 'matplotlib', 'casadi'}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
+    assert out.stdout.strip() == "[]"
+
+
+def test_a_2d_run_starts_without_the_3d_path_and_the_network_libraries():
+    """Start-up (issue 19): ``palpate run`` on a 2D section loads fem's 3D code only for a block, urllib (http, ssl,
+    email) only to ask a real Net F/T box for its calibration, tqdm only where a study's pieces run; 40 ms of a
+    simulated run's start in all. A 3D scene's run still finds the 3D code (the modules load it where needed)."""
+    code = ("import sys, app.cli, app.commands.run; "
+            "print(sorted(k for k in sys.modules if k in ('urllib.request', 'tqdm', 'http.client', 'ssl') "
+            "or (k.startswith('fem.') and '3d' in k)))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT)
     assert out.stdout.strip() == "[]"
