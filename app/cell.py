@@ -20,6 +20,7 @@ taken on every loopback address tried, 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from pathlib import Path
@@ -38,6 +39,7 @@ from app.options import (
     load_scene,
     positive_float,
 )
+from app.outlock import holding
 from app.parser import Parser
 from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, load
@@ -177,12 +179,12 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as e:           # argparse's usage errors (a bad option value): its message, exit 2
         return e.code if isinstance(e.code, int) else EXIT_USAGE
     def main_json():
-        with json_alone(args.json):             # --json -: standard output holds the JSON alone
-            return _main(args)
+        with json_alone(args.json), contextlib.ExitStack() as held:   # --json -: standard output: the JSON alone
+            return _main(args, held)
     return guarded("palpate-cell", main_json, debug=args.debug)
 
 
-def _main(args) -> int:
+def _main(args, held: contextlib.ExitStack) -> int:
     # ---- everything checked before the output directory is touched or anything moves
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json")
@@ -225,6 +227,7 @@ def _main(args) -> int:
     cfg = DriverConfig(payload_kg=args.payload_kg, skip_invalid=args.skip_invalid)
     if args.host and not args.yes and not read_confirmation():
         raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
+    held.enter_context(holding(out))       # one process at a time in OUT (app.outlock)
     if args.fresh:
         moved = move_aside(out)
         if moved is not None:

@@ -1,9 +1,11 @@
 """How the command-line entry points fail: one line naming the field or option, its value and what is allowed, and
-exit 2; a traceback only with ``--debug``."""
+exit 2; a traceback only with ``--debug``. Warnings (fem's, the planner's) print as one line ``prog: warning: ...``
+too, without Python's source path and code line (``--debug`` keeps Python's format)."""
 from __future__ import annotations
 
 import sys
 import traceback
+import warnings
 from typing import Callable
 
 from core.contracts import PlanError
@@ -24,6 +26,11 @@ USER_ERRORS = (UsageError, SceneError, PlanError, TruthError, OSError, UnicodeDe
 def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
     """Run ``run``; a user error becomes ``prog: message`` on one line and exit 2, Ctrl-C exit 130. With ``debug`` the
     traceback is printed too."""
+    shown = warnings.showwarning
+    if not debug:
+        def one_line(message, category, filename, lineno, file=None, line=None):
+            print(f"{prog}: warning: {' '.join(str(message).split())}", file=file or sys.stderr)
+        warnings.showwarning = one_line
     try:
         return int(run() or 0)
     except USER_ERRORS as e:
@@ -37,3 +44,5 @@ def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown

@@ -150,15 +150,20 @@ def _writable_parent(path: Path, option: str, shown=None) -> None:
             raise UsageError(f"{option} {path}: {e.strerror}") from None
 
 
-def check_output_file(path: str | None, option: str) -> None:
-    """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data, its
-    directory creatable/writable. None, "" and "-" (standard output) pass."""
+def check_output_file(path: str | None, option: str, replaced: bool = False) -> None:
+    """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data (nor a
+    symlink to it), its directory creatable/writable. ``replaced``: the file is written beside and renamed over the
+    path, so an existing path must be a regular file (a device such as /dev/null would be replaced by one; a pipe
+    can take a ``--json`` written in place). None, "" and "-" (standard output) pass."""
     if not path or path == "-":
         return
     refuse_measured(path, option)
     p = Path(path)
     if p.is_dir():
         raise UsageError(f"{option} {path}: is a directory; give a file path")
+    if replaced and p.exists() and not p.is_file():
+        raise UsageError(f"{option} {path}: is not a regular file (a device, pipe or socket), and the file is "
+                         f"written beside it and renamed over it; give a file path")
     if p.exists():
         if not os.access(p, os.W_OK):
             raise UsageError(f"{option} {path}: file is not writable")
@@ -200,7 +205,8 @@ RUN_OWN_NAMES = ("run_options.json", "result.json")
 
 
 def refuse_measured(path: str | None, option: str) -> None:
-    if path and path != "-" and is_measured(path):
+    """UsageError when ``path``, or what it links to, is a run's measured data or a file the run resumes from."""
+    if path and path != "-" and (is_measured(path) or is_measured(Path(path).resolve())):
         raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl, raw/, run.json, "
                          f"run_options.json, plan_round*.json, result.json); choose another path")
 

@@ -275,3 +275,21 @@ def round_planner(plan0: Plan, out: Path):
         saved = out / f"plan_round{k}.json"
         return Plan.load(saved) if saved.exists() else replan(plan0, positions)
     return plan_round
+
+
+def verdict(loc, res, described: str, status: str, fault: dict | None) -> str:
+    """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
+    to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NO RESULT
+    when the arm run ended with a fault."""
+    if res is None:
+        return (f"NO RESULT: the arm run ended with a fault "
+                f"({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+    if not localized(loc):
+        return f"NOT LOCALIZED: {res.stop_reason}"
+    return ("STONE " if loc.detected else "NO STONE ") + described
+
+
+def localized(loc) -> bool:
+    """Was a fit made (its likelihood ratio is a number)? Not when too few probes were usable."""
+    return loc.lr == loc.lr
+

@@ -11,6 +11,7 @@ from .guards import check_uniform_result
 from .mixed import solve_uniform_mixed
 from .model import Model, build_model
 from .results import Profile, UniformResult
+from .scene import check_load_a
 from .stress import components, nodal_poisson, recovery_operator
 
 # Profile and UniformResult live in fem.results; imported here, they stay importable from fem.uniform too.
@@ -39,6 +40,7 @@ def solve_prescribed(scene, model, fixed: np.ndarray, values: np.ndarray):
 
 def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
                   rigid_stones: str | bool = "auto") -> UniformResult:
+    check_load_a(scene)
     if scene.analysis.formulation == "mixed":         # locking-free u-p (fem.mixed)
         return check_uniform_result(scene, solve_uniform_mixed(scene, model=model, full_field=full_field,
                                                                rigid_stones=rigid_stones))

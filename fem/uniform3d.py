@@ -9,12 +9,14 @@ import numpy as np
 from .guards import check_finite
 from .model3d import Model3D, build_model3d, fixed_bottom
 from .results3d import SurfaceMap, UniformResult3D
+from .scene import check_load_a
 from .stress3d import components3d, recover3d
 from .uniform import solve_prescribed
 
 
 def solve_uniform3d(scene, model: Model3D | None = None, full_field: bool = True,
                     rigid_stones: str | bool = "auto") -> UniformResult3D:
+    check_load_a(scene)
     t0 = time.perf_counter()
     model = model or build_model3d(scene, rigid_stones=rigid_stones)
     t1 = time.perf_counter()

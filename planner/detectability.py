@@ -40,7 +40,7 @@ from core.contracts import (
 )
 from fem.contact import surface_model
 from fem.scene import load
-from planner.localize import LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR, THICKNESS_SIGMA
+from planner.localize import FLOOR_GAP_M, LR_THRESHOLD, MODEL_ABS_ERR_N, MODEL_REL_ERR, THICKNESS_SIGMA
 from planner.raster import choose_depths, raster_positions
 from planner.surrogate import load_surrogate
 from planner.tissue_response import prior_and_thickness_slope
@@ -129,6 +129,10 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
     rows = []
     for D, dep in stones:
         s = dep - D / 2
+        if s + D > prior.tissue.height_m - FLOOR_GAP_M:      # below the tissue (or within the localizer's gap)
+            rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": None, "snr": None, "p_detect": None,
+                         "detectable": None, "note": "does not fit in the tissue"})
+            continue
         inside = b["s_m"][0] <= s <= b["s_m"][1] + 1e-12 and b["diam_m"][0] <= D <= b["diam_m"][1] + 1e-12
         if not inside:
             rows.append({"diameter_m": D, "depth_m": dep, "peak_contrast_n": None, "snr": None, "p_detect": None,

@@ -45,9 +45,11 @@ from planner.tissue_response import PriorResponse
 LR_THRESHOLD = 20.0          # detection threshold on chi2_0 - chi2_1 (see module doc)
 MODEL_REL_ERR = 0.01         # surrogate interpolation error, relative to the contrast (measured: max 1.4 %, RMS 0.12 %)
 MODEL_ABS_ERR_N = 2e-4       # and an absolute floor (N)
+FLOOR_GAP_M = 2e-3           # a candidate stone keeps this much tissue below it (the starts; detectability's grid)
 N_X_STARTS = 11              # stone starts spread evenly over the table's x range, besides those around the peak
 
 MIN_MEASUREMENTS = 4          # usable probes a localization needs (a stone has 3 parameters)
+MIN_MEASUREMENTS3D = 6        # and a 3D block's round (x, y, depth, size, the tissue's scale and drift)
 
 
 @dataclass
@@ -661,7 +663,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
         rows, params = [], []
         for ls in np.log(surrogate.s * 1e3):
             for D in surrogate.diam * 1e3:
-                if math.exp(ls) + D > H - 2.0:
+                if math.exp(ls) + D > H - FLOOR_GAP_M * 1e3:
                     continue
                 _, dep_c, D_c = _stone((0.0, ls, D))
                 rows.append(fw.contrast_many(xs_c * 1e-3, dep_c, D_c, d0, nu_s[4]))   # (n_xc, n probes)

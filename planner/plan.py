@@ -39,6 +39,7 @@ from fem.contact import surface_model
 from fem.scene import from_dict, load
 from planner import area
 from planner import kinematics as kin
+from planner.interrupt import interruptible
 from planner.raster import (
     Targets,
     choose_depths,
@@ -176,7 +177,7 @@ class RasterNLP:
         lbx = np.tile(ur5e.JOINT_LOWER_RAD, 2 * n)
         ubx = np.tile(ur5e.JOINT_UPPER_RAD, 2 * n)
         t0 = time.perf_counter()
-        r = self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=np.array(lo), ubg=np.array(hi))
+        r = interruptible(lambda: self.solver(x0=x0, p=p, lbx=lbx, ubx=ubx, lbg=np.array(lo), ubg=np.array(hi)))
         dt = time.perf_counter() - t0
         st = self.solver.stats()
         info = {"status": st.get("return_status"), "success": bool(st.get("success")),

@@ -147,8 +147,7 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
         meas = m if meas is None else meas.concat(m)
         if len(meas) < MIN_MEASUREMENTS:        # every probe failed or read a force no tissue gives
             loc = Localization(detected=False, lr=float("nan"), lr_threshold=float("nan"))
-            reason = (f"too few usable measurements: {len(meas)} of {used} probes (the others failed or read forces "
-                      f"no tissue gives: see probes.jsonl's status, reason and implausible)")
+            reason = too_few(len(meas), used, MIN_MEASUREMENTS)
             say(f"round {k}: {len(x)} probes ({used} in all): {reason}")
             break
         loc = localize(prior, meas, surrogate, workers=workers)
@@ -175,12 +174,35 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
     return AdaptiveResult(loc, meas, rounds, used, reason)
 
 
+def too_few(usable: int, used: int, need: int) -> str:
+    """Why a round cannot be localized: fewer usable measurements than a fit needs."""
+    why = (" (the others failed or read forces no tissue gives: see probes.jsonl's status, reason and implausible)"
+           if usable < used else "")
+    return f"too few usable measurements: {usable} of {used} probes, a fit needs at least {need}{why}"
+
+
+def caveats(loc) -> str:
+    """What makes a detected stone's estimate doubtful, for the line that reports it ("" when nothing): a parameter
+    at its fit's bound (the table's range: the stone may lie beyond it, and its sigma does not say so) and a fit
+    the data reject (chi2 above its degrees of freedom by more than 4 standard deviations, sqrt(2 dof): one stone in
+    the prior's tissue does not explain the forces)."""
+    out = []
+    if loc.at_bound:
+        out.append(f"at the fit's bound: {', '.join(loc.at_bound)} (the stone may lie beyond the range the table "
+                   f"covers; its sigma does not say so)")
+    dof = loc.dof_1
+    if dof and loc.chi2_1 > dof + 4.0 * math.sqrt(2.0 * dof):
+        out.append(f"poor fit: chi2 {loc.chi2_1:.0f} on {dof} degrees of freedom (another stone, or tissue unlike "
+                   f"the prior?)")
+    return "".join(f"; warning: {c}" for c in out)
+
+
 def describe(loc: Localization) -> str:
     if not loc.detected:
         return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.1f} mN)"
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- "
             f"{loc.sigma_depth_m * 1e3:.2f} mm, diameter {loc.diameter_m * 1e3:.2f} +- "
-            f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})")
+            f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})" + caveats(loc))
 
 
 def renumber(plan, start: int):

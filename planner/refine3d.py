@@ -20,9 +20,9 @@ import time
 
 import numpy as np
 
-from planner.localize import Measurements
+from planner.localize import MIN_MEASUREMENTS3D, Measurements
 from planner.localize3d import Localization3D, localize3d
-from planner.refine import WEAK_LR, AdaptiveResult, Round
+from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, too_few
 
 DESIGN_STEP_M = 1e-3
 SHALLOW_FRACTION = 0.6      # every other coarse probe this fraction of the planned depth (coarse_depths)
@@ -117,10 +117,9 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         m = Measurements.from_records(recs, plan.motion, statuses=("ok", "force_limit"))
         used += len(xy)
         meas = m if meas is None else meas.concat(m)
-        if len(meas) < 6:
+        if len(meas) < MIN_MEASUREMENTS3D:
             loc = Localization3D(detected=False, lr=float("nan"), lr_threshold=float("nan"))
-            reason = (f"too few usable measurements: {len(meas)} of {used} probes (see probes.jsonl's status, reason "
-                      f"and implausible)")
+            reason = too_few(len(meas), used, MIN_MEASUREMENTS3D)
             say(f"round {k}: {len(xy)} probes ({used} in all): {reason}")
             break
         loc = localize3d(prior, meas, surrogate, workers=workers)
@@ -147,4 +146,5 @@ def describe3d(loc: Localization3D) -> str:
         return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.2f} mN)"
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, y {loc.y_m * 1e3:.2f} +- "
             f"{loc.sigma_y_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- {loc.sigma_depth_m * 1e3:.2f} mm, "
-            f"diameter {loc.diameter_m * 1e3:.2f} +- {loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})")
+            f"diameter {loc.diameter_m * 1e3:.2f} +- {loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})"
+            + caveats(loc))

@@ -90,7 +90,7 @@ def test_a_simulated_sensor_that_cannot_enforce_the_limit_is_refused_first(tmp_p
     rc, _, err = _run(["run", "paper", "--sim", "--sensor", "ur5e-builtin", "--out", str(tmp_path / "run")], capsys)
     assert rc == 2 and "--sensor ur5e-builtin" in err and "nano17" in err
     assert not (tmp_path / "run").exists()
-    plan = plan_raster(load("paper").prior(), n_waypoints=3)       # no legal force limit makes it usable
+    plan = plan_raster(load("paper").prior(), n_waypoints=4)       # no legal force limit makes it usable
     plan.limits.force_limit_n = 10.0
     plan.save(tmp_path / "p10.json")
     rc, _, err = _run(["run", "paper", "--sim", "--sensor", "ur5e-builtin", "--plan", str(tmp_path / "p10.json"),

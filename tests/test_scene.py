@@ -121,7 +121,7 @@ def _replace_line(text: str, section: str, key: str, value: str) -> str:
     ("analysis", "mesh_size_m", "0.0", "analysis.mesh_size_m"),
     ("analysis", "mesh_size_m", "0.03", "analysis.mesh_size_m"),
     ("analysis", "surface_refine", "-2.0", "analysis.surface_refine"),
-    ("analysis", "top_displacement_m", "0.06", "analysis.top_displacement_m"),
+    ("analysis", "top_displacement_m", "-0.06", "analysis.top_displacement_m"),
 ])
 def test_bad_values_name_the_field(tmp_path, section, key, value, field):
     msg = _toml_error(tmp_path, _replace_line(BASE, section, key, value))

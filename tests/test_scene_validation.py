@@ -83,13 +83,37 @@ def test_scene_file_without_tissue_is_refused(tmp_path, text, expect):
     ("analysis", "surface_refine", "1e-300", "analysis.surface_refine = 1e-300 is outside the allowed range [1, 64]"),
     ("analysis", "surface_refine", "1e6", "analysis.surface_refine = 1000000.0 is outside the allowed range [1, 64]"),
     ("analysis", "mesh_size_m", "1e-7", "analysis.mesh_size_m / surface_refine"),
-    ("analysis", "top_displacement_m", "0.049", "analysis.top_displacement_m = 0.049 is 98% of the tissue height"),
-    ("analysis", "top_displacement_m", "0.016", "the linear model allows at most 30%"),
+    ("analysis", "top_displacement_m", "-0.001", "analysis.top_displacement_m must be a number >= 0"),
 ])
 def test_out_of_range_values_name_field_value_and_range(section, key, value, expect):
     with pytest.raises(SceneError) as e:
         S.from_dict(_with(section, key, value))
     assert expect in str(e.value)
+
+
+@pytest.mark.parametrize("value, expect", [
+    ("0.049", "analysis.top_displacement_m = 0.049 (load A) is 98% of the tissue height"),
+    ("0.016", "the linear model allows at most 30%"),
+    ("0.05", "must lie in [0, height_m = 0.05) m"),
+])
+def test_load_a_refuses_a_top_displacement_beyond_its_limit_where_it_is_solved(value, expect):
+    """Load A's limit is checked where load A is solved (fem.uniform, fem.uniform3d), not when the scene loads: the
+    other loads never use it, and the study's 5 mm default refused every command on a tissue under 16.7 mm."""
+    from fem.uniform import solve_uniform
+    sc = S.from_dict(_with("analysis", "top_displacement_m", value))     # loads: load B does not use it
+    with pytest.raises(SceneError) as e:
+        solve_uniform(sc)
+    assert expect in str(e.value)
+
+
+def test_a_thin_tissue_loads_and_indents_with_the_default_top_displacement():
+    sc = S.from_dict({"tissue": {"width_m": 0.07, "height_m": 0.012, "youngs_pa": 2500.0, "poisson": 0.4},
+                      "analysis": {"mesh_size_m": 0.003, "surface_refine": 3.0}})
+    assert sc.analysis.top_displacement_m > 0.3 * sc.tissue.height_m     # the default, beyond load A's limit here
+    from fem.contact import surface_model
+    assert surface_model(sc, cache=False).force_n(0.035, 0.001) > 0
+    with pytest.raises(SceneError, match="load A"):
+        S.check_load_a(sc)
 
 
 def test_builtin_scenes_stay_valid():

@@ -6,6 +6,8 @@ import json
 import sys
 from pathlib import Path
 
+from app.errors import UsageError
+
 _JSON_OUT = []       # the standard output ``json_alone`` kept for the JSON while the rest went to stderr
 
 
@@ -33,5 +35,8 @@ def write_json(dest: str | None, data: dict) -> None:
     if dest == "-":
         print(text, file=_JSON_OUT[-1] if _JSON_OUT else sys.stdout)
     else:
-        Path(dest).parent.mkdir(parents=True, exist_ok=True)
-        Path(dest).write_text(text + "\n")
+        try:
+            Path(dest).parent.mkdir(parents=True, exist_ok=True)
+            Path(dest).write_text(text + "\n")
+        except OSError as e:         # a full disk, a vanished directory: the one line names the file
+            raise UsageError(f"--json {dest}: {e.strerror or e}") from None

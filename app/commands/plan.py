@@ -128,7 +128,7 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    check_output_file(args.out, "--out")
+    check_output_file(args.out, "--out", replaced=True)
     check_output_dir(args.plots, "--plots")
     check_output_file(args.json, "--json")
     if args.json and args.out and args.json != "-" and Path(args.json).absolute() == Path(args.out).absolute():

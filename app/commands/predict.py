@@ -26,8 +26,9 @@ from app.options import (
     load_scene,
     positive_float,
 )
-from core.peak import parabola_peak
+from core.peak import or_null, parabola_peak, ratio_of, upper_window
 from fem.contact import check_waypoint, surface_model
+from fem.scene import SceneError
 
 DEFAULT_DEPTH_M = 0.004
 DEFAULT_MARGIN_M = 0.005
@@ -109,7 +110,19 @@ def _scenes(args):
     elif c.lower() == "prior":
         ref = sc.prior()
     else:   # another scene's tissue and stones, probed with SCENE's tip and analysed like SCENE
-        ref = dataclasses.replace(load_scene(c, "--compare"), indenter=sc.indenter, analysis=sc.analysis)
+        other = load_scene(c, "--compare")
+        if other.is_3d != sc.is_3d:
+            raise UsageError(f"--compare {c}: is a {'3D block' if other.is_3d else '2D section'} and scene "
+                             f"{sc.name!r} a {'3D block' if sc.is_3d else '2D section'}: compare like with like")
+        for name in ("width_m", "length_m") if sc.is_3d else ("width_m",):
+            a, b = getattr(other.tissue, name), getattr(sc.tissue, name)
+            if a != b:
+                raise UsageError(f"--compare {c}: its tissue.{name} is {a:g} m and scene {sc.name}'s {b:g} m: the "
+                                 f"reference is probed at the scene's waypoints, so they must be equal")
+        try:
+            ref = dataclasses.replace(other, indenter=sc.indenter, analysis=sc.analysis)
+        except SceneError as e:
+            raise UsageError(f"--compare {c} with scene {sc.name}'s tip and analysis: {e}") from None
     return sc, ref
 
 
@@ -146,18 +159,33 @@ def predict(scene, xs: np.ndarray, depth_m: float, *, stresses: bool = True, pro
             "timings_s": {"setup_s": t1 - t0, "predict_s": t2 - t1, "per_waypoint_s": (t2 - t1) / len(xs)}}
 
 
-def _peak(xs, ratio) -> dict:
+def ratio_line(out: dict) -> str:
+    """The reference line: where the force (and von Mises) ratio peaks, and how many waypoints have none."""
+    pr, pv = out["peak_ratio"], out.get("peak_ratio_von_mises")
+    undefined = sum(v is None for v in out["ratio"])
+    if pr is None:
+        return (f"  vs {out['reference_scene']}: no force ratio: the reference feels no force at any waypoint (the "
+                f"tip touches no surface node: a depth below the mesh's resolution)")
+    s = f"  vs {out['reference_scene']}: force ratio peaks at {pr['ratio']:.4f} at x = {pr['x_m'] * 1e3:.1f} mm"
+    if pv is not None:
+        s += f"; max von Mises ratio peaks at {pv['ratio']:.4f} at x = {pv['x_m'] * 1e3:.1f} mm"
+    if undefined:
+        s += (f"\n  warning: no ratio (null) at {undefined} of {len(out['ratio'])} waypoints: the reference feels no "
+              f"force there (the tip touches no surface node: a depth below the mesh's resolution)")
+    return s
+
+
+def _peak(xs, ratio) -> dict | None:
     """Peak of a ratio profile. Near its top the ratio is flat to ~1e-6 while the two meshes differ by ~1e-4, so the
     largest sample can sit a waypoint or two off; ``x_m`` is the vertex of a least-squares parabola through the
-    contiguous samples in the peak's upper quarter (``x_max_sample_m``: the largest sample)."""
-    i = int(np.argmax(ratio))
+    contiguous samples in the peak's upper quarter up to a valley (``core.peak.upper_window``; ``x_max_sample_m``:
+    the largest sample). Undefined ratios (NaN) are skipped; None when there is none."""
+    ratio = np.asarray(ratio, float)
+    if not np.isfinite(ratio).any():
+        return None
+    i = int(np.nanargmax(ratio))
     out = {"x_m": float(xs[i]), "ratio": float(ratio[i]), "index": i, "x_max_sample_m": float(xs[i])}
-    cut = ratio[i] - 0.25 * (ratio[i] - ratio.min())
-    lo, hi = i, i
-    while lo > 0 and ratio[lo - 1] >= cut:
-        lo -= 1
-    while hi < len(ratio) - 1 and ratio[hi + 1] >= cut:
-        hi += 1
+    lo, hi = upper_window(ratio, i)
     out["x_m"], out["ratio"] = parabola_peak(xs, ratio, lo, hi)
     return out
 
@@ -206,15 +234,18 @@ def run(args) -> int:
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
            "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}
     if ref is not None:
-        rd = predict(ref, xs, args.depth_m, stresses=stresses, progress=progress(ref.name))
+        try:
+            rd = predict(ref, xs, args.depth_m, stresses=stresses, progress=progress(ref.name))
+        except ValueError as e:
+            raise UsageError(f"--depth-m {args.depth_m:g} on the reference (--compare {args.compare}): {e}") from None
         out["reference_scene"] = ref.name
         out["reference"] = rd
-        ratio = np.asarray(main["force_n"]) / np.asarray(rd["force_n"])
-        out["ratio"] = ratio.tolist()
+        ratio = ratio_of(main["force_n"], rd["force_n"])
+        out["ratio"] = or_null(ratio)
         out["peak_ratio"] = _peak(xs, ratio)
         if stresses:
-            rs = np.asarray(main["max_von_mises_pa"]) / np.asarray(rd["max_von_mises_pa"])
-            out["ratio_von_mises"] = rs.tolist()
+            rs = ratio_of(main["max_von_mises_pa"], rd["max_von_mises_pa"])
+            out["ratio_von_mises"] = or_null(rs)
             out["peak_ratio_von_mises"] = _peak(xs, rs)
     t = {"setup_s": main["timings_s"]["setup_s"], "predict_s": main["timings_s"]["predict_s"],
          "per_waypoint_s": main["timings_s"]["per_waypoint_s"]}
@@ -259,12 +290,7 @@ def _summary(sc, out, stream) -> None:
         lines.append(f"  max von Mises under the tip: {v.min():.4g} .. {v.max():.4g} Pa "
                      f"(max at x = {x[np.argmax(v)] * 1e3:.1f} mm)")
     if "reference" in out:
-        pr = out["peak_ratio"]
-        lines.append(f"  vs {out['reference_scene']}: force ratio peaks at {pr['ratio']:.4f} at x = "
-                     f"{pr['x_m'] * 1e3:.1f} mm" + (f"; max von Mises ratio peaks at "
-                                                     f"{out['peak_ratio_von_mises']['ratio']:.4f} at x = "
-                                                     f"{out['peak_ratio_von_mises']['x_m'] * 1e3:.1f} mm"
-                                                     if "peak_ratio_von_mises" in out else ""))
+        lines.append(ratio_line(out))
     if sc.stones:
         lines.append("  stones at x = " + ", ".join(f"{s.x_m * 1e3:g} mm" for s in sc.stones))
     lines.append(f"  tip: {w['tip_note']}")

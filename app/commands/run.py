@@ -44,22 +44,25 @@ from app.options import (
     load_scene,
     positive_float,
 )
+from app.outlock import holding
 from app.runexec import (
     RUN_FILES,
     RunAborted,
     check_resume,
     choose_executor,
+    localized,
     new_stats,
     open_out,
     round_planner,
     run_options,
     truth_conditions,
+    verdict,
     workers_for_fits,
 )
 from core.contracts import SENSORS, Limits, Plan
 from planner.detectability import detectability
 from planner.draw_run import draw_run
-from planner.localize import MIN_MEASUREMENTS, Localization, localize
+from planner.localize import MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
@@ -109,8 +112,9 @@ def add_parser(sub) -> None:
                    help="simulated sensor preset (default nano17)")
     p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
                    help="simulated sensor noise seed, 0..4294967295 (default 0)")
-    p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS),
-                   help=f"2D: coarse raster waypoints, 2..{MAX_WAYPOINTS} (default 15)")
+    p.add_argument("--waypoints", type=int_range(MIN_MEASUREMENTS, MAX_WAYPOINTS),
+                   help=f"2D: coarse raster waypoints, {MIN_MEASUREMENTS}..{MAX_WAYPOINTS} (default 15; a fit needs "
+                        f"{MIN_MEASUREMENTS} probes)")
     p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
                    help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
                         f"{DEFAULT_GRID3D[0]}x{DEFAULT_GRID3D[1]})")
@@ -210,6 +214,17 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     three_d = _dimension_defaults(args, scene, prior)
     n_coarse = len(plan0.probes) if plan0 is not None else (
         args.grid[0] * args.grid[1] if three_d else args.waypoints)
+    lim = Limits().depth_limit_m
+    if plan0 is None and not lim < prior.indenter.radius_m:     # the run plans to the default depth limit
+        raise UsageError(f"scene {args.scene}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above the "
+                         f"depth limit a run plans to ({lim:g} m; the tissue would wrap the tip's sides): make a "
+                         f"plan with a smaller one (palpate plan {args.scene} --depth-limit-m D --out plan.json, D "
+                         f"below the radius) and run it with --plan plan.json")
+    need = MIN_MEASUREMENTS3D if three_d else MIN_MEASUREMENTS
+    if n_coarse < need:        # a --plan or --grid too small for the first round's fit
+        what = f"--plan {args.plan}" if plan0 is not None else f"--grid {args.grid[0]}x{args.grid[1]}"
+        raise UsageError(f"{what}: the coarse raster has {n_coarse} waypoints; the first round's fit needs at least "
+                         f"{need} probes")
     if args.budget_probes < n_coarse:
         raise UsageError(f"--budget-probes {args.budget_probes} must be at least the coarse raster's {n_coarse} "
                          f"waypoints")
@@ -273,6 +288,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
     execute, where, truth = choose_executor(args, out, scene, cond, plan0, resume, stats, cleanup, sim_arm, _say)
+    on_exit.enter_context(holding(out))      # one process at a time in OUT (app.outlock)
     open_out(args, out, opts, _say)         # from here on files are written (never deleted: --fresh moves them aside)
     _say(f"probing on the {where}")
     t_first: dict = {}
@@ -346,17 +362,16 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
-    if res is not None and not args.no_figure:
+    if res is not None and localized(loc) and not args.no_figure:   # nothing to draw unless a fit was made
         from planner.plots_run import run_figure
         fig = run_figure(prior, loc, res.measurements, surrogate=sur,
                          truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
-                         title=f"palpate run {args.scene}:\n{describe(loc)}")
+                         title=f"palpate run {args.scene}:\n" + describe(loc).replace("; warning: ", "\nwarning: "))
         if fig_child is not None:
             fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run(out / "fig_run.png", fig)
-    print((("STONE " if loc.detected else "NO STONE ") + describe(loc) if res is not None else
-           f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+    print(verdict(loc, res, describe(loc) if res is not None else "", status, fault)
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1

@@ -20,7 +20,16 @@ from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.figchild import FigureChild
-from app.runexec import RunAborted, choose_executor, new_stats, open_out, round_planner, workers_for_fits
+from app.runexec import (
+    RunAborted,
+    choose_executor,
+    localized,
+    new_stats,
+    open_out,
+    round_planner,
+    verdict,
+    workers_for_fits,
+)
 from core.contracts import Limits, Plan, PlanError
 from planner.area import probe_bounds
 from planner.draw_run3d import draw_run3d
@@ -133,17 +142,16 @@ def run_block(args, ctx: RunContext) -> int:
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
-    if res is not None and not args.no_figure and res.measurements is not None:
+    if res is not None and localized(loc) and not args.no_figure and res.measurements is not None:
         from planner.plots_run3d import run_figure3d
         fig = run_figure3d(prior, loc, res.measurements, surrogate=sur,
                            truth_stones=truth.stones if truth is not None else (), region=probe_bounds(prior),
-                           title=f"palpate run {args.scene}:\n{describe3d(loc)}")
+                           title=f"palpate run {args.scene}:\n" + describe3d(loc).replace("; warning: ", "\nwarning: "))
         if ctx.fig_child is not None:
             ctx.fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run3d(out / "fig_run.png", fig)
-    print((("STONE " if loc.detected else "NO STONE ") + describe3d(loc) if res is not None else
-           f"NO RESULT: the arm run ended with a fault ({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+    print(verdict(loc, res, describe3d(loc) if res is not None else "", status, fault)
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1

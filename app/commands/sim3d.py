@@ -17,6 +17,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
+from core.peak import or_null, ratio_of
 from fem.contact3d import (
     STRESS_RESOLVED,
     check_waypoint3d,
@@ -228,10 +229,14 @@ def _predict(sc, xs, ys, depth_m, stresses: bool, quiet: bool = False) -> dict:
             "timings_s": {"setup_s": t1 - t0, "predict_s": t2 - t1, "per_waypoint_s": (t2 - t1) / n}}
 
 
-def _peak(w: dict, ratio: np.ndarray) -> dict:
+def _peak(w: dict, ratio: np.ndarray) -> dict | None:
+    """The ratio's peak over the grid (a quadratic through the samples around the largest); undefined ratios (NaN:
+    the reference felt no force) skipped, and None when there is none."""
     x, y = np.asarray(w["x_m"]), np.asarray(w["y_m"])
-    i = int(np.argmax(ratio))
-    if len(ratio) >= 13:
+    if not np.isfinite(ratio).any():
+        return None
+    i = int(np.nanargmax(ratio))
+    if len(ratio) >= 13 and np.isfinite(ratio).all():
         xp, yp, rp = quadratic_peak(x, y, ratio)
     else:
         xp, yp, rp = float(x[i]), float(y[i]), float(ratio[i])
@@ -263,13 +268,13 @@ def run_predict(args, sc, ref) -> int:
     if ref is not None:
         rd = _predict(ref, xs, ys, args.depth_m, stresses, args.quiet)
         out["reference_scene"], out["reference"] = ref.name, rd
-        ratio = np.asarray(main["force_n"]) / np.asarray(rd["force_n"])
-        out["ratio"] = ratio.tolist()
+        ratio = ratio_of(main["force_n"], rd["force_n"])
+        out["ratio"] = or_null(ratio)
         out["peak_ratio"] = _peak(main, ratio)
         maps["force ratio (contrast)"] = ratio.reshape(ny, nx)
         if stresses:
-            rs = np.asarray(main["max_von_mises_pa"]) / np.asarray(rd["max_von_mises_pa"])
-            out["ratio_von_mises"] = rs.tolist()
+            rs = ratio_of(main["max_von_mises_pa"], rd["max_von_mises_pa"])
+            out["ratio_von_mises"] = or_null(rs)
             out["peak_ratio_von_mises"] = _peak(main, rs)
     if args.plots:
         from fem import plots3d
@@ -289,8 +294,17 @@ def run_predict(args, sc, ref) -> int:
              f"  force: {f.min():.4g} .. {f.max():.4g} N"]
     if "peak_ratio" in out:
         p = out["peak_ratio"]
-        lines.append(f"  vs {out['reference_scene']}: force ratio peaks at {p['ratio']:.4f} at x = "
-                     f"{p['x_m'] * 1e3:.1f} mm, y = {p['y_m'] * 1e3:.1f} mm")
+        undefined = sum(v is None for v in out["ratio"])
+        if p is None:
+            lines.append(f"  vs {out['reference_scene']}: no force ratio: the reference feels no force at any "
+                         f"waypoint (the tip touches no surface node: a depth below the mesh's resolution)")
+        else:
+            lines.append(f"  vs {out['reference_scene']}: force ratio peaks at {p['ratio']:.4f} at x = "
+                         f"{p['x_m'] * 1e3:.1f} mm, y = {p['y_m'] * 1e3:.1f} mm")
+        if undefined and p is not None:
+            lines.append(f"  warning: no ratio (null) at {undefined} of {len(out['ratio'])} waypoints: the reference "
+                         f"feels no force there (the tip touches no surface node: a depth below the mesh's "
+                         f"resolution)")
     if sc.stones:
         lines.append("  stones at " + ", ".join(f"({s.x_m * 1e3:g}, {s.y_m * 1e3:g}) mm" for s in sc.stones))
     lines.append(f"  time: setup {t['setup_s']:.2f} s, {nx * ny} waypoints {t['predict_s']:.3f} s "
