@@ -254,3 +254,15 @@ def test_warnings_print_as_one_line_and_the_old_format_returns(capsys):
         assert warnings.showwarning is before
     err = capsys.readouterr().err
     assert err == "palpate: warning: the tip touched nothing\n"
+
+
+def test_ctrl_c_while_the_modules_load_is_one_line_and_exit_130(monkeypatch, capsys):
+    from app import entry
+
+    def interrupted(name):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(entry.importlib, "import_module", interrupted)
+    assert entry.palpate() == 130 and entry.palpate_cell() == 130
+    assert capsys.readouterr().err == "palpate: interrupted\npalpate-cell: interrupted\n"
+    text = (ROOT / "pyproject.toml").read_text()
+    assert 'palpate = "app.entry:palpate"' in text and 'palpate-cell = "app.entry:palpate_cell"' in text
