@@ -26,6 +26,7 @@ class CachedForce:
         # extrapolation towards the range's edge, but a force the model cannot give): reported, never silent
         self.beyond_range = 0
         self.deepest_beyond_range_m = 0.0
+        self.first_refusal = ""              # why fem refused its first depth (the range report says it)
         self._refused_from: dict[tuple[int, int], int] = {}   # (ix, iy) -> first depth node the model refused
 
     def _eval(self, ix: int, iy: int, depth_m: float) -> float:
@@ -38,7 +39,8 @@ class CachedForce:
         if v is None:
             try:
                 v = 0.0 if idp <= 0 else self._eval(ix, iy, idp * self.hd)
-            except ValueError:   # beyond the model's range (fem: depth >= tip radius): continue linearly
+            except ValueError as e:   # beyond the model's range (fem refused the depth): continue linearly
+                self.first_refusal = self.first_refusal or " ".join(str(e).split())
                 self._refused_from[(ix, iy)] = min(idp, self._refused_from.get((ix, iy), idp))
                 v = 2 * self._node(ix, iy, idp - 1) - self._node(ix, iy, idp - 2) if idp >= 2 else 0.0
                 self.extrapolated += 1
@@ -102,8 +104,9 @@ class CachedForce:
             return None
         return {"samples_beyond_model_range": self.beyond_range,
                 "deepest_m": self.deepest_beyond_range_m,
-                "note": "the simulated force was extrapolated linearly beyond the force model's range (fem: depth "
-                        ">= tip radius); those forces are not the model's"}
+                "note": "the simulated force was extrapolated linearly beyond the force model's range (fem "
+                        f"refused: {self.first_refusal or 'a depth beyond its range'}); those forces are not the "
+                        "model's"}
 
 
 def standin_force_model(width_m=0.07, k_n_per_m15=1500.0, stones=((0.035, 0.025, 0.015),), contrast=0.6):

@@ -266,3 +266,19 @@ def test_ctrl_c_while_the_modules_load_is_one_line_and_exit_130(monkeypatch, cap
     assert capsys.readouterr().err == "palpate: interrupted\npalpate-cell: interrupted\n"
     text = (ROOT / "pyproject.toml").read_text()
     assert 'palpate = "app.entry:palpate"' in text and 'palpate-cell = "app.entry:palpate_cell"' in text
+
+
+def test_the_range_report_says_why_fem_refused_not_always_the_tip_radius():
+    from robot.simforce import CachedForce
+
+    def model(x_m, depth_m):
+        if depth_m > 0.002:
+            raise ValueError("depth_m=0.0021 at x_m=0.035: stone[0] under the tip lies 2 mm below the surface;\n"
+                             "   the indentation must stay within 75% of that layer")
+        return 100.0 * depth_m ** 1.5
+    cf = CachedForce(model)
+    assert cf(0.035, 0.001) > 0 and cf.range_report() is None
+    cf(0.035, 0.0035)
+    note = cf.range_report()["note"]
+    assert "stone[0] under the tip lies 2 mm below the surface; the indentation must stay within 75%" in note
+    assert "tip radius" not in note
