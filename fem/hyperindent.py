@@ -126,7 +126,7 @@ class HyperIndenter:
             r = np.hypot(v[:, 0], v[:, 1])
             return r - self.R, v / r[:, None], r
         n = np.tile([0.0, -1.0], (len(xy), 1))           # a flat punch of half-width R: a plane at H - depth
-        return xy[:, 1] - (self.H - depth), n, np.full(len(xy), np.inf)
+        return (self.H - depth) - xy[:, 1], n, np.full(len(xy), np.inf)      # < 0: the tissue is penetrated
 
     def _candidates(self, x0: float, depth: float, a: np.ndarray, p: dict[int, float]):
         """Top nodes that may touch (under the tip's span now, or carrying force): indices, gaps, normals, radii."""

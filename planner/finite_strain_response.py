@@ -76,6 +76,8 @@ class FiniteStrainShape:
         x, dep, g = (np.array(d[k], float) for k in ("x_m", "depth_m", "g"))
         if g.shape != (len(x), len(dep)) or len(x) < MIN_NODES or np.any(np.diff(x) <= 0) or np.any(np.diff(dep) <= 0):
             raise ValueError("inconsistent finite-strain shape arrays")
+        if not np.isfinite(g).all() or np.any(g[:, 1:] <= -1.0):
+            raise ValueError("a finite-strain shape with a neo-Hookean force of 0 or less (g <= -1)")
         return FiniteStrainShape(float(d["width_m"]), x, dep, g, float(d["sweeps_s"]))
 
 
@@ -143,6 +145,8 @@ def build_shape(prior) -> FiniteStrainShape:
         if len(d) < 3:            # the sweep stopped before its second depth: no usable shape there
             continue
         g = r - 1.0
+        if np.any(g[1:] <= -1.0) or not np.isfinite(g).all():   # a force of 0 or less where the linear is positive:
+            continue                                            # not a shape (1 + a g must stay positive)
         k = np.clip(np.searchsorted(d, depths) - 1, 0, len(d) - 2)
         w = (depths - d[k]) / (d[k + 1] - d[k])
         rows.append((1 - w) * g[k] + w * g[k + 1])        # at the common depths; continued linearly past the last

@@ -138,6 +138,26 @@ def test_small_indentation_equals_the_linear_model(paper_corr):
     assert 0.005 < rel[2] < 0.02
 
 
+def test_a_flat_punch_touches_the_tissue_and_equals_the_linear_model_when_shallow():
+    """Until session 37 the flat punch's gap had the wrong sign: no node was ever in contact, the neo-Hookean force
+    was 0 at every depth, the prior's finite-strain correction g = -1 everywhere, and a run with a flat tip crashed
+    in the localizer (1 + a g = 0 at its a = 1 start). The gap is negative where the tissue is penetrated, as the
+    cylinder's; a shallow press equals the linear contact model's force on the same mesh."""
+    base = load("paper")
+    sc = correction_scene(dataclasses.replace(base, indenter=dataclasses.replace(base.indenter, shape="flat",
+                                                                                  radius_m=0.003)))
+    hi = HyperIndenter(sc)
+    gap, n, _ = hi._tip(0.035, 1e-3, np.array([[0.035, hi.H], [0.035, hi.H - 2e-3]]))
+    assert gap[0] == pytest.approx(-1e-3) and gap[1] == pytest.approx(1e-3) and n[0].tolist() == [0.0, -1.0]
+    cyl = HyperIndenter(correction_scene(base))
+    assert cyl._tip(0.035, 1e-3, np.array([[0.035, cyl.H]]))[0][0] == pytest.approx(-1e-3)   # the same sign
+    lin = surface_model(sc)
+    sw = hi.sweep(0.035, [0.05e-3, 0.1e-3])
+    rel = sw.force_n / np.array([lin.force_n(0.035, d) for d in sw.depth_m]) - 1
+    print("flat punch: neo-Hookean / linear - 1 at 0.05, 0.1 mm:", [f"{r:+.4%}" for r in rel])
+    assert np.all(sw.force_n > 0) and np.all(np.abs(rel) < 5e-3)
+
+
 def test_newton_converges_quadratically(paper_corr):
     sc, _ = paper_corr
     hi = HyperIndenter(sc, residual_tol=1e-12)

@@ -282,3 +282,14 @@ def test_the_range_report_says_why_fem_refused_not_always_the_tip_radius():
     note = cf.range_report()["note"]
     assert "stone[0] under the tip lies 2 mm below the surface; the indentation must stay within 75%" in note
     assert "tip radius" not in note
+
+
+def test_a_finite_strain_shape_with_no_neo_hookean_force_is_refused():
+    """g = -1 (a neo-Hookean force of 0, the flat punch's before session 37's fix) made 1 + a g = 0 at the
+    localizer's a = 1 start: a divide by zero and a crash; such a table is not a shape."""
+    from planner.finite_strain_response import FiniteStrainShape
+    x, dep = np.array([0.01, 0.02, 0.03]), np.array([0.0, 0.001, 0.002])
+    good = {"width_m": 0.07, "x_m": x, "depth_m": dep, "g": np.array([[0.0, 0.01, 0.02]] * 3), "sweeps_s": 1.0}
+    assert FiniteStrainShape.from_arrays(good).g.shape == (3, 3)
+    with pytest.raises(ValueError, match="g <= -1"):
+        FiniteStrainShape.from_arrays({**good, "g": np.array([[0.0, -1.0, -1.0]] * 3)})
