@@ -16,6 +16,7 @@ run's measured files.
 from __future__ import annotations
 
 import argparse
+import errno
 import math
 import os
 from pathlib import Path
@@ -159,6 +160,11 @@ def check_output_file(path: str | None, option: str, replaced: bool = False) -> 
         return
     refuse_measured(path, option)
     p = Path(path)
+    try:
+        os.stat(p)
+    except OSError as e:
+        if e.errno == errno.ELOOP:         # a symlink loop: nothing can be written through it
+            raise UsageError(f"{option} {path}: {e.strerror}") from None
     if p.is_dir():
         raise UsageError(f"{option} {path}: is a directory; give a file path")
     if replaced and p.exists() and not p.is_file():
@@ -206,7 +212,7 @@ RUN_OWN_NAMES = ("run_options.json", "result.json")
 
 def refuse_measured(path: str | None, option: str) -> None:
     """UsageError when ``path``, or what it links to, is a run's measured data or a file the run resumes from."""
-    if path and path != "-" and (is_measured(path) or is_measured(Path(path).resolve())):
+    if path and path != "-" and (is_measured(path) or is_measured(os.path.realpath(path))):   # realpath: no raise
         raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl, raw/, run.json, "
                          f"run_options.json, plan_round*.json, result.json); choose another path")
 

@@ -29,7 +29,7 @@ def holding(out: Path, option: str = "--out"):
             raise UsageError(f"{option} {out}: another palpate process is writing there now; wait for it to end "
                              f"(then the same command resumes) or choose another {option}") from None
         except OSError as e:
-            print(f"warning: {option} {out}: cannot lock it ({e.strerror}): do not start a second run there",
+            print(f"palpate: warning: {option} {out}: cannot lock it ({e.strerror}): do not start a second run there",
                   file=sys.stderr)
         yield out
     finally:

@@ -305,8 +305,8 @@ def _validate_analysis(scene: Scene) -> None:
                          f"{a.mesh_size_m / a.surface_refine:.3g} m: the finest element must be at least "
                          f"{ELEMENT_MIN_M:g} m (1 um); increase mesh_size_m or lower surface_refine")
     d = a.top_displacement_m
-    if not _is_number(d) or not d >= 0:
-        raise SceneError(f"analysis.top_displacement_m must be a number >= 0 (m), got {d!r}")
+    if not _is_number(d) or not math.isfinite(d) or not d >= 0:
+        raise SceneError(f"analysis.top_displacement_m must be a finite number >= 0 (m), got {d!r}")
     if scene.is_3d:
         if a.plane != "strain":
             raise SceneError(f"analysis.plane = {a.plane!r} is 2D only (a 3D block has no plane assumption): drop it")

@@ -23,15 +23,15 @@ def interruptible(call: Callable[[], T]) -> T:
     def handler(signum, frame):
         seen.append(signum)
         raise KeyboardInterrupt
-    old = signal.signal(signal.SIGINT, handler)
     try:
+        signal.signal(signal.SIGINT, handler)      # inside: a SIGINT right after it still reaches the finally
         out = call()
     except Exception:
         if seen:           # CasADi may also wrap it: "Error in Function::call ... KeyboardInterrupt"
             raise KeyboardInterrupt from None
         raise
     finally:
-        signal.signal(signal.SIGINT, old)
+        signal.signal(signal.SIGINT, signal.default_int_handler)     # what was there (checked above)
     if seen:
         raise KeyboardInterrupt
     return out

@@ -32,6 +32,7 @@ from scipy.optimize import least_squares
 from planner.forkmap import fork_map
 from planner.localize import (
     DRIFT_SIGMA_N_PER_S,
+    FLOOR_GAP_M,
     MIN_MEASUREMENTS,
     MIN_ONSETS,
     MODEL_ABS_ERR_N,
@@ -228,7 +229,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     cands = []
     for ls in np.linspace(lo[2], hi[2], 9):
         for D in np.linspace(lo[3], hi[3], 6):
-            if math.exp(ls) + D > H - 2.0:
+            if math.exp(ls) + D > H - FLOOR_GAP_M * 1e3:
                 continue
             for dx in (-3.0, 0.0, 3.0):
                 for dy in (-3.0, 0.0, 3.0):

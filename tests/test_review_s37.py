@@ -189,12 +189,19 @@ def test_the_ratio_peak_stays_on_one_hump_of_two():
     """Two stones: the ratio has two humps and a valley between them; a parabola through both put the 'peak' in the
     valley."""
     x = np.linspace(0.0, 70.0, 50)
-    y = 1 + 0.1 * np.exp(-((x - 28.0) / 6) ** 2) + 0.1 * np.exp(-((x - 42.0) / 6) ** 2)
+    y = 1 + 0.1 * np.exp(-((x - 29.6) / 6) ** 2) + 0.1 * np.exp(-((x - 40.4) / 6) ** 2)
     i = int(np.argmax(y))
     lo, hi = upper_window(y, i)
     xp, _ = parabola_peak(x, y, lo, hi)
-    assert min(abs(xp - 28.0), abs(xp - 42.0)) < 1.0       # near a stone (the humps overlap: each peak moves in)
-    assert abs(xp - 35.0) > 5.0
+    top = x[np.argsort(y)[-2:]]                              # the humps' tops (each moved in by the other's tail)
+    assert min(abs(xp - top[0]), abs(xp - top[1])) < 1.5 and abs(xp - 35.0) > 3.0
+    span = y[i] - y.min()                                    # the valley lies within the upper quarter: the plain
+    plain_lo, plain_hi = i, i                                # window runs through it, and its parabola peaks there
+    while plain_lo > 0 and y[plain_lo - 1] >= y[i] - 0.25 * span:
+        plain_lo -= 1
+    while plain_hi < len(y) - 1 and y[plain_hi + 1] >= y[i] - 0.25 * span:
+        plain_hi += 1
+    assert abs(parabola_peak(x, y, plain_lo, plain_hi)[0] - 35.0) < 1.0
 
 
 def test_a_noisy_single_hump_keeps_its_whole_upper_window():
@@ -293,3 +300,37 @@ def test_a_finite_strain_shape_with_no_neo_hookean_force_is_refused():
     assert FiniteStrainShape.from_arrays(good).g.shape == (3, 3)
     with pytest.raises(ValueError, match="g <= -1"):
         FiniteStrainShape.from_arrays({**good, "g": np.array([[0.0, -1.0, -1.0]] * 3)})
+
+
+def test_json_through_a_symlink_loop_is_refused_before_any_work(tmp_path, capsys):
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    rc, out, err = _run(["simulate", "paper", "--load", "indent", "--x-m", "0.035", "--depth-m", "0.003", "--json",
+                         str(loop)], capsys)
+    assert rc == 2 and "--json" in err and "symbolic links" in err and "force" not in out
+
+
+def test_run_refuses_a_run_directory_another_process_holds(tmp_path, capsys):
+    """The lock as `palpate run` takes it (2D; a block's run takes it in app.commands.run3d the same way): while
+    OUT is held, a run there is refused and writes nothing."""
+    out = tmp_path / "r"
+    with holding(out):
+        rc, _, err = _run(["run", "paper", "--sim", "--no-figure", "--out", str(out)], capsys)
+    assert rc == 2 and "another palpate process is writing there now" in err
+    assert list(out.iterdir()) == []
+    src = (ROOT / "app" / "commands" / "run3d.py").read_text()
+    assert "enter_context(holding(out))" in src and src.index("holding(out)") < src.index("open_out(")
+
+
+def test_a_blocks_grid_too_small_to_fit_is_refused(tmp_path, capsys):
+    rc, _, err = _run(["run", "block3d", "--sim", "--grid", "2x2", "--out", str(tmp_path / "r")], capsys)
+    assert rc == 2 and "--grid 2x2" in err and "at least 6" in err and not (tmp_path / "r").exists()
+
+
+def test_detectability_skips_stones_that_do_not_fit_in_the_tissue():
+    from fem.scene import load
+    from planner.detectability import detectability
+    prior = load("paper").prior()                                        # 50 mm thick
+    rows = detectability(prior, stones=[(0.015, 0.045), (0.008, 0.020)])["rows"]
+    assert rows[0]["note"] == "does not fit in the tissue" and rows[0]["p_detect"] is None
+    assert rows[1]["p_detect"] is not None

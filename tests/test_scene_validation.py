@@ -83,7 +83,8 @@ def test_scene_file_without_tissue_is_refused(tmp_path, text, expect):
     ("analysis", "surface_refine", "1e-300", "analysis.surface_refine = 1e-300 is outside the allowed range [1, 64]"),
     ("analysis", "surface_refine", "1e6", "analysis.surface_refine = 1000000.0 is outside the allowed range [1, 64]"),
     ("analysis", "mesh_size_m", "1e-7", "analysis.mesh_size_m / surface_refine"),
-    ("analysis", "top_displacement_m", "-0.001", "analysis.top_displacement_m must be a number >= 0"),
+    ("analysis", "top_displacement_m", "-0.001", "analysis.top_displacement_m must be a finite number >= 0"),
+    ("analysis", "top_displacement_m", "inf", "analysis.top_displacement_m must be a finite number >= 0"),
 ])
 def test_out_of_range_values_name_field_value_and_range(section, key, value, expect):
     with pytest.raises(SceneError) as e:

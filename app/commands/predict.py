@@ -162,7 +162,7 @@ def predict(scene, xs: np.ndarray, depth_m: float, *, stresses: bool = True, pro
 def ratio_line(out: dict) -> str:
     """The reference line: where the force (and von Mises) ratio peaks, and how many waypoints have none."""
     pr, pv = out["peak_ratio"], out.get("peak_ratio_von_mises")
-    undefined = sum(v is None for v in out["ratio"])
+    undefined = max(sum(v is None for v in out[k]) for k in ("ratio", "ratio_von_mises") if k in out)
     if pr is None:
         return (f"  vs {out['reference_scene']}: no force ratio: the reference feels no force at any waypoint (the "
                 f"tip touches no surface node: a depth below the mesh's resolution)")

@@ -249,7 +249,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if three_d:       # the 3D flow (loaded for a block only: the 2D commands never import the 3D path)
         from app.commands.run3d import RunContext, run_block
         return run_block(args, RunContext(t_wall=t_wall, out=out, scene=scene, prior=prior, plan0=plan0, cond=cond,
-                                          opts=opts, resume=resume, fig_child=fig_child))
+                                          opts=opts, resume=resume, fig_child=fig_child, on_exit=on_exit))
     if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         plan0 = plan_raster(prior, n_waypoints=args.waypoints)

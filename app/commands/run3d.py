@@ -20,6 +20,7 @@ from app.cell import sim_range_report
 from app.commands.output import write_json
 from app.errors import UsageError
 from app.figchild import FigureChild
+from app.outlock import holding
 from app.runexec import (
     RunAborted,
     choose_executor,
@@ -52,6 +53,7 @@ class RunContext:
     opts: dict               # run_options.json
     resume: bool
     fig_child: FigureChild | None = None     # draws the figure (a simulated run: app.figchild); None: here
+    on_exit: contextlib.ExitStack | None = None   # the command's: holds OUT's lock until the process is done with it
 
 
 def _say(msg: str) -> None:
@@ -82,6 +84,7 @@ def run_block(args, ctx: RunContext) -> int:
     cleanup = contextlib.ExitStack()
     execute, where, truth = choose_executor(args, out, ctx.scene, ctx.cond, plan0, ctx.resume, stats, cleanup, sim_arm,
                                             _say)
+    (ctx.on_exit if ctx.on_exit is not None else cleanup).enter_context(holding(out))   # one process in OUT
     open_out(args, out, ctx.opts, _say)
     if ctx.resume:
         _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")

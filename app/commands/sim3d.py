@@ -266,7 +266,10 @@ def run_predict(args, sc, ref) -> int:
     if stresses:
         maps["max_von_mises_pa"] = np.reshape(main["max_von_mises_pa"], (ny, nx))
     if ref is not None:
-        rd = _predict(ref, xs, ys, args.depth_m, stresses, args.quiet)
+        try:
+            rd = _predict(ref, xs, ys, args.depth_m, stresses, args.quiet)
+        except ValueError as e:          # fem refuses the press on the reference (a shallow stone there)
+            raise UsageError(f"--depth-m {args.depth_m:g} on the reference (--compare {args.compare}): {e}") from None
         out["reference_scene"], out["reference"] = ref.name, rd
         ratio = ratio_of(main["force_n"], rd["force_n"])
         out["ratio"] = or_null(ratio)
@@ -294,7 +297,7 @@ def run_predict(args, sc, ref) -> int:
              f"  force: {f.min():.4g} .. {f.max():.4g} N"]
     if "peak_ratio" in out:
         p = out["peak_ratio"]
-        undefined = sum(v is None for v in out["ratio"])
+        undefined = max(sum(v is None for v in out[k]) for k in ("ratio", "ratio_von_mises") if k in out)
         if p is None:
             lines.append(f"  vs {out['reference_scene']}: no force ratio: the reference feels no force at any "
                          f"waypoint (the tip touches no surface node: a depth below the mesh's resolution)")
