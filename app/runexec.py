@@ -14,7 +14,7 @@ from app.cell import print_preflight, read_confirmation
 from app.errors import UsageError
 from app.figchild import usable_cores
 from app.ftoptions import controller_pose, inmemory_source, linked_source
-from core.contracts import Plan
+from core.contracts import Limits, Plan
 from fem.scene import BUILTIN
 from planner.plan import replan
 from planner.refine import renumber
@@ -182,8 +182,17 @@ def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
             **({"grid": list(args.grid)} if getattr(args, "grid", None) and not args.plan else {}),
             "refine_waypoints": args.refine_waypoints, "budget_probes": args.budget_probes,
             "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
-            **({"ft": args.ft.text} if args.ft.kind != "rtde" else {})}     # absent for the wrist sensor: older
-                                                                            # runs resume
+            **({"ft": args.ft.text} if args.ft.kind != "rtde" else {}),     # absent for the wrist sensor: older
+            #                                                                 runs resume
+            **({"depth_limit_m": args.depth_limit_m} if getattr(args, "depth_limit_m", None) is not None else {})}
+
+
+def run_limits(args) -> Limits:
+    """The limits a run plans its coarse raster to (without --plan): the defaults, and ``--depth-limit-m``."""
+    lim = Limits()
+    if getattr(args, "depth_limit_m", None) is not None:
+        lim.depth_limit_m = float(args.depth_limit_m)
+    return lim
 
 
 def _previous_options(out: Path) -> dict | None:

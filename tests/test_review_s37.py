@@ -5,6 +5,7 @@ between two stones; a reference scene of another size; a doubtful estimate print
 two-line format."""
 from __future__ import annotations
 
+import json
 import math
 import os
 import signal
@@ -148,8 +149,25 @@ def test_run_refuses_a_tip_thinner_than_its_depth_limit(tmp_path, capsys):
     scene = tmp_path / "tip.toml"
     scene.write_text(SCENE + "[indenter]\nradius_m = 0.003\n")
     rc, _, err = _run(["run", str(scene), "--sim", "--out", str(tmp_path / "r")], capsys)
-    assert rc == 2 and "indenter.radius_m = 0.003" in err and "--depth-limit-m" in err and "--plan" in err
+    assert rc == 2 and "indenter.radius_m = 0.003" in err and "give --depth-limit-m D" in err
     assert not (tmp_path / "r").exists()
+
+
+def test_run_plans_to_its_depth_limit_and_resumes_only_with_the_same(tmp_path, capsys):
+    out = tmp_path / "r"
+    argv = ["run", "paper", "--sim", "--no-figure", "--budget-probes", "15", "--out", str(out)]
+    rc, _, err = _run(argv + ["--depth-limit-m", "0.003"], capsys)
+    assert rc == 0, err
+    plan = json.loads((out / "plan_round0.json").read_text())
+    assert plan["limits"]["depth_limit_m"] == 0.003 and max(p["depth_m"] for p in plan["probes"]) <= 0.003
+    assert json.loads((out / "run_options.json").read_text())["depth_limit_m"] == 0.003
+    rc, _, err = _run(argv + ["--depth-limit-m", "0.0035"], capsys)          # other options: refused, kept
+    assert rc == 2 and "--out" in err
+    rc, _, err = _run(["run", "paper", "--sim", "--plan", str(out / "plan_round0.json"), "--depth-limit-m", "0.002",
+                       "--out", str(tmp_path / "r2")], capsys)
+    assert rc == 2 and "drop --depth-limit-m" in err
+    rc, _, err = _run(argv[:-1] + [str(tmp_path / "r3"), "--depth-limit-m", "0.0005"], capsys)
+    assert rc == 2 and "shallowest useful probe" in err
 
 
 # ---- one process per run directory ---------------------------------------------------------------------------------

@@ -38,6 +38,7 @@ from app.options import (
     check_output_file,
     check_simulated_sensor,
     finite_float,
+    float_range,
     grid_counts,
     host_name,
     int_range,
@@ -54,12 +55,13 @@ from app.runexec import (
     new_stats,
     open_out,
     round_planner,
+    run_limits,
     run_options,
     truth_conditions,
     verdict,
     workers_for_fits,
 )
-from core.contracts import SENSORS, Limits, Plan
+from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanOptions
 from planner.detectability import detectability
 from planner.draw_run import draw_run
 from planner.localize import MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
@@ -115,6 +117,9 @@ def add_parser(sub) -> None:
     p.add_argument("--waypoints", type=int_range(MIN_MEASUREMENTS, MAX_WAYPOINTS),
                    help=f"2D: coarse raster waypoints, {MIN_MEASUREMENTS}..{MAX_WAYPOINTS} (default 15; a fit needs "
                         f"{MIN_MEASUREMENTS} probes)")
+    p.add_argument("--depth-limit-m", type=float_range(0, HARD_DEPTH_LIMIT_M, unit="m (the hard cap)"),
+                   help=f"never plan deeper than this (default {Limits().depth_limit_m}; below the tip radius, at least "
+                        f"the shallowest useful probe {PlanOptions().min_depth_m:g} m; with --plan the plan's own)")
     p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
                    help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
                         f"{DEFAULT_GRID3D[0]}x{DEFAULT_GRID3D[1]})")
@@ -195,9 +200,10 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if args.host and args.fit_workers not in (None, 1):
         raise UsageError(f"--fit-workers {args.fit_workers}: next to a real arm (--host) the fits run in the driver's "
                          f"own process (a fork would copy ur_rtde's threads and sockets): give 1 or leave it out")
-    if args.plan and (args.waypoints is not None or args.grid is not None):
-        raise UsageError(f"--plan {args.plan}: the plan holds the coarse raster; drop "
-                         f"{'--waypoints' if args.waypoints is not None else '--grid'}")
+    if args.plan and (args.waypoints is not None or args.grid is not None or args.depth_limit_m is not None):
+        drop = ("--waypoints" if args.waypoints is not None else "--grid" if args.grid is not None
+                else "--depth-limit-m")
+        raise UsageError(f"--plan {args.plan}: the plan holds the coarse raster and its limits; drop {drop}")
     if args.plan:
         plan0 = Plan.load(args.plan)
         prior = plan_prior(plan0)
@@ -214,12 +220,14 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     three_d = _dimension_defaults(args, scene, prior)
     n_coarse = len(plan0.probes) if plan0 is not None else (
         args.grid[0] * args.grid[1] if three_d else args.waypoints)
-    lim = Limits().depth_limit_m
-    if plan0 is None and not lim < prior.indenter.radius_m:     # the run plans to the default depth limit
-        raise UsageError(f"scene {args.scene}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above the "
-                         f"depth limit a run plans to ({lim:g} m; the tissue would wrap the tip's sides): make a "
-                         f"plan with a smaller one (palpate plan {args.scene} --depth-limit-m D --out plan.json, D "
-                         f"below the radius) and run it with --plan plan.json")
+    lim = run_limits(args).depth_limit_m
+    if plan0 is None and not lim < prior.indenter.radius_m:     # the run plans to this depth limit
+        given = "--depth-limit-m" if args.depth_limit_m is not None else "the depth limit a run plans to by default"
+        raise UsageError(f"scene {args.scene}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above "
+                         f"{given} ({lim:g} m; the tissue would wrap the tip's sides): give --depth-limit-m D with D "
+                         f"below the radius")
+    if plan0 is None and lim < PlanOptions().min_depth_m:
+        raise UsageError(f"--depth-limit-m {lim:g}: below the shallowest useful probe, {PlanOptions().min_depth_m:g} m")
     need = MIN_MEASUREMENTS3D if three_d else MIN_MEASUREMENTS
     if n_coarse < need:        # a --plan or --grid too small for the first round's fit
         what = f"--plan {args.plan}" if plan0 is not None else f"--grid {args.grid[0]}x{args.grid[1]}"
@@ -252,7 +260,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                                           opts=opts, resume=resume, fig_child=fig_child, on_exit=on_exit))
     if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
-        plan0 = plan_raster(prior, n_waypoints=args.waypoints)
+        plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     try:
         sur = load_surrogate(prior, build=False)

@@ -28,10 +28,11 @@ from app.runexec import (
     new_stats,
     open_out,
     round_planner,
+    run_limits,
     verdict,
     workers_for_fits,
 )
-from core.contracts import Limits, Plan, PlanError
+from core.contracts import Plan, PlanError
 from planner.area import probe_bounds
 from planner.draw_run3d import draw_run3d
 from planner.localize3d import Localization3D, surrogate_bounds
@@ -67,14 +68,14 @@ def run_block(args, ctx: RunContext) -> int:
         nx, ny = args.grid
         _say(f"planning a {nx} x {ny} raster over the probed area of {prior.name}")
         try:
-            full = plan_raster(prior, grid=(nx, ny))
+            full = plan_raster(prior, grid=(nx, ny), limits=run_limits(args))
             plan0 = replan(full, [(p.x_m, p.y_m) for p in full.probes],
                            depth_m=coarse_depths([p.depth_m for p in full.probes]))
         except PlanError as e:
             raise UsageError(f"--grid {nx}x{ny}: {e}") from None
         except ValueError as e:          # fem refuses the planned indentation (e.g. a tip smaller than the limit)
             raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e} (the default depth "
-                             f"limit is {full_limit_m():g} m; scene field indenter.radius_m must exceed it)") from None
+                             f"limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)") from None
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)
@@ -160,8 +161,8 @@ def run_block(args, ctx: RunContext) -> int:
     return 0 if status == "ok" else 1
 
 
-def full_limit_m() -> float:
-    return Limits().depth_limit_m
+def full_limit_m(args) -> float:
+    return run_limits(args).depth_limit_m
 
 
 def _table(prior, where_prior: str):
