@@ -147,6 +147,9 @@ class ArmModel:
         self.n_base = self.T_tissue[:3, 2].copy()
         self.width_m = width_m
         self.sensor = sensor if isinstance(sensor, Sensor) else Sensor(sensor, seed=seed)
+        # a truth condition's bias and drift along the tissue normal, in any sensor on the arm (robot.simarm adds them
+        # to the wrist sensor's model; a simulated external box adds them in its own frame: robot.simnetft)
+        self.normal_bias_n, self.normal_drift_n_per_s = 0.0, 0.0
         self.period_s, self.safety_force_n = period_s, safety_force_n
         self.t_s = 0.0
         self.q = np.array(ur5e.Q_HOME if q0 is None else q0, dtype=float)

@@ -117,6 +117,7 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
         kw["relaxation"] = Relaxation(cond.relaxation_fraction, cond.relaxation_tau_s)
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,
                    q0=None if q0 is None else np.asarray(q0, dtype=float), **kw)
+    arm.normal_bias_n, arm.normal_drift_n_per_s = cond.sensor_bias_n, cond.sensor_drift_n_per_s
     arm.sensor.bias[:3] += cond.sensor_bias_n * arm.n_base          # along the tissue normal, on top of the preset's
     arm.sensor.drift[:3] += cond.sensor_drift_n_per_s * arm.n_base
     for spec in inject:

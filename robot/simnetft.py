@@ -126,7 +126,10 @@ class SimNetFtBox:
         p_tip = (T_flange @ ur5e.pose_to_T(arm.tool_offset))[:3, 3]
         R = T_sensor[:3, :3]
         torque = np.cross(p_tip - T_sensor[:3, 3], w[:3])      # the force acts at the tip
-        return self.sensor.read(np.concatenate([R.T @ w[:3], R.T @ torque]), t_s)
+        # the truth's sensor bias and drift along the tissue normal (robot.truth), a force reading's error (no
+        # torque): this sensor's too, not only the wrist sensor's (before session 38 the box left them out)
+        force = w[:3] + (arm.normal_bias_n + arm.normal_drift_n_per_s * t_s) * arm.n_base
+        return self.sensor.read(np.concatenate([R.T @ force, R.T @ torque]), t_s)
 
     def _send_record(self, t_s: float) -> None:
         self.seq += 1

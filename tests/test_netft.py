@@ -219,6 +219,28 @@ def test_frame_transform_undoes_the_mounting():
     box.close()
 
 
+
+def test_the_box_reads_the_truths_sensor_bias_and_drift():
+    """A truth condition's sensor bias and drift (robot.truth: along the tissue normal) are in the external box's
+    readings too, not only the wrist sensor's (session 38: with --ft netft they were dropped): an ideal box on a
+    tilted tool reads, back in the base frame, bias + drift t along the normal, and its torque channels are
+    unchanged (a force channel's error)."""
+    arm, c, r = make_sim(sensor="ideal")
+    box = attach_box(arm, host="127.0.0.1", port=0, sensor="ideal")
+    arm.T_tcp = ur5e.pose_to_T(ur5e.T_to_pose(ur5e.pose_to_T(arm.tcp_pose) @ ur5e.pose_to_T([0, 0, 0, 0.2, 0.1, 0])))
+    f_base = np.array([0.1, 0.0, 0.5])
+    arm.true_wrench = lambda: np.concatenate([f_base, np.zeros(3)])
+    mount = Mount(SIM_SENSOR_POSE_FLANGE, tuple(TCP)).tcp_sensor()
+    clean_s = box.wrench_sensor(10.0)
+    clean = sensor_to_base(clean_s, arm.tcp_pose, mount)
+    arm.normal_bias_n, arm.normal_drift_n_per_s = 0.02, 1e-3
+    for t in (0.0, 10.0):
+        w_s = box.wrench_sensor(t)
+        w = sensor_to_base(w_s, arm.tcp_pose, mount)
+        assert np.allclose(w[:3] - clean[:3], (0.02 + 1e-3 * t) * arm.n_base, atol=1e-9)
+        assert np.allclose(w_s[3:], clean_s[3:], atol=1e-12)
+    box.close()
+
 def netft_sim(faults=(), max_identical=50, **arm_kw):
     """The in-memory arm with a simulated Net F/T box, and the driver's force source reading it (as app.cell and
     palpate run build them)."""
