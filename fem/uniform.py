@@ -11,6 +11,7 @@ from .guards import check_uniform_result
 from .mixed import solve_uniform_mixed
 from .model import Model, build_model
 from .results import Profile, UniformResult
+from .rigid_stress import nodal_fields
 from .scene import check_load_a
 from .stress import components, nodal_poisson, recovery_operator
 
@@ -63,8 +64,8 @@ def solve_uniform(scene, model: Model | None = None, full_field: bool = True,
     if full_field:
         allnodes = np.arange(mesh.n_nodes)
         nu = nodal_poisson(model, allnodes)
-        nodal = components((recovery_operator(model) @ u).reshape(-1, 3), nu, plane)
-        eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
+        s3, eps = nodal_fields(model, u)
+        nodal = components(s3, nu, plane)
         nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
     t3 = time.perf_counter()
     res = UniformResult(model=model, u=u, surface=Profile(mesh.nodes[top, 0], surf), nodal=nodal,

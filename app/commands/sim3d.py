@@ -29,7 +29,7 @@ from fem.contact3d import (
 from fem.mesh3d import estimate_nodes3d, patch_bounds
 from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recover3d
-from fem.uniform3d import solve_uniform3d
+from fem.uniform3d import nodal_fields3d, solve_uniform3d
 
 FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
 FIG_INDENT = ("fig3d_indent_surface.png", "fig3d_indent_section.png")
@@ -42,11 +42,6 @@ def _mesh_dict(mesh, model) -> dict:
             "dofs": int(model.n_dofs), "dofs_full": int(mesh.n_dofs)}
 
 
-def _nodal(model, u) -> dict:
-    nodal = components3d(recover3d(model, u))
-    eps = recover3d(model, u, strain=True)
-    nodal.update({k: eps[:, i] for i, k in enumerate(("exx", "eyy", "ezz", "gyz", "gxz", "gxy"))})
-    return nodal
 
 
 def _section_y(sc, default_y: float) -> float:
@@ -119,7 +114,7 @@ def _indent(args, sc, rigid) -> int:
            "analysis": dataclasses.asdict(sc.analysis), "rigid_stones": [bool(x) for x in model.rigid],
            **surf.to_dict(), "mesh": {**_mesh_dict(mesh, model), "contact_candidates": int(len(m.patch))},
            "timings_s": {**m.timings_s, "model_s": t1 - t0, "indent_s": t2 - t1}, "files": {}}
-    nodal = _nodal(model, u) if (args.plots or args.vtu) else None
+    nodal = nodal_fields3d(model, u) if (args.plots or args.vtu) else None
     if args.vtu:
         from fem.export3d import write_vtu3d
         out["files"]["vtu"] = str(write_vtu3d(args.vtu, mesh, u, point_data=nodal))

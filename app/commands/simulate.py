@@ -18,6 +18,7 @@ from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
 from fem.contact import surface_model
+from fem.rigid_stress import nodal_fields
 from fem.stress import components, nodal_poisson, recovery_operator
 from fem.uniform import Profile, solve_uniform
 
@@ -156,9 +157,8 @@ def _run_indent(args) -> int:
     nodal = None
     if args.plots or args.vtu:
         allnodes = np.arange(mesh.n_nodes)
-        nodal = components((recovery_operator(model) @ u).reshape(-1, 3), nodal_poisson(model, allnodes),
-                           model.plane)
-        eps = (recovery_operator(model, strain=True) @ u).reshape(-1, 3)
+        s3, eps = nodal_fields(model, u)
+        nodal = components(s3, nodal_poisson(model, allnodes), model.plane)
         nodal.update({"exx": eps[:, 0], "eyy": eps[:, 1], "gxy": eps[:, 2]})
     t3 = time.perf_counter()
     res = r.to_dict()
