@@ -88,6 +88,38 @@ def test_localizer_sees_no_stone(tmp_path, surrogate, monkeypatch):
                                    "onset_threshold_n", "dwell_start_n", "dwell_end_n", "y_m"}
 
 
+def test_the_belief_is_the_prior_not_the_truth_in_every_fit_and_plan(tmp_path, surrogate, monkeypatch):
+    """A truth stiffer than the belief (--prior paper on a 3000 Pa truth): every plan, every round's fit and the
+    final report's fit get paper's stone-free 2500 Pa tissue, never the truth's scene or tissue (the audit of
+    session 38: the spy above saw only the rounds' fits and checked only the stones)."""
+    import app.commands.run as run_cmd
+    import planner.refine as refine
+    truth = tmp_path / "truth.toml"
+    truth.write_text('name = "stiffer"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 3000.0\n'
+                     'poisson = 0.4\n[[stone]]\nx_m = 0.035\ndepth_m = 0.025\ndiameter_m = 0.015\n'
+                     'youngs_pa = 5.0e9\npoisson = 0.3\n[indenter]\nshape = "cylinder"\nradius_m = 0.005\n'
+                     'thickness_m = 0.02\n')
+    seen = []
+
+    def spy_on(module, name):
+        real = getattr(module, name)
+
+        def spy(prior, *a, **k):
+            seen.append((f"{module.__name__}.{name}", prior))
+            return real(prior, *a, **k)
+        monkeypatch.setattr(module, name, spy)
+    spy_on(refine, "localize")
+    spy_on(run_cmd, "localize")
+    spy_on(run_cmd, "plan_raster")
+    out = tmp_path / "run"
+    assert main(["run", str(truth), "--prior", "paper", "--sim", "--budget-probes", "15", "--no-figure",
+                 "--out", str(out)]) == 0
+    assert {w for w, _ in seen} == {"planner.refine.localize", "app.commands.run.localize",
+                                    "app.commands.run.plan_raster"}
+    for where, prior in seen:
+        assert prior.stones == () and prior.tissue.youngs_pa == 2500.0, where
+    assert json.loads((out / "result.json").read_text())["sim"]["truth_tissue"]["youngs_pa"] == 3000.0
+
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
     """The main job over the real ur_rtde client and the loopback controller (real time: a 5-probe raster)."""
     pytest.importorskip("rtde_control")
