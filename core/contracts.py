@@ -351,6 +351,7 @@ class FaultKind(StrEnum):
     SENSOR_PACKET_LOSS = "sensor_packet_loss"  # too many of its records lost on the way
     SENSOR_FROZEN = "sensor_frozen"      # its readings stopped changing (a real sensor always has noise)
     SENSOR_DISAGREES = "sensor_disagrees"  # the wrist sensor reads far more than the external one
+    DRIVER_ERROR = "driver_error"        # an unexpected error (a full disk, a bug): the arm stopped, then raised
 
 
 @dataclass

@@ -65,6 +65,7 @@ from robot.safety import (
     preflight,
 )
 from robot.safety import move_time as _move_time
+from robot.signals import deferred_signals, terminate_as_interrupt
 
 
 @dataclass
@@ -757,24 +758,41 @@ class Driver(Recovery):
                     if consecutive >= cfg.max_consecutive_force_stops:
                         raise ProbeFault(FaultKind.FORCE_LIMIT, f"{consecutive} consecutive probes stopped at the "
                                                                 f"force limit: check the plan and the tissue")
-            except (ProbeFault, SafetyViolation, KeyboardInterrupt) as e:
+            except BaseException as e:      # any fault ends with the arm stopped and the data kept
+                if isinstance(e, (SystemExit, GeneratorExit)):
+                    raise
+                expected = isinstance(e, (ProbeFault, SafetyViolation, KeyboardInterrupt))
                 kind = e.kind if isinstance(e, ProbeFault) else (
-                    FaultKind.INTERRUPTED if isinstance(e, KeyboardInterrupt) else FaultKind.SAFETY_VIOLATION)
+                    FaultKind.INTERRUPTED if isinstance(e, KeyboardInterrupt) else FaultKind.SAFETY_VIOLATION
+                    if isinstance(e, SafetyViolation) else FaultKind.DRIVER_ERROR)
                 rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
-                rep.fault = {"kind": kind, "message": str(e) or "Ctrl-C", "probe_index": getattr(current, "index",
-                             None), "controller_time_s": self.ts, "detected_unix_s": time.time()}
+                message = (str(e) or "Ctrl-C") if expected else f"{type(e).__name__}: {e}"
+                rep.fault = {"kind": kind, "message": message, "probe_index": getattr(current, "index", None),
+                             "controller_time_s": self.ts, "detected_unix_s": time.time()}
+                lost = []                   # a write that failed (a full disk) must not keep the arm from stopping
                 if current is not None:     # on disk first: a hang in safe_state() must not lose them
-                    raw = self.samples.arrays()
-                    st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT
-                    rec = summarise(current, raw, st, {}, self.ts, self.ts, self.contact_thr, self.noise_std,
-                                    self.lim.depth_limit_m)
-                    rec.reason = rep.fault["message"]
-                    rep.records.append(log.write_probe(rec, raw))
-                write_run()                 # the fault, before any command is sent
-                rep.fault.update(self.safe_state())
+                    try:
+                        raw = self.samples.arrays()
+                        st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT
+                        rec = summarise(current, raw, st, {}, self.ts, self.ts, self.contact_thr, self.noise_std,
+                                        self.lim.depth_limit_m)
+                        rec.reason = rep.fault["message"]
+                        rep.records.append(log.write_probe(rec, raw))
+                    except Exception as w:  # noqa: BLE001 -- reported with the fault, after the stop
+                        lost.append(f"the interrupted probe's record could not be written ({w})")
+                try:
+                    write_run()             # the fault, before any command is sent
+                except Exception as w:      # noqa: BLE001
+                    lost.append(f"run.json could not be written before stopping ({w})")
+                with deferred_signals() as held:
+                    rep.fault.update(self.safe_state())
+                rep.fault["notes"] += lost + [f"{n} during the safe stop: deferred until the arm was stopped"
+                                              for n in held]
                 hint = self.diagnose() if self.diagnose is not None else None
                 if hint:                    # what the operator must do (e.g. the pendant left in local control)
                     rep.fault["notes"].append(hint)
+                if not expected:            # stopped, and on disk as far as the disk allows: now raise it
+                    raise
             return rep
         finally:
             write_run()
@@ -798,5 +816,6 @@ def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = Non
     """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py).
     ``diagnose()``: after a fault, an operator hint to add to the report (or None). ``force_source``: where the
     wrench comes from (robot.forcesource; default the UR's wrist sensor over ur_rtde)."""
-    return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
-                                                                            progress=progress)
+    with terminate_as_interrupt():     # a supervisor's SIGTERM stops the arm as Ctrl-C does (robot.signals)
+        return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
+                                                                                progress=progress)

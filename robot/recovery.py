@@ -137,9 +137,11 @@ class Recovery:
             self.c.waitPeriod(self.c.initPeriod())
 
     def _needs_retract(self, depth, x) -> bool:
-        """The tip is over the tissue and below the approach height (within 1 mm)."""
-        inside = -1e-3 <= x <= self.lim.width_m + 1e-3
-        return inside and depth > -self.plan.motion.approach_height_m + 1e-3
+        """The tip is below the approach height (within 1 mm), over the tissue or beside it: a straight move from
+        there to a probe could cut through the tissue (before session 38 only a tip over the tissue was retracted,
+        and a start beside it, below its surface, moved sideways into it). Straight up along the normal is free air
+        in both cases (``x``: kept for the callers' reports)."""
+        return depth > -self.plan.motion.approach_height_m + 1e-3
 
     def _retract_from(self, pose, depth, x) -> bool:
         h = self.plan.motion.approach_height_m

@@ -1,0 +1,128 @@
+"""Session 38's safety review, each finding as a test on the in-memory arm: a full disk during a fault does not keep
+the arm from stopping; an unexpected error stops and retracts before it is raised; a second Ctrl-C or a SIGTERM
+during the safe stop waits for it; a supervisor's SIGTERM stops the arm as Ctrl-C does; a start beside the tissue,
+below its surface, is retracted straight up before any sideways move."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import TCP, TISSUE_POSE, make_plan, make_sim, tissue_point_pose  # noqa: E402
+from test_driver_faults import DEPTH, XS, at_probe  # noqa: E402
+
+from core import ur5e  # noqa: E402
+from robot import records as records_mod  # noqa: E402
+from robot.driver import Driver, run_plan  # noqa: E402
+from robot.records import read_records  # noqa: E402
+from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive  # noqa: E402
+from robot.simforce import standin_force_model  # noqa: E402
+
+
+def _plan():
+    return make_plan(XS, depth_m=DEPTH)
+
+
+def _stopped_and_out(arm):
+    assert not arm.is_moving
+    assert arm.tip_in_tissue()[1] <= -0.003            # back at the approach height
+
+
+def test_a_full_disk_while_recording_a_fault_does_not_keep_the_arm_from_stopping(tmp_path, monkeypatch):
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+    real = records_mod.RunLog.write_probe
+
+    def write_probe(self, rec, raw=None):
+        if rec.status != "ok":
+            raise OSError(28, "No space left on device")
+        return real(self, rec, raw)
+    monkeypatch.setattr(records_mod.RunLog, "write_probe", write_probe)
+    rep = run_plan(_plan(), c, r, tmp_path)
+    assert rep.status == "fault" and rep.fault["kind"] == "invalid_reading"
+    assert rep.fault["stopped"] and rep.fault["retracted"]
+    _stopped_and_out(arm)
+    assert any("could not be written" in n and "No space left" in n for n in rep.fault["notes"])
+    assert [x.status for x in read_records(tmp_path)] == ["ok"]      # what was written stays
+
+
+def test_an_unexpected_error_stops_and_retracts_then_is_raised(tmp_path, monkeypatch):
+    arm, c, r = make_sim()
+    real = Driver._read
+    state = {"n": 0}
+
+    def read(self, strict=True):
+        s = real(self, strict)
+        if at_probe(1, 0.002)(arm) and not state["n"]:
+            state["n"] += 1
+            raise ValueError("an unforeseen reading")
+        return s
+    monkeypatch.setattr(Driver, "_read", read)
+    with pytest.raises(ValueError, match="unforeseen"):
+        run_plan(_plan(), c, r, tmp_path)
+    _stopped_and_out(arm)
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["status"] == "fault" and run["fault"]["kind"] == "driver_error"
+    assert run["fault"]["stopped"] and run["fault"]["retracted"]
+    assert [x.status for x in read_records(tmp_path)] == ["ok", "fault"]
+
+
+class SignalReceive(SimRTDEReceive):
+    """Sends this process ``signals`` (one per period, in order) once ``when(arm)`` holds."""
+
+    def __init__(self, arm, when, signals):
+        super().__init__(arm)
+        self.when, self.todo = when, list(signals)
+
+    def getActualTCPPose(self):
+        if self.todo and (self.when(self.arm) or len(self.todo) < self.n0):
+            os.kill(os.getpid(), self.todo.pop(0))
+        return super().getActualTCPPose()
+
+    @property
+    def n0(self):
+        return getattr(self, "_n0", None) or self.__dict__.setdefault("_n0", len(self.todo))
+
+
+@pytest.mark.parametrize("signals, status", [
+    ([signal.SIGTERM], "interrupted"),                              # a supervisor's stop: as Ctrl-C
+    ([signal.SIGINT, signal.SIGINT], "interrupted"),                # Ctrl-C twice: the second waits for the stop
+    ([signal.SIGINT, signal.SIGTERM], "interrupted"),
+])
+def test_signals_stop_the_arm_and_cannot_cut_the_safe_stop_short(tmp_path, signals, status):
+    arm, c, _ = make_sim()
+    old = signal.getsignal(signal.SIGTERM)
+    rep = run_plan(_plan(), c, SignalReceive(arm, at_probe(1, 0.002), signals), tmp_path)
+    assert signal.getsignal(signal.SIGTERM) == old                  # restored
+    assert rep.status == status and rep.fault["stopped"] and rep.fault["retracted"], rep.fault
+    _stopped_and_out(arm)
+    assert [x.status for x in read_records(tmp_path)] == ["ok", "interrupted"]
+    if len(signals) > 1:
+        assert any("during the safe stop" in n for n in rep.fault["notes"]), rep.fault["notes"]
+
+
+def test_a_start_beside_the_tissue_below_its_surface_is_retracted_straight_up(tmp_path):
+    """The tip starts 3 mm beside the tissue's end, 30 mm below its surface (the safety review's case: before, the
+    move to the first probe cut through the tissue's corner, 15 mm deep): it is retracted along the normal first,
+    and at no controller period is the tip inside the tissue's footprint deeper than the plan's depth."""
+    q0 = np.asarray(ur5e.ik(tissue_point_pose(TISSUE_POSE, -0.003, -0.030), ur5e.IK_SEED, TCP), float)
+    arm = ArmModel(standin_force_model(), tissue_pose_base=TISSUE_POSE, sensor="nano17", seed=0, q0=q0,
+                   tcp_offset=TCP)
+    c, r = SimRTDEControl(arm), SimRTDEReceive(arm)
+    x0, d0 = arm.tip_in_tissue()
+    assert x0 < 0 and d0 > 0.029
+    path = []
+    arm.on_step.append(lambda: path.append(arm.tip_in_tissue()))
+    rep = run_plan(_plan(), c, r, tmp_path)
+    assert rep.status == "ok", rep.fault
+    xs, ds = np.array(path).T
+    inside = (xs > 0.0) & (xs < 0.07)
+    assert inside.any() and ds[inside].max() <= DEPTH + 1e-4, ds[inside].max()
+    k = int(np.argmax(np.abs(xs - x0) > 1e-3))           # the first period 1 mm sideways of the start
+    assert ds[k] <= -0.003 + 1e-4                         # by then the tip was at the approach height
