@@ -215,6 +215,8 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
                 except SafetyViolation as e:
                     why = f"{name}: {e}"
                     break
+            if why is None:
+                why = _joints_disagree(p, plan.frames.tcp_offset)
         seen.add(p.index)
         if why:
             bad[p.index] = why
@@ -286,3 +288,27 @@ def preflight(plan, done=()) -> dict:
             "probe_speed_m_s": lim.probe_speed_m_s, "n_probes": len(plan.probes), "n_done": len(set(done)),
             "n_to_run": len(todo), "estimated_time_s": round(t, 1), "problems": problems,
             "rejected_probes": {str(k): v for k, v in bad.items()}}
+
+
+JOINT_TOL_M = 1e-3          # a probe's joint targets must reach its pose (with the plan's TCP) to this
+JOINT_LIMIT_RAD = 2 * math.pi   # UR5e: every joint within +-360 deg
+
+
+def _joints_disagree(p, tcp_offset) -> str | None:
+    """Why a probe's joint targets (the planner's inverse kinematics) do not reach its poses with the plan's TCP, or
+    None. The driver moves by pose, so the joints are not sent; but a plan whose tool offset, tip or poses were
+    edited after planning no longer agrees with them (the safety review of session 38: a tool offset edited from
+    0.1 m to 0 sent the real tip 0.1 m into the tissue), and a pose with no joint solution cannot be reached."""
+    T_tcp = ur5e.pose_to_T(tcp_offset)
+    for name, q, pose in (("q_approach_rad", p.q_approach_rad, p.approach_pose),
+                          ("q_indent_rad", p.q_indent_rad, p.indent_pose)):
+        if max(abs(v) for v in q) > JOINT_LIMIT_RAD:
+            return f"{name} {[round(v, 3) for v in q]} beyond the UR5e's +-2 pi joint range"
+        T = ur5e.fk_flange(q) @ T_tcp
+        P = ur5e.pose_to_T(pose)
+        off = float(np.linalg.norm(T[:3, 3] - P[:3, 3]))
+        turn = float(np.linalg.norm(T[:3, :3] - P[:3, :3]))
+        if off > JOINT_TOL_M or turn > 10 * JOINT_TOL_M:
+            return (f"{name} does not reach its pose with frames.tcp_offset (off by {off:.3g} m; the tool offset, "
+                    f"the tip or the poses edited after planning? plan again)")
+    return None

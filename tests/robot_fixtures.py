@@ -26,7 +26,7 @@ def tissue_point_pose(tissue_pose, x_m, z_m) -> list[float]:
 
 
 def make_plan(xs=(0.02, 0.035, 0.05), depth_m=0.003, predicted=0.1, tissue_pose=TISSUE_POSE, motion=None,
-              limits=None, solve_q=False) -> Plan:
+              limits=None, solve_q=True) -> Plan:
     mo = motion or Motion(approach_height_m=0.004, dwell_s=0.2)
     probes, q = [], ur5e.Q_HOME
     for i, x in enumerate(xs):
@@ -37,7 +37,7 @@ def make_plan(xs=(0.02, 0.035, 0.05), depth_m=0.003, predicted=0.1, tissue_pose=
             qd = ur5e.ik(d, qa, TCP)
             q = qa
         else:
-            qa = qd = [0.0] * 6  # placeholders: the driver uses moveL only
+            qa = qd = [0.0] * 6  # placeholders: refused by robot.safety.check_plan (the joints must reach the poses)
         probes.append(Probe(index=i, x_m=float(x), depth_m=float(depth_m), predicted_force_n=float(predicted),
                             approach_pose=a, indent_pose=d, q_approach_rad=[float(v) for v in qa],
                             q_indent_rad=[float(v) for v in qd]))

@@ -126,3 +126,24 @@ def test_a_start_beside_the_tissue_below_its_surface_is_retracted_straight_up(tm
     assert inside.any() and ds[inside].max() <= DEPTH + 1e-4, ds[inside].max()
     k = int(np.argmax(np.abs(xs - x0) > 1e-3))           # the first period 1 mm sideways of the start
     assert ds[k] <= -0.003 + 1e-4                         # by then the tip was at the approach height
+
+
+@pytest.mark.parametrize("edit, why", [
+    (lambda plan: setattr(plan.frames, "tcp_offset", [0.0] * 6), "does not reach its pose"),
+    (lambda plan: plan.probes[1].q_indent_rad.__setitem__(2, 7.0), "joint range"),
+    (lambda plan: plan.probes[0].__dict__.update(x_m=0.023, approach_pose=tissue_point_pose(TISSUE_POSE, 0.023, 0.004),
+                                                 indent_pose=tissue_point_pose(TISSUE_POSE, 0.023, -DEPTH)),
+     "does not reach its pose"),
+])
+def test_a_plan_edited_after_planning_is_refused_before_any_motion(tmp_path, edit, why):
+    """The driver moves by pose, but the planner's joint targets must still reach those poses with the plan's TCP:
+    a tool offset edited to 0 (the real tip then 0.1 m deeper than the driver believes), a joint beyond its range,
+    or a probe moved 3 mm with its poses (consistent with each other, not with the joints) are refused, nothing
+    sent."""
+    plan = _plan()
+    edit(plan)
+    arm, c, r = make_sim()
+    t0 = arm.t_s
+    rep = run_plan(plan, c, r, tmp_path)
+    assert rep.status == "rejected" and any(why in x for x in rep.problems), rep.problems
+    assert arm.t_s == t0 and not arm.is_moving                  # not a period stepped: nothing moved

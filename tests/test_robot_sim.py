@@ -136,6 +136,8 @@ def test_move_tapes_leave_the_records_unchanged(tmp_path):
     for i, p in enumerate(plan.probes):
         p.indent_pose = _tilted(p.indent_pose, 0.004 * (i + 1))     # 0.23-0.69 deg
         p.approach_pose = _tilted(p.approach_pose, -0.003)
+        p.q_approach_rad = list(ur5e.ik(p.approach_pose, p.q_approach_rad, TCP))   # as the planner would
+        p.q_indent_rad = list(ur5e.ik(p.indent_pose, p.q_approach_rad, TCP))
     runs = {}
     for tape in (False, True):
         arm, c, r = make_sim(seed=5, tape=tape)    # the probe over the stand-in's stone passes 0.27 N
