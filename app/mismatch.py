@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from app.cli import main as palpate
-from core.contracts import Limits, Motion, Plan, sensor_spec
+from core.contracts import MEASURED, Limits, Motion, Plan, sensor_spec
 from fem.contact import cached_keys, forget_except
 from fem.scene import Stone, dump_toml
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
@@ -201,7 +201,7 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
                relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"],
                finite_strain_est=(nu.get("finite_strain_amplitude") or {}).get("value"),
                finite_strain_in_estimate=nu.get("finite_strain_in_estimate"))
-    meas = Measurements.from_records(read_records(d / "run"), statuses=("ok", "force_limit"))
+    meas = Measurements.from_records(read_records(d / "run"), statuses=MEASURED)
     old = localize(prior, meas, sur, nuisance=False)
     row.update(detected_known_tissue=old.detected, lr_known_tissue=old.lr)
     lin = localize(prior, meas, sur, finite_strain=False)      # the same records without the finite-strain term

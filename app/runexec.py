@@ -14,7 +14,7 @@ from app.cell import print_preflight, read_confirmation
 from app.errors import UsageError
 from app.figchild import usable_cores
 from app.ftoptions import controller_pose, inmemory_source, linked_source
-from core.contracts import Limits, Plan
+from core.contracts import MEASURED, Limits, Plan
 from fem.scene import BUILTIN
 from planner.plan import replan
 from planner.refine import renumber
@@ -51,7 +51,7 @@ def _runner(get_interfaces, out: Path, stats: dict):
         stats["next_index"] += len(plan.probes)
         stats["planned_s"] += plan.total_time_s
         latest = latest_by_index(out)
-        if all(p.index in latest and latest[p.index].status in ("ok", "force_limit") for p in plan.probes):
+        if all(p.index in latest and latest[p.index].status in MEASURED for p in plan.probes):
             recs = [latest[p.index] for p in plan.probes]      # measured before: replay, the arm is not needed
         else:
             c, r, fs = get_interfaces(plan)
@@ -62,7 +62,7 @@ def _runner(get_interfaces, out: Path, stats: dict):
                 raise RunAborted(rep)
             latest = latest_by_index(out)
             recs = [latest[p.index] for p in plan.probes if p.index in latest]
-        stats["n_probes"] += sum(1 for rec in recs if rec.status in ("ok", "force_limit"))
+        stats["n_probes"] += sum(1 for rec in recs if rec.status in MEASURED)
         return recs
     return execute
 

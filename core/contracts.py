@@ -314,12 +314,14 @@ class ProbeStatus(StrEnum):
     """How one probe attempt ended (``status`` in probes.jsonl)."""
     OK = "ok"                        # reached its depth, dwelt, retracted
     FORCE_LIMIT = "force_limit"      # stopped at the force limit (e.g. over a stone): a usable, shallower probe
+    DEPTH_LIMIT = "depth_limit"      # stopped the depth limit past the contact felt (the surface higher than the
+    #                                  plan's): a usable, shallower probe
     REJECTED = "rejected"            # failed the safety checks, never moved
     FAULT = "fault"                  # ended early by a fault; its samples are kept
     INTERRUPTED = "interrupted"      # ended early by Ctrl-C; its samples are kept
 
 
-MEASURED = (ProbeStatus.OK, ProbeStatus.FORCE_LIMIT)   # statuses whose force is a measurement
+MEASURED = (ProbeStatus.OK, ProbeStatus.FORCE_LIMIT, ProbeStatus.DEPTH_LIMIT)   # statuses whose force is measured
 
 
 class RunStatus(StrEnum):

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.contracts import MEASURED
 from planner.localize import MIN_MEASUREMENTS, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import prior_and_thickness_slope
@@ -142,7 +143,7 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
         plan = plan_round(x) if plan_round is not None else None
         recs = execute(plan if plan is not None else x, k)
         m = Measurements.from_records(recs, motion if plan is None else plan.motion,
-                                      statuses=("ok", "force_limit"))
+                                      statuses=MEASURED)
         used += len(x)
         meas = m if meas is None else meas.concat(m)
         if len(meas) < MIN_MEASUREMENTS:        # every probe failed or read a force no tissue gives

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from core.contracts import MEASURED
 from planner.localize import MIN_MEASUREMENTS3D, Measurements
 from planner.localize3d import Localization3D, localize3d
 from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, too_few
@@ -114,7 +115,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         t0 = time.perf_counter()
         plan = plan_round(xy)
         recs = execute(plan, k)
-        m = Measurements.from_records(recs, plan.motion, statuses=("ok", "force_limit"))
+        m = Measurements.from_records(recs, plan.motion, statuses=MEASURED)
         used += len(xy)
         meas = m if meas is None else meas.concat(m)
         if len(meas) < MIN_MEASUREMENTS3D:

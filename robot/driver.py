@@ -276,21 +276,27 @@ class _ForceWatch:
 
     def __call__(self, s):
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
-            self.contact.update(depth=s["depth"], x=s["x"])
+            self.contact.update(depth=s["depth"], x=s["x"], t=s["t"])
         self.hist.append(s["filt"])
         if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
             self.d._stop()
             return ProbeStatus.FORCE_LIMIT
+        if "depth" in self.contact and s["depth"] - self.contact["depth"] > self.d.lim.depth_limit_m:
+            self.d._stop()              # the depth limit counts from the surface felt, not only the plan's
+            return ProbeStatus.DEPTH_LIMIT
         return None
 
     def quiet(self, b: _Block, limit: int) -> int:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
+        j = 0
         if "depth" not in self.contact:
             j = first_true(filt[:k] > self.d.contact_thr, -1)
             if j >= 0:
-                self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]))
+                self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
+        if "depth" in self.contact:     # and up to the first past the depth limit below the contact felt
+            k = j + first_true(b.depth[j:k] - self.contact["depth"] > self.d.lim.depth_limit_m, k - j)
         self.hist.extend(filt[:k].tolist())
         return k
 
@@ -695,7 +701,7 @@ class Driver(Recovery):
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
                    min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
-        status = ProbeStatus.OK if outcome == "reached" else ProbeStatus.FORCE_LIMIT
+        status = ProbeStatus.OK if outcome == "reached" else ProbeStatus(outcome)
         raw = self.samples.arrays()
         return summarise(p, raw, status, watch.contact, t0, self.ts, self.contact_thr, self.noise_std,
                          lim.depth_limit_m), raw

@@ -203,7 +203,7 @@ def implausibility(rec: ProbeRecord) -> str | None:
     """Why a probe's force cannot be tissue pushing back (None: plausible). The force relative to the free-air
     baseline (else to the zeroing) against the prior's prediction scaled to the indentation reached (Hertz-like,
     d^1.5), outside PLAUSIBLE_FORCE_RATIO by more than PLAUSIBLE_SIGMAS of the probe's own noise."""
-    if rec.status not in (ProbeStatus.OK, ProbeStatus.FORCE_LIMIT) or rec.force_mean_n is None:
+    if rec.status not in MEASURED or rec.force_mean_n is None:
         return None
     pred, d, d_plan = rec.force_predicted_prior_n, rec.depth_reached_m, rec.depth_planned_m
     if not pred or pred <= 0 or not d or d <= 0 or not d_plan or d_plan <= 0:

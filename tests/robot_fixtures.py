@@ -45,6 +45,18 @@ def make_plan(xs=(0.02, 0.035, 0.05), depth_m=0.003, predicted=0.1, tissue_pose=
                 limits=limits or Limits(), motion=mo, probes=probes)
 
 
+def solve_joints(plan: Plan) -> Plan:
+    """Each probe's joint targets solved again for its poses (as the planner does): after a test edits the poses,
+    robot.safety.check_plan would otherwise refuse the plan (its joints no longer reach them)."""
+    tcp = plan.frames.tcp_offset
+    q = ur5e.Q_HOME
+    for p in plan.probes:
+        p.q_approach_rad = [float(v) for v in ur5e.ik(p.approach_pose, q, tcp)]
+        p.q_indent_rad = [float(v) for v in ur5e.ik(p.indent_pose, p.q_approach_rad, tcp)]
+        q = p.q_approach_rad
+    return plan
+
+
 def start_q(tissue_pose=TISSUE_POSE, x_m=0.035, height_m=0.02):
     return ur5e.ik(tissue_point_pose(tissue_pose, x_m, height_m), ur5e.IK_SEED, TCP)
 

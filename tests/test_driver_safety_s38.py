@@ -147,3 +147,25 @@ def test_a_plan_edited_after_planning_is_refused_before_any_motion(tmp_path, edi
     rep = run_plan(plan, c, r, tmp_path)
     assert rep.status == "rejected" and any(why in x for x in rep.problems), rep.problems
     assert arm.t_s == t0 and not arm.is_moving                  # not a period stepped: nothing moved
+
+
+def test_the_depth_limit_counts_from_the_surface_felt(tmp_path):
+    """A registration error: the true surface 3 mm above the plan's. Probes planned 4 mm deep (the depth limit) stop
+    once they are the depth limit past where contact was felt (before session 38 they went 4 mm past the nominal
+    surface, 6-7 mm into the tissue, beyond the 5 mm tip's radius); they are measurements (status depth_limit), and
+    on a correctly registered surface the same plan is unaffected."""
+    from core.contracts import Limits
+    plan = make_plan(XS, depth_m=0.004, limits=Limits(depth_limit_m=0.004))
+    arm, c, r = make_sim(surface_height_m=lambda x: 0.003)
+    rep = run_plan(plan, c, r, tmp_path / "high")
+    assert rep.status == "ok", rep.fault
+    recs = read_records(tmp_path / "high")
+    assert [x.status for x in recs] == ["depth_limit"] * len(XS)
+    for rec in recs:
+        past = rec.depth_reached_m - rec.contact_depth_m
+        assert 0.004 - 1e-4 < past < 0.004 + 1e-4, past           # stopped within 0.1 mm of the limit
+        raw = records_mod.load_raw(tmp_path / "high", rec)
+        assert raw["depth_m"].max() - rec.contact_depth_m < 0.004 + 1e-4
+    arm, c, r = make_sim()
+    rep = run_plan(plan, c, r, tmp_path / "nominal")
+    assert rep.status == "ok" and [x.status for x in read_records(tmp_path / "nominal")] == ["ok"] * len(XS)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robot_fixtures import SCENE, TCP, make_plan, make_sim  # noqa: E402
+from robot_fixtures import SCENE, TCP, make_plan, make_sim, solve_joints  # noqa: E402
 
 from core import ur5e  # noqa: E402
 from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
@@ -98,6 +98,7 @@ def test_force_limit_stops_and_a_turning_tool(tmp_path):
     for i, p in enumerate(plan.probes):
         p.indent_pose = _turned(p.indent_pose, 0.004 * (i + 1))
         p.approach_pose = _turned(p.approach_pose, -0.003)
+    solve_joints(plan)
     a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=5))
     assert [r["status"] for r in b["recs"]] == ["ok", "force_limit", "ok"]
     _assert_same(a, b)
@@ -113,7 +114,8 @@ def test_relaxing_tissue_on_a_tilted_offset_surface_with_a_drifting_sensor(tmp_p
         made[0].sensor.drift[:3] += 0.004 * made[0].n_base
         return made
     a, b = _twin_runs(tmp_path, plan, arm)
-    assert all(r["status"] == "ok" for r in b["recs"])
+    # the surface up to 1.8 mm above the plan's: the last probe stops 4 mm past the contact felt (session 38)
+    assert [r["status"] for r in b["recs"]] == ["ok", "ok", "depth_limit"]
     _assert_same(a, b)
 
 
@@ -129,8 +131,8 @@ def _plan3d(points, depth_m, tissue_pose, width_m, length_m, motion):
                     approach_pose=pose(x, y, motion.approach_height_m), indent_pose=pose(x, y, -depth_m),
                     q_approach_rad=[0.0] * 6, q_indent_rad=[0.0] * 6) for i, (x, y) in enumerate(points)]
     scene = {**SCENE, "tissue": {**SCENE["tissue"], "width_m": width_m, "length_m": length_m}}
-    return Plan(scene=scene, frames=Frames(tissue_pose_base=list(tissue_pose), tcp_offset=list(TCP)),
-                limits=Limits(), motion=motion, probes=probes)
+    return solve_joints(Plan(scene=scene, frames=Frames(tissue_pose_base=list(tissue_pose), tcp_offset=list(TCP)),
+                             limits=Limits(), motion=motion, probes=probes))
 
 
 def test_a_3d_block_with_a_misregistered_tip(tmp_path):
@@ -143,6 +145,7 @@ def test_a_3d_block_with_a_misregistered_tip(tmp_path):
     plan = _plan3d([(0.015, 0.012), (0.010, 0.020), (0.020, 0.005)], 0.003, pose, 0.030, 0.030,
                    Motion(approach_height_m=0.004, dwell_s=0.2))
     plan.probes[1].indent_pose = _turned(plan.probes[1].indent_pose, 0.01)
+    solve_joints(plan)
     q0 = ur5e.ik(plan.probes[0].approach_pose, ur5e.IK_SEED, TCP)
     tool = [0.0003, 0.0, 0.1005, 0.0, 0.0, 0.0]
 
