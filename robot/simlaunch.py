@@ -29,7 +29,9 @@ class ControllerProcess:
         root = Path(__file__).resolve().parent.parent
         env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")]))
         self.log_path = Path(log_path) if log_path else None
-        err = open(self.log_path, "w") if self.log_path else subprocess.DEVNULL
+        # appended: a resumed run's controller must not erase how the last one's motion ended (nothing measured is
+        # overwritten; the safety review of session 38)
+        err = open(self.log_path, "a") if self.log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen([sys.executable, "-m", "robot.simcontroller", "--exit-on-stdin-eof", *args],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
         if err is not subprocess.DEVNULL:

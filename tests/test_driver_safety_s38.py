@@ -169,3 +169,21 @@ def test_the_depth_limit_counts_from_the_surface_felt(tmp_path):
     arm, c, r = make_sim()
     rep = run_plan(plan, c, r, tmp_path / "nominal")
     assert rep.status == "ok" and [x.status for x in read_records(tmp_path / "nominal")] == ["ok"] * len(XS)
+
+
+def test_run_refuses_an_unsafe_plan_before_starting(tmp_path):
+    """`palpate run --plan` with a plan the driver would refuse: one line naming the plan and the reason, exit 2,
+    and nothing started (before session 38: exit 1 after "probing on the simulated arm", a report saying fault)."""
+    import subprocess
+    plan = _plan()
+    plan.probes[1].q_indent_rad[2] = 7.0
+    path = tmp_path / "plan.json"
+    plan.save(path)
+    out = tmp_path / "run"
+    p = subprocess.run([sys.executable, "-m", "app.cli", "run", "paper", "--plan", str(path), "--sim", "--out",
+                        str(out)], capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1],
+                       timeout=120)
+    assert p.returncode == 2, p.stderr
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "--plan" in lines[0] and "refused before any motion" in lines[0], p.stderr
+    assert "probing" not in p.stdout + p.stderr and not (out / "probes.jsonl").exists()

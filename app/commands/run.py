@@ -70,6 +70,7 @@ from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
 from planner.surrogate import load_surrogate
 from robot.records import done_indices
+from robot.safety import check_plan
 from robot.truth import DEFAULT_RELAXATION
 
 DEFAULT_GRID3D = (6, 6)        # 3D: the coarse grid, refinement rounds and budget
@@ -206,6 +207,11 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         raise UsageError(f"--plan {args.plan}: the plan holds the coarse raster and its limits; drop {drop}")
     if args.plan:
         plan0 = Plan.load(args.plan)
+        problems, bad = check_plan(plan0)       # what the driver would refuse: before anything starts
+        refused = problems + [f"probe {k}: {v}" for k, v in bad.items()]
+        if refused:
+            more = f" (and {len(refused) - 1} more)" if len(refused) > 1 else ""
+            raise UsageError(f"--plan {args.plan}: refused before any motion: {refused[0]}{more}")
         prior = plan_prior(plan0)
         if prior.stones:
             raise UsageError(f"--plan {args.plan}: the plan's scene has stones; a plan holds the prior scene only")
