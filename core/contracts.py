@@ -379,6 +379,8 @@ class ProbeRecord:
     force_baseline_std_n: float | None = None
     n_samples_baseline: int = 0
     baseline_to_dwell_s: float | None = None     # time from the baseline's middle to the dwell's middle
+    force_baseline_at_contact_n: float | None = None  # the free-air readings' straight line (offset and drift) at
+    #                                              the first contact: what the sensor read at zero force then
     force_predicted_prior_n: float | None = None  # the planner's prediction for the stone-free prior
     n_samples: int = 0
     n_samples_total: int = 0

@@ -36,7 +36,6 @@ from planner.localize import (
     MIN_MEASUREMENTS,
     MIN_ONSETS,
     MODEL_ABS_ERR_N,
-    ONSET_BIAS_M,
     ONSET_SIGMA_M,
     Localization,
     Measurements,
@@ -137,7 +136,7 @@ class _Forward3D:
             on = self.on
             d_thr = self._memo("onset", (float(nu[1]),),
                                lambda: self.resp.depth_at_force_m(self.meas.onset_threshold_n[on] / math.exp(nu[1]), on))
-            pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on]) + ONSET_BIAS_M
+            pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on])
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
         return np.concatenate(r)
 

@@ -173,6 +173,13 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
     def num(v):
         return None if v is None or not math.isfinite(v) else float(v)
     has_base = n_base >= MIN_BASELINE_SAMPLES
+    # the zero-force reading at the first contact: the baseline's straight line in time taken to the contact (the
+    # drift since the zeroing is in the reading the contact threshold was compared with: 2.4 mN at 0.4 mN/s)
+    at_contact = None
+    if has_base and contact.get("t") is not None:
+        tb = raw["time_s"][base]
+        slope, icpt = np.polyfit(tb - tb.mean(), f[base], 1)
+        at_contact = float(icpt + slope * (contact["t"] - tb.mean()))
     dwell = np.flatnonzero((ph == DWELL) & np.isfinite(f))
     fifth = len(dwell) // 5
     rec = ProbeRecord(
@@ -190,6 +197,7 @@ def summarise(p, raw: dict, status: ProbeStatus, contact: dict, t0: float, t1: f
         force_baseline_n=num(float(np.mean(f[base]))) if has_base else None,
         force_baseline_std_n=num(float(np.std(f[base]))) if has_base else None,
         n_samples_baseline=n_base,
+        force_baseline_at_contact_n=num(at_contact),
         baseline_to_dwell_s=(num(float(np.mean(raw["time_s"][fin]) - np.mean(raw["time_s"][base])))
                              if has_base and fin.any() else None),
         force_predicted_prior_n=p.predicted_force_n, n_samples=int(fin.sum()), n_samples_total=int(len(ph)),
