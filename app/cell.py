@@ -253,7 +253,9 @@ def _main(args, held: contextlib.ExitStack) -> int:
     except NotConnected as e:
         print(f"palpate-cell: cannot connect: {e}", file=sys.stderr)
         return EXIT_USAGE
-    print(f"run {rep.status}: {rep.n_ok} ok, {rep.n_force_limit} at the force limit, {rep.n_rejected} rejected, "
+    depth = (f", {rep.n_depth_limit} at the depth limit past the contact felt (the surface higher than planned? check "
+             f"the registration)") if rep.n_depth_limit else ""
+    print(f"run {rep.status}: {rep.n_ok} ok, {rep.n_force_limit} at the force limit{depth}, {rep.n_rejected} rejected, "
           f"{rep.n_skipped} from the log; controller time {rep.controller_time_s:.1f} s, wall {rep.wall_s:.1f} s")
     if rep.problems:
         print("refused:\n  " + "\n  ".join(rep.problems))
@@ -371,7 +373,7 @@ def _crash_report(out: Path, err: ChildDied, program_stopped: bool | None = None
     tmp = run_json.with_name("run.json.tmp")
     tmp.write_text(json.dumps(d, indent=1))
     tmp.replace(run_json)
-    keys = ("n_planned", "n_ok", "n_force_limit", "n_rejected", "n_skipped", "controller_time_s", "wall_s",
+    keys = ("n_planned", "n_ok", "n_force_limit", "n_depth_limit", "n_rejected", "n_skipped", "controller_time_s", "wall_s",
             "program_restarts")
     return RunReport(RunStatus.FAULT, str(out), fault=fault, problems=d.get("problems", []),
                      **{k: d[k] for k in keys if d.get(k) is not None})

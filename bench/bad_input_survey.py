@@ -1060,7 +1060,7 @@ def data_safety(case: Case, d: Path, env: dict, cli: dict, shared: dict) -> dict
     before_lines = _jsonl_lines(R)
     before_recs = _records(R / "probes.jsonl")
     before_log = _log_lines(R / "probes.jsonl")
-    finished = {rec.get("index") for rec in before_recs if rec.get("status") in ("ok", "force_limit")}
+    finished = {rec.get("index") for rec in before_recs if rec.get("status") in ("ok", "force_limit", "depth_limit")}
     r2 = execute(second, d, env, case.timeout)
     after_files = snapshot(R)
     after_lines = _jsonl_lines(R)

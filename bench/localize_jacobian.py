@@ -24,6 +24,7 @@ sys.path.insert(0, str(ROOT))
 
 import planner.localize as L  # noqa: E402
 from app.cli import main as palpate  # noqa: E402
+from core.contracts import MEASURED  # noqa: E402
 from fem.scene import load  # noqa: E402
 from planner.surrogate import load_surrogate  # noqa: E402
 from robot.records import read_records  # noqa: E402
@@ -36,7 +37,7 @@ def compare(run_dir: Path, repeats: int) -> dict:
     scene = json.loads(res.read_text())["scene"] if res.exists() else "paper"
     prior = load(scene).prior()
     sur = load_surrogate(prior)
-    meas = L.Measurements.from_records(read_records(run_dir), statuses=("ok", "force_limit"))
+    meas = L.Measurements.from_records(read_records(run_dir), statuses=MEASURED)
     times, locs, before = {m: [] for m in MODES}, {}, L.JACOBIAN
     try:
         for _ in range(repeats):

@@ -119,7 +119,8 @@ class Measurements:
             if r.contact_threshold_n is not None:
                 zero_f = getattr(r, "force_baseline_at_contact_n", None)
                 thr_on = (float(r.contact_threshold_n) - (base if zero_f is None else float(zero_f))
-                          - ONSET_BIAS_SIGMAS * float(r.noise_std_n or std) / math.sqrt(FILTER_WINDOW))
+                          - ONSET_BIAS_SIGMAS * float(std if r.noise_std_n is None else r.noise_std_n)
+                          / math.sqrt(FILTER_WINDOW))
 
             def opt(v, minus=0.0):
                 return float("nan") if v is None else float(v) - minus

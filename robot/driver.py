@@ -144,6 +144,7 @@ class RunReport:
     n_planned: int = 0
     n_ok: int = 0
     n_force_limit: int = 0
+    n_depth_limit: int = 0             # stopped the depth limit past the contact felt (the surface higher than planned)
     n_rejected: int = 0
     n_skipped: int = 0                 # already ok in the log (resume)
     fault: dict | None = None
@@ -758,6 +759,7 @@ class Driver(Recovery):
                     rep.records.append(rec)
                     rep.n_ok += rec.status == ProbeStatus.OK
                     rep.n_force_limit += rec.status == ProbeStatus.FORCE_LIMIT
+                    rep.n_depth_limit += rec.status == ProbeStatus.DEPTH_LIMIT
                     consecutive = consecutive + 1 if rec.status == ProbeStatus.FORCE_LIMIT else 0
                     if progress:
                         progress(rec, len(rep.records), pre["n_to_run"])
@@ -765,46 +767,67 @@ class Driver(Recovery):
                         raise ProbeFault(FaultKind.FORCE_LIMIT, f"{consecutive} consecutive probes stopped at the "
                                                                 f"force limit: check the plan and the tissue")
             except BaseException as e:      # any fault ends with the arm stopped and the data kept
-                if isinstance(e, (SystemExit, GeneratorExit)):
+                if isinstance(e, GeneratorExit):
                     raise
-                expected = isinstance(e, (ProbeFault, SafetyViolation, KeyboardInterrupt))
-                kind = e.kind if isinstance(e, ProbeFault) else (
-                    FaultKind.INTERRUPTED if isinstance(e, KeyboardInterrupt) else FaultKind.SAFETY_VIOLATION
-                    if isinstance(e, SafetyViolation) else FaultKind.DRIVER_ERROR)
-                rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
-                message = (str(e) or "Ctrl-C") if expected else f"{type(e).__name__}: {e}"
-                rep.fault = {"kind": kind, "message": message, "probe_index": getattr(current, "index", None),
-                             "controller_time_s": self.ts, "detected_unix_s": time.time()}
-                lost = []                   # a write that failed (a full disk) must not keep the arm from stopping
-                if current is not None:     # on disk first: a hang in safe_state() must not lose them
-                    try:
-                        raw = self.samples.arrays()
-                        st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT
-                        rec = summarise(current, raw, st, {}, self.ts, self.ts, self.contact_thr, self.noise_std,
-                                        self.lim.depth_limit_m)
-                        rec.reason = rep.fault["message"]
-                        rep.records.append(log.write_probe(rec, raw))
-                    except Exception as w:  # noqa: BLE001 -- reported with the fault, after the stop
-                        lost.append(f"the interrupted probe's record could not be written ({w})")
-                try:
-                    write_run()             # the fault, before any command is sent
-                except Exception as w:      # noqa: BLE001
-                    lost.append(f"run.json could not be written before stopping ({w})")
-                with deferred_signals() as held:
-                    rep.fault.update(self.safe_state())
-                rep.fault["notes"] += lost + [f"{n} during the safe stop: deferred until the arm was stopped"
-                                              for n in held]
+                with deferred_signals() as held:    # from here to the stop's end no signal cuts it short
+                    self._fault_stop(e, rep, current, log, write_run)
+                rep.fault["notes"] += [f"{n} during the safe stop: deferred until the arm was stopped" for n in held]
                 hint = self.diagnose() if self.diagnose is not None else None
                 if hint:                    # what the operator must do (e.g. the pendant left in local control)
                     rep.fault["notes"].append(hint)
-                if not expected:            # stopped, and on disk as far as the disk allows: now raise it
-                    raise
+                if not isinstance(e, (ProbeFault, SafetyViolation, KeyboardInterrupt)):
+                    raise                   # stopped, and on disk as far as the disk allows: now raise it
+                if held:                    # the signal the safe stop held back: the caller stops too
+                    raise KeyboardInterrupt(held[0]) from None
             return rep
         finally:
-            write_run()
-            log.close()
-            if gc_was_enabled:
-                gc.enable()
+            try:
+                try:
+                    write_run()
+                    log.close()
+                except Exception as w:      # noqa: BLE001 -- a full disk: the report (returned) says so
+                    if rep.fault is not None:
+                        rep.fault.setdefault("notes", []).append(f"run.json could not be written at the end ({w})")
+                    else:
+                        raise
+            finally:
+                if gc_was_enabled:
+                    gc.enable()
+
+    def _fault_stop(self, e: BaseException, rep: RunReport, current, log: RunLog, write_run) -> None:
+        """After ``e``: the fault into ``rep``, the interrupted probe's record and run.json on disk (a failed write
+        is a note: it must not keep the arm from stopping), then the safe state (whatever it raises is a note)."""
+        interrupted = isinstance(e, (KeyboardInterrupt, SystemExit))
+        kind = e.kind if isinstance(e, ProbeFault) else (
+            FaultKind.INTERRUPTED if interrupted else FaultKind.SAFETY_VIOLATION
+            if isinstance(e, SafetyViolation) else FaultKind.DRIVER_ERROR)
+        rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
+        expected = interrupted or isinstance(e, (ProbeFault, SafetyViolation))
+        message = (str(e) or "Ctrl-C") if expected and not isinstance(e, SystemExit) else f"{type(e).__name__}: {e}"
+        rep.fault = {"kind": kind, "message": message, "probe_index": getattr(current, "index", None),
+                     "controller_time_s": self.ts, "detected_unix_s": time.time(), "notes": []}
+        lost = []
+        if current is not None:             # on disk first: a hang in safe_state() must not lose them
+            try:
+                raw = self.samples.arrays()
+                st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT
+                rec = summarise(current, raw, st, {}, self.ts, self.ts, self.contact_thr, self.noise_std,
+                                self.lim.depth_limit_m)
+                rec.reason = rep.fault["message"]
+                rep.records.append(log.write_probe(rec, raw))
+            except Exception as w:          # noqa: BLE001 -- reported with the fault, after the stop
+                lost.append(f"the interrupted probe's record could not be written ({w})")
+        try:
+            write_run()                     # the fault, before any command is sent
+        except Exception as w:              # noqa: BLE001
+            lost.append(f"run.json could not be written before stopping ({w})")
+        try:
+            state = self.safe_state()
+        except Exception as w:              # noqa: BLE001 -- safe_state stops first; what failed after is told
+            state = {"stopped": None, "retracted": False, "notes": [f"the safe stop failed: {type(w).__name__}: {w}"]}
+        notes = state.pop("notes", [])
+        rep.fault.update(state)
+        rep.fault["notes"] = notes + lost
 
     def _setup(self) -> None:
         self._sensor(self.fs.start)                  # an external sensor streams before anything moves

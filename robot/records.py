@@ -2,7 +2,8 @@
 
 ``<out>/probes.jsonl``  one JSON object per probe attempt, appended, flushed and fsync'ed before the next probe.
                         Keys carry units (see ``driver.summarise``); ``status`` is "ok", "force_limit" (stopped at
-                        the force limit, e.g. over a stone), "rejected" (failed the safety checks, never moved),
+                        the force limit, e.g. over a stone), "depth_limit" (stopped the depth limit past the contact
+                        felt: the surface higher than planned), "rejected" (failed the safety checks, never moved),
                         "fault" or "interrupted" (the attempt ended early; its samples are still kept).
 ``<out>/raw/probe_NNN[_aK].npz``  the raw samples of that attempt: ``time_s`` (N), ``tcp_pose`` (N x 6, base
                         frame), ``wrench`` (N x 6, as read), ``force_n`` (N, contact force along the tissue normal),
@@ -10,7 +11,7 @@
 ``<out>/run.json``      the run's summary: status, fault report, counts (written atomically).
 
 Resume: the last record of each index wins; indices whose last status is "ok" are not probed again ("force_limit"
-ones are: the stop may have been a sensor spike). A torn last line (a crash mid-write) is ignored, and the next record starts on a
+and "depth_limit" ones are: the stop may have been a sensor spike, the surface may have been registered again). A torn last line (a crash mid-write) is ignored, and the next record starts on a
 line of its own.
 """
 from __future__ import annotations

@@ -116,7 +116,7 @@ class Recovery:
         # flange as TCP: the pose means the tip only once the TCP is set again, so configure first, then read.
         try:
             self._ensure_program()
-        except (ProbeFault, SafetyViolation) as e:
+        except Exception as e:     # noqa: BLE001 -- ProbeFault, SafetyViolation, or an error no one foresaw
             out["notes"].append(f"retract skipped: the control program could not be configured ({e}); the reported "
                                 f"pose is not the tip's: check on the pendant whether the tip is still in the tissue "
                                 f"before moving the arm")
@@ -126,8 +126,8 @@ class Recovery:
             if not self._needs_retract(s["depth"], s["x"]):
                 out["notes"].append("the tip is already clear of the tissue: no retract needed")
             out["retracted"] = self._retract_from(s["pose"], s["depth"], s["x"])
-        except (ProbeFault, SafetyViolation) as e:
-            out["notes"].append(f"retract failed: {e}")
+        except Exception as e:     # noqa: BLE001 -- the arm is stopped; the operator is told what failed
+            out["notes"].append(f"retract failed: {type(e).__name__}: {e}")
         return out
 
     def _idle(self, seconds: float) -> None:

@@ -302,13 +302,13 @@ def _joints_disagree(p, tcp_offset) -> str | None:
     T_tcp = ur5e.pose_to_T(tcp_offset)
     for name, q, pose in (("q_approach_rad", p.q_approach_rad, p.approach_pose),
                           ("q_indent_rad", p.q_indent_rad, p.indent_pose)):
-        if max(abs(v) for v in q) > JOINT_LIMIT_RAD:
-            return f"{name} {[round(v, 3) for v in q]} beyond the UR5e's +-2 pi joint range"
+        if len(q) != 6 or not all(abs(v) <= JOINT_LIMIT_RAD for v in q):      # NaN fails too
+            return f"{name} {list(q)} is not 6 joints within the UR5e's +-2 pi range"
         T = ur5e.fk_flange(q) @ T_tcp
         P = ur5e.pose_to_T(pose)
         off = float(np.linalg.norm(T[:3, 3] - P[:3, 3]))
         turn = float(np.linalg.norm(T[:3, :3] - P[:3, :3]))
-        if off > JOINT_TOL_M or turn > 10 * JOINT_TOL_M:
+        if not (off <= JOINT_TOL_M and turn <= 10 * JOINT_TOL_M):
             return (f"{name} does not reach its pose with frames.tcp_offset (off by {off:.3g} m; the tool offset, "
                     f"the tip or the poses edited after planning? plan again)")
     return None

@@ -15,6 +15,10 @@ import threading
 NAMES = {signal.SIGINT: "Ctrl-C (SIGINT)", signal.SIGTERM: "SIGTERM"}
 
 
+def _terminate(signum, frame):
+    raise KeyboardInterrupt("SIGTERM")
+
+
 def _main() -> bool:
     return threading.current_thread() is threading.main_thread()
 
@@ -25,10 +29,10 @@ def terminate_as_interrupt():
         yield
         return
     old = signal.getsignal(signal.SIGTERM)
-    if old not in (signal.SIG_DFL, None):       # someone (app.isolate's child) already handles it: theirs stands
+    if old is not signal.SIG_DFL:               # someone (app.isolate's child, or outside Python) handles it
         yield
         return
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         yield
     finally:
@@ -48,4 +52,4 @@ def deferred_signals():
         yield held
     finally:
         for n, h in old.items():
-            signal.signal(n, h)
+            signal.signal(n, signal.SIG_DFL if h is None else h)     # None: a handler set outside Python

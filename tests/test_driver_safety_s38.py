@@ -96,15 +96,27 @@ class SignalReceive(SimRTDEReceive):
     ([signal.SIGINT, signal.SIGTERM], "interrupted"),
 ])
 def test_signals_stop_the_arm_and_cannot_cut_the_safe_stop_short(tmp_path, signals, status):
+    """The first signal stops the probe; a second one during the safe stop waits for it, and is then raised (the
+    caller stops too) with the report on disk."""
     arm, c, _ = make_sim()
-    old = signal.getsignal(signal.SIGTERM)
-    rep = run_plan(_plan(), c, SignalReceive(arm, at_probe(1, 0.002), signals), tmp_path)
-    assert signal.getsignal(signal.SIGTERM) == old                  # restored
-    assert rep.status == status and rep.fault["stopped"] and rep.fault["retracted"], rep.fault
+    old = (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT))
+    r = SignalReceive(arm, at_probe(1, 0.002), signals)
+    if len(signals) == 1:
+        rep = run_plan(_plan(), c, r, tmp_path)
+        fault = rep.fault
+        assert rep.status == status
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            run_plan(_plan(), c, r, tmp_path)
+        run = json.loads((tmp_path / "run.json").read_text())
+        assert run["status"] == status
+        fault = run["fault"]
+        assert any("during the safe stop" in n for n in fault["notes"]), fault["notes"]
+    assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == old      # restored
+    assert fault["stopped"] and fault["retracted"], fault
+    assert fault["message"] == ("SIGTERM" if signals[0] == signal.SIGTERM else "Ctrl-C")
     _stopped_and_out(arm)
     assert [x.status for x in read_records(tmp_path)] == ["ok", "interrupted"]
-    if len(signals) > 1:
-        assert any("during the safe stop" in n for n in rep.fault["notes"]), rep.fault["notes"]
 
 
 def test_a_start_beside_the_tissue_below_its_surface_is_retracted_straight_up(tmp_path):
@@ -130,7 +142,7 @@ def test_a_start_beside_the_tissue_below_its_surface_is_retracted_straight_up(tm
 
 @pytest.mark.parametrize("edit, why", [
     (lambda plan: setattr(plan.frames, "tcp_offset", [0.0] * 6), "does not reach its pose"),
-    (lambda plan: plan.probes[1].q_indent_rad.__setitem__(2, 7.0), "joint range"),
+    (lambda plan: plan.probes[1].q_indent_rad.__setitem__(2, 7.0), "+-2 pi range"),
     (lambda plan: plan.probes[0].__dict__.update(x_m=0.023, approach_pose=tissue_point_pose(TISSUE_POSE, 0.023, 0.004),
                                                  indent_pose=tissue_point_pose(TISSUE_POSE, 0.023, -DEPTH)),
      "does not reach its pose"),
@@ -187,3 +199,66 @@ def test_run_refuses_an_unsafe_plan_before_starting(tmp_path):
     lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "--plan" in lines[0] and "refused before any motion" in lines[0], p.stderr
     assert "probing" not in p.stdout + p.stderr and not (out / "probes.jsonl").exists()
+
+
+class ExitingReceive(SimRTDEReceive):
+    """A caller's own SIGTERM handler calling sys.exit, as it lands mid-descent."""
+
+    def getActualTCPForce(self):
+        if at_probe(1, 0.002)(self.arm) and not getattr(self, "done", False):
+            self.done = True
+            raise SystemExit(143)
+        return super().getActualTCPForce()
+
+
+def test_a_system_exit_mid_probe_stops_the_arm_first(tmp_path):
+    arm, c, _ = make_sim()
+    with pytest.raises(SystemExit):
+        run_plan(_plan(), c, ExitingReceive(arm), tmp_path)
+    _stopped_and_out(arm)
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["status"] == "interrupted" and run["fault"]["stopped"] and run["fault"]["retracted"]
+    assert [x.status for x in read_records(tmp_path)] == ["ok", "interrupted"]
+
+
+def test_an_error_that_persists_through_the_safe_stop_still_stops_the_arm(tmp_path, monkeypatch):
+    """Every reading fails once the fault has happened: stopL still goes out (it needs no reading), the retract's
+    failure is a note, and the error is raised with run.json saying all that."""
+    arm, c, r = make_sim()
+    real = Driver._read
+    state = {"on": False}
+
+    def read(self, strict=True):
+        if state["on"] or at_probe(1, 0.002)(arm):
+            state["on"] = True
+            raise ValueError("the readings went bad")
+        return real(self, strict)
+    monkeypatch.setattr(Driver, "_read", read)
+    with pytest.raises(ValueError):
+        run_plan(_plan(), c, r, tmp_path)
+    assert not arm.is_moving
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["fault"]["kind"] == "driver_error" and run["fault"]["stopped"] is True
+    assert run["fault"]["retracted"] is False and any("retract failed" in n for n in run["fault"]["notes"])
+
+
+def test_a_full_disk_at_the_end_keeps_the_report_and_turns_gc_back_on(tmp_path, monkeypatch):
+    import gc
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+    real = records_mod.RunLog.write_run
+    calls = {"n": 0}
+
+    def write_run(self, d):
+        calls["n"] += 1
+        if d.get("fault"):
+            raise OSError(28, "No space left on device")
+        return real(self, d)
+    monkeypatch.setattr(records_mod.RunLog, "write_run", write_run)
+    assert gc.isenabled()
+    rep = run_plan(_plan(), c, r, tmp_path)
+    assert gc.isenabled()
+    assert rep.status == "fault" and rep.fault["stopped"] and rep.fault["retracted"]
+    _stopped_and_out(arm)
+    notes = " ".join(rep.fault["notes"])
+    assert "before stopping" in notes and "at the end" in notes
