@@ -777,8 +777,8 @@ class Driver(Recovery):
                     rep.fault["notes"].append(hint)
                 if not isinstance(e, (ProbeFault, SafetyViolation, KeyboardInterrupt)):
                     raise                   # stopped, and on disk as far as the disk allows: now raise it
-                if held:                    # the signal the safe stop held back: the caller stops too
-                    raise KeyboardInterrupt(held[0]) from None
+                # a signal the safe stop held back is in the notes: the run has ended with a fault or an interrupt
+                # already, which its callers end on (app.runexec raises RunAborted; the cell reports and exits)
             return rep
         finally:
             try:
