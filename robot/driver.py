@@ -65,7 +65,7 @@ from robot.safety import (
     preflight,
 )
 from robot.safety import move_time as _move_time
-from robot.signals import deferred_signals, terminate_as_interrupt
+from robot.signals import SignalGate
 
 
 @dataclass
@@ -732,12 +732,14 @@ class Driver(Recovery):
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
                            "commands_sent": len(self.c.sent), "force_source": self.fs.report(),
                            "periods_fast_forwarded": self.n_fast})
+        gate = SignalGate()     # Ctrl-C and SIGTERM raise until the first does or a fault begins; then only noted
         try:
             if problems or (bad and not cfg.skip_invalid):
                 rep.status = RunStatus.REJECTED
                 rep.problems = problems + [f"probe {k}: {v}" for k, v in bad.items()]
                 return rep
             current = None
+            gate.__enter__()
             try:
                 self._setup()
                 consecutive = 0
@@ -767,12 +769,15 @@ class Driver(Recovery):
                         raise ProbeFault(FaultKind.FORCE_LIMIT, f"{consecutive} consecutive probes stopped at the "
                                                                 f"force limit: check the plan and the tissue")
             except BaseException as e:      # any fault ends with the arm stopped and the data kept
+                gate.hold()                 # first: from here to the stop's end no signal cuts it short
                 if isinstance(e, GeneratorExit):
                     raise
-                with deferred_signals() as held:    # from here to the stop's end no signal cuts it short
-                    self._fault_stop(e, rep, current, log, write_run)
-                rep.fault["notes"] += [f"{n} during the safe stop: deferred until the arm was stopped" for n in held]
-                hint = self.diagnose() if self.diagnose is not None else None
+                self._fault_stop(e, rep, current, log, write_run)
+                rep.fault["notes"] += [f"{n} during the safe stop: held until the arm was stopped" for n in gate.held]
+                try:
+                    hint = self.diagnose() if self.diagnose is not None else None
+                except Exception as w:      # noqa: BLE001 -- a hint, not a reason to lose the report
+                    hint = f"the operator hint could not be made ({type(w).__name__}: {w})"
                 if hint:                    # what the operator must do (e.g. the pendant left in local control)
                     rep.fault["notes"].append(hint)
                 if not isinstance(e, (ProbeFault, SafetyViolation, KeyboardInterrupt)):
@@ -791,8 +796,12 @@ class Driver(Recovery):
                     else:
                         raise
             finally:
-                if gc_was_enabled:
-                    gc.enable()
+                try:
+                    log.close()             # idempotent; here when the write before it failed
+                finally:
+                    gate.__exit__(None, None, None)
+                    if gc_was_enabled:
+                        gc.enable()
 
     def _fault_stop(self, e: BaseException, rep: RunReport, current, log: RunLog, write_run) -> None:
         """After ``e``: the fault into ``rep``, the interrupted probe's record and run.json on disk (a failed write
@@ -803,7 +812,10 @@ class Driver(Recovery):
             if isinstance(e, SafetyViolation) else FaultKind.DRIVER_ERROR)
         rep.status = RunStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else RunStatus.FAULT
         expected = interrupted or isinstance(e, (ProbeFault, SafetyViolation))
-        message = (str(e) or "Ctrl-C") if expected and not isinstance(e, SystemExit) else f"{type(e).__name__}: {e}"
+        try:
+            message = (str(e) or "Ctrl-C") if expected and not isinstance(e, SystemExit) else f"{type(e).__name__}: {e}"
+        except Exception:                   # noqa: BLE001 -- an exception whose text fails: its type will do
+            message = type(e).__name__
         rep.fault = {"kind": kind, "message": message, "probe_index": getattr(current, "index", None),
                      "controller_time_s": self.ts, "detected_unix_s": time.time(), "notes": []}
         lost = []
@@ -823,8 +835,14 @@ class Driver(Recovery):
             lost.append(f"run.json could not be written before stopping ({w})")
         try:
             state = self.safe_state()
-        except Exception as w:              # noqa: BLE001 -- safe_state stops first; what failed after is told
-            state = {"stopped": None, "retracted": False, "notes": [f"the safe stop failed: {type(w).__name__}: {w}"]}
+        except Exception as w:              # noqa: BLE001 -- what failed is told; a stop is tried once more
+            state = {"stopped": False, "retracted": False, "notes": [f"the safe stop failed: {type(w).__name__}: {w}"]}
+            if not (self.link_dead or self.stale):
+                try:
+                    self._stop()
+                    state["stopped"] = True
+                except Exception as w2:     # noqa: BLE001
+                    state["notes"].append(f"stopL failed too: {type(w2).__name__}: {w2}")
         notes = state.pop("notes", [])
         rep.fault.update(state)
         rep.fault["notes"] = notes + lost
@@ -845,6 +863,5 @@ def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = Non
     """Execute ``plan`` on the arm behind ``rtde_c``/``rtde_r``; records go to ``out_dir`` (see records.py).
     ``diagnose()``: after a fault, an operator hint to add to the report (or None). ``force_source``: where the
     wrench comes from (robot.forcesource; default the UR's wrist sensor over ur_rtde)."""
-    with terminate_as_interrupt():     # a supervisor's SIGTERM stops the arm as Ctrl-C does (robot.signals)
-        return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
-                                                                                progress=progress)
+    return Driver(plan, rtde_c, rtde_r, config, diagnose, force_source).run(out_dir, resume=resume,
+                                                                            progress=progress)

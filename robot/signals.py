@@ -1,55 +1,54 @@
 """Signals around the arm's motion: a supervisor's SIGTERM is a Ctrl-C, and neither may cut the safe stop short.
 
-``terminate_as_interrupt()``: while the driver runs, SIGTERM (systemd's stop, ``kill``) raises KeyboardInterrupt as
-Ctrl-C does, so the driver records the probe, stops and retracts instead of the process dying with the tip in
-tissue. ``deferred_signals()``: while the driver brings the arm to its safe state, a second Ctrl-C or a SIGTERM is
-noted (the yielded list names them) instead of raised. Both act in the main thread only (Python runs signal
-handlers there); elsewhere they change nothing.
+``SignalGate`` (``with SignalGate() as gate:`` around a run, main thread only; elsewhere it does nothing): SIGINT
+raises KeyboardInterrupt, and so does SIGTERM (systemd's stop, ``kill``) unless someone other than Python's default
+handler (app.isolate's child installs that one) handles it already. The first signal that raises closes the gate, and
+so does ``gate.hold()`` (the driver's fault handler, first thing): from then on a signal is only noted
+(``gate.held``), so nothing cuts the safe stop short. The handlers are restored on leaving, with both signals blocked
+meanwhile (a signal between two restores must not leave the other one's handler noting for good).
 """
 from __future__ import annotations
 
-import contextlib
 import signal
 import threading
 
 NAMES = {signal.SIGINT: "Ctrl-C (SIGINT)", signal.SIGTERM: "SIGTERM"}
 
 
-def _terminate(signum, frame):
-    raise KeyboardInterrupt("SIGTERM")
+class SignalGate:
+    def __init__(self):
+        self.held: list[str] = []
+        self.holding = False
+        self._old: dict = {}
 
+    def hold(self) -> None:
+        self.holding = True
 
-def _main() -> bool:
-    return threading.current_thread() is threading.main_thread()
+    def _handler(self, signum, frame):
+        if self.holding:
+            self.held.append(NAMES[signum])
+            return
+        self.holding = True                  # the first raises; any later one waits for the safe stop
+        raise KeyboardInterrupt("SIGTERM" if signum == signal.SIGTERM else "")
 
+    def __enter__(self) -> "SignalGate":
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for n in NAMES:
+            old = signal.getsignal(n)
+            if n == signal.SIGTERM and old not in (signal.SIG_DFL, signal.default_int_handler):
+                continue                     # someone's own SIGTERM handling stands
+            self._old[n] = old
+            signal.signal(n, self._handler)
+        return self
 
-@contextlib.contextmanager
-def terminate_as_interrupt():
-    if not _main():
-        yield
-        return
-    old = signal.getsignal(signal.SIGTERM)
-    if old is not signal.SIG_DFL:               # someone (app.isolate's child, or outside Python) handles it
-        yield
-        return
-    signal.signal(signal.SIGTERM, _terminate)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
-@contextlib.contextmanager
-def deferred_signals():
-    held: list[str] = []
-    if not _main():
-        yield held
-        return
-    old = {n: signal.getsignal(n) for n in NAMES}
-    for n in NAMES:
-        signal.signal(n, lambda signum, frame: held.append(NAMES[signum]))
-    try:
-        yield held
-    finally:
-        for n, h in old.items():
-            signal.signal(n, signal.SIG_DFL if h is None else h)     # None: a handler set outside Python
+    def __exit__(self, *exc) -> None:
+        if not self._old:
+            return
+        blocked = set(self._old)
+        signal.pthread_sigmask(signal.SIG_BLOCK, blocked)
+        try:
+            for n, h in self._old.items():
+                signal.signal(n, signal.SIG_DFL if h is None else h)     # None: a handler set outside Python
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, blocked)

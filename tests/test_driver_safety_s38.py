@@ -254,3 +254,104 @@ def test_a_full_disk_at_the_end_keeps_the_report_and_turns_gc_back_on(tmp_path, 
     _stopped_and_out(arm)
     notes = " ".join(rep.fault["notes"])
     assert "before stopping" in notes and "at the end" in notes
+
+
+# ---- the second review of the fault handler (session 38) ------------------------------------------------------
+
+def _count_stops(c):
+    n = {"stopL": 0}
+    real = c.stopL
+
+    def stopL(*a):
+        n["stopL"] += 1
+        return real(*a)
+    c.stopL = stopL
+    return n
+
+
+def test_an_operator_hint_that_fails_does_not_replace_the_report(tmp_path):
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+
+    def diagnose():
+        raise OSError("the dashboard did not answer")
+    rep = run_plan(_plan(), c, r, tmp_path, diagnose=diagnose)
+    assert rep.status == "fault" and rep.fault["stopped"] and rep.fault["retracted"]
+    assert any("operator hint could not be made" in n for n in rep.fault["notes"])
+
+
+class BrokenQueries(SimRTDEReceive):
+    """After the trigger every protective-stop query fails with an error no one foresaw."""
+
+    def isProtectiveStopped(self):
+        if getattr(self, "broken", False):
+            raise ValueError("a garbled answer")
+        return super().isProtectiveStopped()
+
+
+def test_an_error_in_the_safe_stops_first_query_still_sends_the_stop(tmp_path, monkeypatch):
+    arm, c, _ = make_sim()
+    r = BrokenQueries(arm)
+    n = _count_stops(c)
+    real = Driver._read
+
+    def read(self, strict=True):
+        if at_probe(1, 0.002)(arm) and not getattr(r, "broken", False):
+            r.broken = True
+            raise ValueError("an unforeseen reading")
+        return real(self, strict)
+    monkeypatch.setattr(Driver, "_read", read)
+    with pytest.raises(ValueError, match="unforeseen"):
+        run_plan(_plan(), c, r, tmp_path)
+    assert n["stopL"] >= 1 and not arm.is_moving
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["fault"]["stopped"] is True and any("safe stop failed" in x for x in run["fault"]["notes"])
+
+
+class Unprintable(Exception):
+    def __str__(self):
+        raise RuntimeError("no text")
+
+
+def test_an_exception_whose_text_fails_still_stops_the_arm(tmp_path, monkeypatch):
+    arm, c, r = make_sim()
+    real = Driver._read
+    state = {"n": 0}
+
+    def read(self, strict=True):
+        if at_probe(1, 0.002)(arm) and not state["n"]:
+            state["n"] = 1
+            raise Unprintable()
+        return real(self, strict)
+    monkeypatch.setattr(Driver, "_read", read)
+    with pytest.raises(Unprintable):
+        run_plan(_plan(), c, r, tmp_path)
+    _stopped_and_out(arm)
+    assert json.loads((tmp_path / "run.json").read_text())["fault"]["message"] == "Unprintable"
+
+
+def test_a_ctrl_c_in_the_fault_handlers_first_lines_waits_for_the_stop(tmp_path, monkeypatch):
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+    real = Driver._fault_stop
+
+    def fault_stop(self, *a):
+        os.kill(os.getpid(), signal.SIGINT)      # the operator presses Ctrl-C as the fault is being handled
+        return real(self, *a)
+    monkeypatch.setattr(Driver, "_fault_stop", fault_stop)
+    rep = run_plan(_plan(), c, r, tmp_path)
+    assert rep.fault["kind"] == "invalid_reading" and rep.fault["stopped"] and rep.fault["retracted"]
+    _stopped_and_out(arm)
+    assert any("Ctrl-C" in n and "held" in n for n in rep.fault["notes"])
+
+
+def test_sigterm_in_the_cell_child_is_reported_as_sigterm(tmp_path):
+    """app.isolate's child sets SIGTERM to Python's default Ctrl-C handler; the driver's gate takes it over."""
+    arm, c, _ = make_sim()
+    old = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        rep = run_plan(_plan(), c, SignalReceive(arm, at_probe(1, 0.002), [signal.SIGTERM]), tmp_path)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert rep.status == "interrupted" and rep.fault["message"] == "SIGTERM"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
