@@ -286,13 +286,26 @@ def round_planner(plan0: Plan, out: Path):
     return plan_round
 
 
+def measured_on_disk(out: Path) -> int:
+    """How many probes in OUT's records hold a measurement (their latest record: ok, force_limit, depth_limit)."""
+    return sum(1 for r in latest_by_index(out).values() if r.status in MEASURED)
+
+
+def resuming_note(out: Path) -> str:
+    """What a resumed run keeps and what it presses again (a stop at a limit may have been a spike: pressed again)."""
+    done, measured = len(done_indices(out)), measured_on_disk(out)
+    again = f" ({measured - done} stopped at the force or depth limit are pressed again)" if measured > done else ""
+    return f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
+
+
 def verdict(loc, res, described: str, status: str, fault: dict | None) -> str:
     """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
     to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NO RESULT
     when the arm run ended with a fault."""
     if res is None:
         return (f"NO RESULT: the arm run ended with a fault "
-                f"({fault['fault']['kind'] if fault and fault.get('fault') else status})")
+                f"({fault['fault']['kind'] if fault and fault.get('fault') else status}): its probes are kept and "
+                f"the same command resumes")
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
     return ("STONE " if loc.detected else "NO STONE ") + described

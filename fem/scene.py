@@ -281,6 +281,30 @@ def _validate_indenter(scene: Scene) -> None:
     if ind.youngs_pa is not None:
         _check_modulus("indenter.youngs_pa", ind.youngs_pa)
     _check_poisson("indenter.poisson", ind.poisson)
+    if ind.shape == "flat" and ind.youngs_pa is not None:
+        rho = _tip_relative_compliance(scene)
+        if rho >= ELASTIC_TIP_NEGLIGIBLE:
+            round_tip = "sphere" if scene.is_3d else "cylinder"
+            raise SceneError(f"indenter.youngs_pa = {ind.youngs_pa!r} with indenter.shape = 'flat': an elastic flat "
+                             f"punch is not modelled (its edge is singular), and this one is too soft to be taken as "
+                             f"rigid (its deformation would change the force by about {rho:.2g} of it, Hertz "
+                             f"estimate; up to {ELASTIC_TIP_NEGLIGIBLE:g} is neglected); give no youngs_pa (rigid), a "
+                             f"modulus at least {ind.youngs_pa * rho / ELASTIC_TIP_NEGLIGIBLE:.3g} Pa, or shape = "
+                             f"'{round_tip}'")
+
+
+# An elastic tip that would change the force by less than this is taken as rigid: fem.tip.TIP_TOLERANCE (the same
+# value, tested; fem.tip imports this module)
+ELASTIC_TIP_NEGLIGIBLE = 1e-3
+
+
+def _tip_relative_compliance(scene: Scene) -> float:
+    """fem.tip.rigid_tip_bound (the same formula, tested): the relative change of the force from treating the
+    scene's elastic tip as rigid."""
+    t, ind = scene.tissue, scene.indenter
+    if scene.analysis.plane == "strain":
+        return t.youngs_pa * (1 - ind.poisson ** 2) / (ind.youngs_pa * (1 - t.poisson ** 2))
+    return t.youngs_pa / ind.youngs_pa
 
 
 def _validate_analysis(scene: Scene) -> None:
@@ -321,6 +345,10 @@ def _validate_analysis(scene: Scene) -> None:
             if a.patch_m > min(t.width_m, t.length_m):
                 raise SceneError(f"analysis.patch_m = {a.patch_m!r} is wider than the top face "
                                  f"({min(t.width_m, t.length_m):g} m, the smaller of width_m and length_m)")
+            if a.patch_m < 2 * scene.indenter.radius_m:
+                raise SceneError(f"analysis.patch_m = {a.patch_m!r} is narrower than the tip (2 x indenter.radius_m "
+                                 f"= {2 * scene.indenter.radius_m:g} m): the tip's footprint must fit on the probed "
+                                 f"patch; give patch_m >= {2 * scene.indenter.radius_m:g} m or a smaller tip")
         if a.grade is not None:
             _check_range("analysis.grade", a.grade, 0.05, 2.0, "",
                          " (the element size's growth per unit distance from the probed patch and the stones)")

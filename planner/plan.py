@@ -36,7 +36,7 @@ from core import ur5e
 from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
 from fem import recall
 from fem.contact import surface_model
-from fem.scene import from_dict, load
+from fem.scene import STRAIN_MAX, from_dict, load
 from planner import area
 from planner import kinematics as kin
 from planner.interrupt import interruptible
@@ -453,6 +453,11 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     tissue_x = ur5e.pose_to_T(frames.tissue_pose_base)[:3, 0]
     depth_for = None
     if force_n is None:
+        deepest = STRAIN_MAX * prior.tissue.height_m
+        if limits.depth_limit_m > deepest:      # fem would refuse the depths the plan must try
+            raise PlanError(f"--depth-limit-m {limits.depth_limit_m:g} is {limits.depth_limit_m / prior.tissue.height_m:.0%} "
+                            f"of the tissue's height {prior.tissue.height_m:g} m: fem's linear model covers "
+                            f"indentations up to {STRAIN_MAX:.0%} of it; give --depth-limit-m <= {deepest:.4g} m")
         # fail fast, before fem builds its model (~1-5 s): every waypoint reachable down to the depth limit
         seed_configurations(targets(x, np.full(x.shape, limits.depth_limit_m), frames.tissue_pose_base,
                                     motion.approach_height_m, y_m=y), tissue_x, frames.tcp_offset, branch)

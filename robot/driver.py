@@ -173,6 +173,9 @@ def _vec6(v) -> bool:
 # was not quiet and doubling from there (until session 31) cost more looks than it saved (the arm's phase of a
 # cached paper run 1.0-1.1 s against 0.8-0.9 s, block3d's 1.9-2.0 against 1.5-1.8; the records the same)
 FF_PERIODS = 500
+# after a descent stopped at the depth limit the probe dwells where the arm came to rest (its force is measured as
+# a planned dwell's is); deeper than that by more than this while it holds, the dwell ends (the arm must not creep)
+HOLD_SLACK_M = 1e-4
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -274,6 +277,15 @@ class _ForceWatch:
         self.contact: dict = {}
         self.hist = deque(maxlen=driver.cfg.filter_window + 1)
         self.lead = stop_lead_periods(driver.cfg.filter_window)
+        self.holding = False            # dwelling after a depth-limit stop: the depth held is the limit
+        self.rest_depth: float | None = None    # (where the arm came to rest: its first dwell period)
+
+    def _too_deep(self, depth):
+        """The depth limit (a float or an array of periods): the limit past the contact felt while descending;
+        while holding after a stop there, deeper than where the arm came to rest by HOLD_SLACK_M."""
+        if self.holding:
+            return depth > self.rest_depth + HOLD_SLACK_M
+        return depth - self.contact["depth"] > self.d.lim.depth_limit_m
 
     def __call__(self, s):
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
@@ -282,7 +294,9 @@ class _ForceWatch:
         if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
             self.d._stop()
             return ProbeStatus.FORCE_LIMIT
-        if "depth" in self.contact and s["depth"] - self.contact["depth"] > self.d.lim.depth_limit_m:
+        if self.holding and self.rest_depth is None:
+            self.rest_depth = s["depth"]
+        if "depth" in self.contact and self._too_deep(s["depth"]):
             self.d._stop()              # the depth limit counts from the surface felt, not only the plan's
             return ProbeStatus.DEPTH_LIMIT
         return None
@@ -296,8 +310,10 @@ class _ForceWatch:
             j = first_true(filt[:k] > self.d.contact_thr, -1)
             if j >= 0:
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
+        if self.holding and self.rest_depth is None and b.n:
+            self.rest_depth = float(b.depth[0])
         if "depth" in self.contact:     # and up to the first past the depth limit below the contact felt
-            k = j + first_true(b.depth[j:k] - self.contact["depth"] > self.d.lim.depth_limit_m, k - j)
+            k = j + first_true(self._too_deep(b.depth[j:k]), k - j)
         self.hist.extend(filt[:k].tolist())
         return k
 
@@ -685,7 +701,10 @@ class Driver(Recovery):
         self.phase = DESCENT
         outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
                              min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
-        if outcome == "reached" and mo.dwell_s > 0:
+        limited = outcome == ProbeStatus.DEPTH_LIMIT
+        if (outcome == "reached" or limited) and mo.dwell_s > 0:
+            # stopped at the depth limit (the surface higher than registered): the arm holds there for the dwell
+            watch.holding = limited
             self.phase = DWELL
             n = [0]
 
@@ -702,6 +721,8 @@ class Driver(Recovery):
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
                    min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
+        if limited and outcome == "reached":
+            outcome = ProbeStatus.DEPTH_LIMIT       # (its dwell done at the limit, not at the planned depth)
         status = ProbeStatus.OK if outcome == "reached" else ProbeStatus(outcome)
         raw = self.samples.arrays()
         return summarise(p, raw, status, watch.contact, t0, self.ts, self.contact_thr, self.noise_std,

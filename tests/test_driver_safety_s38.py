@@ -18,9 +18,11 @@ from robot_fixtures import TCP, TISSUE_POSE, make_plan, make_sim, tissue_point_p
 from test_driver_faults import DEPTH, XS, at_probe  # noqa: E402
 
 from core import ur5e  # noqa: E402
+from core.contracts import DWELL  # noqa: E402
 from robot import records as records_mod  # noqa: E402
-from robot.driver import Driver, run_plan  # noqa: E402
+from robot.driver import HOLD_SLACK_M, Driver, run_plan  # noqa: E402
 from robot.records import read_records  # noqa: E402
+from robot.safety import TissueFrame  # noqa: E402
 from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive  # noqa: E402
 from robot.simforce import standin_force_model  # noqa: E402
 
@@ -165,14 +167,61 @@ def test_the_depth_limit_counts_from_the_surface_felt(tmp_path):
     assert rep.status == "ok", rep.fault
     recs = read_records(tmp_path / "high")
     assert [x.status for x in recs] == ["depth_limit"] * len(XS)
+    dwell_periods = round(plan.motion.dwell_s / 0.002)
     for rec in recs:
         past = rec.depth_reached_m - rec.contact_depth_m
         assert 0.004 - 1e-4 < past < 0.004 + 1e-4, past           # stopped within 0.1 mm of the limit
         raw = records_mod.load_raw(tmp_path / "high", rec)
         assert raw["depth_m"].max() - rec.contact_depth_m < 0.004 + 1e-4
+        # and then held there for the plan's dwell, measured as a dwell is (session 39: it used to retract at once,
+        # its force the mean of the last 5 descent samples, 7 times noisier than a 0.2-0.5 s dwell's)
+        held = raw["phase"] == DWELL
+        assert dwell_periods <= held.sum() <= dwell_periods + 2 and rec.n_samples == held.sum()
+        assert np.ptp(raw["depth_m"][held]) < 1e-5                  # at rest, not deeper
+        assert rec.force_dwell_start_n is not None and rec.force_dwell_end_n is not None
     arm, c, r = make_sim()
     rep = run_plan(plan, c, r, tmp_path / "nominal")
     assert rep.status == "ok" and [x.status for x in read_records(tmp_path / "nominal")] == ["ok"] * len(XS)
+
+
+class _CreepingReceive(SimRTDEReceive):
+    """Reports the tip creeping deeper along the tissue normal, 20 um a period, from ``creep_from`` on."""
+    creep_from = None
+
+    def getActualTCPPose(self):
+        pose = super().getActualTCPPose()
+        if self.creep_from is not None:
+            n = TissueFrame(TISSUE_POSE).normal
+            k = (self.arm.t_s - self.creep_from) / 0.002
+            pose[:3] = [float(v - 2e-5 * k * w) for v, w in zip(pose[:3], n)]
+        return pose
+
+
+def test_a_probe_held_at_the_depth_limit_must_not_creep_deeper(tmp_path):
+    """The dwell after a depth-limit stop ends (status depth_limit, the arm stopped) once the tip is HOLD_SLACK_M
+    deeper than where it came to rest."""
+    from core.contracts import Limits
+    plan = make_plan(XS[:1], depth_m=0.004, limits=Limits(depth_limit_m=0.004))
+    arm, c, _ = make_sim(surface_height_m=lambda x: 0.003)
+    r = _CreepingReceive(arm)
+    real_stop = c.stopL
+
+    def stop(*a):                   # the first stop (at the limit) starts the creep, the next (the guard's) ends it
+        real_stop(*a)
+        stops.append(arm.t_s)
+        r.creep_from = arm.t_s if len(stops) == 1 else None
+    stops = []
+    c.stopL = stop
+    rep = run_plan(plan, c, r, tmp_path)
+    assert rep.status == "ok", rep.fault
+    rec, = read_records(tmp_path)
+    assert rec.status == "depth_limit"
+    raw = records_mod.load_raw(tmp_path, rec)
+    held = raw["phase"] == DWELL
+    depths = raw["depth_m"][held]
+    # ended at the first period more than the slack below the rest (20 um a period: the 6th), long before the dwell's
+    assert 1 <= held.sum() <= 8 and depths[-1] > depths[0] + HOLD_SLACK_M and depths[-2] <= depths[0] + HOLD_SLACK_M
+    assert len(stops) == 2 and not arm.is_moving
 
 
 def test_run_refuses_an_unsafe_plan_before_starting(tmp_path):

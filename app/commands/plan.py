@@ -66,7 +66,7 @@ EPILOG = """examples:
   palpate plan paper --out plan.json --plots out/                 15 waypoints, 5 mm margins, fem depths
   palpate plan paper --out plan.json --spacing-m 0.002 --margin-m 0.008
   palpate plan paper --out fine.json --x-min-m 0.030 --x-max-m 0.040 --waypoints 11   refine an interval
-  palpate plan paper --out plan.json --force-limit-n 0.5 --depth-limit-m 0.006
+  palpate plan paper --out plan.json --force-limit-n 0.5 --depth-limit-m 0.0045
   palpate plan scene.toml --out plan.json --tissue-pose 0.45 -0.035 0.08 0 0 1.5708 --tcp-offset 0 0 0.12 0 0 0
   palpate plan block3d --out plan.json --grid 10x10 --plots out/  3D: 100 probes over the probed patch
   palpate plan block3d --out plan.json --grid 8x8 --region 0.02,0.02,0.05,0.04

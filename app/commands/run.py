@@ -52,8 +52,10 @@ from app.runexec import (
     check_resume,
     choose_executor,
     localized,
+    measured_on_disk,
     new_stats,
     open_out,
+    resuming_note,
     round_planner,
     run_limits,
     run_options,
@@ -69,7 +71,6 @@ from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
 from planner.surrogate import load_surrogate
-from robot.records import done_indices
 from robot.safety import check_plan
 from robot.truth import DEFAULT_RELAXATION
 
@@ -254,7 +255,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             raise UsageError(f"--out {out}: cannot resume: {e}; use --fresh or another --out") from None
         plan0 = saved
         if not three_d:
-            _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+            _say(resuming_note(out))
     fig_child = None
     if not args.no_figure and not args.host:    # simulated: matplotlib loads in a child meanwhile (app.figchild)
         fig_child = FigureChild.start(_say)
@@ -324,6 +325,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         stats["clean_end"] = True      # probing ended without a fault: the control script is stopped at the end
     except RunAborted as e:
         status, fault, res = "fault", e.report.to_dict(), None
+        stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
     except TableBuildError as e:    # the measured probes are on disk; a re-run resumes them
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "

@@ -25,8 +25,10 @@ from app.runexec import (
     RunAborted,
     choose_executor,
     localized,
+    measured_on_disk,
     new_stats,
     open_out,
+    resuming_note,
     round_planner,
     run_limits,
     verdict,
@@ -39,7 +41,6 @@ from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
 from planner.surrogate3d import load_surrogate3d
-from robot.records import done_indices
 
 
 @dataclass
@@ -88,7 +89,7 @@ def run_block(args, ctx: RunContext) -> int:
     (ctx.on_exit if ctx.on_exit is not None else cleanup).enter_context(holding(out))   # one process in OUT
     open_out(args, out, ctx.opts, _say)
     if ctx.resume:
-        _say(f"resuming the run in {out}: {len(done_indices(out))} probes measured before are not pressed again")
+        _say(resuming_note(out))
     _say(f"probing on the {where}")
     t_first: dict = {}
     plan_round = round_planner(plan0, out)
@@ -107,6 +108,7 @@ def run_block(args, ctx: RunContext) -> int:
         stats["clean_end"] = True
     except RunAborted as e:
         status, fault = "fault", e.report.to_dict()
+        stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
     finally:
         cleanup.close()

@@ -1,0 +1,119 @@
+"""Session 39's review findings, each as a test: an elastic flat punch too soft to be taken as rigid is refused
+when the scene is read (one line naming the field, exit 2; it used to end in a traceback from fem.tip in 2D), with
+fem's own bound; a 3D probed patch narrower than the tip is refused when read (every waypoint was refused later,
+with an interval whose ends were the wrong way round); the examples the help teaches run."""
+from __future__ import annotations
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from fem import scene as S
+from fem import tip as T
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAT_2D = """name = "flat-el"
+[tissue]
+width_m = 0.070
+height_m = 0.050
+youngs_pa = 2500.0
+poisson = 0.4
+[indenter]
+shape = "flat"
+radius_m = 0.005
+youngs_pa = {e}
+"""
+
+
+@pytest.mark.parametrize("plane", ["strain", "stress"])
+@pytest.mark.parametrize("tip_e", [5e3, 2.5e6, 60e6])
+def test_the_scene_refusal_uses_fems_own_rigid_tip_bound(plane, tip_e):
+    base = S.load("healthy")
+    sc = dataclasses.replace(base, indenter=dataclasses.replace(base.indenter, youngs_pa=tip_e),
+                             analysis=dataclasses.replace(base.analysis, plane=plane))
+    assert S.ELASTIC_TIP_NEGLIGIBLE == T.TIP_TOLERANCE
+    assert S._tip_relative_compliance(sc) == T.rigid_tip_bound(sc)
+    flat = dict(indenter=dataclasses.replace(sc.indenter, shape="flat"))
+    if T.treated_as_rigid(sc):
+        dataclasses.replace(sc, **flat)         # a punch fem takes as rigid: accepted
+    else:
+        with pytest.raises(S.SceneError, match=r"indenter\.youngs_pa = .* with indenter\.shape = 'flat'"):
+            dataclasses.replace(sc, **flat)
+
+
+def test_a_soft_elastic_flat_punch_is_refused_in_one_line(tmp_path):
+    path = tmp_path / "flat.toml"
+    path.write_text(FLAT_2D.format(e=5000.0))
+    p = subprocess.run([sys.executable, "-m", "app.cli", "simulate", str(path), "--load", "indent", "--x-m", "0.035",
+                        "--depth-m", "0.002"], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert p.returncode == 2, p.stderr
+    assert "Traceback" not in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "indenter.youngs_pa = 5000.0 with indenter.shape = 'flat'" in p.stderr and "cylinder" in p.stderr
+
+
+def test_a_soft_elastic_flat_punch_is_refused_in_3d_with_its_round_alternative():
+    sc = S.load("block3d")
+    with pytest.raises(S.SceneError, match="or shape = 'sphere'"):
+        dataclasses.replace(sc, indenter=dataclasses.replace(sc.indenter, shape="flat", youngs_pa=5000.0))
+
+
+def _examples(text: str, command: str) -> list[str]:
+    """The example command lines of a --help epilog that start with ``palpate COMMAND paper`` (the 2D built-ins
+    paper, paper-left, ...)."""
+    out = []
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith(f"palpate {command} paper"):
+            out.append(line.split("   ")[0].strip())       # (a comment may follow after 3 spaces)
+    return out
+
+
+def test_every_2d_example_in_the_help_runs(tmp_path):
+    """The examples `palpate --help` and `palpate plan --help` teach, on the 2D scenes, each run as written
+    (outputs into a scratch directory): one of them asked for a depth limit beyond the tip and was refused."""
+    import shlex
+
+    from app.cli import EPILOG as MAIN
+    from app.commands.plan import EPILOG as PLAN
+    from app.commands.predict import EPILOG as PREDICT
+    from app.commands.simulate import EXAMPLES as SIMULATE
+    cases = [c for text, cmd in ((MAIN, "simulate"), (MAIN, "predict"), (MAIN, "plan"), (PLAN, "plan"),
+                                 (SIMULATE, "simulate"), (PREDICT, "predict")) for c in _examples(text, cmd)]
+    assert len(cases) >= 12, cases
+    for k, line in enumerate(dict.fromkeys(cases)):
+        argv = shlex.split(line)[1:]
+        cwd = tmp_path / f"ex{k}"
+        cwd.mkdir()
+        p = subprocess.run([sys.executable, "-m", "app.cli", *argv], capture_output=True, text=True, cwd=cwd,
+                           timeout=300, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        assert p.returncode == 0, (line, p.stderr[-500:])
+
+
+def test_a_probed_patch_narrower_than_the_tip_is_refused_when_the_scene_is_read():
+    sc = S.load("block3d")
+    R = sc.indenter.radius_m
+    with pytest.raises(S.SceneError, match=r"analysis\.patch_m = .* is narrower than the tip"):
+        sc.with_analysis(patch_m=2 * R - 1e-4)
+    assert sc.with_analysis(patch_m=2 * R).analysis.patch_m == 2 * R      # one waypoint's footprint: accepted
+
+
+def test_a_resumed_run_says_which_probes_it_presses_again(tmp_path):
+    """Probes stopped at a limit hold a measurement (counted by measured_on_disk, which an interrupted run's last line
+    reports: it said 0 probes after 5) but a resumed run presses them again (a stop may have been a spike); the
+    resume note says both (it counted only the first kind)."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from robot_fixtures import make_plan, make_sim
+
+    from app.runexec import measured_on_disk, resuming_note
+    from core.contracts import Limits
+    from robot.driver import run_plan
+    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.004, limits=Limits(depth_limit_m=0.004))
+    arm, c, r = make_sim(surface_height_m=lambda x: 0.003 if x > 0.03 else 0.0)    # the last two: depth_limit
+    assert run_plan(plan, c, r, tmp_path).status == "ok"
+    assert measured_on_disk(tmp_path) == 3
+    assert resuming_note(tmp_path).endswith(
+        "1 probes measured before are not pressed again (2 stopped at the force or depth limit are pressed again)")
