@@ -3,6 +3,7 @@ exit 2; a traceback only with ``--debug``. Warnings (fem's, the planner's) print
 too, without Python's source path and code line (``--debug`` keeps Python's format)."""
 from __future__ import annotations
 
+import logging
 import sys
 import traceback
 import warnings
@@ -23,6 +24,13 @@ class UsageError(ValueError):
 USER_ERRORS = (UsageError, SceneError, PlanError, TruthError, OSError, UnicodeDecodeError)
 
 
+def _quiet_exit(debug: bool) -> None:
+    """The one line is said: what a background helper logs while the process ends (a table's dask cluster torn down
+    under its build: "Removing worker ... lost scattered data") is not for the user. ``--debug`` keeps it."""
+    if not debug:
+        logging.disable(logging.CRITICAL)
+
+
 def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
     """Run ``run``; a user error becomes ``prog: message`` on one line and exit 2, Ctrl-C exit 130. With ``debug`` the
     traceback is printed too."""
@@ -40,9 +48,11 @@ def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
         if isinstance(e, OSError) and e.filename is not None and str(e.filename) not in msg:
             msg = f"{e.filename}: {msg}"
         print(f"{prog}: {msg}", file=sys.stderr)
+        _quiet_exit(debug)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
+        _quiet_exit(debug)
         return 130
     finally:
         warnings.showwarning = shown

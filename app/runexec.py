@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import re
 from pathlib import Path
 
 from app.cell import print_preflight, read_confirmation
@@ -286,6 +287,17 @@ def round_planner(plan0: Plan, out: Path):
     return plan_round
 
 
+def plan_options_hint(message: str, args) -> str:
+    """A planning error's message for `palpate run`: the options it names that run does not have are `palpate
+    plan`'s (run plans with their defaults), so say where to give them."""
+    missing = [o for o in dict.fromkeys(re.findall(r"--[a-z][a-z0-9-]*", message))
+               if not hasattr(args, o[2:].replace("-", "_"))]
+    if not missing:
+        return message
+    return (f"{message} ({', '.join(missing)}: options of `palpate plan`, which `palpate run` takes at their "
+            f"defaults; plan there with them, then `palpate run --plan plan.json`)")
+
+
 def measured_on_disk(out: Path) -> int:
     """How many probes in OUT's records hold a measurement (their latest record: ok, force_limit, depth_limit)."""
     return sum(1 for r in latest_by_index(out).values() if r.status in MEASURED)
@@ -298,10 +310,37 @@ def resuming_note(out: Path) -> str:
     return f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
 
 
-def verdict(loc, res, described: str, status: str, fault: dict | None) -> str:
+def no_contact(out: Path) -> dict | None:
+    """The probes in OUT's records whose force was measured (their latest record) but that never felt contact (the
+    force stayed below the contact threshold down to the planned depth; those reading far less than the prior
+    predicts are also flagged implausible and left out of the fit), or None when every probe felt it. The prior
+    says there is tissue there: it is absent, lower or far softer than the prior says, which the localizer's model
+    (one surface offset and tilt, one stiffness scale) may not represent."""
+    recs = [r for r in latest_by_index(out).values() if r.status in MEASURED]
+    nc = sorted((r for r in recs if r.contact_depth_m is None), key=lambda r: (r.x_m, r.y_m))
+    if not nc:
+        return None
+    return {"n": len(nc), "of": len(recs), "x_m": [float(r.x_m) for r in nc], "y_m": [float(r.y_m) for r in nc],
+            "index": [int(r.index) for r in nc]}
+
+
+def no_contact_warning(nc: dict, three_d: bool = False) -> str:
+    where = ", ".join((f"({x * 1e3:.1f}, {y * 1e3:.1f})" if three_d else f"{x * 1e3:.1f}")
+                      for x, y in list(zip(nc["x_m"], nc["y_m"]))[:8]) + (", ..." if nc["n"] > 8 else "")
+    return (f"warning: {nc['n']} of {nc['of']} probes felt no contact down to their planned depth (at "
+            f"{'(x, y)' if three_d else 'x'} = {where} mm): the tissue there is absent, lower than the prior says, or "
+            f"too soft to pass the contact threshold (the probes reading far less than it predicts are left out of the fit: probes.jsonl's "
+            f"implausible)")
+
+
+def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None) -> str:
     """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
-    to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NO RESULT
-    when the arm run ended with a fault."""
+    to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NOT
+    DETECTABLE when no probe felt contact (``nc``: ``no_contact``), whatever the fit says; NO RESULT when the arm run
+    ended with a fault."""
+    if nc is not None and nc["n"] == nc["of"] and res is not None:
+        return ("NOT DETECTABLE: no probe felt contact down to its planned depth (the tissue is absent, lower than "
+                "the prior says, or too soft to pass the contact threshold): nothing about a stone could be measured")
     if res is None:
         return (f"NO RESULT: the arm run ended with a fault "
                 f"({fault['fault']['kind'] if fault and fault.get('fault') else status}): its probes are kept and "

@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from core.contracts import PlanError
+from core.contracts import HARD_FORCE_LIMIT_N, PlanError
 from core.ur5e import pose_to_T
 
 
@@ -160,6 +160,12 @@ def choose_depths(force_n: Callable[..., float], x_m: Sequence, *, force_limit_n
             if f_min > target:
                 need = f_min / force_fraction
                 where = " ".join(f"{k} = {v * 1e3:.1f} mm," for k, v in zip("xy", at))[:-1]
+                if need > HARD_FORCE_LIMIT_N:
+                    raise PlanError(
+                        f"the prior tissue is predicted to push back {f_min:.3g} N at the smallest useful depth "
+                        f"{min_depth_m * 1e3:.2f} mm ({where}): a plan within the force budget would need a force "
+                        f"limit of {need:.3g} N, above the hard cap {HARD_FORCE_LIMIT_N:g} N; check the scene's "
+                        f"tissue.youngs_pa (too stiff for this probe), or lower --min-depth-m")
                 raise PlanError(
                     f"force limit {force_limit_n:g} N is too low: the prior tissue is predicted to push back "
                     f"{f_min:.3g} N at the smallest useful depth {min_depth_m * 1e3:.2f} mm ({where}), "

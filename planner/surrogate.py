@@ -52,7 +52,7 @@ from core.arrays import clip
 from fem import diskcache
 from fem.contact import SurfaceModel, surface_model
 from fem.model import build_model
-from fem.scene import Analysis, Stone, from_dict, load
+from fem.scene import Analysis, SceneError, Stone, from_dict, load
 from fem.scene_mesh import mesh_for
 from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
@@ -170,24 +170,54 @@ def _continue_in_depth(f: np.ndarray, levels: np.ndarray) -> None:
             f[a, b] = f[i1, b] * (levels[a] / levels[i1]) ** p
 
 
+def fits_sideways(prior, x_m: float, depth_m: float, diam_m: float) -> bool:
+    """Whether a stone at (x_m, depth_m) of diameter diam_m lies inside the section by fem's own rule (fem.scene:
+    not touching a side)."""
+    try:
+        prior.with_stones([Stone(x_m=x_m, depth_m=depth_m, diameter_m=diam_m)])
+    except SceneError:
+        return False
+    return True
+
+
+def check_table_fits(prior, grid: Grid = Grid()) -> None:
+    """ValueError naming the section's size unless a table can be built for it: its fingerprint stone fits, and
+    the smallest diameter fits at the middle (elsewhere stones that leave a side are extrapolated:
+    ``_fill_sideways``)."""
+    t = prior.tissue
+    xs = _grid_xs(prior, grid)
+    i, j, k = (min(a, len(v) - 1) for a, v in zip(FP_STONE, (grid.s_m, grid.diam_m, grid.xs_m)))   # (a small grid)
+    s_fp, D_fp = grid.s_m[i], grid.diam_m[j]
+    if not (fits_sideways(prior, float(xs[k]), s_fp + D_fp / 2, D_fp)
+            and fits_sideways(prior, float(xs[-1]), t.height_m / 2, grid.diam_m[0])):
+        raise ValueError(f"the section (tissue.width_m = {t.width_m:g} m, height_m = {t.height_m:g} m) is too small "
+                         f"for the localizer's table: its reference stone ({D_fp * 1e3:g} mm across, its top "
+                         f"{s_fp * 1e3:g} mm deep, at {grid.xs_m[k] / 0.070:.0%} of the width) must fit inside it")
+
+
 def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, runner: Runner | None = None,
                 store: Path | None = None) -> dict:
     """Run fem for every grid stone on ``table_scene(prior)`` at the prior's own modulus (``youngs_ref_pa``), on
     ``runner`` (planner.tasks; default a LocalCluster of ``workers``, serial for 1); finished stones are kept in
     ``store`` (a re-run resumes). ``progress(done, total, elapsed_s)`` as stones finish. Returns the arrays that
     ``Surrogate`` reads."""
-    runner = runner or Runner(workers=workers, progress=progress is None)
     prior = table_scene(prior, prior.tissue.youngs_pa)
+    check_table_fits(prior, grid)
+    runner = runner or Runner(workers=workers, progress=progress is None)
     W = prior.tissue.width_m
     x0 = np.arange(0.0, W + 1e-12, grid.dx0_m)
     xs = _grid_xs(prior, grid)
     stones, idx = [], []
     H = prior.tissue.height_m
+    inside = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs)), bool)
     for i, s in enumerate(grid.s_m):
         for j, D in enumerate(grid.diam_m):
             if s + D > H - 1e-3:
                 continue                  # the stone would leave the bottom: filled by extrapolation below
             for k, x in enumerate(xs):
+                if not fits_sideways(prior, float(x), float(s + D / 2), float(D)):
+                    continue              # it would leave the side of a narrow section: filled by extrapolation
+                inside[i, j, k] = True
                 stones.append((float(x), float(s + D / 2), float(D)))
                 idx.append((i, j, k))
     table = np.zeros((len(grid.s_m), len(grid.diam_m), len(xs), len(grid.levels_m), len(x0)))
@@ -204,10 +234,32 @@ def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, run
     shared = {"prior": prior.to_dict(), "levels_m": list(grid.levels_m), "x0_m": x0}
     run_pieces(_one_stone, shared, stones, [f"stone-{i}-{j}-{k}" for i, j, k in idx], runner=runner, store=store,
                desc="surrogate stones", on_result=arrived)
+    _fill_sideways(table, inside, xs, grid, H)
     _fill_invalid(table, grid, H)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "xs_m": xs,
             "levels_m": np.array(grid.levels_m), "x0_m": x0, "table": table, "width_m": np.array(W),
             "youngs_ref_pa": np.array(prior.tissue.youngs_pa), "build_s": np.array(time.perf_counter() - t0)}
+
+
+def _fill_sideways(table: np.ndarray, inside: np.ndarray, xs: np.ndarray, grid: Grid, H: float) -> None:
+    """Grid stones that would leave the side of a section narrower than 60 mm (the grid's positions scale with the
+    width, its diameters do not): linear extrapolation in x from the two nearest positions where that (clearance,
+    diameter) fits (the value there with one; from the next smaller diameter where none does). Such a stone is not
+    a physical one: the entries only keep the interpolation stencils defined."""
+    for i, s in enumerate(grid.s_m):
+        for j, D in enumerate(grid.diam_m):
+            if s + D > H - 1e-3 or inside[i, j].all():
+                continue
+            ok = np.flatnonzero(inside[i, j])
+            for k in np.flatnonzero(~inside[i, j]):
+                if len(ok) >= 2:
+                    a, b = sorted(ok, key=lambda m: (abs(m - k), m))[:2]
+                    t = (xs[k] - xs[a]) / (xs[b] - xs[a])
+                    table[i, j, k] = table[i, j, a] + t * (table[i, j, b] - table[i, j, a])
+                elif len(ok) == 1:
+                    table[i, j, k] = table[i, j, ok[0]]
+                else:               # (check_table_fits: the smallest diameter fits somewhere)
+                    table[i, j, k] = table[i, j - 1, k]
 
 
 def _fill_invalid(table: np.ndarray, grid: Grid, H: float) -> None:

@@ -232,9 +232,14 @@ def implausibility(rec: ProbeRecord) -> str | None:
     expect = pred * (d_low / d_plan) ** 1.5
     lo, hi = PLAUSIBLE_FORCE_RATIO
     if f < lo * expect - PLAUSIBLE_SIGMAS * sigma:
+        # no contact felt and no force either way: the tissue is not where the prior says (a force well below zero
+        # is no tissue's)
+        air = c is None and f > -PLAUSIBLE_SIGMAS * sigma
+        why = ("no contact was felt: no tissue here, or lower or far softer than the prior says (or a sensor "
+               "offset, sign or the wrong sensor?)" if air else "not tissue (sensor offset, sign or the wrong "
+               "sensor?)")
         return (f"force {f:.4g} N at {d_low * 1e3:.2f} mm of indentation is below {lo:g} x the prior's "
-                f"{expect:.4g} N by more than {PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): not tissue (sensor offset, "
-                f"sign or the wrong sensor?)")
+                f"{expect:.4g} N by more than {PLAUSIBLE_SIGMAS:g} sigma ({sigma:.2g} N): {why}")
     expect = pred * (d_high / d_plan) ** 1.5
     if f > hi * expect + PLAUSIBLE_SIGMAS * sigma:
         return (f"force {f:.4g} N at {d * 1e3:.2f} mm is above {hi:g} x the prior's {expect:.4g} N by more than "

@@ -117,3 +117,67 @@ def test_a_resumed_run_says_which_probes_it_presses_again(tmp_path):
     assert measured_on_disk(tmp_path) == 3
     assert resuming_note(tmp_path).endswith(
         "1 probes measured before are not pressed again (2 stopped at the force or depth limit are pressed again)")
+
+
+def test_probes_that_felt_no_contact_are_named_and_all_of_them_make_the_run_not_detectable(tmp_path):
+    """A truth narrower than the prior left probes in the air: flagged implausible with a sensor fault as the reason,
+    and the run said nothing; a tissue 5000 times softer than the prior answered NO STONE though no probe felt it.
+    Now the probes that felt no contact are named (and the reason says so), and none felt means NOT DETECTABLE."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from robot_fixtures import make_plan, make_sim
+
+    from app.runexec import no_contact, no_contact_warning, verdict
+    from planner.localize import Localization
+    from robot.driver import run_plan
+    from robot.records import read_records
+    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.003)
+    arm, c, r = make_sim(surface_height_m=lambda x: -0.006 if x > 0.03 else 0.0)     # the last two: in the air
+    assert run_plan(plan, c, r, tmp_path / "a").status == "ok"
+    nc = no_contact(tmp_path / "a")
+    assert nc["n"] == 2 and nc["of"] == 3 and nc["index"] == [1, 2], nc
+    assert "2 of 3 probes felt no contact" in no_contact_warning(nc) and "x = 35.0, 50.0 mm" in no_contact_warning(nc)
+    recs = read_records(tmp_path / "a")
+    assert recs[0].implausible is None and all("no contact was felt" in x.implausible for x in recs[1:])
+    loc = Localization(detected=False, lr=0.1, lr_threshold=20.0)
+    assert verdict(loc, object(), "no stone (LR 0.1)", "ok", None, nc).startswith("NO STONE")
+    arm, c, r = make_sim(surface_height_m=lambda x: -0.006)
+    assert run_plan(plan, c, r, tmp_path / "b").status == "ok"
+    line = verdict(loc, object(), "no stone (LR 0.1)", "ok", None, no_contact(tmp_path / "b"))
+    assert line.startswith("NOT DETECTABLE: no probe felt contact")
+    arm, c, r = make_sim()
+    assert run_plan(plan, c, r, tmp_path / "c").status == "ok" and no_contact(tmp_path / "c") is None
+
+
+def test_a_table_for_a_narrow_section_extrapolates_the_stones_that_would_leave_its_side():
+    """The table's grid positions scale with the width, its diameters do not: below 60 mm its widest stones at the
+    first position left the section and fem refused the whole build (after the run had started: a dask traceback,
+    then an error about an internal stone). Now those entries are extrapolated in x, never computed, and a section
+    too small for the table's reference stone is refused before anything starts."""
+    import numpy as np
+
+    from planner import surrogate as su
+    base = S.load("healthy")
+    sc = dataclasses.replace(base, tissue=dataclasses.replace(base.tissue, width_m=0.040),
+                             analysis=dataclasses.replace(base.analysis, mesh_size_m=0.004))
+    grid = su.Grid(s_m=(3e-3, 6e-3), diam_m=(4e-3, 17e-3), xs_m=(10e-3, 20e-3, 35e-3), levels_m=(3e-3,), dx0_m=5e-3)
+    xs = su._grid_xs(sc, grid)
+    assert not su.fits_sideways(sc, xs[0], 0.003 + 0.0085, 0.017) and su.fits_sideways(sc, xs[1], 0.003 + 0.0085, 0.017)
+    computed = []
+    real = su._one_stone
+
+    def spy(shared, stone):
+        computed.append(stone)
+        return real(shared, stone)
+    su._one_stone = spy
+    try:
+        d = su.build_table(sc, grid, workers=1)
+    finally:
+        su._one_stone = real
+    assert len(computed) == 2 * 2 * 3 - 2 and all(not (x < 0.006 and D > 0.01) for x, _, D in computed)
+    t = d["table"]
+    assert np.isfinite(t).all() and np.abs(t[:, 1, 1:]).max() > 0
+    frac = (xs[0] - xs[1]) / (xs[2] - xs[1])
+    assert np.allclose(t[:, 1, 0], t[:, 1, 1] + frac * (t[:, 1, 2] - t[:, 1, 1]), rtol=0, atol=1e-15)
+    narrow = dataclasses.replace(sc, tissue=dataclasses.replace(sc.tissue, width_m=0.012))
+    with pytest.raises(ValueError, match=r"tissue\.width_m = 0\.012 m.*too small for the localizer's table"):
+        su.check_table_fits(narrow)

@@ -54,7 +54,10 @@ from app.runexec import (
     localized,
     measured_on_disk,
     new_stats,
+    no_contact,
+    no_contact_warning,
     open_out,
+    plan_options_hint,
     resuming_note,
     round_planner,
     run_limits,
@@ -63,14 +66,14 @@ from app.runexec import (
     verdict,
     workers_for_fits,
 )
-from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanOptions
+from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
 from planner.detectability import detectability
 from planner.draw_run import draw_run
 from planner.localize import MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
-from planner.surrogate import load_surrogate
+from planner.surrogate import check_table_fits, load_surrogate
 from robot.safety import check_plan
 from robot.truth import DEFAULT_RELAXATION
 
@@ -113,7 +116,8 @@ def add_parser(sub) -> None:
     src.add_argument("--host", type=host_name, help="a real UR controller's IP (ur_rtde)")
     p.add_argument("--yes", action="store_true", help="do not ask before moving a real arm")
     p.add_argument("--sensor", default="nano17", choices=list(SENSORS),
-                   help="simulated sensor preset (default nano17)")
+                   help="simulated sensor preset (default nano17; ideal: noise-free; ur5e-builtin: the UR's wrist "
+                        "sensor, refused: its noise is too large for any force limit up to the 10 N cap)")
     p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
                    help="simulated sensor noise seed, 0..4294967295 (default 0)")
     p.add_argument("--waypoints", type=int_range(MIN_MEASUREMENTS, MAX_WAYPOINTS),
@@ -267,13 +271,21 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                                           opts=opts, resume=resume, fig_child=fig_child, on_exit=on_exit))
     if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
-        plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
+        try:
+            plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
+        except PlanError as e:
+            raise PlanError(plan_options_hint(str(e), args)) from None
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     try:
         sur = load_surrogate(prior, build=False)
     except FileNotFoundError:       # no table for this tissue: built beside the coarse raster (planner.pending)
+        try:
+            check_table_fits(prior)
+        except ValueError as e:
+            raise UsageError(f"{where_prior} cannot be modelled: {e}") from None
         _say("no fem surrogate table for this tissue yet (planner/surrogate.py says which scene fields select one): "
-             "building it in the background (a few minutes on 2 cores) while the coarse raster is probed")
+             "building it in the background (up to 360 fem models: 2-15 minutes on 2 cores, by the section's "
+             "size and mesh) while the coarse raster is probed")
         sur = PendingSurrogate(prior, _say)
     except (RuntimeError, ArithmeticError, ValueError) as e:   # e.g. fem's contact solve on an implausible prior
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
@@ -292,9 +304,12 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             if r["detectable"]:
                 k = f"{r['depth_m'] * 1e3:g}"
                 smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
+        nothing = (f"no stone the table covers (diameters up to {max(r['diameter_m'] for r in det['rows']) * 1e3:g} "
+                   f"mm) at any depth: the forces this tissue gives are too small for the sensor; a NO STONE "
+                   f"answer will mean little") if det["rows"] else "nothing"
         _say(f"detectable {when} (coarse raster, sensor {args.sensor}): " + (
-            ", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) if det["usable"]
-            else det["reason"]))
+            (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) or nothing)
+            if det["usable"] else det["reason"]))
         return det, smallest
 
     if not isinstance(sur, PendingSurrogate):
@@ -376,6 +391,10 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
+    nc = no_contact(out) if res is not None else None
+    if nc is not None:
+        result["no_contact_probes"] = nc
+        _say(no_contact_warning(nc, three_d=False))
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure:   # nothing to draw unless a fit was made
@@ -387,7 +406,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run(out / "fig_run.png", fig)
-    print(verdict(loc, res, describe(loc) if res is not None else "", status, fault)
+    print(verdict(loc, res, describe(loc) if res is not None else "", status, fault, nc)
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1

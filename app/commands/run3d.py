@@ -27,7 +27,10 @@ from app.runexec import (
     localized,
     measured_on_disk,
     new_stats,
+    no_contact,
+    no_contact_warning,
     open_out,
+    plan_options_hint,
     resuming_note,
     round_planner,
     run_limits,
@@ -73,7 +76,7 @@ def run_block(args, ctx: RunContext) -> int:
             plan0 = replan(full, [(p.x_m, p.y_m) for p in full.probes],
                            depth_m=coarse_depths([p.depth_m for p in full.probes]))
         except PlanError as e:
-            raise UsageError(f"--grid {nx}x{ny}: {e}") from None
+            raise UsageError(f"--grid {nx}x{ny}: {plan_options_hint(str(e), args)}") from None
         except ValueError as e:          # fem refuses the planned indentation (e.g. a tip smaller than the limit)
             raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e} (the default depth "
                              f"limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)") from None
@@ -146,6 +149,10 @@ def run_block(args, ctx: RunContext) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
+    nc = no_contact(out) if res is not None else None
+    if nc is not None:
+        result["no_contact_probes"] = nc
+        _say(no_contact_warning(nc, three_d=True))
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure and res.measurements is not None:
@@ -157,7 +164,7 @@ def run_block(args, ctx: RunContext) -> int:
             ctx.fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run3d(out / "fig_run.png", fig)
-    print(verdict(loc, res, describe3d(loc) if res is not None else "", status, fault)
+    print(verdict(loc, res, describe3d(loc) if res is not None else "", status, fault, nc)
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1
