@@ -52,7 +52,7 @@ from core.arrays import clip
 from fem import diskcache
 from fem.contact import SurfaceModel, surface_model
 from fem.model import build_model
-from fem.scene import Analysis, SceneError, Stone, from_dict, load
+from fem.scene import STRAIN_MAX, Analysis, SceneError, Stone, from_dict, load
 from fem.scene_mesh import mesh_for
 from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
@@ -105,11 +105,26 @@ def fingerprint(prior, grid: Grid) -> np.ndarray:
     check, not a source hash: refactoring fem without changing its numbers keeps the table."""
     W = prior.tissue.width_m
     x0 = np.asarray(FP_X) * W / 0.070
-    lv = [grid.levels_m[-1]]
-    i, j, k = FP_STONE
+    # the deepest level, within fem's range on a thin section or under a small tip (else every force is refused)
+    lv = [min(grid.levels_m[-1], 0.9 * STRAIN_MAX * prior.tissue.height_m, 0.9 * prior.indenter.radius_m)]
+    i, j, k = fingerprint_stone(prior, grid)
     s, D, xs = grid.s_m[i], grid.diam_m[j], _grid_xs(prior, grid)[k]
     st = stone_model(prior.with_stones([Stone(x_m=float(xs), depth_m=float(s + D / 2), diameter_m=float(D))]))
     return np.concatenate([_forces(surface_model(prior), lv, x0)[0], _forces(st, lv, x0)[0]])
+
+
+def fingerprint_stone(prior, grid: Grid) -> tuple[int, int, int] | None:
+    """The grid node (s, diameter, xs) of the fingerprint stone: FP_STONE (clamped to a small grid) where it fits in
+    the section; in a section too thin or narrow for it, the one nearest to it that fits (shallower, then smaller);
+    None when none does."""
+    i0, j0, k0 = (min(a, len(v) - 1) for a, v in zip(FP_STONE, (grid.s_m, grid.diam_m, grid.xs_m)))
+    xs = _grid_xs(prior, grid)
+    for i, j in sorted(((i, j) for i in range(i0 + 1) for j in range(j0 + 1)), key=lambda t: (-t[1], -t[0])):
+        for k in sorted(range(len(xs)), key=lambda m: (abs(m - k0), -m)):
+            s, D = grid.s_m[i], grid.diam_m[j]
+            if fits_sideways(prior, float(xs[k]), s + D / 2, D):
+                return i, j, k
+    return None
 
 
 def _fingerprint_now(own, grid: Grid) -> np.ndarray:
@@ -181,18 +196,16 @@ def fits_sideways(prior, x_m: float, depth_m: float, diam_m: float) -> bool:
 
 
 def check_table_fits(prior, grid: Grid = Grid()) -> None:
-    """ValueError naming the section's size unless a table can be built for it: its fingerprint stone fits, and
-    the smallest diameter fits at the middle (elsewhere stones that leave a side are extrapolated:
-    ``_fill_sideways``)."""
+    """ValueError naming the section's size unless a table can be built for it: a fingerprint stone fits
+    (``fingerprint_stone``), and the smallest diameter fits at the middle (elsewhere stones that leave a side are
+    extrapolated: ``_fill_sideways``; those that leave the bottom: ``_fill_invalid``)."""
     t = prior.tissue
     xs = _grid_xs(prior, grid)
-    i, j, k = (min(a, len(v) - 1) for a, v in zip(FP_STONE, (grid.s_m, grid.diam_m, grid.xs_m)))   # (a small grid)
-    s_fp, D_fp = grid.s_m[i], grid.diam_m[j]
-    if not (fits_sideways(prior, float(xs[k]), s_fp + D_fp / 2, D_fp)
-            and fits_sideways(prior, float(xs[-1]), t.height_m / 2, grid.diam_m[0])):
+    if fingerprint_stone(prior, grid) is None or not fits_sideways(prior, float(xs[-1]), grid.s_m[0] + grid.diam_m[0] / 2,
+                                                                    grid.diam_m[0]):
         raise ValueError(f"the section (tissue.width_m = {t.width_m:g} m, height_m = {t.height_m:g} m) is too small "
-                         f"for the localizer's table: its reference stone ({D_fp * 1e3:g} mm across, its top "
-                         f"{s_fp * 1e3:g} mm deep, at {grid.xs_m[k] / 0.070:.0%} of the width) must fit inside it")
+                         f"for the localizer's table: its smallest stone ({grid.diam_m[0] * 1e3:g} mm across, its top "
+                         f"{grid.s_m[0] * 1e3:g} mm deep) must fit inside it")
 
 
 def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, runner: Runner | None = None,

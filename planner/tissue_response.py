@@ -18,6 +18,7 @@ import numpy as np
 
 from core.arrays import clip
 from fem import recall
+from fem.scene import STRAIN_MAX
 
 THICKNESS_STEP = 0.10          # the thickness nodes: prior height x (1 - step, 1, 1 + step)
 N_NODES = 32                   # indentation nodes, geometric from MIN_FRAC to MAX_FRAC of the tip radius
@@ -35,7 +36,9 @@ class PriorResponse:
 
     def __init__(self, prior, x_m):
         R = prior.indenter.radius_m
-        self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(MAX_FRAC * R), N_NODES)
+        # up to the tip's radius, or on a thin tissue to the deepest indentation fem allows on its thinnest node
+        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * (1.0 - THICKNESS_STEP) * prior.tissue.height_m)
+        self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
         W = prior.tissue.width_m
         x = np.clip(np.asarray(x_m, float), 0.0, W)
         tabs = []

@@ -21,6 +21,7 @@ import numpy as np
 
 from fem import recall3d
 from fem.contact3d import surface_model3d
+from fem.scene import STRAIN_MAX
 from planner.tissue_response import loglog_depth, loglog_force
 
 N_NODES = 16
@@ -35,7 +36,8 @@ class PriorResponse3D:
 
     def __init__(self, prior, x_m, y_m, depth_m=None):
         R = prior.indenter.radius_m
-        self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(MAX_FRAC * R), N_NODES)
+        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * prior.tissue.height_m)    # (a thin block: fem's deepest)
+        self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
         rows = []
         for xi, yi in zip(np.asarray(x_m, float), np.asarray(y_m, float)):
             key = (prior.key(), round(float(xi), 7), round(float(yi), 7))

@@ -181,3 +181,23 @@ def test_a_table_for_a_narrow_section_extrapolates_the_stones_that_would_leave_i
     narrow = dataclasses.replace(sc, tissue=dataclasses.replace(sc.tissue, width_m=0.012))
     with pytest.raises(ValueError, match=r"tissue\.width_m = 0\.012 m.*too small for the localizer's table"):
         su.check_table_fits(narrow)
+
+
+def test_the_localizers_prior_response_covers_a_thin_tissue():
+    """On a 15 mm thick section the localizer's prior response asked fem for indentations up to 0.96 R on the
+    thickness node 10 % thinner, beyond the 30 % of its height fem allows: the run ended in a traceback once the
+    table was built. Its depth grid now stops at fem's deepest there (extrapolated beyond, as at the tip radius); on
+    the paper's 50 mm section it is what it was."""
+    import numpy as np
+
+    from planner import tissue_response as tr
+    paper = S.load("paper").prior()
+    R = paper.indenter.radius_m
+    assert np.array_equal(tr.PriorResponse(paper, [0.035]).logd,
+                          np.linspace(np.log(tr.MIN_FRAC * R), np.log(tr.MAX_FRAC * R), tr.N_NODES))
+    thin = dataclasses.replace(paper, tissue=dataclasses.replace(paper.tissue, height_m=0.015),
+                               analysis=dataclasses.replace(paper.analysis, mesh_size_m=0.003))
+    resp = tr.PriorResponse(thin, [0.02, 0.035])
+    assert np.exp(resp.logd[-1]) <= S.STRAIN_MAX * 0.9 * 0.015
+    f = resp.force_n(np.array([0.004, 0.004]), eta=-0.05)
+    assert np.all(np.isfinite(f)) and np.all(f > 0)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -37,8 +38,9 @@ from app.runexec import (
     verdict,
     workers_for_fits,
 )
-from core.contracts import Plan, PlanError
+from core.contracts import Plan, PlanError, sensor_spec
 from planner.area import probe_bounds
+from planner.detect3d import detectability3d
 from planner.draw_run3d import draw_run3d
 from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
@@ -65,6 +67,22 @@ def _say(msg: str) -> None:
     print(f"palpate run: {msg}", file=sys.stderr, flush=True)
 
 
+def _detectable(plan0, sur, sensor: str) -> dict:
+    """What the coarse grid can detect before probing (planner.detect3d: a stone under the grid's middle, the
+    stiffness scale and the drift unknown), said on one line; its dict for result.json."""
+    forces = [p.predicted_force_n for p in plan0.probes if p.predicted_force_n]
+    det = detectability3d(plan0, sur, float(statistics.median(forces)) if forces else 0.0,
+                          sensor_spec=sensor_spec(sensor))
+    smallest = det["smallest_detectable_diameter_m_by_depth_mm"]
+    sizes = [r["diameter_m"] for r in det["rows"] if r["p_detect"] is not None]
+    text = (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items())
+            or (f"no stone of {min(sizes) * 1e3:g}-{max(sizes) * 1e3:g} mm at any depth the table covers: a NO STONE "
+                f"answer will mean little" if sizes else "nothing the table covers")) if det["usable"] else det["reason"]
+    _say(f"detectable before probing (coarse grid, sensor {sensor}; a stone under the grid's middle): {text}")
+    return {"sensor": sensor, "usable": det["usable"], "reason": det["reason"], "probe_sigma_n": det["sigma_n"],
+            "smallest_detectable_diameter_m_by_depth_mm": smallest}
+
+
 def run_block(args, ctx: RunContext) -> int:
     prior, out = ctx.prior, ctx.out
     plan0 = ctx.plan0
@@ -84,6 +102,7 @@ def run_block(args, ctx: RunContext) -> int:
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)
     table_s = time.perf_counter() - t0
+    det = _detectable(plan0, sur, args.sensor)
     stats = new_stats()
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()
@@ -128,6 +147,7 @@ def run_block(args, ctx: RunContext) -> int:
         result.update({"probes_used": stats["n_probes"], "fault": fault})
     result["time"] = {"wall_s": time.perf_counter() - ctx.t_wall, "surrogate_s": table_s, **t_first,
                       "robot_s": stats["controller_s"], "planned_s": stats["planned_s"]}
+    result["detectability"] = det
     result["surrogate"] = {"build_s": getattr(sur, "build_s", None),
                            "bounds": {k: list(v) for k, v in _bounds(sur).items()},
                            "rel_err": getattr(sur, "rel_err", None), "abs_err_n": getattr(sur, "abs_err_n", None)}
