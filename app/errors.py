@@ -3,6 +3,7 @@ exit 2; a traceback only with ``--debug``. Warnings (fem's, the planner's) print
 too, without Python's source path and code line (``--debug`` keeps Python's format)."""
 from __future__ import annotations
 
+import atexit
 import logging
 import sys
 import traceback
@@ -26,9 +27,10 @@ USER_ERRORS = (UsageError, SceneError, PlanError, TruthError, OSError, UnicodeDe
 
 def _quiet_exit(debug: bool) -> None:
     """The one line is said: what a background helper logs while the process ends (a table's dask cluster torn down
-    under its build: "Removing worker ... lost scattered data") is not for the user. ``--debug`` keeps it."""
-    if not debug:
-        logging.disable(logging.CRITICAL)
+    under its build by its exit handler: "Removing worker ... lost scattered data") is not for the user; logging is
+    silenced at the exit only (an in-process caller keeps it). ``--debug`` keeps it."""
+    if not debug:       # at the exit, before the helpers' own exit handlers (registered earlier, run later)
+        atexit.register(logging.disable, logging.CRITICAL)
 
 
 def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:

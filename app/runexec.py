@@ -350,6 +350,16 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
     return ("STONE " if loc.detected else "NO STONE ") + described
 
 
+VERDICTS = (("NOT DETECTABLE", "not_detectable"), ("NOT LOCALIZED", "not_localized"), ("NO RESULT", "no_result"),
+            ("NO STONE", "no_stone"), ("STONE", "stone"))
+
+
+def verdict_kind(line: str) -> str:
+    """result.json's ``verdict`` for a last line from ``verdict``: stone, no_stone, not_localized, not_detectable or
+    no_result."""
+    return next(kind for head, kind in VERDICTS if line.startswith(head))
+
+
 def localized(loc) -> bool:
     """Was a fit made (its likelihood ratio is a number)? Not when too few probes were usable."""
     return loc.lr == loc.lr

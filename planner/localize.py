@@ -769,6 +769,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     corr = float(cov[1, 2] / (sd[1] * sd[2])) if sd[1] > 0 and sd[2] > 0 else float("nan")
     names = ("x", "clearance", "diameter")
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
+    if xs - D / 2 <= 0.0 or xs + D / 2 >= prior.tissue.width_m:     # (a section under 60 mm: its table's entries
+        at_bound.append("the section's side (the stone would cross it)")   # there are extrapolated, not fem's)
     nu = fw.full(q[3:])
     sd_nu = np.zeros(len(NUISANCE))
     sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))

@@ -454,10 +454,11 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     depth_for = None
     if force_n is None:
         deepest = STRAIN_MAX * prior.tissue.height_m
-        if limits.depth_limit_m > deepest:      # fem would refuse the depths the plan must try
+        if depth_m is None and limits.depth_limit_m > deepest:      # fem would refuse the depths the search tries
             raise PlanError(f"--depth-limit-m {limits.depth_limit_m:g} is {limits.depth_limit_m / prior.tissue.height_m:.0%} "
                             f"of the tissue's height {prior.tissue.height_m:g} m: fem's linear model covers "
-                            f"indentations up to {STRAIN_MAX:.0%} of it; give --depth-limit-m <= {deepest:.4g} m")
+                            f"indentations up to {STRAIN_MAX:.0%} of it; give --depth-limit-m <= "
+                            f"{math.floor(deepest * 1e6) / 1e6:g} m")
         # fail fast, before fem builds its model (~1-5 s): every waypoint reachable down to the depth limit
         seed_configurations(targets(x, np.full(x.shape, limits.depth_limit_m), frames.tissue_pose_base,
                                     motion.approach_height_m, y_m=y), tissue_x, frames.tcp_offset, branch)

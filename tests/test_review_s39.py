@@ -179,8 +179,12 @@ def test_a_table_for_a_narrow_section_extrapolates_the_stones_that_would_leave_i
     frac = (xs[0] - xs[1]) / (xs[2] - xs[1])
     assert np.allclose(t[:, 1, 0], t[:, 1, 1] + frac * (t[:, 1, 2] - t[:, 1, 1]), rtol=0, atol=1e-15)
     narrow = dataclasses.replace(sc, tissue=dataclasses.replace(sc.tissue, width_m=0.012))
-    with pytest.raises(ValueError, match=r"tissue\.width_m = 0\.012 m.*too small for the localizer's table"):
-        su.check_table_fits(narrow)
+    su.check_table_fits(narrow)                 # the fingerprint stone falls back to one that fits
+    assert su.fingerprint_stone(narrow, su.Grid()) != su.FP_STONE
+    thin = dataclasses.replace(sc, tissue=dataclasses.replace(sc.tissue, height_m=0.005),
+                               analysis=dataclasses.replace(sc.analysis, mesh_size_m=0.002))
+    with pytest.raises(ValueError, match=r"height_m = 0\.005 m\) is too small for the localizer's table"):
+        su.check_table_fits(thin)
 
 
 def test_the_localizers_prior_response_covers_a_thin_tissue():
@@ -201,3 +205,46 @@ def test_the_localizers_prior_response_covers_a_thin_tissue():
     assert np.exp(resp.logd[-1]) <= S.STRAIN_MAX * 0.9 * 0.015
     f = resp.force_n(np.array([0.004, 0.004]), eta=-0.05)
     assert np.all(np.isfinite(f)) and np.all(f > 0)
+
+
+def test_the_reported_peak_ratio_is_never_below_a_sample():
+    """Two stones made the ratio's hump lopsided: the window's parabola peaked at 1.13235 while a sample read 1.13293.
+    The peak's value is now at least the largest sample's; on a symmetric hump it is the parabola's, as before."""
+    import numpy as np
+
+    from app.commands.predict import _peak
+    from core.peak import parabola_peak, upper_window
+    xs = np.linspace(0.0, 0.04, 41)
+    lop = 1 + 0.13 * np.exp(-((xs - 0.021) / 0.003) ** 2) + 0.05 * np.exp(-((xs - 0.028) / 0.01) ** 2)
+    lo, hi = upper_window(lop, int(np.argmax(lop)))
+    assert parabola_peak(xs, lop, lo, hi)[1] < lop.max()          # the case: the fit alone is below a sample
+    assert _peak(xs, lop)["ratio"] == lop.max()
+    sym = 1 + 0.15 * np.exp(-((xs - 0.0203) / 0.006) ** 2)
+    lo, hi = upper_window(sym, int(np.argmax(sym)))
+    assert _peak(xs, sym)["ratio"] == parabola_peak(xs, sym, lo, hi)[1] >= sym.max()
+
+
+def test_a_thin_tissue_plans_a_fixed_depth_and_the_suggested_depth_limit_is_accepted(tmp_path):
+    """The refusal of a depth limit beyond fem's 30 % of the height applies to the depth search only (a fixed
+    --depth-m plans as before), and the limit it suggests is one it accepts (it was rounded up past the limit)."""
+    import re
+
+    from core.contracts import Limits, PlanError
+    from planner.plan import plan_raster
+    base = S.load("healthy")
+    thin = dataclasses.replace(base, tissue=dataclasses.replace(base.tissue, height_m=0.01234567),
+                               analysis=dataclasses.replace(base.analysis, mesh_size_m=0.003))
+    plan = plan_raster(thin, n_waypoints=5, depth_m=0.002)
+    assert len(plan.probes) == 5
+    with pytest.raises(PlanError, match="give --depth-limit-m <=") as e:
+        plan_raster(thin, n_waypoints=5)
+    suggested = float(re.search(r"<= ([0-9.e-]+) m", str(e.value)).group(1))
+    assert suggested <= S.STRAIN_MAX * 0.01234567
+    assert len(plan_raster(thin, n_waypoints=5, limits=Limits(depth_limit_m=suggested)).probes) == 5
+
+
+def test_result_json_names_the_verdict():
+    from app.runexec import verdict_kind
+    assert [verdict_kind(x) for x in ("STONE stone at x", "NO STONE no stone (LR 0.1", "NOT LOCALIZED: too few",
+                                      "NOT DETECTABLE: no probe", "NO RESULT: the arm")] == \
+        ["stone", "no_stone", "not_localized", "not_detectable", "no_result"]

@@ -179,14 +179,17 @@ def _peak(xs, ratio) -> dict | None:
     """Peak of a ratio profile. Near its top the ratio is flat to ~1e-6 while the two meshes differ by ~1e-4, so the
     largest sample can sit a waypoint or two off; ``x_m`` is the vertex of a least-squares parabola through the
     contiguous samples in the peak's upper quarter up to a valley (``core.peak.upper_window``; ``x_max_sample_m``:
-    the largest sample). Undefined ratios (NaN) are skipped; None when there is none."""
+    the largest sample); ``ratio``: the parabola's value there, or the largest sample's where that is higher (a
+    lopsided hump). Undefined ratios (NaN) are skipped; None when there is none."""
     ratio = np.asarray(ratio, float)
     if not np.isfinite(ratio).any():
         return None
     i = int(np.nanargmax(ratio))
     out = {"x_m": float(xs[i]), "ratio": float(ratio[i]), "index": i, "x_max_sample_m": float(xs[i])}
     lo, hi = upper_window(ratio, i)
-    out["x_m"], out["ratio"] = parabola_peak(xs, ratio, lo, hi)
+    out["x_m"], fit = parabola_peak(xs, ratio, lo, hi)
+    # the peak is at least the largest sample: on a lopsided hump (two stones) the window's parabola peaks below it
+    out["ratio"] = max(fit, float(ratio[i]))
     return out
 
 

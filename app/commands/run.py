@@ -64,6 +64,7 @@ from app.runexec import (
     run_options,
     truth_conditions,
     verdict,
+    verdict_kind,
     workers_for_fits,
 )
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
@@ -284,7 +285,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         except ValueError as e:
             raise UsageError(f"{where_prior} cannot be modelled: {e}") from None
         _say("no fem surrogate table for this tissue yet (planner/surrogate.py says which scene fields select one): "
-             "building it in the background (up to 360 fem models: 2-15 minutes on 2 cores, by the section's "
+             "building it in the background (a few hundred fem models: 2-15 minutes on 2 cores, by the section's "
              "size and mesh) while the coarse raster is probed")
         sur = PendingSurrogate(prior, _say)
     except (RuntimeError, ArithmeticError, ValueError) as e:   # e.g. fem's contact solve on an implausible prior
@@ -395,6 +396,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if nc is not None:
         result["no_contact_probes"] = nc
         _say(no_contact_warning(nc, three_d=False))
+    head = verdict(loc, res, describe(loc) if res is not None else "", status, fault, nc)
+    result["verdict"] = verdict_kind(head)
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure:   # nothing to draw unless a fit was made
@@ -406,7 +409,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run(out / "fig_run.png", fig)
-    print(verdict(loc, res, describe(loc) if res is not None else "", status, fault, nc)
+    print(head
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1

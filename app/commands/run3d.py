@@ -36,6 +36,7 @@ from app.runexec import (
     round_planner,
     run_limits,
     verdict,
+    verdict_kind,
     workers_for_fits,
 )
 from core.contracts import Plan, PlanError, sensor_spec
@@ -173,6 +174,8 @@ def run_block(args, ctx: RunContext) -> int:
     if nc is not None:
         result["no_contact_probes"] = nc
         _say(no_contact_warning(nc, three_d=True))
+    head = verdict(loc, res, describe3d(loc) if res is not None else "", status, fault, nc)
+    result["verdict"] = verdict_kind(head)
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure and res.measurements is not None:
@@ -184,7 +187,7 @@ def run_block(args, ctx: RunContext) -> int:
             ctx.fig_child.draw(out / "fig_run.png", fig, _say)
         else:
             draw_run3d(out / "fig_run.png", fig)
-    print(verdict(loc, res, describe3d(loc) if res is not None else "", status, fault, nc)
+    print(head
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
     return 0 if status == "ok" else 1
