@@ -46,6 +46,8 @@ from planner.tissue_response3d import PriorResponse3D
 
 LR_THRESHOLD3D = 25.0
 PEAK_RADIUS_M = 5e-3
+N_AREA_STARTS = 5           # the stone fit's extra candidates: a 5 x 5 grid over the probed area, the surface untilted
+N_FLAT_STARTS = 2           # (the best two of them start fits, beside the best n_starts around the contrast's peak)
 # nuisance parameters, after the stone's (xs [mm], ys [mm], log clearance [log mm], diameter [mm]):
 NUISANCE3D = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_x_mrad",
               "surface_tilt_y_mrad")
@@ -222,24 +224,34 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         return np.concatenate([(meas.force_n - fw.forces(_stone(q[:4]), nu)) / sig, fw.extra(nu)])
 
     # starts: a grid of (clearance, diameter) under the peak and around it, the scale and the drift profiled out
-    # (linear), the surface as the no-stone fit found it
-    d0 = fw.depth(nu0)
-    P0 = fw.resp.force_n(d0)
-    cands = []
-    for ls in np.linspace(lo[2], hi[2], 9):
-        for D in np.linspace(lo[3], hi[3], 6):
-            if math.exp(ls) + D > H - FLOOR_GAP_M * 1e3:
-                continue
-            for dx in (-3.0, 0.0, 3.0):
-                for dy in (-3.0, 0.0, 3.0):
-                    p = np.array([np.clip(px * 1e3 + dx, lo[0], hi[0]), np.clip(py * 1e3 + dy, lo[1], hi[1]), ls, D])
+    # (linear), the surface as the no-stone fit found it; and a coarser one across the whole probed area with that
+    # surface untilted (session 39's review: an off-centre stone in a stiffer block, the no-stone fit's tilts 3 sigma
+    # taking its slope, the contrast's peak elsewhere, every start there ending at the bounds: NO STONE, LR 1.2)
+    def scored(nu_s, positions, ls_nodes, d_nodes):
+        d0 = fw.depth(nu_s)
+        P0 = fw.resp.force_n(d0)
+        out = []
+        for ls in ls_nodes:
+            for D in d_nodes:
+                if math.exp(ls) + D > H - FLOOR_GAP_M * 1e3:
+                    continue
+                for x, y in positions:
+                    p = np.array([np.clip(x, lo[0], hi[0]), np.clip(y, lo[1], hi[1]), ls, D])
                     M = np.c_[P0 + fw.contrast(_stone(p), d0), meas.tau_s]
                     cf = np.linalg.lstsq(M * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
-                    cands.append((float(np.sum(w * (meas.force_n - M @ cf) ** 2)), p, cf))
-    cands.sort(key=lambda t: t[0])
+                    out.append((float(np.sum(w * (meas.force_n - M @ cf) ** 2)), p, cf, nu_s))
+        return sorted(out, key=lambda t: t[0])
+    around = [(px * 1e3 + dx, py * 1e3 + dy) for dx in (-3.0, 0.0, 3.0) for dy in (-3.0, 0.0, 3.0)]
+    cands = scored(nu0, around, np.linspace(lo[2], hi[2], 9), np.linspace(lo[3], hi[3], 6))[:n_starts]
+    nu_flat = nu0.copy()
+    nu_flat[3:5] = 0.0
+    if fw.free[3] or fw.free[4]:
+        grid = [np.linspace(lo[k], hi[k], N_AREA_STARTS) for k in (0, 1)]
+        across = [(x, y) for x in grid[0] for y in grid[1]]
+        cands += scored(nu_flat, across, np.linspace(lo[2], hi[2], 5), np.linspace(lo[3], hi[3], 4))[:N_FLAT_STARTS]
     starts = []
-    for _, p, cf in cands[:n_starts]:
-        nu = nu0.copy()
+    for _, p, cf, nu_s in cands:
+        nu = nu_s.copy()
         nu[0] = cf[1] * 1e3
         if fw.free[1] and cf[0] > 0:
             nu[1] = float(np.clip(math.log(cf[0]), NUIS_LO[1] + 1e-6, NUIS_HI[1] - 1e-6))

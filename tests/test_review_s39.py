@@ -248,3 +248,4 @@ def test_result_json_names_the_verdict():
     assert [verdict_kind(x) for x in ("STONE stone at x", "NO STONE no stone (LR 0.1", "NOT LOCALIZED: too few",
                                       "NOT DETECTABLE: no probe", "NO RESULT: the arm")] == \
         ["stone", "no_stone", "not_localized", "not_detectable", "no_result"]
+
