@@ -360,6 +360,19 @@ def verdict_kind(line: str) -> str:
     return next(kind for head, kind in VERDICTS if line.startswith(head))
 
 
+def conclude(result: dict, out: Path, loc, res, described: str, status: str, fault: dict | None, say,
+             three_d: bool = False) -> str:
+    """The run's closing findings into ``result``: the probes that felt no contact (said as a warning too) and the
+    verdict; returns the last line's head (``verdict``)."""
+    nc = no_contact(out) if res is not None else None
+    if nc is not None:
+        result["no_contact_probes"] = nc
+        say(no_contact_warning(nc, three_d=three_d))
+    head = verdict(loc, res, described, status, fault, nc)
+    result["verdict"] = verdict_kind(head)
+    return head
+
+
 def localized(loc) -> bool:
     """Was a fit made (its likelihood ratio is a number)? Not when too few probes were usable."""
     return loc.lr == loc.lr

@@ -51,11 +51,10 @@ from app.runexec import (
     RunAborted,
     check_resume,
     choose_executor,
+    conclude,
     localized,
     measured_on_disk,
     new_stats,
-    no_contact,
-    no_contact_warning,
     open_out,
     plan_options_hint,
     resuming_note,
@@ -63,8 +62,6 @@ from app.runexec import (
     run_limits,
     run_options,
     truth_conditions,
-    verdict,
-    verdict_kind,
     workers_for_fits,
 )
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
@@ -392,12 +389,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    nc = no_contact(out) if res is not None else None
-    if nc is not None:
-        result["no_contact_probes"] = nc
-        _say(no_contact_warning(nc, three_d=False))
-    head = verdict(loc, res, describe(loc) if res is not None else "", status, fault, nc)
-    result["verdict"] = verdict_kind(head)
+    head = conclude(result, out, loc, res, describe(loc) if res is not None else "", status, fault, _say,
+                    three_d=False)
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure:   # nothing to draw unless a fit was made

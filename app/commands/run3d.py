@@ -25,18 +25,15 @@ from app.outlock import holding
 from app.runexec import (
     RunAborted,
     choose_executor,
+    conclude,
     localized,
     measured_on_disk,
     new_stats,
-    no_contact,
-    no_contact_warning,
     open_out,
     plan_options_hint,
     resuming_note,
     round_planner,
     run_limits,
-    verdict,
-    verdict_kind,
     workers_for_fits,
 )
 from core.contracts import Plan, PlanError, sensor_spec
@@ -170,12 +167,8 @@ def run_block(args, ctx: RunContext) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    nc = no_contact(out) if res is not None else None
-    if nc is not None:
-        result["no_contact_probes"] = nc
-        _say(no_contact_warning(nc, three_d=True))
-    head = verdict(loc, res, describe3d(loc) if res is not None else "", status, fault, nc)
-    result["verdict"] = verdict_kind(head)
+    head = conclude(result, out, loc, res, describe3d(loc) if res is not None else "", status, fault, _say,
+                    three_d=True)
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure and res.measurements is not None:
