@@ -556,6 +556,16 @@ def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, n
     return out
 
 
+SIDE = "side"      # at_bound's entry for a fitted stone that would cross the section's side
+
+
+def crosses_side(x_m: float, diameter_m: float, width_m: float) -> bool:
+    """Whether a stone of ``diameter_m`` centred at ``x_m`` would reach a side of a section ``width_m`` wide: no
+    tissue holds it there, and a section under 60 mm has its table's entries there extrapolated, not fem's
+    (planner.surrogate._fill_sideways)."""
+    return x_m - diameter_m / 2 <= 0.0 or x_m + diameter_m / 2 >= width_m
+
+
 def dwell_relaxation(meas: Measurements) -> tuple[float, float, int]:
     """The fraction the force falls from the dwell's first fifth to its last (value, standard error, probes used),
     over the probes whose dwell force is well above the noise; (nan, nan, 0) without dwell histories."""
@@ -769,8 +779,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     corr = float(cov[1, 2] / (sd[1] * sd[2])) if sd[1] > 0 and sd[2] > 0 else float("nan")
     names = ("x", "clearance", "diameter")
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
-    if xs - D / 2 <= 0.0 or xs + D / 2 >= prior.tissue.width_m:     # (a section under 60 mm: its table's entries
-        at_bound.append("the section's side (the stone would cross it)")   # there are extrapolated, not fem's)
+    if crosses_side(xs, D, prior.tissue.width_m):
+        at_bound.append(SIDE)
     nu = fw.full(q[3:])
     sd_nu = np.zeros(len(NUISANCE))
     sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
-from planner.localize import MIN_MEASUREMENTS, Localization, Measurements, localize
+from planner.localize import MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import prior_and_thickness_slope
 
@@ -188,9 +188,13 @@ def caveats(loc) -> str:
     the data reject (chi2 above its degrees of freedom by more than 4 standard deviations, sqrt(2 dof): one stone in
     the prior's tissue does not explain the forces)."""
     out = []
-    if loc.at_bound:
-        out.append(f"at the fit's bound: {', '.join(loc.at_bound)} (the stone may lie beyond the range the table "
+    bounds = [b for b in loc.at_bound if b != SIDE]
+    if bounds:
+        out.append(f"at the fit's bound: {', '.join(bounds)} (the stone may lie beyond the range the table "
                    f"covers; its sigma does not say so)")
+    if SIDE in loc.at_bound:
+        out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
+                   "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")
     dof = loc.dof_1
     if dof and loc.chi2_1 > dof + 4.0 * math.sqrt(2.0 * dof):
         out.append(f"poor fit: chi2 {loc.chi2_1:.0f} on {dof} degrees of freedom (another stone, or tissue unlike "

@@ -314,3 +314,25 @@ def test_the_forked_fits_answer(prior, monkeypatch):
                           seed=5), ToySurrogate(), profile=True, workers=2)
     L._LAST_FIT.clear()
     assert len(got) >= 4 and all(g is not None for g in got)
+
+
+class WideToySurrogate(ToySurrogate):
+    """The toy with its stone positions reaching 4 mm from the section's sides (a narrow section's table does:
+    its entries beyond the side are extrapolated)."""
+    bounds = {"xs_m": (0.004, 0.066), "s_m": (1.5e-3, 27e-3), "diam_m": (4e-3, 17e-3)}
+
+
+def test_a_fitted_stone_that_would_cross_the_side_is_flagged_and_warned_about(prior):
+    from planner.localize import SIDE, crosses_side
+    from planner.refine import caveats, describe
+    assert crosses_side(0.006, 0.014, 0.070) and crosses_side(0.066, 0.010, 0.070)
+    assert not crosses_side(0.035, 0.017, 0.070) and not crosses_side(0.0081, 0.016, 0.070)
+    x = np.linspace(0.003, 0.067, 31)
+    sur = WideToySurrogate()
+    near = localize(prior, synth(prior, Stone(x_m=0.006, depth_m=0.012, diameter_m=0.014), x, sur=sur), sur)
+    assert near.detected and abs(near.x_m - 0.006) < 4 * near.sigma_x_m + 1e-4
+    assert SIDE in near.at_bound and SIDE in near.to_dict()["evidence"]["fit_at_bound"]
+    assert "would cross the section's side" in caveats(near) and "would cross the section's side" in describe(near)
+    assert "at the fit's bound" not in caveats(near) or any(b != SIDE for b in near.at_bound)
+    inner = localize(prior, synth(prior, Stone(x_m=0.030, depth_m=0.012, diameter_m=0.010), x, sur=sur), sur)
+    assert inner.detected and SIDE not in inner.at_bound and "side" not in caveats(inner)
