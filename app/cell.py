@@ -46,7 +46,7 @@ from fem.scene import BUILTIN, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
-from robot.records import done_indices, move_aside
+from robot.records import done_indices, foreign_record, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -218,6 +218,10 @@ def _main(args, held: contextlib.ExitStack) -> int:
         if args.sim_mesh_m is not None:
             truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
     done = set() if args.fresh else done_indices(out)
+    other = None if args.fresh else foreign_record(out, plan)
+    if other is not None:
+        raise UsageError(f"--out {out}: holds records of another plan ({other}; --plan {args.plan}): a resumed run "
+                         f"would take them for its own; give a new --out, or --fresh to move them aside")
     where = f"simulated arm ({args.sim})" if args.sim else f"UR controller at {args.host}"
     if args.ft.kind == "netft":
         where += f", force from the Net F/T box ({args.ft.host or 'simulated'}: the UR's own force protection does " \

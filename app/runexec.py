@@ -11,16 +11,17 @@ import json
 import re
 from pathlib import Path
 
-from app.cell import print_preflight, read_confirmation
+from app.cell import CONNECT_TIMEOUT_S, print_preflight, read_confirmation
 from app.errors import UsageError
 from app.figchild import usable_cores
 from app.ftoptions import controller_pose, inmemory_source, linked_source
+from app.isolate import ChildDied, ChildError, ChildTimeout, run_in_child
 from core.contracts import MEASURED, Limits, Plan
 from fem.scene import BUILTIN
 from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
-from robot.link import connect, end_session
+from robot.link import connect, disconnect, end_session
 from robot.records import done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -92,11 +93,36 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holde
     return _runner(interfaces, out, stats)
 
 
+def _receive_once(started, host: str) -> None:
+    """(In a child process.) Open and close ur_rtde's receive interface to ``host`` (it uploads no program)."""
+    import rtde_receive  # the compiled client, loaded only when a link is made
+    r = rtde_receive.RTDEReceiveInterface(host)
+    started()
+    disconnect(r)
+
+
+def answers(host: str) -> None:
+    """Whether the controller at ``host`` answers, within CONNECT_TIMEOUT_S: UsageError (one line) if not. ur_rtde's
+    constructors wait for good on a controller that accepts connections but never answers, holding the interpreter,
+    so the first contact is made in a child process that is killed at the deadline (as palpate-cell does)."""
+    try:
+        run_in_child(_receive_once, host, start_timeout_s=CONNECT_TIMEOUT_S)
+    except ChildTimeout:
+        raise UsageError(f"--host {host}: no answer from the controller within {CONNECT_TIMEOUT_S:g} s while "
+                         f"connecting (frozen, overloaded, or not a UR controller); nothing was sent") from None
+    except (ChildError, ChildDied) as e:
+        raise UsageError(f"--host {host}: cannot connect: {' '.join(str(e).split())}") from None
+
+
 def _link(link: dict, host: str, plan, stats: dict, cleanup: contextlib.ExitStack, ft, ft_host=None) -> tuple:
     """Connect ur_rtde to ``host`` once (and the force source: ``ft`` the run's options, app.ftoptions); closed by
     ``cleanup``."""
     if "c" not in link:
-        link["c"], link["r"] = connect(host)
+        answers(host)
+        try:
+            link["c"], link["r"] = connect(host)
+        except RuntimeError as e:        # refused, unreachable, or the arm not ready (ArmNotReady says what to do)
+            raise UsageError(f"--host {host}: cannot connect: {' '.join(str(e).split())}") from None
         cleanup.callback(lambda: end_session(link["c"], link["r"], clean=stats["clean_end"]))
         link["fs"] = linked_source(ft, link["c"], link["r"], plan.frames.tcp_offset, ft_host)
         cleanup.callback(link["fs"].close)

@@ -354,6 +354,9 @@ class FaultKind(StrEnum):
     SENSOR_FROZEN = "sensor_frozen"      # its readings stopped changing (a real sensor always has noise)
     SENSOR_DISAGREES = "sensor_disagrees"  # the wrist sensor reads far more than the external one
     DRIVER_ERROR = "driver_error"        # an unexpected error (a full disk, a bug): the arm stopped, then raised
+    FREE_AIR_FORCE = "free_air_force"    # a force at an approach pose before zeroing: the tip touches something
+    #                                      there (the surface higher than registered) or the sensor drifts
+    SURFACE_HIGH = "surface_high"        # contact within the first mm of a descent: the surface at the approach pose
 
 
 @dataclass

@@ -67,6 +67,10 @@ from robot.safety import (
 from robot.safety import move_time as _move_time
 from robot.signals import SignalGate
 
+# contact felt within this much of a descent's start (or half the approach height, when smaller) is a fault: the
+# surface is at the approach pose (robot.driver._ForceWatch._early)
+EARLY_CONTACT_M = 1e-3
+
 
 @dataclass
 class DriverConfig:
@@ -278,7 +282,22 @@ class _ForceWatch:
         self.hist = deque(maxlen=driver.cfg.filter_window + 1)
         self.lead = stop_lead_periods(driver.cfg.filter_window)
         self.holding = False            # dwelling after a depth-limit stop: the depth held is the limit
+        self.start_depth: float | None = None    # where the descent began (the approach pose)
         self.rest_depth: float | None = None    # (where the arm came to rest: its first dwell period)
+
+    def _early(self, depth: float) -> None:
+        """Contact felt within ``early_contact_m`` of the descent's start: the tissue's surface is at the approach
+        pose (higher than registered by about the approach height), where the moves between probes pass and the
+        sensor was zeroed -- possibly in the tissue, against a force no later reading sees. A fault."""
+        d = self.d
+        if depth - self.start_depth < d.early_contact_m:
+            d._stop()
+            h = d.plan.motion.approach_height_m
+            raise ProbeFault(FaultKind.SURFACE_HIGH, f"contact felt {(depth - self.start_depth) * 1e3:.2f} mm into "
+                             f"the descent from the approach pose, {h * 1e3:g} mm above the planned surface: the "
+                             f"tissue's surface is about that much higher than registered, where the moves between "
+                             f"probes pass (and the sensor may have been zeroed in the tissue); re-register the "
+                             f"surface, or plan with a larger --approach-height-m")
 
     def _too_deep(self, depth):
         """The depth limit (a float or an array of periods): the limit past the contact felt while descending;
@@ -288,7 +307,11 @@ class _ForceWatch:
         return depth - self.contact["depth"] > self.d.lim.depth_limit_m
 
     def __call__(self, s):
+        if self.start_depth is None:
+            self.start_depth = s["depth"]
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
+            if not self.holding:
+                self._early(s["depth"])
             self.contact.update(depth=s["depth"], x=s["x"], t=s["t"])
         self.hist.append(s["filt"])
         if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
@@ -305,10 +328,15 @@ class _ForceWatch:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
+        if self.start_depth is None and b.n:
+            self.start_depth = float(b.depth[0])
         j = 0
         if "depth" not in self.contact:
             j = first_true(filt[:k] > self.d.contact_thr, -1)
-            if j >= 0:
+            if j >= 0 and not self.holding and b.depth[j] - self.start_depth < self.d.early_contact_m:
+                k = j                   # that period one at a time: __call__ raises the fault
+                j = 0
+            elif j >= 0:
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
         if self.holding and self.rest_depth is None and b.n:
             self.rest_depth = float(b.depth[0])
@@ -335,6 +363,8 @@ class Driver(Recovery):
         self.samples = _Samples()
         self.phase = FREE
         self.contact_thr = plan.motion.contact_threshold_n
+        self.early_contact_m = min(EARLY_CONTACT_M, 0.5 * plan.motion.approach_height_m)
+        self.zeroed_ts: float | None = None      # when the sensor was last zeroed in this run (controller time)
         self.noise_std = float("nan")
         self.watchdog_on = False
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
@@ -656,9 +686,12 @@ class Driver(Recovery):
         return self._loop(timeout, body, strict, what, quiet if quiet_ok else None)
 
     # ---- one probe ---------------------------------------------------------------------------------------
-    def _zero(self) -> None:
+    def _zero(self, probe=None) -> None:
         self.phase = FREE
-        self._wait(self.cfg.settle_s)
+        before: list = []
+        self._wait(self.cfg.settle_s, before)
+        if probe is not None:
+            self._check_free_air(before, probe)
         self._link_up("zeroFtSensor")
         rtde = self.fs.name == "rtde"           # zeroFtSensor: a command of the control program
         self._require(self._sensor(self.fs.zero, self._call),
@@ -681,6 +714,25 @@ class Driver(Recovery):
                                              f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
                                              f"enforced with this sensor")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
+        self.zeroed_ts = self.ts
+
+    def _check_free_air(self, vals: list, probe) -> None:
+        """At a probe's approach pose, before zeroing there: the force against the previous zero (the set-up's or
+        the last probe's, in this run) must be below the contact threshold -- else the tip touches something (the
+        tissue's surface higher than registered, the probe about to be zeroed in it: its descent would then count
+        its depth limit from a force no reading sees) or the sensor drifts; either way no probe can be trusted."""
+        if self.zeroed_ts is None or not vals:
+            return
+        f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
+        if abs(f) > self.contact_thr:
+            dt = self.ts - self.zeroed_ts
+            h = self.plan.motion.approach_height_m
+            raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{f:+.3f} N at probe {probe.index}'s approach pose, {dt:.1f} s "
+                             f"after the sensor was zeroed in free air (more than the contact threshold "
+                             f"{self.contact_thr:.3f} N): the tip touches something there (the tissue's surface "
+                             f"higher than registered by about the approach height, {h * 1e3:g} mm: re-register it, "
+                             f"or plan with a larger --approach-height-m) or the sensor drifts "
+                             f"({f / max(dt, 1e-9):+.4f} N/s: let it warm up, check its cable and mounting)")
 
     @staticmethod
     def _sensor(fn, *args):
@@ -696,7 +748,7 @@ class Driver(Recovery):
         t0 = self.ts
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
                    _Collision(self), what=f"approach to probe {p.index}")
-        self._zero()
+        self._zero(p)
         watch = _ForceWatch(self)
         self.phase = DESCENT
         outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),

@@ -137,6 +137,20 @@ def done_indices(out_dir: str | Path) -> set[int]:
     return {i for i, r in latest_by_index(out_dir).items() if r.status in DONE}
 
 
+def foreign_record(out_dir: str | Path, plan) -> str | None:
+    """The first record in ``out_dir`` that ``plan`` did not make (its index not among the plan's probes, or the
+    probe at that index elsewhere), said in words; None when every record fits the plan. A run of one plan resumes by
+    index, so another plan's records would count as its own."""
+    probes = {p.index: p for p in plan.probes}
+    for i, r in sorted(latest_by_index(out_dir).items()):
+        p = probes.get(i)
+        if p is None:
+            return f"probe {i}, which the plan does not have"
+        if abs(r.x_m - p.x_m) > 1e-9 or abs((r.y_m or 0.0) - (p.y_m or 0.0)) > 1e-9:
+            return f"probe {i} at x {r.x_m:.4f} m, y {r.y_m or 0.0:.4f} m where the plan has x {p.x_m:.4f} m, y {p.y_m or 0.0:.4f} m"
+    return None
+
+
 def read_measurements(out_dir: str | Path, statuses=MEASURED) -> list[ProbeRecord]:
     """For the localizer: the latest record per probe index with a usable, plausible measurement, sorted by (x_m, y_m)."""
     recs = [r for r in latest_by_index(out_dir).values() if r.status in statuses and r.implausible is None]

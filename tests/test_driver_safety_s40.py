@@ -1,0 +1,70 @@
+"""Session 40's safety review, on the in-memory arm: a probe is never zeroed with the tip already pressing the
+tissue (the surface higher than the plan's approach height allows: before, the sensor was zeroed 3 mm deep, and the
+depth limit, counted from a contact the zeroed sensor then felt late, let the tip go 8 mm in), and a sensor whose
+drift adds up to the contact threshold between two zeros ends the run instead of faking contact in free air."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import make_plan, make_sim  # noqa: E402
+
+from core.contracts import Motion  # noqa: E402
+from robot.driver import EARLY_CONTACT_M, run_plan  # noqa: E402
+from robot.records import read_records  # noqa: E402
+
+XS = (0.02, 0.035, 0.05)
+
+
+def _run(tmp_path, approach_m, surface_m=0.0, drift_n_per_s=0.0):
+    plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=approach_m, dwell_s=0.2))
+    arm, c, r = make_sim(surface_height_m=lambda x: surface_m)
+    arm.sensor.drift[:3] += drift_n_per_s * arm.n_base
+    deepest = [-1.0]
+
+    def note():     # the tip's depth below the TRUE surface
+        deepest[0] = max(deepest[0], arm.tip_in_tissue()[1] - surface_m)
+    arm.on_step.append(note)
+    rep = run_plan(plan, c, r, tmp_path)
+    return rep, arm, [x.status for x in read_records(tmp_path)], deepest[0]
+
+
+def test_an_approach_pose_inside_the_tissue_is_a_fault_before_any_descent(tmp_path):
+    """The plan's approach 2 mm above its surface, the true surface 5 mm above the plan's: the first approach pose
+    is 3 mm inside. The force there, against the set-up's free-air zero, ends the run before zeroing; no descent."""
+    rep, arm, statuses, deepest = _run(tmp_path, 0.002, surface_m=0.005)
+    assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
+    assert "probe 0's approach pose" in rep.fault["message"] and "--approach-height-m" in rep.fault["message"]
+    assert rep.fault["stopped"] and not arm.is_moving
+    assert statuses == ["fault"]
+    assert deepest < 0.003 + 1e-4, deepest          # never deeper than the approach pose itself
+
+
+@pytest.mark.parametrize("surface_m", [0.0023, 0.0025])
+def test_contact_in_the_first_mm_of_a_descent_is_a_fault(tmp_path, surface_m):
+    """The true surface 0.3-0.5 mm above the approach pose: too little force there to tell before zeroing, but
+    contact comes within the first mm of the descent (EARLY_CONTACT_M, or half the approach height): the surface is
+    at the approach pose, where the moves between probes pass. The arm stops there."""
+    rep, arm, statuses, deepest = _run(tmp_path, 0.002, surface_m=surface_m)
+    assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
+    assert rep.fault["stopped"] and not arm.is_moving and statuses == ["fault"]
+    assert deepest < surface_m - 0.002 + min(EARLY_CONTACT_M, 0.001) + 5e-4, deepest
+
+
+def test_a_drifting_sensor_ends_the_run_at_the_next_zero(tmp_path):
+    """0.01 N/s (100 times a Nano17's): probe 0 is measured, and at probe 1's approach pose the force against probe
+    0's zero is past the contact threshold: a fault naming the drift; probe 0's record is kept."""
+    rep, arm, statuses, _ = _run(tmp_path, 0.004, drift_n_per_s=0.01)
+    assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
+    assert "probe 1's approach pose" in rep.fault["message"] and "drifts (+0.01" in rep.fault["message"]
+    assert statuses == ["ok", "fault"]
+
+
+@pytest.mark.parametrize("drift_n_per_s", [0.002, -0.002])
+def test_a_sensor_drifting_within_the_threshold_between_zeros_runs(tmp_path, drift_n_per_s):
+    rep, arm, statuses, deepest = _run(tmp_path, 0.004, drift_n_per_s=drift_n_per_s)
+    assert rep.status == "ok", rep.fault
+    assert statuses == ["ok"] * len(XS) and deepest == pytest.approx(0.003, abs=1e-4)
