@@ -306,9 +306,22 @@ class _ForceWatch:
             return depth > self.rest_depth + HOLD_SLACK_M
         return depth - self.contact["depth"] > self.d.lim.depth_limit_m
 
+    def _pulled(self, f: float) -> None:
+        """A filtered force below minus the contact threshold in a descent or dwell: tissue pushes back, it does not pull;
+        the sensor drifts (a drift that would also hide the contact, and the depth limit counted from it), or its
+        sign or zero is wrong. A fault."""
+        d = self.d
+        d._stop()
+        raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"the force reads {f:+.3f} N in a descent or dwell, below minus "
+                         f"the contact threshold ({d.contact_thr:.3f} N), {d.ts - d.zeroed_ts:.1f} s after the sensor "
+                         f"was zeroed in free air: tissue pushes back, it does not pull; the sensor drifts (let it "
+                         f"warm up, check its cable and mounting) or its force sign is wrong")
+
     def __call__(self, s):
         if self.start_depth is None:
             self.start_depth = s["depth"]
+        if s["filt"] < -self.d.contact_thr:
+            self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
             if not self.holding:
                 self._early(s["depth"])
@@ -328,6 +341,7 @@ class _ForceWatch:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
+        k = first_true(filt[:k] < -self.d.contact_thr, k)     # (that period one at a time: __call__ raises)
         if self.start_depth is None and b.n:
             self.start_depth = float(b.depth[0])
         j = 0

@@ -68,3 +68,25 @@ def test_a_sensor_drifting_within_the_threshold_between_zeros_runs(tmp_path, dri
     rep, arm, statuses, deepest = _run(tmp_path, 0.004, drift_n_per_s=drift_n_per_s)
     assert rep.status == "ok", rep.fault
     assert statuses == ["ok"] * len(XS) and deepest == pytest.approx(0.003, abs=1e-4)
+
+
+def test_a_negative_drift_that_would_hide_the_contact_is_a_fault_within_the_first_descent(tmp_path):
+    """-0.01 N/s on a surface 2 mm higher than registered: the readings fall below minus the threshold before the
+    tip meets the tissue (a contact felt late would let the depth limit, counted from it, take the tip far past the
+    limit: 8 mm on a 4 mm limit in the review's run). Tissue never pulls: a fault on the first probe."""
+    rep, arm, statuses, deepest = _run(tmp_path, 0.010, surface_m=0.002, drift_n_per_s=-0.01)   # the plans' 10 mm
+    assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
+    assert "does not pull" in rep.fault["message"] and statuses == ["fault"]
+    assert deepest < 0.003, deepest
+
+
+def test_a_reversed_force_sign_is_a_fault_at_the_first_press(tmp_path):
+    """A sensor mounted (or configured) the wrong way round reads pressing as pulling: it used to feel no contact
+    and press to the planned depth on every probe; now the first press past the threshold ends the run."""
+    from robot.driver import DriverConfig
+    plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.004, dwell_s=0.2))
+    arm, c, r = make_sim()
+    rep = run_plan(plan, c, r, tmp_path, config=DriverConfig(force_sign=-1.0))
+    assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
+    assert "force sign" in rep.fault["message"]
+    assert [x.status for x in read_records(tmp_path)] == ["fault"]
