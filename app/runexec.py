@@ -359,6 +359,14 @@ def no_contact_warning(nc: dict, three_d: bool = False) -> str:
             f"implausible)")
 
 
+# faults that a resumed run meets again until the cell is changed: what to change first
+FIRST_FIX = {"free_air_force": "the sensor is steady in free air and the tissue's surface is where the plan says "
+                               "(re-register it, or plan with a larger --approach-height-m)",
+             "surface_high": "the tissue's surface is where the plan says (re-register it, or plan with a larger "
+                             "--approach-height-m)",
+             "sensor_noise": "the sensor's free-air noise is below the force limit's allowance"}
+
+
 def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None) -> str:
     """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
     to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NOT
@@ -368,9 +376,10 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
         return ("NOT DETECTABLE: no probe felt contact down to its planned depth (the tissue is absent, lower than "
                 "the prior says, or too soft to pass the contact threshold): nothing about a stone could be measured")
     if res is None:
-        return (f"NO RESULT: the arm run ended with a fault "
-                f"({fault['fault']['kind'] if fault and fault.get('fault') else status}): its probes are kept and "
-                f"the same command resumes")
+        kind = fault["fault"]["kind"] if fault and fault.get("fault") else status
+        fix = FIRST_FIX.get(kind)
+        return (f"NO RESULT: the arm run ended with a fault ({kind}): its probes are kept and the same command "
+                f"resumes" + (f" once {fix} (until then it ends the same way)" if fix else ""))
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
     return ("STONE " if loc.detected else "NO STONE ") + described

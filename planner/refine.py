@@ -184,14 +184,14 @@ def too_few(usable: int, used: int, need: int) -> str:
 
 def caveats(loc) -> str:
     """What makes a detected stone's estimate doubtful, for the line that reports it ("" when nothing): a parameter
-    at its fit's bound (the table's range: the stone may lie beyond it, and its sigma does not say so) and a fit
+    at its fit's bound (the table's range: the stone may lie beyond it, and the rest of the estimate with it) and a fit
     the data reject (chi2 above its degrees of freedom by more than 4 standard deviations, sqrt(2 dof): one stone in
     the prior's tissue does not explain the forces)."""
     out = []
     bounds = [b for b in loc.at_bound if b != SIDE]
     if bounds:
         out.append(f"at the fit's bound: {', '.join(bounds)} (the stone may lie beyond the range the table "
-                   f"covers; its sigma does not say so)")
+                   f"covers, and the rest of the estimate be pulled off with it: its sigmas do not say so)")
     if SIDE in loc.at_bound:
         out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")

@@ -88,3 +88,14 @@ def test_the_cell_refuses_to_resume_another_plans_records(tmp_path):
     again = cell(plans[0])
     assert again.returncode == 0 and "4 from the log" in again.stdout           # its own plan resumes
     assert cell(plans[1], "--fresh").returncode == 0                           # --fresh moves them aside
+
+
+def test_a_fault_a_resumed_run_meets_again_says_what_to_change_first():
+    """A drifting sensor or a surface at the approach height ends every resumed run the same way (the review's
+    re-runs each added one probe and faulted again): the last line says what must change first."""
+    from app.runexec import verdict
+    line = verdict(None, None, "", "fault", {"fault": {"kind": "free_air_force"}})
+    assert line.startswith("NO RESULT") and "once the sensor is steady in free air" in line
+    assert "--approach-height-m" in verdict(None, None, "", "fault", {"fault": {"kind": "surface_high"}})
+    other = verdict(None, None, "", "fault", {"fault": {"kind": "connection_lost"}})
+    assert other.endswith("the same command resumes")
