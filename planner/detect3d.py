@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from planner.detectability import P_DETECT, ncx2_sf, noncentrality, probe_sigma_n, probe_tau_s, sensor_usable
-from planner.localize import DRIFT_SIGMA_N_PER_S, MODEL_ABS_ERR_N
+from planner.localize import DRIFT_SIGMA_N_PER_S, FLOOR_GAP_M, MODEL_ABS_ERR_N
 from planner.localize3d import LR_THRESHOLD3D
 
 STONE_DOF = 4
@@ -62,6 +62,10 @@ def detectability3d(plan, surrogate, prior_force_n: float, *, sensor_spec, stone
     rows, smallest = [], {}
     for D, dep in stones:
         s = dep - D / 2
+        if "height_m" in b and dep + D / 2 > b["height_m"] - FLOOR_GAP_M:
+            rows.append({"diameter_m": D, "depth_m": dep, "p_detect": None, "detectable": None,
+                         "note": "does not fit in the block"})
+            continue
         if not (b["s_m"][0] <= s <= b["s_m"][1] + 1e-12 and b["diam_m"][0] <= D <= b["diam_m"][1] + 1e-12):
             rows.append({"diameter_m": D, "depth_m": dep, "p_detect": None, "detectable": None,
                          "note": "outside the surrogate's range"})

@@ -8,7 +8,20 @@ from __future__ import annotations
 import numpy as np
 
 from fem import recall
+from fem.scene import STRAIN_MAX
 from planner.draw_run import RunFigure
+
+MAX_CURVES = 4
+
+
+def curve_depths(prior, depth_m) -> np.ndarray:
+    """The probed depths (to 10 um) to draw fem's prior curve at: the MAX_CURVES most common, inside fem's range (a
+    surface higher than registered stops probes at the depth limit, each at its own nominal depth, some at 0 or
+    above the nominal surface: fem has no force there)."""
+    vals, cnt = np.unique(np.round(np.asarray(depth_m, float), 5), return_counts=True)
+    ok = (vals > 0) & (vals < min(prior.indenter.radius_m, STRAIN_MAX * prior.tissue.height_m))
+    vals, cnt = vals[ok], cnt[ok]
+    return np.sort(vals[np.argsort(-cnt, kind="stable")[:MAX_CURVES]])
 
 
 def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> RunFigure:
@@ -23,7 +36,7 @@ def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None
         rnd = np.searchsorted(bounds, meas.index - meas.index.min(), side="right")
     xx = np.linspace(max(0.0, x.min() - 1), min(W, x.max() + 1), 200)
     depths, prior_n, fitted_n, contrast_n = [], [], [], []
-    for dep in np.unique(np.round(meas.depth_m, 5)):
+    for dep in curve_depths(prior, meas.depth_m):
         f0 = np.array([recall.force_n(prior, v * 1e-3, float(dep)) for v in xx])
         c = None
         if surrogate is not None and loc.detected:

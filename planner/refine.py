@@ -31,9 +31,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
+from fem.scene import STRAIN_MAX
 from planner.localize import MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
-from planner.tissue_response import prior_and_thickness_slope
+from planner.tissue_response import THICKNESS_STEP, prior_and_thickness_slope
 
 WEAK_LR = 12.0
 
@@ -77,6 +78,9 @@ def refine_positions(loc: Localization, n: int, width_m: float, margin_m: float,
     return x
 
 
+MIN_DESIGN_DEPTH_M = 1e-4      # the design's shallowest indentation for the tissue's columns (fem: > 0)
+
+
 def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, width_m: float, margin_m: float,
                      depth_m: float | None = None, step_m: float = 5e-4, prior=None) -> np.ndarray:
     """``n`` waypoints chosen one by one to shrink var(x) + var(depth) of the current estimate most (greedy A-optimal
@@ -88,6 +92,10 @@ def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, w
     if not (loc.detected and math.isfinite(loc.x_m) and math.isfinite(loc.depth_m)):
         return refine_positions(loc, n, width_m, margin_m, meas.x_m)
     d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
+    if prior is not None:       # inside fem's range: a surface higher than registered stops the probes at the depth
+        #                         limit, their nominal depths about 0 (the design then knows the tissue's columns less)
+        d = float(np.clip(d, MIN_DESIGN_DEPTH_M, min(0.95 * prior.indenter.radius_m,
+                                                    0.99 * STRAIN_MAX * (1 - THICKNESS_STEP) * prior.tissue.height_m)))
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.depth_m, loc.diameter_m])
     tissue = prior is not None and "stiffness_scale" not in loc.nuisance.get("fixed", ["stiffness_scale"])

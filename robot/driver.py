@@ -70,6 +70,10 @@ from robot.signals import SignalGate
 # contact felt within this much of a descent's start (or half the approach height, when smaller) is a fault: the
 # surface is at the approach pose (robot.driver._ForceWatch._early)
 EARLY_CONTACT_M = 1e-3
+# the free-air checks (Driver._check_free_air, _ForceWatch._pulled) allow the contact threshold plus this drift rate
+# times the time since the zero: twice the localizer's prior sigma on the drift (planner.localize, 1e-3 N/s, 10x a
+# Nano17's), which its fit absorbs. Beyond it a drift is a fault only once it has added up past the threshold too.
+DRIFT_ALLOWANCE_N_PER_S = 2e-3
 
 
 @dataclass
@@ -307,20 +311,21 @@ class _ForceWatch:
         return depth - self.contact["depth"] > self.d.lim.depth_limit_m
 
     def _pulled(self, f: float) -> None:
-        """A filtered force below minus the contact threshold in a descent or dwell: tissue pushes back, it does not pull;
+        """A filtered force below minus the free-air band (the contact threshold and the drift allowed since the zero)
+        in a descent or dwell: tissue pushes back, it does not pull;
         the sensor drifts (a drift that would also hide the contact, and the depth limit counted from it), or its
         sign or zero is wrong. A fault."""
         d = self.d
         d._stop()
         raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"the force reads {f:+.3f} N in a descent or dwell, below minus "
-                         f"the contact threshold ({d.contact_thr:.3f} N), {d.ts - d.zeroed_ts:.1f} s after the sensor "
-                         f"was zeroed in free air: tissue pushes back, it does not pull; the sensor drifts (let it "
+                         f"the contact threshold ({d.contact_thr:.3f} N) and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift, "
+                         f"{d.ts - d.zeroed_ts:.1f} s after the sensor was zeroed in free air: tissue pushes back, it does not pull; the sensor drifts (let it "
                          f"warm up, check its cable and mounting) or its force sign is wrong")
 
     def __call__(self, s):
         if self.start_depth is None:
             self.start_depth = s["depth"]
-        if s["filt"] < -self.d.contact_thr:
+        if s["filt"] < -self.d.free_air_band(s["t"] - self.d.zeroed_ts):
             self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
             if not self.holding:
@@ -341,7 +346,8 @@ class _ForceWatch:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
-        k = first_true(filt[:k] < -self.d.contact_thr, k)     # (that period one at a time: __call__ raises)
+        k = first_true(filt[:k] < -self.d.free_air_band(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
+        #                                                                                    __call__ raises)
         if self.start_depth is None and b.n:
             self.start_depth = float(b.depth[0])
         j = 0
@@ -738,15 +744,20 @@ class Driver(Recovery):
         if self.zeroed_ts is None or not vals:
             return
         f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
-        if abs(f) > self.contact_thr:
-            dt = self.ts - self.zeroed_ts
+        dt = self.ts - self.zeroed_ts
+        if abs(f) > self.free_air_band(dt):
             h = self.plan.motion.approach_height_m
             raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{f:+.3f} N at probe {probe.index}'s approach pose, {dt:.1f} s "
                              f"after the sensor was zeroed in free air (more than the contact threshold "
-                             f"{self.contact_thr:.3f} N): the tip touches something there (the tissue's surface "
+                             f"{self.contact_thr:.3f} N and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift): the tip touches something there (the tissue's surface "
                              f"higher than registered by about the approach height, {h * 1e3:g} mm: re-register it, "
                              f"or plan with a larger --approach-height-m) or the sensor drifts "
                              f"({f / max(dt, 1e-9):+.4f} N/s: let it warm up, check its cable and mounting)")
+
+    def free_air_band(self, dt_s):
+        """The largest force magnitude a reading ``dt_s`` after a free-air zero may show with nothing touching: the
+        contact threshold plus DRIFT_ALLOWANCE_N_PER_S of drift since (a float, or an array of times)."""
+        return self.contact_thr + DRIFT_ALLOWANCE_N_PER_S * dt_s
 
     @staticmethod
     def _sensor(fn, *args):

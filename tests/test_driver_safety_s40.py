@@ -90,3 +90,20 @@ def test_a_reversed_force_sign_is_a_fault_at_the_first_press(tmp_path):
     assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
     assert "force sign" in rep.fault["message"]
     assert [x.status for x in read_records(tmp_path)] == ["fault"]
+
+
+@pytest.mark.parametrize("drift_n_per_s", [1e-3, -1e-3])
+def test_a_drift_the_localizer_absorbs_never_ends_a_slow_run(tmp_path, drift_n_per_s):
+    """The review of the first version: a fixed band stopped a plan with a 30 mm approach and 3 s dwells (22 s
+    between zeros) under a 1e-3 N/s drift, which the localizer's fit absorbs (the old code found the stone). The band
+    grows with the time since the zero by DRIFT_ALLOWANCE_N_PER_S (twice the localizer's prior sigma)."""
+    from robot.driver import DRIFT_ALLOWANCE_N_PER_S
+    assert DRIFT_ALLOWANCE_N_PER_S >= 2 * abs(drift_n_per_s)
+    plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.030, dwell_s=3.0))
+    arm, c, r = make_sim()
+    arm.sensor.drift[:3] += drift_n_per_s * arm.n_base
+    rep = run_plan(plan, c, r, tmp_path)
+    assert rep.status == "ok", rep.fault
+    recs = read_records(tmp_path)
+    assert [x.status for x in recs] == ["ok"] * len(XS)
+    assert recs[1].t_s - recs[0].t_s > 0.020 / abs(drift_n_per_s)     # longer than the fixed band allowed

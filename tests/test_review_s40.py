@@ -99,3 +99,75 @@ def test_a_fault_a_resumed_run_meets_again_says_what_to_change_first():
     assert "--approach-height-m" in verdict(None, None, "", "fault", {"fault": {"kind": "surface_high"}})
     other = verdict(None, None, "", "fault", {"fault": {"kind": "connection_lost"}})
     assert other.endswith("the same command resumes")
+
+
+def test_the_refinement_design_survives_probes_stopped_at_a_surface_5_mm_high():
+    """`palpate run paper --sim --truth-surface-offset-m 0.005` (inside the truth's allowed range) crashed after
+    round 0: every probe stopped at the depth limit, their nominal depths about 0 (-22 um for the median), and the
+    design asked fem for the prior's force there (fem: depth must lie in [0, H)). The design's depth is now held
+    inside fem's range; a whole run at +5 mm finds the stone (README)."""
+    import numpy as np
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_localize import ToySurrogate
+
+    from fem.scene import load
+    from planner.localize import Localization, Measurements
+    from planner.refine import design_positions
+    prior = load("paper").prior()
+    x = np.linspace(0.005, 0.065, 15)
+    depth = np.linspace(-4e-5, 3e-5, 15)                 # nominal depths reached: about 0, some below
+    meas = Measurements(x, depth, np.full(15, 0.1), np.full(15, 2e-3), np.full(15, 7.25), np.arange(15))
+    loc = Localization(detected=True, lr=100.0, lr_threshold=25.0, x_m=0.035, depth_m=0.025, diameter_m=0.015,
+                       sigma_x_m=2e-4, sigma_depth_m=2e-3, sigma_diameter_m=2e-3,
+                       nuisance={"fixed": [], "surface_offset_m": (0.005, 1e-4)})
+    class Toy(ToySurrogate):      # (fem's table has no force above the surface: 0 there)
+        def contrast(self, x0, depth, *stone):
+            return super().contrast(x0, np.maximum(np.asarray(depth, float), 0.0), *stone)
+    pos = design_positions(loc, meas, 10, Toy(), 0.070, 0.005, prior=prior)
+    assert len(pos) == 10 and np.all((pos >= 0.005) & (pos <= 0.065)) and np.all(np.isfinite(pos))
+
+
+def test_the_run_figure_draws_the_prior_at_depths_fem_has_and_at_most_four():
+    """The same run then failed in its figure: a prior curve at every distinct depth reached (each depth-limited
+    probe its own, some at 0 or above the nominal surface)."""
+    import numpy as np
+
+    from fem.scene import load
+    from planner.plots_run import MAX_CURVES, curve_depths
+    prior = load("paper").prior()
+    depth = np.r_[np.full(10, 0.004), np.full(5, 0.003), np.linspace(-3e-4, 6e-3, 30)]
+    got = curve_depths(prior, depth)
+    assert 0.004 in got and 0.003 in got and len(got) <= MAX_CURVES
+    assert np.all(got > 0) and np.all(got < prior.indenter.radius_m)
+
+
+def test_3d_detectability_names_no_stone_that_cannot_fit_in_the_block():
+    """A 35 mm block's line named "12 mm at 30 mm depth", a stone whose bottom would be 1 mm above the floor (the
+    localizer keeps 2 mm of tissue below a candidate)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from core.contracts import SENSORS, Limits, Motion
+    from fem.scene import load
+    from planner.detect3d import detectability3d
+    from planner.surrogate3d import load_surrogate3d
+    sur = load_surrogate3d(load("block3d").prior(), build=False)
+
+    class Thinner:                 # block3d's table, said to be for a 35 mm block
+        def __getattr__(self, name):
+            return getattr(sur, name)
+
+        def bounds(self):
+            return {**sur.bounds(), "height_m": 0.035}
+    g = np.linspace(0.02, 0.05, 6)
+    plan = SimpleNamespace(probes=[SimpleNamespace(x_m=a, y_m=b, depth_m=0.004) for a in g for b in g],
+                           limits=Limits(), motion=Motion())
+    det = detectability3d(plan, Thinner(), 0.07, sensor_spec=SENSORS["nano17"])
+    for r in det["rows"]:
+        fits = r["depth_m"] + r["diameter_m"] / 2 <= 0.035 - 2e-3
+        assert (r.get("note") == "does not fit in the block") is (not fits), r
+    assert all(float(k) * 1e-3 + v / 2 <= 0.033 for k, v in det["smallest_detectable_diameter_m_by_depth_mm"].items())
+    full = detectability3d(plan, sur, 0.07, sensor_spec=SENSORS["nano17"])       # block3d itself: all fit
+    assert not any(r.get("note") == "does not fit in the block" for r in full["rows"])
