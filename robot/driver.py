@@ -1,7 +1,8 @@
 """The probing driver: runs a plan's probes over ur_rtde's control and receive interfaces (or the simulated arm).
 
 ``run_plan(plan, rtde_c, rtde_r, out_dir) -> RunReport``. Per probe: moveL above the waypoint (approach pose),
-zero the F/T sensor there in free air, measure the free-air noise, descend slowly with an *asynchronous* moveL whose
+check there that the force against the last free-air zero is within the free-air band (``free_air_band``: else the
+tip touches something or the sensor drifts, a fault), zero the F/T sensor there, measure the free-air noise, descend slowly with an *asynchronous* moveL whose
 target is the planned depth (so even a lost link ends the motion there -- never moveUntilContact, which has no
 distance limit) while polling the wrench every controller period, note first contact (filtered force above the
 contact threshold), stop with stopL if the filtered force exceeds the force limit, dwell and sample, retract to the
@@ -319,8 +320,9 @@ class _ForceWatch:
         d._stop()
         raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"the force reads {f:+.3f} N in a descent or dwell, below minus "
                          f"the contact threshold ({d.contact_thr:.3f} N) and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift, "
-                         f"{d.ts - d.zeroed_ts:.1f} s after the sensor was zeroed in free air: tissue pushes back, it does not pull; the sensor drifts (let it "
-                         f"warm up, check its cable and mounting) or its force sign is wrong")
+                         f"{d.ts - d.zeroed_ts:.1f} s after the sensor was zeroed in free air: tissue pushes back, it "
+                         f"does not pull; the sensor drifts (let it warm up, check its cable and mounting) or its "
+                         f"force sign is wrong")
 
     def __call__(self, s):
         if self.start_depth is None:
