@@ -360,11 +360,13 @@ def no_contact_warning(nc: dict, three_d: bool = False) -> str:
 
 
 # faults that a resumed run meets again until the cell is changed: what to change first
-FIRST_FIX = {"free_air_force": "the sensor is steady in free air and the tissue's surface is where the plan says "
-                               "(re-register it, or plan with a larger --approach-height-m)",
-             "surface_high": "the tissue's surface is where the plan says (re-register it, or plan with a larger "
-                             "--approach-height-m)",
-             "sensor_noise": "the sensor's free-air noise is below the force limit's allowance"}
+_REPLAN = ("if the tissue's surface is higher than registered, re-register it or plan a larger approach height "
+           "(palpate plan --approach-height-m, given with --plan), then run with --fresh or another --out")
+FIRST_FIX = {"free_air_force": "the same command resumes once the sensor reads steady in free air with its force "
+                               "sign right (until then it ends the same way); " + _REPLAN,
+             "surface_high": _REPLAN[len("if the tissue's surface is higher than registered, "):],
+             "sensor_noise": "the same command resumes once the sensor's free-air noise is below the force limit's "
+                             "allowance (until then it ends the same way)"}
 
 
 def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None) -> str:
@@ -377,9 +379,8 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
                 "the prior says, or too soft to pass the contact threshold): nothing about a stone could be measured")
     if res is None:
         kind = fault["fault"]["kind"] if fault and fault.get("fault") else status
-        fix = FIRST_FIX.get(kind)
-        return (f"NO RESULT: the arm run ended with a fault ({kind}): its probes are kept and the same command "
-                f"resumes" + (f" once {fix} (until then it ends the same way)" if fix else ""))
+        return (f"NO RESULT: the arm run ended with a fault ({kind}): its probes are kept; "
+                + FIRST_FIX.get(kind, "the same command resumes"))
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
     return ("STONE " if loc.detected else "NO STONE ") + described

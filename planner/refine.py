@@ -78,7 +78,7 @@ def refine_positions(loc: Localization, n: int, width_m: float, margin_m: float,
     return x
 
 
-MIN_DESIGN_DEPTH_M = 1e-4      # the design's shallowest indentation for the tissue's columns (fem: > 0)
+MIN_DESIGN_DEPTH_M = 1e-4      # the design's shallowest indentation for the tissue's columns (0 gives no force)
 
 
 def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, width_m: float, margin_m: float,

@@ -104,11 +104,11 @@ def table_scene(prior: Scene, grid: Grid3D, youngs_pa: float = 1.0, own_mesh: bo
         raise ValueError("the 3D surrogate table is built for a tip fem treats as rigid; the 3D loop does not take an "
                          "elastic tip (fem.contact3d models one for simulate and predict)")
     t = prior.tissue       # (a block under 32 mm: the table's mesh at fem's coarsest, half its smallest side)
-    coarse = min(grid.mesh_size_m, 0.5 * min(t.width_m, t.height_m, t.length_m))
+    coarse_mesh_m = min(grid.mesh_size_m, 0.5 * min(t.width_m, t.height_m, t.length_m))
     return dataclasses.replace(
         prior, name="surrogate3d-table", stones=(), tissue=dataclasses.replace(prior.tissue, youngs_pa=youngs_pa),
         analysis=dataclasses.replace(prior.analysis, mesh_size_m=prior.analysis.mesh_size_m if own_mesh else
-                                     coarse, grade=prior.analysis.grade if own_mesh else grid.grade,
+                                     coarse_mesh_m, grade=prior.analysis.grade if own_mesh else grid.grade,
                                      top_displacement_m=Analysis().top_displacement_m))
 
 

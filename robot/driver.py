@@ -1,18 +1,19 @@
 """The probing driver: runs a plan's probes over ur_rtde's control and receive interfaces (or the simulated arm).
 
-``run_plan(plan, rtde_c, rtde_r, out_dir) -> RunReport``. Per probe: moveL above the waypoint (approach pose),
-check there that the force against the last free-air zero is within the free-air band (``free_air_band``: else the
-tip touches something or the sensor drifts, a fault), zero the F/T sensor there, measure the free-air noise, descend slowly with an *asynchronous* moveL whose
-target is the planned depth (so even a lost link ends the motion there -- never moveUntilContact, which has no
-distance limit) while polling the wrench every controller period, note first contact (filtered force above the
-contact threshold), stop with stopL if the filtered force exceeds the force limit, dwell and sample, retract to the
-approach pose. Only moveL is used (the plan's joint targets q_* are not needed; straight lines keep the path inside
-the convex workspace box). Every command passes safety.GuardedControl; every bool is checked; None/NaN/short
+``run_plan(plan, rtde_c, rtde_r, out_dir) -> RunReport``. Per probe: moveL above the waypoint (approach pose), check
+there that the force against the last free-air zero is within the free-air band (``free_air_band_n``: else the tip
+touches something or the sensor drifts, a fault), zero the F/T sensor there, measure the free-air noise, descend
+slowly with an *asynchronous* moveL whose target is the planned depth (so even a lost link ends the motion there --
+never moveUntilContact, which has no distance limit) while polling the wrench every controller period, note first
+contact (filtered force above the contact threshold; in the first millimetre of the descent a fault: the surface is
+at the approach pose), stop with stopL if the filtered force exceeds the force limit, dwell and sample, retract to
+the approach pose. Only moveL is used (the plan's joint targets q_* are not needed; straight lines keep the path
+inside the convex workspace box). Every command passes safety.GuardedControl; every bool is checked; None/NaN/short
 receive vectors, a protective stop, a lost connection (RuntimeError, or stale data with isConnected() False: what
 ur_rtde shows), stale data and time-outs are faults that end the run in a safe state (stopped; retracted when the
-arm still accepts commands) with a report in run.json. The interrupted probe's record and samples are written
-before any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one
-after its own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
+arm still accepts commands) with a report in run.json. The interrupted probe's record and samples are written before
+any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one after its
+own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
 
 The wrench comes from a force source (robot.forcesource): the UR's wrist sensor over the receive interface by
 default, or an external ATI Net F/T box over UDP; the UR's own force protection never sees the latter, so then this
@@ -38,6 +39,7 @@ from operator import add
 
 import numpy as np
 
+from core import ur5e
 from core.arrays import first_true
 from core.contracts import (
     DESCENT,
@@ -75,6 +77,11 @@ EARLY_CONTACT_M = 1e-3
 # times the time since the zero: twice the localizer's prior sigma on the drift (planner.localize, 1e-3 N/s, 10x a
 # Nano17's), which its fit absorbs. Beyond it a drift is a fault only once it has added up past the threshold too.
 DRIFT_ALLOWANCE_N_PER_S = 2e-3
+# ... and only between zeros taken with the tool turned alike: an external sensor's zero is an offset in its own
+# frame, so the weight of what hangs below it comes back as m g (angle) when the tool turns (30 g turned 4 degrees:
+# 20 mN, the threshold). The set-up's zero, wherever the arm starts, is therefore no reference for probe 0 unless
+# the tool points the same way within this angle; the descent's checks (surface_high, the pulled force) still hold.
+FREE_AIR_TURN_MAX_RAD = math.radians(0.5)
 
 
 @dataclass
@@ -287,7 +294,7 @@ class _ForceWatch:
         self.hist = deque(maxlen=driver.cfg.filter_window + 1)
         self.lead = stop_lead_periods(driver.cfg.filter_window)
         self.holding = False            # dwelling after a depth-limit stop: the depth held is the limit
-        self.start_depth: float | None = None    # where the descent began (the approach pose)
+        self.start_depth_m: float | None = None    # where the descent began (the approach pose)
         self.rest_depth: float | None = None    # (where the arm came to rest: its first dwell period)
 
     def _early(self, depth: float) -> None:
@@ -295,14 +302,14 @@ class _ForceWatch:
         pose (higher than registered by about the approach height), where the moves between probes pass and the
         sensor was zeroed -- possibly in the tissue, against a force no later reading sees. A fault."""
         d = self.d
-        if depth - self.start_depth < d.early_contact_m:
+        if depth - self.start_depth_m < d.early_contact_m:
             d._stop()
             h = d.plan.motion.approach_height_m
-            raise ProbeFault(FaultKind.SURFACE_HIGH, f"contact felt {(depth - self.start_depth) * 1e3:.2f} mm into "
+            raise ProbeFault(FaultKind.SURFACE_HIGH, f"contact felt {(depth - self.start_depth_m) * 1e3:.2f} mm into "
                              f"the descent from the approach pose, {h * 1e3:g} mm above the planned surface: the "
                              f"tissue's surface is about that much higher than registered, where the moves between "
                              f"probes pass (and the sensor may have been zeroed in the tissue); re-register the "
-                             f"surface, or plan with a larger --approach-height-m")
+                             f"surface, or plan a larger approach height: palpate plan --approach-height-m")
 
     def _too_deep(self, depth):
         """The depth limit (a float or an array of periods): the limit past the contact felt while descending;
@@ -325,9 +332,9 @@ class _ForceWatch:
                          f"force sign is wrong")
 
     def __call__(self, s):
-        if self.start_depth is None:
-            self.start_depth = s["depth"]
-        if s["filt"] < -self.d.free_air_band(s["t"] - self.d.zeroed_ts):
+        if self.start_depth_m is None:
+            self.start_depth_m = s["depth"]
+        if s["filt"] < -self.d.free_air_band_n(s["t"] - self.d.zeroed_ts):
             self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
             if not self.holding:
@@ -348,14 +355,14 @@ class _ForceWatch:
         """The first ``limit`` periods of ``b`` up to the first that stops the arm, with their effects."""
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
-        k = first_true(filt[:k] < -self.d.free_air_band(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
+        k = first_true(filt[:k] < -self.d.free_air_band_n(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
         #                                                                                    __call__ raises)
-        if self.start_depth is None and b.n:
-            self.start_depth = float(b.depth[0])
+        if self.start_depth_m is None and b.n:
+            self.start_depth_m = float(b.depth[0])
         j = 0
         if "depth" not in self.contact:
             j = first_true(filt[:k] > self.d.contact_thr, -1)
-            if j >= 0 and not self.holding and b.depth[j] - self.start_depth < self.d.early_contact_m:
+            if j >= 0 and not self.holding and b.depth[j] - self.start_depth_m < self.d.early_contact_m:
                 k = j                   # that period one at a time: __call__ raises the fault
                 j = 0
             elif j >= 0:
@@ -387,6 +394,7 @@ class Driver(Recovery):
         self.contact_thr = plan.motion.contact_threshold_n
         self.early_contact_m = min(EARLY_CONTACT_M, 0.5 * plan.motion.approach_height_m)
         self.zeroed_ts: float | None = None      # when the sensor was last zeroed in this run (controller time)
+        self.zeroed_rotvec: list | None = None   # and the tool's orientation then (a rotation vector, rad)
         self.noise_std = float("nan")
         self.watchdog_on = False
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
@@ -708,12 +716,15 @@ class Driver(Recovery):
         return self._loop(timeout, body, strict, what, quiet if quiet_ok else None)
 
     # ---- one probe ---------------------------------------------------------------------------------------
-    def _zero(self, probe=None) -> None:
+    def _zero(self, probe=None, rotvec=None) -> None:
+        """Zero the sensor at rest in free air (at ``probe``'s approach pose, first checked against the last zero;
+        or where the set-up left the tool, turned as ``rotvec``) and measure the free-air noise."""
         self.phase = FREE
         before: list = []
         self._wait(self.cfg.settle_s, before)
         if probe is not None:
             self._check_free_air(before, probe)
+            rotvec = probe.approach_pose[3:]
         self._link_up("zeroFtSensor")
         rtde = self.fs.name == "rtde"           # zeroFtSensor: a command of the control program
         self._require(self._sensor(self.fs.zero, self._call),
@@ -737,26 +748,30 @@ class Driver(Recovery):
                                              f"enforced with this sensor")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
         self.zeroed_ts = self.ts
+        self.zeroed_rotvec = None if rotvec is None else list(rotvec)
 
     def _check_free_air(self, vals: list, probe) -> None:
         """At a probe's approach pose, before zeroing there: the force against the previous zero (the set-up's or
         the last probe's, in this run) must be below the contact threshold -- else the tip touches something (the
         tissue's surface higher than registered, the probe about to be zeroed in it: its descent would then count
         its depth limit from a force no reading sees) or the sensor drifts; either way no probe can be trusted."""
-        if self.zeroed_ts is None or not vals:
+        if self.zeroed_ts is None or not vals or self.zeroed_rotvec is None or ur5e.rotation_angle(
+                ur5e.rotvec_to_matrix(self.zeroed_rotvec),
+                ur5e.rotvec_to_matrix(probe.approach_pose[3:])) > FREE_AIR_TURN_MAX_RAD:
             return
         f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
         dt = self.ts - self.zeroed_ts
-        if abs(f) > self.free_air_band(dt):
+        if abs(f) > self.free_air_band_n(dt):
             h = self.plan.motion.approach_height_m
             raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{f:+.3f} N at probe {probe.index}'s approach pose, {dt:.1f} s "
                              f"after the sensor was zeroed in free air (more than the contact threshold "
-                             f"{self.contact_thr:.3f} N and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift): the tip touches something there (the tissue's surface "
-                             f"higher than registered by about the approach height, {h * 1e3:g} mm: re-register it, "
-                             f"or plan with a larger --approach-height-m) or the sensor drifts "
-                             f"({f / max(dt, 1e-9):+.4f} N/s: let it warm up, check its cable and mounting)")
+                             f"{self.contact_thr:.3f} N and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift): the tip touches "
+                             f"something there (the tissue's surface higher than registered by about the approach "
+                             f"height, {h * 1e3:g} mm: re-register it, or plan a larger approach height: palpate plan "
+                             f"--approach-height-m) or the sensor drifts ({f / max(dt, 1e-9):+.4f} N/s: let it warm "
+                             f"up, check its cable and mounting)")
 
-    def free_air_band(self, dt_s):
+    def free_air_band_n(self, dt_s):
         """The largest force magnitude a reading ``dt_s`` after a free-air zero may show with nothing touching: the
         contact threshold plus DRIFT_ALLOWANCE_N_PER_S of drift since (a float, or an array of times)."""
         return self.contact_thr + DRIFT_ALLOWANCE_N_PER_S * dt_s
@@ -955,7 +970,7 @@ class Driver(Recovery):
         if not all(self.lim.box_min[k] <= p[k] <= self.lim.box_max[k] for k in range(3)):
             raise SafetyViolation(f"the arm starts at {[round(v, 3) for v in p[:3]]}, outside the workspace box")
         self._retract_from(p, s["depth"], s["x"])   # a resumed run may start with the tip in tissue
-        self._zero()                                 # free air: zero and check the sensor before moving on
+        self._zero(rotvec=p[3:])                     # free air: zero and check the sensor before moving on
 
 
 def run_plan(plan, rtde_c, rtde_r, out_dir, *, config: DriverConfig | None = None, resume=True,

@@ -146,8 +146,11 @@ def foreign_record(out_dir: str | Path, plan) -> str | None:
         p = probes.get(i)
         if p is None:
             return f"probe {i}, which the plan does not have"
-        if abs(r.x_m - p.x_m) > 1e-9 or abs((r.y_m or 0.0) - (p.y_m or 0.0)) > 1e-9:
-            return f"probe {i} at x {r.x_m:.4f} m, y {r.y_m or 0.0:.4f} m where the plan has x {p.x_m:.4f} m, y {p.y_m or 0.0:.4f} m"
+        ry, py = r.y_m or 0.0, p.y_m or 0.0
+        if abs(r.x_m - p.x_m) > 1e-9 or abs(ry - py) > 1e-9:
+            return f"probe {i} at x {r.x_m:.4f} m, y {ry:.4f} m where the plan has x {p.x_m:.4f} m, y {py:.4f} m"
+        if r.depth_planned_m is not None and abs(r.depth_planned_m - p.depth_m) > 1e-9:
+            return f"probe {i} planned {r.depth_planned_m:.4f} m deep where the plan has {p.depth_m:.4f} m"
     return None
 
 

@@ -4,6 +4,7 @@ depth limit, counted from a contact the zeroed sensor then felt late, let the ti
 drift adds up to the contact threshold between two zeros ends the run instead of faking contact in free air."""
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -25,8 +26,8 @@ def _run(tmp_path, approach_m, surface_m=0.0, drift_n_per_s=0.0):
     arm.sensor.drift[:3] += drift_n_per_s * arm.n_base
     deepest = [-1.0]
 
-    def note():     # the tip's depth below the TRUE surface
-        deepest[0] = max(deepest[0], arm.tip_in_tissue()[1] - surface_m)
+    def note():     # the tip's depth below the TRUE surface (the simulator's depth is the nominal one: + the rise)
+        deepest[0] = max(deepest[0], arm.tip_in_tissue()[1] + surface_m)
     arm.on_step.append(note)
     rep = run_plan(plan, c, r, tmp_path)
     return rep, arm, [x.status for x in read_records(tmp_path)], deepest[0]
@@ -97,8 +98,9 @@ def test_a_drift_the_localizer_absorbs_never_ends_a_slow_run(tmp_path, drift_n_p
     """The review of the first version: a fixed band stopped a plan with a 30 mm approach and 3 s dwells (22 s
     between zeros) under a 1e-3 N/s drift, which the localizer's fit absorbs (the old code found the stone). The band
     grows with the time since the zero by DRIFT_ALLOWANCE_N_PER_S (twice the localizer's prior sigma)."""
+    from planner.localize import DRIFT_SIGMA_N_PER_S
     from robot.driver import DRIFT_ALLOWANCE_N_PER_S
-    assert DRIFT_ALLOWANCE_N_PER_S >= 2 * abs(drift_n_per_s)
+    assert DRIFT_ALLOWANCE_N_PER_S == 2 * DRIFT_SIGMA_N_PER_S >= 2 * abs(drift_n_per_s)
     plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.030, dwell_s=3.0))
     arm, c, r = make_sim()
     arm.sensor.drift[:3] += drift_n_per_s * arm.n_base
@@ -107,3 +109,26 @@ def test_a_drift_the_localizer_absorbs_never_ends_a_slow_run(tmp_path, drift_n_p
     recs = read_records(tmp_path)
     assert [x.status for x in recs] == ["ok"] * len(XS)
     assert recs[1].t_s - recs[0].t_s > 0.020 / abs(drift_n_per_s)     # longer than the fixed band allowed
+
+
+def test_the_set_up_zero_is_no_reference_for_a_tool_turned_otherwise(tmp_path):
+    """An external sensor's zero is an offset in its own frame: a tool turned between two zeros brings back part of
+    the weight hanging below it (30 g turned 4 degrees: 20 mN). A start turned 2 degrees from the approach poses: the
+    approach check of probe 0 is skipped (FREE_AIR_TURN_MAX_RAD), and the approach pose inside the tissue is caught
+    in the descent instead (surface_high), the tip no deeper than the early-contact distance past the zero's pose."""
+    from robot_fixtures import TCP, TISSUE_POSE, tissue_point_pose
+
+    from core import ur5e
+    from robot.driver import FREE_AIR_TURN_MAX_RAD
+    from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
+    from robot.simforce import standin_force_model
+    start = tissue_point_pose(TISSUE_POSE, 0.035, 0.02)
+    R = ur5e.rotvec_to_matrix(start[3:]) @ ur5e.rotvec_to_matrix([math.radians(2.0), 0.0, 0.0])
+    turned = list(start[:3]) + list(ur5e.matrix_to_rotvec(R))
+    assert ur5e.rotation_angle(ur5e.rotvec_to_matrix(start[3:]), R) > FREE_AIR_TURN_MAX_RAD
+    arm = ArmModel(standin_force_model(), tissue_pose_base=TISSUE_POSE, sensor="nano17", seed=0,
+                   q0=ur5e.ik(turned, ur5e.IK_SEED, TCP), tcp_offset=TCP, surface_height_m=lambda x: 0.005)
+    plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.002, dwell_s=0.2))
+    rep = run_plan(plan, SimRTDEControl(arm), SimRTDEReceive(arm), tmp_path)
+    assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
+    assert not arm.is_moving

@@ -95,8 +95,9 @@ def test_a_fault_a_resumed_run_meets_again_says_what_to_change_first():
     re-runs each added one probe and faulted again): the last line says what must change first."""
     from app.runexec import verdict
     line = verdict(None, None, "", "fault", {"fault": {"kind": "free_air_force"}})
-    assert line.startswith("NO RESULT") and "once the sensor is steady in free air" in line
-    assert "--approach-height-m" in verdict(None, None, "", "fault", {"fault": {"kind": "surface_high"}})
+    assert line.startswith("NO RESULT") and "once the sensor reads steady in free air with its force sign" in line
+    high = verdict(None, None, "", "fault", {"fault": {"kind": "surface_high"}})
+    assert "palpate plan --approach-height-m" in high and "--fresh" in high      # a new plan: not a resume
     other = verdict(None, None, "", "fault", {"fault": {"kind": "connection_lost"}})
     assert other.endswith("the same command resumes")
 
