@@ -67,13 +67,14 @@ def _child(conn, fn, args):
     # multiprocessing ends a forked child with os._exit: threads ur_rtde leaves behind cannot hold up the exit
 
 
-def run_in_child(fn, *args, start_timeout_s: float | None = None):
+def run_in_child(fn, *args, start_timeout_s: float | None = None, start_method: str = "fork"):
     """``fn(started, *args)`` in a forked child; its return value (picklable), or ChildError for an exception it
     raised, or ChildDied if it died. ``fn`` calls ``started()`` once its unbounded start is over (ur_rtde's
     constructors have no time-out of their own against a controller that accepts but never answers); without that
     within ``start_timeout_s`` the child is killed and ChildTimeout raised. Ctrl-C is left to the child (the parent
-    ignores it while waiting)."""
-    ctx = mp.get_context("fork")
+    ignores it while waiting). ``start_method`` "spawn": a fresh interpreter (``fn`` must then be importable by name),
+    for a caller whose other threads may hold locks a forked child would inherit held."""
+    ctx = mp.get_context(start_method)
     parent_end, child_end = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(child_end, fn, args), daemon=False)
     old = signal.signal(signal.SIGINT, signal.SIG_IGN)

@@ -21,7 +21,7 @@ from fem.scene import BUILTIN
 from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
-from robot.link import connect, disconnect, end_session
+from robot.link import connect, end_session, receive_once
 from robot.records import done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -93,20 +93,13 @@ def sim_executor(truth, *, sensor: str, seed: int, out: Path, stats: dict, holde
     return _runner(interfaces, out, stats)
 
 
-def _receive_once(started, host: str) -> None:
-    """(In a child process.) Open and close ur_rtde's receive interface to ``host`` (it uploads no program)."""
-    import rtde_receive  # the compiled client, loaded only when a link is made
-    r = rtde_receive.RTDEReceiveInterface(host)
-    started()
-    disconnect(r)
-
-
 def answers(host: str) -> None:
     """Whether the controller at ``host`` answers, within CONNECT_TIMEOUT_S: UsageError (one line) if not. ur_rtde's
     constructors wait for good on a controller that accepts connections but never answers, holding the interpreter,
     so the first contact is made in a child process that is killed at the deadline (as palpate-cell does)."""
     try:
-        run_in_child(_receive_once, host, start_timeout_s=CONNECT_TIMEOUT_S)
+        # (a fresh interpreter: the table may be building on other threads here, whose locks a fork would copy)
+        run_in_child(receive_once, host, start_timeout_s=CONNECT_TIMEOUT_S, start_method="spawn")
     except ChildTimeout:
         raise UsageError(f"--host {host}: no answer from the controller within {CONNECT_TIMEOUT_S:g} s while "
                          f"connecting (frozen, overloaded, or not a UR controller); nothing was sent") from None

@@ -176,6 +176,15 @@ def connect(host: str):
     return c, r
 
 
+def receive_once(started, host: str) -> None:
+    """Open and close ur_rtde's receive interface to ``host`` (it uploads no program): whether the controller
+    answers, run in a child process that is killed at a deadline (app.runexec.answers); ``started()`` once it has."""
+    import rtde_receive  # the compiled client, loaded only when a link is made
+    r = rtde_receive.RTDEReceiveInterface(host)
+    started()
+    disconnect(r)
+
+
 def disconnect(*interfaces) -> None:
     """Close ur_rtde interfaces that are still connected, each within COMMAND_TIMEOUT_S (ur_rtde 1.6.5: a call
     after a failed reconnect may block, so a lost link is left alone; the process's exit closes what is left)."""
