@@ -60,7 +60,7 @@ def draw_run(path, f: RunFigure) -> None:
 
     ax = axs[0]
     for dep, f0, fit in zip(f.depths_m, f.prior_n, f.fitted_n):
-        ax.plot(xx, f0 * 1e3, "k-", lw=1, label=f"fem prior (no stone), depth {dep * 1e3:.1f} mm")
+        ax.plot(xx, f0 * 1e3, "k-", lw=1, label=f"fem prior (no stone) as fitted, depth {dep * 1e3:.2f} mm")
         if fit is not None:
             ax.plot(xx, fit * 1e3, "r-", lw=1, label="fem with the fitted stone")
     for k in range(rnd.max() + 1):

@@ -15,18 +15,21 @@ MAX_CURVES = 4
 
 
 def curve_depths(prior, depth_m) -> np.ndarray:
-    """The probed depths (to 10 um) to draw fem's prior curve at: the MAX_CURVES most common, inside fem's range (a
-    surface higher than registered stops probes at the depth limit, each at its own nominal depth, some at 0 or
-    above the nominal surface: fem has no force there)."""
+    """The probed depths (to 10 um) to draw fem's prior curve at: the MAX_CURVES most common (among as common ones,
+    those nearest the median), inside fem's range (a surface higher than registered stops probes at the depth
+    limit, each at its own nominal depth, some at 0 or above the nominal surface: fem has no force there)."""
     vals, cnt = np.unique(np.round(np.asarray(depth_m, float), 5), return_counts=True)
     ok = (vals > 0) & (vals < min(prior.indenter.radius_m, STRAIN_MAX * prior.tissue.height_m))
     vals, cnt = vals[ok], cnt[ok]
-    return np.sort(vals[np.argsort(-cnt, kind="stable")[:MAX_CURVES]])
+    if not len(vals):
+        return vals
+    order = np.lexsort((np.abs(vals - np.median(vals)), -cnt))     # the most common; among equals the most central
+    return np.sort(vals[order[:MAX_CURVES]])
 
 
 def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None, title: str = "") -> RunFigure:
     """The figure's numbers: ``meas`` and ``loc`` (planner.localize), fem's prior force along the probed stretch at
-    each probed depth and, with a stone detected, the ``surrogate``'s contrast of the fitted stone; ``rounds``
+    each probed depth (the true one the fit found, with its stiffness scale) and, with a stone detected, the ``surrogate``'s contrast of the fitted stone; ``rounds``
     (planner.refine) colour the probes by round; ``truth_stones`` (simulation only) are drawn dashed."""
     W = prior.tissue.width_m * 1e3
     x = meas.x_m * 1e3
@@ -36,12 +39,21 @@ def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None
         rnd = np.searchsorted(bounds, meas.index - meas.index.min(), side="right")
     xx = np.linspace(max(0.0, x.min() - 1), min(W, x.max() + 1), 200)
     depths, prior_n, fitted_n, contrast_n = [], [], [], []
+    # at the true indentations and stiffness the fit found: the nominal depth moved by the fitted surface (a surface
+    # 5 mm higher than registered: probes stopped near nominal depth 0 read 150 mN), times the stiffness scale
+    nu = loc.nuisance or {}
+    off, tilt = (float((nu.get(k) or (0.0,))[0] or 0.0) for k in ("surface_offset_m", "surface_tilt_rad"))
+    scale = float((nu.get("stiffness_scale") or (1.0,))[0] or 1.0)
+    deepest = 0.99 * min(prior.indenter.radius_m, STRAIN_MAX * prior.tissue.height_m)
     for dep in curve_depths(prior, meas.depth_m):
-        f0 = np.array([recall.force_n(prior, v * 1e-3, float(dep)) for v in xx])
+        if round(float(np.clip(dep + off, 1e-6, deepest)), 5) in [round(v, 5) for v in depths]:
+            continue            # (depth-limited probes beyond fem's deepest: one curve there)
+        d = np.clip(dep + off + tilt * (xx * 1e-3 - 0.5 * prior.tissue.width_m), 1e-6, deepest)
+        f0 = scale * np.array([recall.force_n(prior, v * 1e-3, float(di)) for v, di in zip(xx, d)])
         c = None
         if surrogate is not None and loc.detected:
-            c = surrogate.contrast(xx * 1e-3, float(dep), loc.x_m, loc.depth_m, loc.diameter_m)
-        depths.append(float(dep))
+            c = scale * np.asarray(surrogate.contrast(xx * 1e-3, d, loc.x_m, loc.depth_m, loc.diameter_m), float)
+        depths.append(float(np.clip(dep + off, 1e-6, deepest)))
         prior_n.append(f0)
         fitted_n.append(None if c is None else f0 + c)
         contrast_n.append(c)

@@ -141,6 +141,11 @@ def test_the_run_figure_draws_the_prior_at_depths_fem_has_and_at_most_four():
     got = curve_depths(prior, depth)
     assert 0.004 in got and 0.003 in got and len(got) <= MAX_CURVES
     assert np.all(got > 0) and np.all(got < prior.indenter.radius_m)
+    spread = np.linspace(-2e-4, 3e-3, 40)          # every probe its own depth (stopped at the depth limit)
+    mid = curve_depths(prior, spread)
+    inside = spread[spread > 0]
+    assert len(mid) == MAX_CURVES and np.all(np.abs(mid - np.median(inside)) < 0.2e-3)    # not the shallowest four
+    assert len(curve_depths(prior, np.full(5, -1e-4))) == 0
 
 
 def test_3d_detectability_names_no_stone_that_cannot_fit_in_the_block():
