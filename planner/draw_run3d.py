@@ -94,7 +94,7 @@ def draw_run3d(path, f: RunFigure3D) -> None:
                        color=f"C{j}", label=f"probes {lev * MM:.1f} mm deep, within "
                                             f"{SECTION_HALF_WIDTH_M * MM:g} mm of the section")
             if model is not None:
-                a.plot(sx * MM, model * MM, "-", color=f"C{j}", label=f"fitted stone at {lev * MM:.1f} mm")
+                a.plot(sx * MM, model * MM, "-", color=f"C{j}", label=f"fitted stone, probes {lev * MM:.1f} mm deep")
         for sx, sy, _ in f.truth_stones_m:
             a.axvline((sx if s.along == 0 else sy) * MM, color="g", lw=0.8, ls="--", label="true centre")
         a.axhline(0, color="k", lw=0.5)
