@@ -177,3 +177,16 @@ def test_3d_detectability_names_no_stone_that_cannot_fit_in_the_block():
     assert all(float(k) * 1e-3 + v / 2 <= 0.033 for k, v in det["smallest_detectable_diameter_m_by_depth_mm"].items())
     full = detectability3d(plan, sur, 0.07, sensor_spec=SENSORS["nano17"])       # block3d itself: all fit
     assert not any(r.get("note") == "does not fit in the block" for r in full["rows"])
+
+
+def test_a_3d_prior_fem_cannot_model_is_said_without_an_unrelated_hint(tmp_path):
+    """A block without [analysis] (block3d's patch refinement over a 60 mm block: a 36 GB compliance) was refused
+    with a hint about the depth limit and the tip's radius appended, which had nothing to do with it."""
+    scene = tmp_path / "n01.toml"
+    scene.write_text('name = "n01"\n[tissue]\nwidth_m = 0.060\nheight_m = 0.040\nlength_m = 0.060\n'
+                     'youngs_pa = 3000.0\npoisson = 0.4\n[indenter]\nshape = "sphere"\nradius_m = 0.005\n')
+    p = subprocess.run([sys.executable, "-m", "app.cli", "run", str(scene), "--sim", "--out", str(tmp_path / "o")],
+                       cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2, p.stderr
+    last = p.stderr.strip().splitlines()[-1]
+    assert "lower analysis.patch_m or analysis.surface_refine" in last and "radius" not in last, last

@@ -93,9 +93,10 @@ def run_block(args, ctx: RunContext) -> int:
                            depth_m=coarse_depths([p.depth_m for p in full.probes]))
         except PlanError as e:
             raise UsageError(f"--grid {nx}x{ny}: {plan_options_hint(str(e), args)}") from None
-        except ValueError as e:          # fem refuses the planned indentation (e.g. a tip smaller than the limit)
-            raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e} (the default depth "
-                             f"limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)") from None
+        except ValueError as e:          # fem refuses the scene or the planned indentation
+            hint = (f" (the depth limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)"
+                    if "radius" in str(e) and "depth" in str(e) else "")
+            raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e}{hint}") from None
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)
