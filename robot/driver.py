@@ -320,9 +320,8 @@ class _ForceWatch:
 
     def _pulled(self, f: float) -> None:
         """A filtered force below minus the free-air band (the contact threshold and the drift allowed since the zero)
-        in a descent or dwell: tissue pushes back, it does not pull;
-        the sensor drifts (a drift that would also hide the contact, and the depth limit counted from it), or its
-        sign or zero is wrong. A fault."""
+        in a descent or dwell: tissue pushes back, it does not pull; the sensor drifts (a drift that would also hide
+        the contact, and the depth limit counted from it), or its sign or zero is wrong. A fault."""
         d = self.d
         d._stop()
         raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"the force reads {f:+.3f} N in a descent or dwell, below minus "
