@@ -77,11 +77,12 @@ EARLY_CONTACT_M = 1e-3
 # times the time since the zero: twice the localizer's prior sigma on the drift (planner.localize, 1e-3 N/s, 10x a
 # Nano17's), which its fit absorbs. Beyond it a drift is a fault only once it has added up past the threshold too.
 DRIFT_ALLOWANCE_N_PER_S = 2e-3
-# ... and only between zeros taken with the tool turned alike: an external sensor's zero is an offset in its own
-# frame, so the weight of what hangs below it comes back as m g (angle) when the tool turns (30 g turned 4 degrees:
-# 20 mN, the threshold). The set-up's zero, wherever the arm starts, is therefore no reference for probe 0 unless
-# the tool points the same way within this angle; the descent's checks (surface_high, the pulled force) still hold.
-FREE_AIR_TURN_MAX_RAD = math.radians(0.5)
+# ... plus the weight of the tool turned between the two zeros: an external sensor's zero is an offset in its own
+# frame, so the weight below it comes back as m g (angle) when the tool turns (30 g turned 4 degrees: 20 mN, the
+# threshold; the paper plan's approach poses turn 0.6 degrees from one to the next). m: DriverConfig.payload_kg (the
+# whole tool's, an upper bound on what hangs below the sensor). The set-up's zero, wherever the arm starts, is thus
+# a reference for probe 0 only when the tool points nearly the same way; the descent's checks hold regardless.
+GRAVITY_M_S2 = 9.81
 
 
 @dataclass
@@ -754,26 +755,28 @@ class Driver(Recovery):
         the last probe's, in this run) must be below the contact threshold -- else the tip touches something (the
         tissue's surface higher than registered, the probe about to be zeroed in it: its descent would then count
         its depth limit from a force no reading sees) or the sensor drifts; either way no probe can be trusted."""
-        if self.zeroed_ts is None or not vals or self.zeroed_rotvec is None or ur5e.rotation_angle(
-                ur5e.rotvec_to_matrix(self.zeroed_rotvec),
-                ur5e.rotvec_to_matrix(probe.approach_pose[3:])) > FREE_AIR_TURN_MAX_RAD:
+        if self.zeroed_ts is None or not vals or self.zeroed_rotvec is None:
             return
+        turn = ur5e.rotation_angle(ur5e.rotvec_to_matrix(self.zeroed_rotvec),
+                                   ur5e.rotvec_to_matrix(probe.approach_pose[3:]))
         f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
         dt = self.ts - self.zeroed_ts
-        if abs(f) > self.free_air_band_n(dt):
+        if abs(f) > self.free_air_band_n(dt, turn):
             h = self.plan.motion.approach_height_m
             raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{f:+.3f} N at probe {probe.index}'s approach pose, {dt:.1f} s "
                              f"after the sensor was zeroed in free air (more than the contact threshold "
-                             f"{self.contact_thr:.3f} N and {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift): the tip touches "
+                             f"{self.contact_thr:.3f} N, {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift and the tool's weight "
+                             f"turned {math.degrees(turn):.2f} degrees since): the tip touches "
                              f"something there (the tissue's surface higher than registered by about the approach "
                              f"height, {h * 1e3:g} mm: re-register it, or plan a larger approach height: palpate plan "
                              f"--approach-height-m) or the sensor drifts ({f / max(dt, 1e-9):+.4f} N/s: let it warm "
                              f"up, check its cable and mounting)")
 
-    def free_air_band_n(self, dt_s):
+    def free_air_band_n(self, dt_s, turn_rad: float = 0.0):
         """The largest force magnitude a reading ``dt_s`` after a free-air zero may show with nothing touching: the
-        contact threshold plus DRIFT_ALLOWANCE_N_PER_S of drift since (a float, or an array of times)."""
-        return self.contact_thr + DRIFT_ALLOWANCE_N_PER_S * dt_s
+        contact threshold, plus DRIFT_ALLOWANCE_N_PER_S of drift since (a float, or an array of times), plus the
+        tool's weight times the angle ``turn_rad`` it turned since (GRAVITY_M_S2)."""
+        return self.contact_thr + DRIFT_ALLOWANCE_N_PER_S * dt_s + self.cfg.payload_kg * GRAVITY_M_S2 * turn_rad
 
     @staticmethod
     def _sensor(fn, *args):

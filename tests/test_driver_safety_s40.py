@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robot_fixtures import make_plan, make_sim  # noqa: E402
+from robot_fixtures import make_plan, make_sim, solve_joints  # noqa: E402
 
 from core.contracts import Motion  # noqa: E402
 from robot.driver import EARLY_CONTACT_M, run_plan  # noqa: E402
@@ -111,24 +111,45 @@ def test_a_drift_the_localizer_absorbs_never_ends_a_slow_run(tmp_path, drift_n_p
     assert recs[1].t_s - recs[0].t_s > 0.020 / abs(drift_n_per_s)     # longer than the fixed band allowed
 
 
-def test_the_set_up_zero_is_no_reference_for_a_tool_turned_otherwise(tmp_path):
+def test_the_band_allows_the_weight_of_a_turned_tool(tmp_path):
     """An external sensor's zero is an offset in its own frame: a tool turned between two zeros brings back part of
-    the weight hanging below it (30 g turned 4 degrees: 20 mN). A start turned 2 degrees from the approach poses: the
-    approach check of probe 0 is skipped (FREE_AIR_TURN_MAX_RAD), and the approach pose inside the tissue is caught
-    in the descent instead (surface_high), the tip no deeper than the early-contact distance past the zero's pose."""
+    the weight hanging below it (30 g turned 4 degrees: 20 mN). The band adds payload x g x the angle turned. A start
+    turned 20 degrees from the approach poses (a 0.1 kg payload: 0.34 N allowed) is no reference for probe 0's 0.26 N
+    inside the tissue; the descent catches it instead (surface_high)."""
     from robot_fixtures import TCP, TISSUE_POSE, tissue_point_pose
 
     from core import ur5e
-    from robot.driver import FREE_AIR_TURN_MAX_RAD
+    from robot.driver import GRAVITY_M_S2, Driver, DriverConfig
     from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive
     from robot.simforce import standin_force_model
     start = tissue_point_pose(TISSUE_POSE, 0.035, 0.02)
-    R = ur5e.rotvec_to_matrix(start[3:]) @ ur5e.rotvec_to_matrix([math.radians(2.0), 0.0, 0.0])
+    R = ur5e.rotvec_to_matrix(start[3:]) @ ur5e.rotvec_to_matrix([math.radians(20.0), 0.0, 0.0])
     turned = list(start[:3]) + list(ur5e.matrix_to_rotvec(R))
-    assert ur5e.rotation_angle(ur5e.rotvec_to_matrix(start[3:]), R) > FREE_AIR_TURN_MAX_RAD
     arm = ArmModel(standin_force_model(), tissue_pose_base=TISSUE_POSE, sensor="nano17", seed=0,
                    q0=ur5e.ik(turned, ur5e.IK_SEED, TCP), tcp_offset=TCP, surface_height_m=lambda x: 0.005)
     plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.002, dwell_s=0.2))
-    rep = run_plan(plan, SimRTDEControl(arm), SimRTDEReceive(arm), tmp_path)
+    cfg = DriverConfig()
+    drv = Driver(plan, SimRTDEControl(arm), SimRTDEReceive(arm), cfg)
+    drv.contact_thr = 0.02
+    assert drv.free_air_band_n(0.0, math.radians(20.0)) == pytest.approx(0.02 + cfg.payload_kg * GRAVITY_M_S2 * 0.349,
+                                                                          rel=1e-2)
+    rep = drv.run(tmp_path)
     assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
     assert not arm.is_moving
+
+
+def test_a_drift_is_caught_between_approach_poses_that_turn_a_little(tmp_path):
+    """The paper plan's approach poses turn about 0.6 degrees from one to the next (the planner's joint solutions):
+    a first version skipped the check past 0.5 degrees, so a 0.01 N/s drift faked contact on 16 probes of the
+    default run. With the weight's term instead (0.1 kg x g x 0.6 degrees: 10 mN), it ends the run at probe 1."""
+    from core import ur5e
+    plan = make_plan(XS, depth_m=0.003, motion=Motion(approach_height_m=0.004, dwell_s=0.2))
+    for k, p in enumerate(plan.probes):          # turn each approach pose 0.6 degrees more than the one before
+        R = ur5e.rotvec_to_matrix(p.approach_pose[3:]) @ ur5e.rotvec_to_matrix([math.radians(0.6) * k, 0.0, 0.0])
+        p.approach_pose = list(p.approach_pose[:3]) + list(ur5e.matrix_to_rotvec(R))
+    solve_joints(plan)
+    arm, c, r = make_sim()
+    arm.sensor.drift[:3] += 0.01 * arm.n_base
+    rep = run_plan(plan, c, r, tmp_path, config=None)
+    assert rep.status == "fault" and rep.fault["kind"] == "free_air_force", rep.fault
+    assert "probe 1's approach pose" in rep.fault["message"] and "turned 0.60 degrees" in rep.fault["message"]
