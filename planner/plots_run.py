@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from fem import recall
-from fem.scene import STRAIN_MAX
 from planner.draw_run import RunFigure
+from planner.tissue_response import fem_deepest_m
 
 MAX_CURVES = 4
 
@@ -19,7 +19,7 @@ def curve_depths(prior, depth_m) -> np.ndarray:
     those nearest the median), inside fem's range (a surface higher than registered stops probes at the depth
     limit, each at its own nominal depth, some at 0 or above the nominal surface: fem has no force there)."""
     vals, cnt = np.unique(np.round(np.asarray(depth_m, float), 5), return_counts=True)
-    ok = (vals > 0) & (vals < min(prior.indenter.radius_m, STRAIN_MAX * prior.tissue.height_m))
+    ok = (vals > 0) & (vals < fem_deepest_m(prior))
     vals, cnt = vals[ok], cnt[ok]
     if not len(vals):
         return vals
@@ -44,7 +44,7 @@ def run_figure(prior, loc, meas, *, surrogate=None, truth_stones=(), rounds=None
     nu = loc.nuisance or {}
     off, tilt = (float((nu.get(k) or (0.0,))[0] or 0.0) for k in ("surface_offset_m", "surface_tilt_rad"))
     scale = float((nu.get("stiffness_scale") or (1.0,))[0] or 1.0)
-    deepest = 0.99 * min(prior.indenter.radius_m, STRAIN_MAX * prior.tissue.height_m)
+    deepest = 0.99 * fem_deepest_m(prior)
     for dep in curve_depths(prior, meas.depth_m):
         if round(float(np.clip(dep + off, 1e-6, deepest)), 5) in [round(v, 5) for v in depths]:
             continue            # (depth-limited probes beyond fem's deepest: one curve there)

@@ -31,10 +31,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
-from fem.scene import STRAIN_MAX
 from planner.localize import MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
-from planner.tissue_response import THICKNESS_STEP, prior_and_thickness_slope
+from planner.tissue_response import THICKNESS_STEP, fem_deepest_m, prior_and_thickness_slope
 
 WEAK_LR = 12.0
 
@@ -94,8 +93,7 @@ def design_positions(loc: Localization, meas: Measurements, n: int, surrogate, w
     d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
     if prior is not None:       # inside fem's range: a surface higher than registered stops the probes at the depth
         #                         limit, their nominal depths about 0 (the design then knows the tissue's columns less)
-        d = float(np.clip(d, MIN_DESIGN_DEPTH_M, min(0.95 * prior.indenter.radius_m,
-                                                    0.99 * STRAIN_MAX * (1 - THICKNESS_STEP) * prior.tissue.height_m)))
+        d = float(np.clip(d, MIN_DESIGN_DEPTH_M, 0.95 * fem_deepest_m(prior, 1 - THICKNESS_STEP)))
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.depth_m, loc.diameter_m])
     tissue = prior is not None and "stiffness_scale" not in loc.nuisance.get("fixed", ["stiffness_scale"])

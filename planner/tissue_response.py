@@ -27,6 +27,12 @@ MIN_FRAC, MAX_FRAC = 0.06, 0.96
 _ROWS: dict = {}               # (prior key, thickness node, round(x, 7)) -> log force row
 
 
+def fem_deepest_m(prior, height_factor: float = 1.0) -> float:
+    """The deepest indentation fem takes on ``prior`` with its height scaled by ``height_factor``: below the tip's
+    radius and at most STRAIN_MAX of the height (fem.contact.check_depth)."""
+    return min(prior.indenter.radius_m, STRAIN_MAX * height_factor * prior.tissue.height_m)
+
+
 def _scene_with_height(prior, factor: float):
     return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, height_m=prior.tissue.height_m * factor))
 
