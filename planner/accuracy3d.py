@@ -43,6 +43,7 @@ from planner.localize3d import localize3d
 from planner.refine3d import SHALLOW_FRACTION, adaptive3d, coarse_depths
 from planner.surrogate3d import stone_model3d
 from planner.tasks import Runner, run_pieces
+from planner.tissue_response3d import prior_and_thickness_slope3d
 
 COARSE = (6, 6)
 GRIDS = ((6, 6), (8, 8), (10, 10), (12, 12))
@@ -132,9 +133,10 @@ def trial3d(prior, sur, stone, sensor: str, seed: int, budget: int, target_m: fl
         """(p_detect of the stone, prior forces) for probes at ``xy`` pressed ``d`` deep (planner.detect3d)."""
         if stone is None:
             return float("nan")
-        P = np.array([prior_model.force_n(float(x), float(y), float(di)) for (x, y), di in zip(xy, d)])
+        P, dP = prior_and_thickness_slope3d(prior, xy[:, 0], xy[:, 1], d)
         return p_detect3d((stone.x_m, stone.y_m, stone.depth_m, stone.diameter_m), x_m=xy[:, 0], y_m=xy[:, 1],
-                          depth_m=d, sigma_n=sig, surrogate=sur, prior_force_n=P, tau_s=probe_tau_s(Motion(), d))
+                          depth_m=d, sigma_n=sig, surrogate=sur, prior_force_n=P, tau_s=probe_tau_s(Motion(), d),
+                          thickness_slope_n=dP)
 
     coarse = grid_xy(prior, COARSE)
     d0 = coarse_depths(np.full(len(coarse), DEPTH_M))

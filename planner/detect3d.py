@@ -3,8 +3,8 @@ raster find with a given sensor?
 
 The 2D analysis (planner.detectability) over a surface: the surrogate (planner.surrogate3d) gives the contrast c_i a
 stone adds at each planned probe; the sensor gives each probe's standard error sigma_i; the localizer's nuisance
-(planner.localize3d: the drift offset, tau_i, with the localizer's prior on the drift rate, and the stiffness scale,
-the prior's force F_i) is projected out, and
+(planner.localize3d: the drift offset, tau_i, with the localizer's prior on the drift rate, the stiffness scale,
+the prior's force F_i, and the thickness change, dF_i/d eta with the localizer's prior on it) is projected out, and
 the expected likelihood ratio is the noncentrality lambda of what remains. The detection probability is P(LR >=
 threshold) with LR ~ noncentral chi2(4 dof, lambda): four fitted stone parameters (x, y, depth, diameter), the
 localizer's own threshold (LR_THRESHOLD3D). A stone counts as detectable when that probability is at least 0.9.
@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from planner.detectability import P_DETECT, ncx2_sf, noncentrality, probe_sigma_n, probe_tau_s, sensor_usable
-from planner.localize import DRIFT_SIGMA_N_PER_S, FLOOR_GAP_M, MODEL_ABS_ERR_N
+from planner.localize import DRIFT_SIGMA_N_PER_S, FLOOR_GAP_M, MODEL_ABS_ERR_N, THICKNESS_SIGMA
 from planner.localize3d import LR_THRESHOLD3D
 
 STONE_DOF = 4
@@ -31,23 +31,29 @@ def weights3d(sigma_n, contrast_n, surrogate) -> np.ndarray:
     return 1.0 / (np.asarray(sigma_n, float) ** 2 + ab ** 2 + (rel * np.maximum(c, 0.0)) ** 2)
 
 
-def p_detect3d(stone, *, x_m, y_m, depth_m, sigma_n, surrogate, prior_force_n, tau_s,
+def p_detect3d(stone, *, x_m, y_m, depth_m, sigma_n, surrogate, prior_force_n, tau_s, thickness_slope_n=None,
                lr_threshold: float = LR_THRESHOLD3D) -> float:
     """Predicted detection probability of one stone (xs_m, ys_m, depth_m, diameter_m) by probes at (x_m, y_m)
-    pressed ``depth_m`` deep, the stiffness scale and the drift unknown."""
+    pressed ``depth_m`` deep, the stiffness scale and the drift unknown, and the thickness when
+    ``thickness_slope_n`` (the prior's dF/d eta at each probe: planner.tissue_response3d) is given."""
     x, y, d = (np.asarray(v, float) for v in (x_m, y_m, depth_m))
     dc = np.clip(d, surrogate.levels[0], surrogate.levels[-1])
     c = np.asarray(surrogate.contrast(x, y, dc, *stone), float)
     w = weights3d(sigma_n, c, surrogate)
-    cols = np.c_[np.broadcast_to(np.asarray(tau_s, float), x.shape), np.broadcast_to(prior_force_n, x.shape)]
-    lam = noncentrality(c, w, cols, np.array([1.0 / DRIFT_SIGMA_N_PER_S ** 2, 0.0]))
+    cols = [np.broadcast_to(np.asarray(tau_s, float), x.shape), np.broadcast_to(prior_force_n, x.shape)]
+    prec = [1.0 / DRIFT_SIGMA_N_PER_S ** 2, 0.0]
+    if thickness_slope_n is not None:
+        cols.append(np.broadcast_to(np.asarray(thickness_slope_n, float), x.shape))
+        prec.append(1.0 / THICKNESS_SIGMA ** 2)
+    lam = noncentrality(c, w, np.array(cols).T, np.array(prec))
     return ncx2_sf(lr_threshold, STONE_DOF, max(lam, 1e-12))
 
 
-def detectability3d(plan, surrogate, prior_force_n: float, *, sensor_spec, stones=None) -> dict:
+def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None, thickness_slope_n=None) -> dict:
     """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) centred under the
-    middle of a 3D ``plan``'s raster, by that raster. ``prior_force_n``: the prior's force at the plan's depth (its
-    median planned force). Returns {"usable", "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect,
+    middle of a 3D ``plan``'s raster, by that raster. ``prior_force_n``: the prior's force at each planned probe (or
+    one for all: the median planned force); ``thickness_slope_n``: its derivative with respect to the thickness change
+    at each probe (None: the thickness taken as known). Returns {"usable", "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect,
     detectable}], "smallest_detectable_diameter_m_by_depth_mm"}."""
     x = np.array([p.x_m for p in plan.probes])
     y = np.array([p.y_m for p in plan.probes])
@@ -71,7 +77,7 @@ def detectability3d(plan, surrogate, prior_force_n: float, *, sensor_spec, stone
                          "note": "outside the surrogate's range"})
             continue
         p = p_detect3d((xc, yc, dep, D), x_m=x, y_m=y, depth_m=d, sigma_n=sig, surrogate=surrogate,
-                       prior_force_n=prior_force_n, tau_s=tau) if usable else 0.0
+                       prior_force_n=prior_force_n, tau_s=tau, thickness_slope_n=thickness_slope_n) if usable else 0.0
         ok = bool(usable and p >= P_DETECT)
         rows.append({"diameter_m": D, "depth_m": dep, "p_detect": p, "detectable": ok})
         if ok:

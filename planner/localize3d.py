@@ -10,16 +10,17 @@ The 2D localizer's method (planner.localize) over a surface instead of a line:
    measurements, by weighted least squares (scipy least_squares; sigma = the probe's noise plus the surrogate's
    model error), jointly with the nuisance the surgeon does not know (issue 14): the tissue's stiffness scale (force
    is proportional to E at a fixed Poisson ratio), the true surface's offset and its tilt about both tissue axes
-   (from the contact onsets the driver records, when at least ``MIN_ONSETS`` probes felt contact), and a sensor drift
-   (an offset growing with the time since the free-air baseline). Uncertainty: the Jacobian covariance (inflated by
+   (from the contact onsets the driver records, when at least ``MIN_ONSETS`` probes felt contact), the block's
+   thickness (a relative change with the 2D localizer's prior, ``THICKNESS_SIGMA``: the prior's response at three
+   heights, planner.tissue_response3d) and a sensor drift (an offset growing with the time since the free-air
+   baseline). Uncertainty: the Jacobian covariance (inflated by
    chi2/dof when above 1), propagated to (x, y, depth, diameter); the x-y covariance gives the uncertainty ellipse.
 4. Detection: likelihood ratio LR = chi2_0 - chi2_1 of "stone" against "no stone" (the nuisance alone), reported when
    LR >= ``LR_THRESHOLD3D``. Under "no stone" LR is the maximum over (xs, ys, depth, diameter) of a chi2: one more
    free position than in 2D, so the threshold is higher; the 3D accuracy study measures the false-alarm rate it gives
    (docs/loop3d.md).
 
-Not in 3D (said in docs/loop3d.md): the tissue's thickness as a nuisance (the block's height is the prior's), the
-profile-likelihood depth interval (the Jacobian's sigma is reported).
+Not in 3D (said in docs/loop3d.md): the profile-likelihood depth interval (the Jacobian's sigma is reported).
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ from planner.localize import (
     MIN_ONSETS,
     MODEL_ABS_ERR_N,
     ONSET_SIGMA_M,
+    THICKNESS_SIGMA,
     Localization,
     Measurements,
     _Forward,
@@ -50,10 +52,10 @@ N_AREA_STARTS = 5           # the stone fit's extra candidates: a 5 x 5 grid ove
 N_FLAT_STARTS = 2           # (the best two of them start fits, beside the best n_starts around the contrast's peak)
 # nuisance parameters, after the stone's (xs [mm], ys [mm], log clearance [log mm], diameter [mm]):
 NUISANCE3D = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_x_mrad",
-              "surface_tilt_y_mrad")
-NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 1.0])
-NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -200.0])
-NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 200.0])
+              "surface_tilt_y_mrad", "thickness_change")
+NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 1.0, 0.03])
+NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -200.0, -0.25])
+NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 200.0, 0.25])
 
 
 def _f(v):
@@ -95,49 +97,55 @@ class _Forward3D:
 
     def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool):
         self.meas, self.sur = meas, surrogate
-        self.resp = PriorResponse3D(prior, meas.x_m, meas.y_m, meas.depth_m)
+        self.resp = PriorResponse3D(prior, meas.x_m, meas.y_m, meas.depth_m, thickness=nuisance)
         self.xc_m = meas.x_m - 0.5 * prior.tissue.width_m
         self.yc_m = meas.y_m - 0.5 * prior.tissue.length_m
         self.on = np.flatnonzero(np.isfinite(meas.onset_m) & np.isfinite(meas.onset_threshold_n)
                                  & (meas.onset_threshold_n > 0))
         enough = nuisance and len(self.on) >= MIN_ONSETS
         self.free = np.array([True, nuisance, enough, enough and np.ptp(meas.x_m[self.on]) > 0.01,
-                              enough and np.ptp(meas.y_m[self.on]) > 0.01])
+                              enough and np.ptp(meas.y_m[self.on]) > 0.01, nuisance])
         self.levels = np.asarray(surrogate.levels, float)
         self._memo_tables: dict[str, dict] = {}
 
     # the 2D model's memo of its parts (a Jacobian's one-parameter steps repeat most of them): here the prior's force
-    # unless the surface moves, the contrast when only the scale or the drift does, the onsets' depths unless the
-    # scale does
+    # unless the surface or the thickness moves, the contrast when only the scale or the drift does, the onsets'
+    # depths unless the scale or the thickness does
     _memo = _Forward._memo
 
     def depth(self, nu) -> np.ndarray:
         return self.meas.depth_m + 1e-3 * (nu[2] + nu[3] * self.xc_m + nu[4] * self.yc_m)
 
-    def contrast(self, stone, d) -> np.ndarray:
+    def contrast(self, stone, d, eta: float = 0.0) -> np.ndarray:
+        """The stone's contrast at true indentations ``d`` (the table's, for the prior's thickness; beyond the
+        table's levels scaled like the block's force at the thickness change ``eta``)."""
         xs, ys, dep, D = stone
-        dc = np.clip(d, self.levels[0], self.levels[-1])     # beyond the table: the contrast scales like the force
+        dc = np.clip(d, self.levels[0], self.levels[-1])
         C = np.asarray(self.sur.contrast(self.meas.x_m, self.meas.y_m, dc, xs, ys, dep, D), float)
         out = dc != d
         if out.any():
             C = C.copy()
-            C[out] *= self.resp.force_n(d)[out] / np.maximum(self.resp.force_n(dc)[out], 1e-12)
+            C[out] *= self.resp.force_n(d, eta=eta)[out] / np.maximum(self.resp.force_n(dc, eta=eta)[out], 1e-12)
         return C
 
     def forces(self, stone, nu) -> np.ndarray:
         surf = (float(nu[2]), float(nu[3]), float(nu[4]))     # the true indentation depends on the surface only
+        eta = float(nu[5])
         d = self._memo("depth", surf, lambda: self.depth(nu))
-        F = self._memo("prior", surf, lambda: self.resp.force_n(d))
+        F = self._memo("prior", (*surf, eta), lambda: self.resp.force_n(d, eta=eta))
         if stone is not None:
-            F = F + self._memo("contrast", (*map(float, stone), *surf), lambda: self.contrast(stone, d))
+            F = F + self._memo("contrast", (*map(float, stone), *surf, eta), lambda: self.contrast(stone, d, eta))
         return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
 
     def extra(self, nu) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
+        if self.free[5]:
+            r.append(np.array([nu[5] / THICKNESS_SIGMA]))
         if self.free[2]:
             on = self.on
-            d_thr = self._memo("onset", (float(nu[1]),),
-                               lambda: self.resp.depth_at_force_m(self.meas.onset_threshold_n[on] / math.exp(nu[1]), on))
+            d_thr = self._memo("onset", (float(nu[1]), float(nu[5])),
+                               lambda: self.resp.depth_at_force_m(self.meas.onset_threshold_n[on] / math.exp(nu[1]), on,
+                                                                  eta=nu[5]))
             pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on])
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
         return np.concatenate(r)
@@ -166,6 +174,9 @@ def peak_estimate3d(x, y, c, radius_m: float = PEAK_RADIUS_M) -> tuple[float, fl
 
 
 def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
+    """The best no-stone model (nuisance only): from ``v0`` (or the prior's block) and, with the thickness free, from
+    a block thicker and thinner by twice its prior sigma (as in 2D: a thickness far from the prior's is a valley of
+    its own)."""
     def resid(v):
         nu = fw.full(v)
         return np.concatenate([(fw.meas.force_n - fw.forces(None, nu)) / sig, fw.extra(nu)])
@@ -173,8 +184,14 @@ def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
     def fit(v):
         return least_squares(resid, v, bounds=(NUIS_LO[fw.free], NUIS_HI[fw.free]), x_scale=NUIS_X_SCALE[fw.free],
                              diff_step=1e-5, max_nfev=200)
+    starts = [np.zeros(int(fw.free.sum()))] + ([v0] if v0 is not None else [])
+    if fw.free[5]:
+        for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA):
+            nu = np.zeros(len(NUISANCE3D))
+            nu[5] = e
+            starts.append(nu[fw.free])
     best = None
-    for sol in fork_map(fit, [np.zeros(int(fw.free.sum()))] + ([v0] if v0 is not None else []), workers):
+    for sol in fork_map(fit, starts, workers):
         if best is None or sol.cost < best.cost:
             best = sol
     return best
@@ -183,8 +200,9 @@ def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
 def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR_THRESHOLD3D,
                nuisance: bool = True, n_starts: int = 4, workers: int = 1) -> Localization3D:
     """Detect and locate a spherical stone from ``meas`` given only the ``prior`` (stone-free) block and the
-    ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale and the true surface (offset and
-    tilts, from the contact onsets) jointly with the stone (default); False: only the drift. ``workers``: the
+    ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale, the true surface (offset and
+    tilts, from the contact onsets) and the block's thickness jointly with the stone (default); False: only the
+    drift. ``workers``: the
     fits' starts on that many processes (planner.forkmap: the same estimate)."""
     if prior.stones:
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
@@ -199,7 +217,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     sig_a = np.sqrt(meas.sigma_n ** 2 + abs_err ** 2)
     h0 = _fit_no_stone(fw, sig_a, workers=workers)
     nu0 = fw.full(h0.x)
-    A = fw.resp.force_n(fw.depth(nu0))[:, None]
+    A = fw.resp.force_n(fw.depth(nu0), eta=nu0[5])[:, None]
     wa = 1.0 / sig_a
     coef = np.linalg.lstsq(A * wa[:, None], meas.force_n * wa, rcond=None)[0]
     contrast = meas.force_n - A @ coef
@@ -229,7 +247,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     # taking its slope, the contrast's peak elsewhere, every start there ending at the bounds: NO STONE, LR 1.2)
     def scored(nu_s, positions, ls_nodes, d_nodes):
         d0 = fw.depth(nu_s)
-        P0 = fw.resp.force_n(d0)
+        P0 = fw.resp.force_n(d0, eta=nu_s[5])
         out = []
         for ls in ls_nodes:
             for D in d_nodes:
@@ -237,7 +255,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
                     continue
                 for x, y in positions:
                     p = np.array([np.clip(x, lo[0], hi[0]), np.clip(y, lo[1], hi[1]), ls, D])
-                    M = np.c_[P0 + fw.contrast(_stone(p), d0), meas.tau_s]
+                    M = np.c_[P0 + fw.contrast(_stone(p), d0, nu_s[5]), meas.tau_s]
                     cf = np.linalg.lstsq(M * np.sqrt(w)[:, None], meas.force_n * np.sqrt(w), rcond=None)[0]
                     out.append((float(np.sum(w * (meas.force_n - M @ cf) ** 2)), p, cf, nu_s))
         return sorted(out, key=lambda t: t[0])
@@ -299,13 +317,13 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     nuis = {"stiffness_scale": (k, k * sd_nu[1]), "surface_offset_m": (nu[2] * 1e-3, sd_nu[2] * 1e-3),
             "surface_tilt_x_rad": (nu[3] * 1e-3, sd_nu[3] * 1e-3),
             "surface_tilt_y_rad": (nu[4] * 1e-3, sd_nu[4] * 1e-3),
-            "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
+            "thickness_scale": (1.0 + nu[5], sd_nu[5]), "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
             "dwell_relaxation_fraction": (rel, rel_sd), "probes_with_dwell_history": rel_n,
             "contact_onsets_used": int(len(fw.on)) if fw.free[2] else 0,
             "fit": "stone" if detected else "no stone",
             "fixed": ["stiffness_scale" if n == "log_stiffness_scale" else n
                       for n, f in zip(NUISANCE3D, fw.free) if not f]}
-    prior_n = k * fw.resp.force_n(fw.depth(nu))
+    prior_n = k * fw.resp.force_n(fw.depth(nu), eta=nu[5])
     return Localization3D(
         detected=detected, lr=float(lr), lr_threshold=lr_threshold, x_m=xs, y_m=ys, depth_m=dep,
         diameter_m=D, sigma_x_m=float(sd[0]), sigma_y_m=float(sd[1]), sigma_depth_m=float(sd[2]),
@@ -313,4 +331,4 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         chi2_1=float(chi2_1), dof_1=dof, offset_drift_n_per_s=float(nu[0] * 1e-3), peak_x_m=px, peak_y_m=py,
         peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
         contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - prior_n, prior_n=prior_n,
-        fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1)))
+        fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]))

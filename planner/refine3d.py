@@ -8,9 +8,11 @@ never sees a true scene.
 
 Where to probe next: the ``n_refine`` positions on a 1 mm grid over the probed region (repeats allowed) that shrink
 var(x) + var(y) + var(depth) most, chosen greedily from the Fisher information of (x, y, depth, diameter, stiffness
-scale, drift offset) at the current estimate (surrogate derivatives by central differences; the prior's force, the
-scale's column, taken as its median over the probes so far: the block's prior force varies by under 2 % over the
-probed region). Without a detected estimate, an even grid around the contrast's peak (a weak candidate, LR above
+scale, drift offset, thickness change) at the current estimate (surrogate derivatives by central differences; the
+prior's force, the scale's column, taken as its median over the probes so far: the block's prior force varies by
+under 2 % over the probed region; the thickness's column, the prior's dF/d eta times the fitted scale, with the
+localizer's prior on eta: fem at each measured probe, and over the candidates interpolated from a
+``THICKNESS_GRID`` x ``THICKNESS_GRID`` grid at the design's depth, since it varies smoothly over the face). Without a detected estimate, an even grid around the contrast's peak (a weak candidate, LR above
 ``WEAK_LR``) narrows in on it.
 """
 from __future__ import annotations
@@ -21,12 +23,14 @@ import time
 import numpy as np
 
 from core.contracts import MEASURED
-from planner.localize import MIN_MEASUREMENTS3D, Measurements
+from planner.localize import MIN_MEASUREMENTS3D, THICKNESS_SIGMA, Measurements
 from planner.localize3d import Localization3D, localize3d
 from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, too_few
+from planner.tissue_response3d import prior_and_thickness_slope3d
 
 DESIGN_STEP_M = 1e-3
 SHALLOW_FRACTION = 0.6      # every other coarse probe this fraction of the planned depth (coarse_depths)
+THICKNESS_GRID = 9          # the design's thickness column over the candidates: from fem on this grid per side
 
 
 def coarse_depths(depth_m) -> np.ndarray:
@@ -53,10 +57,22 @@ def grid_around(cx: float, cy: float, half_m: float, n: int, region) -> np.ndarr
     return g[np.argsort(d, kind="stable")[:n]]
 
 
+def _bilinear(gx: np.ndarray, gy: np.ndarray, V: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """``V`` (len(gx) x len(gy), on the increasing nodes gx, gy) at (x, y), bilinearly (held at the edges)."""
+    def locate(g, v):
+        i = np.clip(np.searchsorted(g, v) - 1, 0, len(g) - 2)
+        return i, np.clip((v - g[i]) / (g[i + 1] - g[i]), 0.0, 1.0)
+    i, tx = locate(gx, np.asarray(x, float))
+    j, ty = locate(gy, np.asarray(y, float))
+    return ((1 - tx) * (1 - ty) * V[i, j] + tx * (1 - ty) * V[i + 1, j] + (1 - tx) * ty * V[i, j + 1]
+            + tx * ty * V[i + 1, j + 1])
+
+
 def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogate, region,
-                       depth_m: float | None = None, step_m: float = DESIGN_STEP_M) -> np.ndarray:
+                       depth_m: float | None = None, step_m: float = DESIGN_STEP_M, prior=None) -> np.ndarray:
     """``n`` positions (n x 2) chosen one by one to shrink var(x) + var(y) + var(depth) of the estimate most (module
-    doc); an even grid around the peak without a detected, finite estimate."""
+    doc); an even grid around the peak without a detected, finite estimate. ``prior``: the prior block, for the
+    thickness's column (None: the thickness taken as known)."""
     if not (loc.detected and all(map(math.isfinite, (loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m)))):
         cx, cy = (loc.peak_x_m, loc.peak_y_m) if math.isfinite(loc.peak_x_m) else (
             0.5 * (region[0] + region[1]), 0.5 * (region[2] + region[3]))
@@ -65,22 +81,35 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m])
     P = float(np.median(loc.prior_n)) if loc.prior_n is not None else 0.0
+    k_scale = float((loc.nuisance or {}).get("stiffness_scale", (1.0,))[0])
 
-    def jac(x, y, dd):
+    def jac(x, y, dd, dP=None):
         cols = [np.full(len(x), P) + surrogate.contrast(x, y, dd, *th)]
         for i in range(4):
             h = np.zeros(4)
             h[i] = 2e-5
             cols.append((surrogate.contrast(x, y, dd, *(th + h)) - surrogate.contrast(x, y, dd, *(th - h))) / 4e-5)
         cols.append(np.full(len(x), 1e-3))        # drift offset, in mN
+        if dP is not None:
+            cols.append(k_scale * dP)             # thickness change
         return np.array(cols).T
-    Je = jac(meas.x_m, meas.y_m, np.clip(meas.depth_m, surrogate.levels[0], surrogate.levels[-1])) / meas.sigma_n[:, None]
-    F = Je.T @ Je + 1e-12 * np.eye(Je.shape[1])
     x0, x1, y0, y1 = region
+    dP_meas = dP_cand = None
     gx, gy = np.meshgrid(np.arange(x0, x1 + 1e-12, step_m), np.arange(y0, y1 + 1e-12, step_m), indexing="ij")
     cand = np.c_[gx.ravel(), gy.ravel()]
+    if prior is not None:
+        dP_meas = prior_and_thickness_slope3d(prior, meas.x_m, meas.y_m, meas.depth_m)[1]
+        nx, ny = np.linspace(x0, x1, THICKNESS_GRID), np.linspace(y0, y1, THICKNESS_GRID)
+        X, Y = np.meshgrid(nx, ny, indexing="ij")
+        V = prior_and_thickness_slope3d(prior, X.ravel(), Y.ravel(), d)[1].reshape(X.shape)
+        dP_cand = _bilinear(nx, ny, V, cand[:, 0], cand[:, 1])
+    Je = jac(meas.x_m, meas.y_m, np.clip(meas.depth_m, surrogate.levels[0], surrogate.levels[-1]),
+             dP_meas) / meas.sigma_n[:, None]
+    F = Je.T @ Je + 1e-12 * np.eye(Je.shape[1])
+    if prior is not None:
+        F[-1, -1] += 1.0 / THICKNESS_SIGMA ** 2
     dd = float(np.clip(d, surrogate.levels[0], surrogate.levels[-1]))
-    Jc = jac(cand[:, 0], cand[:, 1], np.full(len(cand), dd)) / sig
+    Jc = jac(cand[:, 0], cand[:, 1], np.full(len(cand), dd), dP_cand) / sig
     Fi = np.linalg.inv(F)
     want = np.array([1, 2, 3])                    # x, y, depth columns
     out = []
@@ -137,7 +166,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         if n < 4:
             reason = "probe budget spent"
             break
-        xy = design_positions3d(loc, meas, n, surrogate, region)
+        xy = design_positions3d(loc, meas, n, surrogate, region, prior=prior)
         k += 1
     return AdaptiveResult(loc, meas, rounds, used, reason)
 

@@ -33,7 +33,7 @@ def fem_deepest_m(prior, height_factor: float = 1.0) -> float:
     return min(prior.indenter.radius_m, STRAIN_MAX * height_factor * prior.tissue.height_m)
 
 
-def _scene_with_height(prior, factor: float):
+def scene_with_height(prior, factor: float):
     return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, height_m=prior.tissue.height_m * factor))
 
 
@@ -49,7 +49,7 @@ class PriorResponse:
         x = np.clip(np.asarray(x_m, float), 0.0, W)
         tabs = []
         for k in (-1, 0, 1):
-            sc = _scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+            sc = scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
             rows = []
             for xi in x:
                 key = (prior.key(), k, round(float(xi), 7))
@@ -158,6 +158,6 @@ def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarr
     d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
     F = {}
     for k in (-1, 0, 1):       # (remembered: a run's refinement design asks for the same candidate grid every round)
-        sc = _scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+        sc = scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
         F[k] = np.array([recall.force_n(sc, float(xi), float(di)) for xi, di in zip(x, d)])
     return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)

@@ -12,70 +12,124 @@ anchor on the test block; tests/test_loop3d.py measures both). Beyond the grid (
 refuses indentations at the tip radius) the same line is extrapolated. A position's row is computed once per process
 (rounds re-use the positions of earlier ones).
 
-The thickness is not a nuisance in 3D (unlike the 2D section, planner.tissue_response): the block's thickness is
-known to the planner as the prior's, and the 3D fit does without it (docs/loop3d.md says what that costs).
+The tissue's thickness is a nuisance as in the 2D section (planner.tissue_response): the rows are tabulated for
+the prior and for the prior with its height scaled by ``1 -+ THICKNESS_STEP`` (two more 3D fem models of the block,
+built once and kept in the disk cache), each anchored at the probe's indentation on its own model, and interpolated
+quadratically in the relative thickness change ``eta``. A localizer that holds the thickness fixed asks for the
+prior's height alone (``thickness=False``).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from fem import recall3d
-from fem.contact3d import surface_model3d
+from fem.contact3d import surface3d_cached, surface_model3d
 from fem.scene import STRAIN_MAX
-from planner.tissue_response import loglog_depth, loglog_force
+from planner.tissue_response import THICKNESS_STEP, loglog_depth, loglog_force, scene_with_height
 
 N_NODES = 16
 MIN_FRAC, MAX_FRAC = 0.06, 0.96
 
-_ROWS: dict = {}          # (prior key, round(x, 7), round(y, 7)) -> log force row
+_ROWS: dict = {}          # (scene key, round(x, 7), round(y, 7)) -> log force row
 
 
 class PriorResponse3D:
-    """log F(x_i, y_i, d) of the prior (stone-free) block at fixed probe positions, anchored at ``depth_m`` (one per
-    probe: fem's exact force there; None: not anchored)."""
+    """log F(x_i, y_i, d, eta) of the prior (stone-free) block at fixed probe positions, anchored at ``depth_m`` (one
+    per probe: fem's exact force there on each thickness's model; None: not anchored). ``thickness``: tabulate the
+    thinner and thicker blocks too (eta free); False: the prior's height only (eta must be 0)."""
 
-    def __init__(self, prior, x_m, y_m, depth_m=None):
+    def __init__(self, prior, x_m, y_m, depth_m=None, thickness: bool = True):
         R = prior.indenter.radius_m
-        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * prior.tissue.height_m)    # (a thin block: fem's deepest)
+        # up to the tip's radius, or on a thin block to the deepest indentation fem allows on its thinnest node
+        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * (1.0 - THICKNESS_STEP) * prior.tissue.height_m)
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
-        rows = []
-        for xi, yi in zip(np.asarray(x_m, float), np.asarray(y_m, float)):
-            key = (prior.key(), round(float(xi), 7), round(float(yi), 7))
-            row = _ROWS.get(key)
-            if row is None:
-                row = np.log(np.maximum([recall3d.force_n(prior, float(xi), float(yi), float(d))
-                                         for d in np.exp(self.logd)], 1e-12))
-                _ROWS[key] = row
-            rows.append(row)
-        self.rows = np.array(rows).reshape(-1, N_NODES)
-        if depth_m is not None:
-            surface_model3d(prior)     # built (or restored) first: _exact takes a ValueError for a refused depth only
-            d = np.asarray(depth_m, float)
-            exact = np.array([_exact(prior, float(x), float(y), float(di))
-                              for x, y, di in zip(np.asarray(x_m, float), np.asarray(y_m, float), d)])
-            ok = exact > 0
-            shift = np.zeros(len(d))
-            shift[ok] = np.log(exact[ok]) - np.log(loglog_force(self.rows[ok], self.logd, d[ok]))
-            self.rows = self.rows + shift[:, None]
+        self.thickness = bool(thickness)
+        x, y = np.asarray(x_m, float), np.asarray(y_m, float)
+        tabs = []
+        for k in ((-1, 0, 1) if thickness else (0,)):
+            sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+            rows = []
+            for xi, yi in zip(x, y):
+                key = (sc.key(), round(float(xi), 7), round(float(yi), 7))
+                row = _ROWS.get(key)
+                if row is None:
+                    row = np.log(np.maximum([recall3d.force_n(sc, float(xi), float(yi), float(d))
+                                             for d in np.exp(self.logd)], 1e-12))
+                    _ROWS[key] = row
+                rows.append(row)
+            rows = np.array(rows).reshape(-1, N_NODES)
+            if depth_m is not None:
+                surface_model3d(sc)   # built (or restored) first: _exact takes a ValueError for a refused depth only
+                d = np.asarray(depth_m, float)
+                exact = np.array([_exact(sc, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
+                ok = exact > 0
+                shift = np.zeros(len(d))
+                shift[ok] = np.log(exact[ok]) - np.log(loglog_force(rows[ok], self.logd, d[ok]))
+                rows = rows + shift[:, None]
+            tabs.append(rows)
+        self.T = np.stack(tabs)          # (thickness nodes, n, depth nodes)
+        self._last: tuple[float, np.ndarray] | None = None
 
-    def force_n(self, depth_m, idx=None) -> np.ndarray:
-        """The prior's force at each probe's (or probe ``idx``'s) true indentation ``depth_m`` (0 out of contact)."""
-        return loglog_force(self.rows if idx is None else self.rows[idx], self.logd, depth_m)
+    @property
+    def rows(self) -> np.ndarray:
+        """The prior's own rows (eta = 0)."""
+        return self.T[len(self.T) // 2]
 
-    def depth_at_force_m(self, force_n, idx=None) -> np.ndarray:
+    def _rows(self, eta: float) -> np.ndarray:
+        """log F rows at the relative thickness change ``eta`` (quadratic through the three nodes; the last eta's
+        kept: a fit asks for the same one several times per evaluation)."""
+        eta = float(eta)
+        if eta == 0.0:
+            return self.rows
+        if not self.thickness:
+            raise ValueError("PriorResponse3D(thickness=False) has the prior's height only: eta must be 0")
+        if self._last is None or self._last[0] != eta:
+            u = eta / THICKNESS_STEP
+            w = np.array([0.5 * u * (u - 1), 1 - u * u, 0.5 * u * (u + 1)])
+            self._last = (eta, np.tensordot(w, self.T, axes=1))
+        return self._last[1]
+
+    def force_n(self, depth_m, idx=None, eta: float = 0.0) -> np.ndarray:
+        """The prior's force at each probe's (or probe ``idx``'s) true indentation ``depth_m`` (0 out of contact), the
+        block's thickness changed by the relative ``eta``."""
+        rows = self._rows(eta)
+        return loglog_force(rows if idx is None else rows[idx], self.logd, depth_m)
+
+    def depth_at_force_m(self, force_n, idx=None, eta: float = 0.0) -> np.ndarray:
         """The indentation at which each probe's (or probe ``idx``'s) prior force reaches ``force_n``."""
-        return loglog_depth(self.rows if idx is None else self.rows[idx], self.logd, force_n)
+        rows = self._rows(eta)
+        return loglog_depth(rows if idx is None else rows[idx], self.logd, force_n)
 
 
 _EXACT: dict = {}
 
 
-def _exact(prior, x: float, y: float, d: float) -> float:
+def _exact(scene, x: float, y: float, d: float) -> float:
     """fem's force at (x, y, d), 0 where fem refuses the indentation (at the tip radius): no anchor there."""
-    key = (prior.key(), round(x, 7), round(y, 7), round(d, 9))
+    key = (scene.key(), round(x, 7), round(y, 7), round(d, 9))
     if key not in _EXACT:
         try:
-            _EXACT[key] = recall3d.force_n(prior, x, y, d) if d > 0 else 0.0
+            _EXACT[key] = recall3d.force_n(scene, x, y, d) if d > 0 else 0.0
         except ValueError:
             _EXACT[key] = 0.0
     return _EXACT[key]
+
+
+def prior_and_thickness_slope3d(prior, x_m, y_m, depth_m) -> tuple[np.ndarray, np.ndarray]:
+    """The prior block's force at each (x, y) pressed ``depth_m`` deep (one, or one per position) and its derivative
+    with respect to the relative thickness change (central difference over the ``THICKNESS_STEP`` nodes, fem on
+    each): the nuisance columns of a 3D detectability analysis (planner.detect3d), as in 2D."""
+    x, y = np.asarray(x_m, float), np.asarray(y_m, float)
+    d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
+    F = {}
+    for k in (-1, 0, 1):
+        sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+        F[k] = np.array([recall3d.force_n(sc, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
+    return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)
+
+
+def thickness_models_to_build(prior) -> list[float]:
+    """The height factors (of ``1 -+ THICKNESS_STEP``) whose 3D fem model of the prior block is not in the disk
+    cache yet: built on first use (about a minute each for block3d here), then kept."""
+    return [f for f in (1.0 - THICKNESS_STEP, 1.0 + THICKNESS_STEP)
+            if not surface3d_cached(scene_with_height(prior, f))]

@@ -11,7 +11,6 @@ from __future__ import annotations
 import contextlib
 import json
 import math
-import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -44,6 +43,7 @@ from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
 from planner.surrogate3d import load_surrogate3d
+from planner.tissue_response3d import prior_and_thickness_slope3d, thickness_models_to_build
 
 
 @dataclass
@@ -65,12 +65,16 @@ def _say(msg: str) -> None:
     print(f"palpate run: {msg}", file=sys.stderr, flush=True)
 
 
-def _detectable(plan0, sur, sensor: str) -> dict:
+def _detectable(prior, plan0, sur, sensor: str) -> dict:
     """What the coarse grid can detect before probing (planner.detect3d: a stone under the grid's middle, the
-    stiffness scale and the drift unknown), said on one line; its dict for result.json."""
-    forces = [p.predicted_force_n for p in plan0.probes if p.predicted_force_n]
-    det = detectability3d(plan0, sur, float(statistics.median(forces)) if forces else 0.0,
-                          sensor_spec=sensor_spec(sensor))
+    stiffness scale, the thickness and the drift unknown), said on one line; its dict for result.json."""
+    missing = thickness_models_to_build(prior)
+    if missing:
+        _say(f"building the prior block's fem model at {' and '.join(f'{f:g}' for f in missing)} of its thickness "
+             f"(the localizer fits the thickness; once, then cached)")
+    P, dP = prior_and_thickness_slope3d(prior, [p.x_m for p in plan0.probes], [p.y_m for p in plan0.probes],
+                                        [p.depth_m for p in plan0.probes])
+    det = detectability3d(plan0, sur, P, sensor_spec=sensor_spec(sensor), thickness_slope_n=dP)
     smallest = det["smallest_detectable_diameter_m_by_depth_mm"]
     sizes = [r["diameter_m"] for r in det["rows"] if r["p_detect"] is not None]
     text = (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items())
@@ -101,7 +105,7 @@ def run_block(args, ctx: RunContext) -> int:
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)
     table_s = time.perf_counter() - t0
-    det = _detectable(plan0, sur, args.sensor)
+    det = _detectable(prior, plan0, sur, args.sensor)
     stats = new_stats()
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()
