@@ -204,7 +204,9 @@ def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
             "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
             **({"ft": args.ft.text} if args.ft.kind != "rtde" else {}),     # absent for the wrist sensor: older
             #                                                                 runs resume
-            **({"depth_limit_m": args.depth_limit_m} if getattr(args, "depth_limit_m", None) is not None else {})}
+            **({"depth_limit_m": args.depth_limit_m} if getattr(args, "depth_limit_m", None) is not None else {}),
+            **({"thickness_sigma_m": args.thickness_sigma_m}
+               if getattr(args, "thickness_sigma_m", None) is not None else {})}
 
 
 def run_limits(args) -> Limits:

@@ -2,12 +2,14 @@
 thickness in 3D").
 
     python bench/thickness3d.py --out bench-out/thickness3d [--seeds 0 1 2] [--code DIR --label before]
+                                [--label measured-1mm --extra "--thickness-sigma-m 0.001"]
 
 Each truth is block3d's prior (70 x 70 x 50 mm, 2500 Pa, its own mesh) with its height scaled, its modulus
 possibly changed, and a stone or none; each is run as a user would, `palpate run TRUTH.toml --prior block3d --sim
 --seed S` (84-probe budget, nano17, the figure left out), and its result.json read back. ``--code DIR`` runs another
 checkout of palpate instead of this one (``PYTHONPATH=DIR``; the same truths, seeds and cache), labelled
-``--label``: the before/after table in one sitting. Runs already in OUT are read, not repeated (resumable); every
+``--label``: the before/after table in one sitting; ``--extra`` adds options to every run (e.g. the thickness's
+prior). Runs already in OUT are read, not repeated (resumable); every
 row goes to OUT/thickness3d.jsonl and the table to OUT/thickness3d.md.
 """
 from __future__ import annotations
@@ -53,7 +55,7 @@ def truth_scene(tag: str, factor: float, youngs_pa: float, stone) -> S.Scene:
     return sc
 
 
-def run_one(out: Path, tag: str, seed: int, code: Path | None, label: str) -> dict:
+def run_one(out: Path, tag: str, seed: int, code: Path | None, label: str, extra: list[str]) -> dict:
     run_dir = out / "runs" / f"{label}-{tag}-s{seed}"
     res = run_dir / "result.json"
     wall = None
@@ -64,7 +66,7 @@ def run_one(out: Path, tag: str, seed: int, code: Path | None, label: str) -> di
         cmd = [sys.executable, "-c", "import sys; sys.argv = ['palpate'] + sys.argv[1:]; "
                "from app.entry import palpate; palpate()", "run", str(out / "scenes" / f"{tag}.toml"),
                "--prior", "block3d", "--sim", "--seed", str(seed), "--no-figure", "--fit-workers", "1",
-               "--out", str(run_dir)]
+               "--out", str(run_dir)] + extra
         t0 = time.perf_counter()
         p = subprocess.run(cmd, env=env, cwd=str(code or ROOT), capture_output=True, text=True)
         wall = time.perf_counter() - t0
@@ -122,7 +124,9 @@ def main() -> int:
     ap.add_argument("--code", type=Path, default=None, help="another checkout of palpate to run (default: this one)")
     ap.add_argument("--label", default="this", help="the version's name in the table (default: this)")
     ap.add_argument("--only", nargs="*", default=None, help="truth tags to run (default: all)")
+    ap.add_argument("--extra", default="", help="more options for every `palpate run`, one string")
     a = ap.parse_args()
+    a.out = a.out.resolve()          # (another checkout runs in its own directory)
     (a.out / "scenes").mkdir(parents=True, exist_ok=True)
     for tag, factor, E, stone in TRUTHS:
         p = a.out / "scenes" / f"{tag}.toml"
@@ -133,7 +137,7 @@ def main() -> int:
         if a.only and tag not in a.only:
             continue
         for seed in a.seeds:
-            row = run_one(a.out, tag, seed, a.code, a.label)
+            row = run_one(a.out, tag, seed, a.code, a.label, a.extra.split())
             with log.open("a") as fh:
                 fh.write(json.dumps(row) + "\n")
             print(json.dumps({k: row.get(k) for k in ("label", "truth", "seed", "detected", "lr",

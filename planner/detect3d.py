@@ -32,28 +32,30 @@ def weights3d(sigma_n, contrast_n, surrogate) -> np.ndarray:
 
 
 def p_detect3d(stone, *, x_m, y_m, depth_m, sigma_n, surrogate, prior_force_n, tau_s, thickness_slope_n=None,
-               lr_threshold: float = LR_THRESHOLD3D) -> float:
+               thickness_sigma: float = THICKNESS_SIGMA, lr_threshold: float = LR_THRESHOLD3D) -> float:
     """Predicted detection probability of one stone (xs_m, ys_m, depth_m, diameter_m) by probes at (x_m, y_m)
     pressed ``depth_m`` deep, the stiffness scale and the drift unknown, and the thickness when
-    ``thickness_slope_n`` (the prior's dF/d eta at each probe: planner.tissue_response3d) is given."""
+    ``thickness_slope_n`` (the prior's dF/d eta at each probe: planner.tissue_response3d) is given, with the prior
+    ``thickness_sigma`` on eta (0: known)."""
     x, y, d = (np.asarray(v, float) for v in (x_m, y_m, depth_m))
     dc = np.clip(d, surrogate.levels[0], surrogate.levels[-1])
     c = np.asarray(surrogate.contrast(x, y, dc, *stone), float)
     w = weights3d(sigma_n, c, surrogate)
     cols = [np.broadcast_to(np.asarray(tau_s, float), x.shape), np.broadcast_to(prior_force_n, x.shape)]
     prec = [1.0 / DRIFT_SIGMA_N_PER_S ** 2, 0.0]
-    if thickness_slope_n is not None:
+    if thickness_slope_n is not None and thickness_sigma > 0:
         cols.append(np.broadcast_to(np.asarray(thickness_slope_n, float), x.shape))
-        prec.append(1.0 / THICKNESS_SIGMA ** 2)
+        prec.append(1.0 / thickness_sigma ** 2)
     lam = noncentrality(c, w, np.array(cols).T, np.array(prec))
     return ncx2_sf(lr_threshold, STONE_DOF, max(lam, 1e-12))
 
 
-def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None, thickness_slope_n=None) -> dict:
+def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None, thickness_slope_n=None,
+                    thickness_sigma: float = THICKNESS_SIGMA) -> dict:
     """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) centred under the
     middle of a 3D ``plan``'s raster, by that raster. ``prior_force_n``: the prior's force at each planned probe (or
     one for all: the median planned force); ``thickness_slope_n``: its derivative with respect to the thickness change
-    at each probe (None: the thickness taken as known). Returns {"usable", "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect,
+    at each probe, with the prior ``thickness_sigma`` (None or 0: the thickness taken as known). Returns {"usable", "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect,
     detectable}], "smallest_detectable_diameter_m_by_depth_mm"}."""
     x = np.array([p.x_m for p in plan.probes])
     y = np.array([p.y_m for p in plan.probes])
@@ -77,7 +79,8 @@ def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None,
                          "note": "outside the surrogate's range"})
             continue
         p = p_detect3d((xc, yc, dep, D), x_m=x, y_m=y, depth_m=d, sigma_n=sig, surrogate=surrogate,
-                       prior_force_n=prior_force_n, tau_s=tau, thickness_slope_n=thickness_slope_n) if usable else 0.0
+                       prior_force_n=prior_force_n, tau_s=tau, thickness_slope_n=thickness_slope_n,
+                       thickness_sigma=thickness_sigma) if usable else 0.0
         ok = bool(usable and p >= P_DETECT)
         rows.append({"diameter_m": D, "depth_m": dep, "p_detect": p, "detectable": ok})
         if ok:

@@ -11,8 +11,8 @@ The 2D localizer's method (planner.localize) over a surface instead of a line:
    model error), jointly with the nuisance the surgeon does not know (issue 14): the tissue's stiffness scale (force
    is proportional to E at a fixed Poisson ratio), the true surface's offset and its tilt about both tissue axes
    (from the contact onsets the driver records, when at least ``MIN_ONSETS`` probes felt contact), the block's
-   thickness (a relative change with the 2D localizer's prior, ``THICKNESS_SIGMA``: the prior's response at three
-   heights, planner.tissue_response3d) and a sensor drift (an offset growing with the time since the free-air
+   thickness (a relative change with a Gaussian prior, by default the 2D localizer's ``THICKNESS_SIGMA``; 0: the
+   thickness known; the prior's response at three heights, planner.tissue_response3d) and a sensor drift (an offset growing with the time since the free-air
    baseline). Uncertainty: the Jacobian covariance (inflated by
    chi2/dof when above 1), propagated to (x, y, depth, diameter); the x-y covariance gives the uncertainty ellipse.
 4. Detection: likelihood ratio LR = chi2_0 - chi2_1 of "stone" against "no stone" (the nuisance alone), reported when
@@ -47,6 +47,7 @@ from planner.localize import (
 from planner.tissue_response3d import PriorResponse3D
 
 LR_THRESHOLD3D = 25.0
+MAX_THICKNESS_SIGMA = 0.10  # the thickness's prior sigma at most (relative): the response is tabulated at 1 -+ 0.1
 PEAK_RADIUS_M = 5e-3
 N_AREA_STARTS = 5           # the stone fit's extra candidates: a 5 x 5 grid over the probed area, the surface untilted
 N_FLAT_STARTS = 2           # (the best two of them start fits, beside the best n_starts around the contrast's peak)
@@ -95,16 +96,19 @@ def surrogate_bounds(sur) -> dict:
 class _Forward3D:
     """Forces (and onset and drift residuals) of the prior + nuisance (+ stone) model at the measured probes."""
 
-    def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool):
+    def __init__(self, prior, meas: Measurements, surrogate, nuisance: bool,
+                 thickness_sigma: float = THICKNESS_SIGMA):
         self.meas, self.sur = meas, surrogate
-        self.resp = PriorResponse3D(prior, meas.x_m, meas.y_m, meas.depth_m, thickness=nuisance)
+        self.thickness_sigma = float(thickness_sigma)
+        thick = bool(nuisance and self.thickness_sigma > 0)
+        self.resp = PriorResponse3D(prior, meas.x_m, meas.y_m, meas.depth_m, thickness=thick)
         self.xc_m = meas.x_m - 0.5 * prior.tissue.width_m
         self.yc_m = meas.y_m - 0.5 * prior.tissue.length_m
         self.on = np.flatnonzero(np.isfinite(meas.onset_m) & np.isfinite(meas.onset_threshold_n)
                                  & (meas.onset_threshold_n > 0))
         enough = nuisance and len(self.on) >= MIN_ONSETS
         self.free = np.array([True, nuisance, enough, enough and np.ptp(meas.x_m[self.on]) > 0.01,
-                              enough and np.ptp(meas.y_m[self.on]) > 0.01, nuisance])
+                              enough and np.ptp(meas.y_m[self.on]) > 0.01, thick])
         self.levels = np.asarray(surrogate.levels, float)
         self._memo_tables: dict[str, dict] = {}
 
@@ -140,7 +144,7 @@ class _Forward3D:
     def extra(self, nu) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[5]:
-            r.append(np.array([nu[5] / THICKNESS_SIGMA]))
+            r.append(np.array([nu[5] / self.thickness_sigma]))
         if self.free[2]:
             on = self.on
             d_thr = self._memo("onset", (float(nu[1]), float(nu[5])),
@@ -186,7 +190,7 @@ def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
                              diff_step=1e-5, max_nfev=200)
     starts = [np.zeros(int(fw.free.sum()))] + ([v0] if v0 is not None else [])
     if fw.free[5]:
-        for e in (-2 * THICKNESS_SIGMA, 2 * THICKNESS_SIGMA):
+        for e in (-2 * fw.thickness_sigma, 2 * fw.thickness_sigma):
             nu = np.zeros(len(NUISANCE3D))
             nu[5] = e
             starts.append(nu[fw.free])
@@ -198,11 +202,13 @@ def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
 
 
 def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR_THRESHOLD3D,
-               nuisance: bool = True, n_starts: int = 4, workers: int = 1) -> Localization3D:
+               nuisance: bool = True, n_starts: int = 4, workers: int = 1,
+               thickness_sigma: float = THICKNESS_SIGMA) -> Localization3D:
     """Detect and locate a spherical stone from ``meas`` given only the ``prior`` (stone-free) block and the
     ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale, the true surface (offset and
     tilts, from the contact onsets) and the block's thickness jointly with the stone (default); False: only the
-    drift. ``workers``: the
+    drift. ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (1 sigma; 0: known, not
+    fitted). ``workers``: the
     fits' starts on that many processes (planner.forkmap: the same estimate)."""
     if prior.stones:
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
@@ -210,7 +216,9 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         raise ValueError("localize3d() takes a 3D block (tissue.length_m); planner.localize handles a 2D section")
     if len(meas) < MIN_MEASUREMENTS + 1:
         raise ValueError(f"need at least {MIN_MEASUREMENTS + 1} probe measurements, got {len(meas)}")
-    fw = _Forward3D(prior, meas, surrogate, nuisance)
+    if not (math.isfinite(thickness_sigma) and 0.0 <= thickness_sigma <= MAX_THICKNESS_SIGMA):
+        raise ValueError(f"thickness_sigma={thickness_sigma}: must be between 0 and {MAX_THICKNESS_SIGMA}")
+    fw = _Forward3D(prior, meas, surrogate, nuisance, thickness_sigma)
     nf = int(fw.free.sum())
     rel_err = float(getattr(surrogate, "rel_err", 0.02))
     abs_err = float(getattr(surrogate, "abs_err_n", MODEL_ABS_ERR_N))
@@ -317,7 +325,8 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     nuis = {"stiffness_scale": (k, k * sd_nu[1]), "surface_offset_m": (nu[2] * 1e-3, sd_nu[2] * 1e-3),
             "surface_tilt_x_rad": (nu[3] * 1e-3, sd_nu[3] * 1e-3),
             "surface_tilt_y_rad": (nu[4] * 1e-3, sd_nu[4] * 1e-3),
-            "thickness_scale": (1.0 + nu[5], sd_nu[5]), "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
+            "thickness_scale": (1.0 + nu[5], sd_nu[5]), "thickness_prior_sigma": fw.thickness_sigma,
+            "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
             "dwell_relaxation_fraction": (rel, rel_sd), "probes_with_dwell_history": rel_n,
             "contact_onsets_used": int(len(fw.on)) if fw.free[2] else 0,
             "fit": "stone" if detected else "no stone",

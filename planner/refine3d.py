@@ -69,10 +69,11 @@ def _bilinear(gx: np.ndarray, gy: np.ndarray, V: np.ndarray, x: np.ndarray, y: n
 
 
 def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogate, region,
-                       depth_m: float | None = None, step_m: float = DESIGN_STEP_M, prior=None) -> np.ndarray:
+                       depth_m: float | None = None, step_m: float = DESIGN_STEP_M, prior=None,
+                       thickness_sigma: float = THICKNESS_SIGMA) -> np.ndarray:
     """``n`` positions (n x 2) chosen one by one to shrink var(x) + var(y) + var(depth) of the estimate most (module
     doc); an even grid around the peak without a detected, finite estimate. ``prior``: the prior block, for the
-    thickness's column (None: the thickness taken as known)."""
+    thickness's column, with the prior ``thickness_sigma`` on it (None or 0: the thickness taken as known)."""
     if not (loc.detected and all(map(math.isfinite, (loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m)))):
         cx, cy = (loc.peak_x_m, loc.peak_y_m) if math.isfinite(loc.peak_x_m) else (
             0.5 * (region[0] + region[1]), 0.5 * (region[2] + region[3]))
@@ -97,7 +98,8 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
     dP_meas = dP_cand = None
     gx, gy = np.meshgrid(np.arange(x0, x1 + 1e-12, step_m), np.arange(y0, y1 + 1e-12, step_m), indexing="ij")
     cand = np.c_[gx.ravel(), gy.ravel()]
-    if prior is not None:
+    thick = prior is not None and thickness_sigma > 0
+    if thick:
         dP_meas = prior_and_thickness_slope3d(prior, meas.x_m, meas.y_m, meas.depth_m)[1]
         nx, ny = np.linspace(x0, x1, THICKNESS_GRID), np.linspace(y0, y1, THICKNESS_GRID)
         X, Y = np.meshgrid(nx, ny, indexing="ij")
@@ -106,8 +108,8 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
     Je = jac(meas.x_m, meas.y_m, np.clip(meas.depth_m, surrogate.levels[0], surrogate.levels[-1]),
              dP_meas) / meas.sigma_n[:, None]
     F = Je.T @ Je + 1e-12 * np.eye(Je.shape[1])
-    if prior is not None:
-        F[-1, -1] += 1.0 / THICKNESS_SIGMA ** 2
+    if thick:
+        F[-1, -1] += 1.0 / thickness_sigma ** 2
     dd = float(np.clip(d, surrogate.levels[0], surrogate.levels[-1]))
     Jc = jac(cand[:, 0], cand[:, 1], np.full(len(cand), dd), dP_cand) / sig
     Fi = np.linalg.inv(F)
@@ -130,10 +132,11 @@ def converged3d(loc: Localization3D, target_m: float) -> bool:
 
 def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, budget_probes: int = 100,
                n_refine: int = 16, target_m: float = 5e-4, progress=None, weak_lr: float = WEAK_LR,
-               workers: int = 1) -> AdaptiveResult:
+               workers: int = 1, thickness_sigma: float = THICKNESS_SIGMA) -> AdaptiveResult:
     """Run the loop over a block. ``plan_round(xy (n x 2)) -> plan``; ``execute(plan, round_index) -> records``;
     ``region`` (x0, x1, y0, y1): where refinement probes may go (the planner's probed area). ``prior`` has no
-    stones. ``workers``: each localization's fits on that many processes (planner.forkmap: the same estimates)."""
+    stones. ``workers``: each localization's fits on that many processes (planner.forkmap: the same estimates).
+    ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (0: known)."""
     if prior.stones:
         raise ValueError("adaptive3d() takes the prior scene (no stones)")
     say = progress or (lambda msg: None)
@@ -152,7 +155,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
             reason = too_few(len(meas), used, MIN_MEASUREMENTS3D)
             say(f"round {k}: {len(xy)} probes ({used} in all): {reason}")
             break
-        loc = localize3d(prior, meas, surrogate, workers=workers)
+        loc = localize3d(prior, meas, surrogate, workers=workers, thickness_sigma=thickness_sigma)
         rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
                             len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
         say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc))
@@ -166,7 +169,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         if n < 4:
             reason = "probe budget spent"
             break
-        xy = design_positions3d(loc, meas, n, surrogate, region, prior=prior)
+        xy = design_positions3d(loc, meas, n, surrogate, region, prior=prior, thickness_sigma=thickness_sigma)
         k += 1
     return AdaptiveResult(loc, meas, rounds, used, reason)
 

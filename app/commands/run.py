@@ -68,6 +68,7 @@ from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError,
 from planner.detectability import detectability
 from planner.draw_run import draw_run
 from planner.localize import MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
+from planner.localize3d import MAX_THICKNESS_SIGMA
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
@@ -127,6 +128,12 @@ def add_parser(sub) -> None:
     p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
                    help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
                         f"{DEFAULT_GRID3D[0]}x{DEFAULT_GRID3D[1]})")
+    p.add_argument("--thickness-sigma-m", type=float_range(0, 1.0, lo_open=False, unit="m"), metavar="M",
+                   help="3D block: how well the block's thickness is known, 1 sigma in m (default 6 %% of the "
+                        "prior's height, what the 2D section assumes: a thickness known to +-10 %%; 0: known exactly, "
+                        "not fitted; at most 10 %% of the height). The localizer fits the thickness with this prior: "
+                        "a broad, deep stone and a thinner block look alike, so a looser prior costs precision and a "
+                        "tighter one than the truth can raise a false stone (README)")
     p.add_argument("--refine-waypoints", type=int_range(3, MAX_WAYPOINTS),
                    help=f"waypoints per refinement round, at least 3 (a 3D block: 4; default 2D 10, 3D "
                         f"{DEFAULT_REFINE3D})")
@@ -166,6 +173,15 @@ def _dimension_defaults(args, scene, prior) -> bool:
     if not three_d and args.grid is not None:
         raise UsageError(f"--grid {args.grid[0]}x{args.grid[1]}: a grid is for a 3D block; {args.scene} is a 2D "
                          f"section: give --waypoints N")
+    if not three_d and getattr(args, "thickness_sigma_m", None) is not None:
+        raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: an option of a 3D block; the 2D section's "
+                         f"localizer takes the tissue's thickness as known to 6 %")
+    if three_d and getattr(args, "thickness_sigma_m", None) is not None:
+        top = MAX_THICKNESS_SIGMA * prior.tissue.height_m
+        if args.thickness_sigma_m > top:
+            raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: at most {top:g} m (10 % of the prior "
+                             f"block's height, {prior.tissue.height_m:g} m: the localizer tabulates the block at 0.9 "
+                             f"and 1.1 of it)")
     if three_d:
         args.grid = args.grid or DEFAULT_GRID3D
     else:

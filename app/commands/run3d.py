@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -39,6 +40,7 @@ from core.contracts import Plan, PlanError, sensor_spec
 from planner.area import probe_bounds
 from planner.detect3d import detectability3d
 from planner.draw_run3d import draw_run3d
+from planner.localize import THICKNESS_SIGMA
 from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
@@ -65,24 +67,45 @@ def _say(msg: str) -> None:
     print(f"palpate run: {msg}", file=sys.stderr, flush=True)
 
 
-def _detectable(prior, plan0, sur, sensor: str) -> dict:
+def thickness_sigma(args, prior) -> float:
+    """The localizer's prior on the block's thickness, relative: ``--thickness-sigma-m`` over the prior's height, or
+    the 2D localizer's default."""
+    v = getattr(args, "thickness_sigma_m", None)
+    return THICKNESS_SIGMA if v is None else float(v) / prior.tissue.height_m
+
+
+def _detectable(prior, plan0, sur, sensor: str, th_sigma: float) -> dict:
     """What the coarse grid can detect before probing (planner.detect3d: a stone under the grid's middle, the
-    stiffness scale, the thickness and the drift unknown), said on one line; its dict for result.json."""
+    stiffness scale, the thickness (prior ``th_sigma``) and the drift unknown), said on one line; its dict for
+    result.json."""
+    if th_sigma == 0:               # (the thickness known: the plan's median force serves the scale's column)
+        forces = [p.predicted_force_n for p in plan0.probes if p.predicted_force_n]
+        det = detectability3d(plan0, sur, float(statistics.median(forces)) if forces else 0.0,
+                              sensor_spec=sensor_spec(sensor))
+        return _said(det, sensor, th_sigma)
     missing = thickness_models_to_build(prior)
     if missing:
         _say(f"building the prior block's fem model at {' and '.join(f'{f:g}' for f in missing)} of its thickness "
              f"(the localizer fits the thickness; once, then cached)")
     P, dP = prior_and_thickness_slope3d(prior, [p.x_m for p in plan0.probes], [p.y_m for p in plan0.probes],
                                         [p.depth_m for p in plan0.probes])
-    det = detectability3d(plan0, sur, P, sensor_spec=sensor_spec(sensor), thickness_slope_n=dP)
+    det = detectability3d(plan0, sur, P, sensor_spec=sensor_spec(sensor), thickness_slope_n=dP,
+                          thickness_sigma=th_sigma)
+    return _said(det, sensor, th_sigma)
+
+
+def _said(det: dict, sensor: str, th_sigma: float) -> dict:
+    """The detectability said on one line; its dict for result.json."""
     smallest = det["smallest_detectable_diameter_m_by_depth_mm"]
     sizes = [r["diameter_m"] for r in det["rows"] if r["p_detect"] is not None]
     text = (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items())
             or (f"no stone of {min(sizes) * 1e3:g}-{max(sizes) * 1e3:g} mm at any depth the table covers: a NO STONE "
                 f"answer will mean little" if sizes else "nothing the table covers")) if det["usable"] else det["reason"]
-    _say(f"detectable before probing (coarse grid, sensor {sensor}; a stone under the grid's middle): {text}")
+    known = f"thickness known to {th_sigma * 100:.3g} %" if th_sigma > 0 else "thickness known exactly"
+    _say(f"detectable before probing (coarse grid, sensor {sensor}; a stone under the grid's middle; {known}): "
+         f"{text}")
     return {"sensor": sensor, "usable": det["usable"], "reason": det["reason"], "probe_sigma_n": det["sigma_n"],
-            "smallest_detectable_diameter_m_by_depth_mm": smallest}
+            "smallest_detectable_diameter_m_by_depth_mm": smallest, "thickness_prior_sigma": th_sigma}
 
 
 def run_block(args, ctx: RunContext) -> int:
@@ -105,7 +128,8 @@ def run_block(args, ctx: RunContext) -> int:
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)
     table_s = time.perf_counter() - t0
-    det = _detectable(prior, plan0, sur, args.sensor)
+    th_sigma = thickness_sigma(args, prior)
+    det = _detectable(prior, plan0, sur, args.sensor, th_sigma)
     stats = new_stats()
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()
@@ -129,7 +153,7 @@ def run_block(args, ctx: RunContext) -> int:
                          plan_round=plan_round, surrogate=sur, region=probe_bounds(prior),
                          budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                          target_m=args.target_uncertainty_m, progress=_say,
-                         workers=workers_for_fits(args))
+                         workers=workers_for_fits(args), thickness_sigma=th_sigma)
         stats["clean_end"] = True
     except RunAborted as e:
         status, fault = "fault", e.report.to_dict()
