@@ -192,6 +192,9 @@ def workers_for_fits(args) -> int:
     return 2 if not args.host and usable_cores() >= 2 else 1
 
 
+OPTIONAL_RUN_OPTIONS = ("ft", "depth_limit_m", "thickness_sigma_m")     # in run_options only when given
+
+
 def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
     """What decides the rounds of a run: a re-run resumes only with all of these equal."""
     plan_sha = hashlib.sha256(Path(args.plan).read_bytes()).hexdigest() if args.plan else None
@@ -237,6 +240,8 @@ def check_resume(out: Path, opts: dict, fresh: bool) -> bool:
         raise UsageError(f"--out {out} holds a run without run_options.json (an older palpate?): it cannot be "
                          f"resumed safely; use --fresh (moves the old files to {out}/previous-<time>/) or another --out")
     diff = [f"{k} was {prev.get(k)!r}, now {v!r}" for k, v in opts.items() if prev.get(k) != v]
+    # options kept only when given (older runs resume without them): given before, left out now is a change too
+    diff += [f"{k} was {prev[k]!r}, now not given" for k in OPTIONAL_RUN_OPTIONS if k in prev and k not in opts]
     if diff:
         raise UsageError(f"--out {out} holds a run with other options ({'; '.join(diff)}): re-run with the same "
                          f"options to resume, or use --fresh (moves the old files to {out}/previous-<time>/) or "

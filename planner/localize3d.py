@@ -34,6 +34,7 @@ from planner.forkmap import fork_map
 from planner.localize import (
     DRIFT_SIGMA_N_PER_S,
     FLOOR_GAP_M,
+    MAX_THICKNESS_SIGMA,
     MIN_MEASUREMENTS,
     MIN_ONSETS,
     MODEL_ABS_ERR_N,
@@ -47,7 +48,6 @@ from planner.localize import (
 from planner.tissue_response3d import PriorResponse3D
 
 LR_THRESHOLD3D = 25.0
-MAX_THICKNESS_SIGMA = 0.10  # the thickness's prior sigma at most (relative): the response is tabulated at 1 -+ 0.1
 PEAK_RADIUS_M = 5e-3
 N_AREA_STARTS = 5           # the stone fit's extra candidates: a 5 x 5 grid over the probed area, the surface untilted
 N_FLAT_STARTS = 2           # (the best two of them start fits, beside the best n_starts around the contrast's peak)

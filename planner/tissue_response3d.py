@@ -30,7 +30,7 @@ from planner.tissue_response import THICKNESS_STEP, loglog_depth, loglog_force, 
 N_NODES = 16
 MIN_FRAC, MAX_FRAC = 0.06, 0.96
 
-_ROWS: dict = {}          # (scene key, round(x, 7), round(y, 7)) -> log force row
+_ROWS: dict = {}          # (scene key, deepest node, round(x, 7), round(y, 7)) -> log force row
 
 
 class PriorResponse3D:
@@ -41,7 +41,8 @@ class PriorResponse3D:
     def __init__(self, prior, x_m, y_m, depth_m=None, thickness: bool = True):
         R = prior.indenter.radius_m
         # up to the tip's radius, or on a thin block to the deepest indentation fem allows on its thinnest node
-        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * (1.0 - THICKNESS_STEP) * prior.tissue.height_m)
+        thinnest = 1.0 - THICKNESS_STEP if thickness else 1.0
+        top = min(MAX_FRAC * R, 0.99 * STRAIN_MAX * thinnest * prior.tissue.height_m)
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
         self.thickness = bool(thickness)
         x, y = np.asarray(x_m, float), np.asarray(y_m, float)
@@ -50,7 +51,7 @@ class PriorResponse3D:
             sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
             rows = []
             for xi, yi in zip(x, y):
-                key = (sc.key(), round(float(xi), 7), round(float(yi), 7))
+                key = (sc.key(), float(top), round(float(xi), 7), round(float(yi), 7))
                 row = _ROWS.get(key)
                 if row is None:
                     row = np.log(np.maximum([recall3d.force_n(sc, float(xi), float(yi), float(d))
@@ -124,12 +125,22 @@ def prior_and_thickness_slope3d(prior, x_m, y_m, depth_m) -> tuple[np.ndarray, n
     F = {}
     for k in (-1, 0, 1):
         sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
-        F[k] = np.array([recall3d.force_n(sc, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
-    return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)
+        F[k] = np.array([_refused_nan(sc, float(xi), float(yi), float(di)) if k < 0 else
+                         recall3d.force_n(sc, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
+    # (a depth the thinner block refuses, past STRAIN_MAX of its height: the one-sided difference)
+    slope = np.where(np.isfinite(F[-1]), (F[1] - F[-1]) / (2 * THICKNESS_STEP), (F[1] - F[0]) / THICKNESS_STEP)
+    return F[0], slope
+
+
+def _refused_nan(scene, x: float, y: float, d: float) -> float:
+    try:
+        return recall3d.force_n(scene, x, y, d)
+    except ValueError:
+        return float("nan")
 
 
 def thickness_models_to_build(prior) -> list[float]:
     """The height factors (of ``1 -+ THICKNESS_STEP``) whose 3D fem model of the prior block is not in the disk
-    cache yet: built on first use (about a minute each for block3d here), then kept."""
+    cache yet: built on first use (38-44 s each for block3d here, measured), then kept."""
     return [f for f in (1.0 - THICKNESS_STEP, 1.0 + THICKNESS_STEP)
             if not surface3d_cached(scene_with_height(prior, f))]

@@ -181,7 +181,7 @@ def test_simulated_arm_presses_a_block():
                                         (["run", "block3d", "--prior", "healthy"], "--prior"),
                                         (["run", "paper", "--thickness-sigma-m", "0.001"], "--thickness-sigma-m 0.001"),
                                         (["run", "block3d", "--thickness-sigma-m", "0.006"], "at most 0.005 m"),
-                                        (["run", "block3d", "--thickness-sigma-m", "-1e-3"], "--thickness-sigma-m"),
+                                        (["run", "block3d", "--thickness-sigma-m=-0.001"], "finite number in [0"),
                                         (["run", "block3d", "--thickness-sigma-m", "nan"], "--thickness-sigma-m")])
 def test_run_refuses_the_other_dimensions_options(tmp_path, capsys, argv, what):
     """(Also a 3D option's values outside what it allows: one line naming it, exit 2, nothing written.)"""
@@ -220,7 +220,7 @@ def test_the_forward_models_remembered_parts_give_its_numbers_afresh(sur):
     for trial in range(30):
         nu, stone = base_nu.copy(), list(base_stone)
         if trial % 2:
-            nu[trial % 6] += 1e-5 * (1 + trial)
+            nu[(trial // 2) % 6] += 1e-5 * (1 + trial)
         else:
             stone[trial % 4] += 1e-6 * (1 + trial)
         fresh = _Forward3D(prior, meas, sur, nuisance=True)
@@ -352,7 +352,11 @@ def test_design_with_the_thickness_unknown_stays_in_the_region_and_its_column_fo
     xy = _grid(5)
     meas = _measure(s3.stone_model3d(truth), xy, coarse_depths(np.full(len(xy), DEPTH_M)), seed=3)
     loc = localize3d(prior, meas, sur)
+    assert loc.detected                                 # (else the design is an even grid, no column)
     new = design_positions3d(loc, meas, 8, sur, region, prior=prior)
+    assert not np.array_equal(new, design_positions3d(loc, meas, 8, sur, region))    # the column counts
+    assert np.array_equal(design_positions3d(loc, meas, 8, sur, region, prior=prior, thickness_sigma=0.0),
+                          design_positions3d(loc, meas, 8, sur, region))
     assert new.shape == (8, 2)
     assert np.all((new[:, 0] >= x0 - 1e-12) & (new[:, 0] <= x1 + 1e-12))
     assert np.all((new[:, 1] >= y0 - 1e-12) & (new[:, 1] <= y1 + 1e-12))

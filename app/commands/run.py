@@ -67,8 +67,7 @@ from app.runexec import (
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
 from planner.detectability import detectability
 from planner.draw_run import draw_run
-from planner.localize import MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
-from planner.localize3d import MAX_THICKNESS_SIGMA
+from planner.localize import MAX_THICKNESS_SIGMA, MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
@@ -178,7 +177,7 @@ def _dimension_defaults(args, scene, prior) -> bool:
                          f"localizer takes the tissue's thickness as known to 6 %")
     if three_d and getattr(args, "thickness_sigma_m", None) is not None:
         top = MAX_THICKNESS_SIGMA * prior.tissue.height_m
-        if args.thickness_sigma_m > top:
+        if args.thickness_sigma_m / prior.tissue.height_m > MAX_THICKNESS_SIGMA:    # (run3d.thickness_sigma's ratio)
             raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: at most {top:g} m (10 % of the prior "
                              f"block's height, {prior.tissue.height_m:g} m: the localizer tabulates the block at 0.9 "
                              f"and 1.1 of it)")
