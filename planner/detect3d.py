@@ -55,8 +55,9 @@ def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None,
     """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) centred under the
     middle of a 3D ``plan``'s raster, by that raster. ``prior_force_n``: the prior's force at each planned probe (or
     one for all: the median planned force); ``thickness_slope_n``: its derivative with respect to the thickness change
-    at each probe, with the prior ``thickness_sigma`` (None or 0: the thickness taken as known). Returns {"usable", "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect,
-    detectable}], "smallest_detectable_diameter_m_by_depth_mm"}."""
+    at each probe, with the prior ``thickness_sigma`` (None or 0: the thickness taken as known). Returns {"usable",
+    "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect, detectable}],
+    "smallest_detectable_diameter_m_by_depth_mm"}."""
     x = np.array([p.x_m for p in plan.probes])
     y = np.array([p.y_m for p in plan.probes])
     d = np.array([p.depth_m for p in plan.probes])

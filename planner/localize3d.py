@@ -12,9 +12,9 @@ The 2D localizer's method (planner.localize) over a surface instead of a line:
    is proportional to E at a fixed Poisson ratio), the true surface's offset and its tilt about both tissue axes
    (from the contact onsets the driver records, when at least ``MIN_ONSETS`` probes felt contact), the block's
    thickness (a relative change with a Gaussian prior, by default the 2D localizer's ``THICKNESS_SIGMA``; 0: the
-   thickness known; the prior's response at three heights, planner.tissue_response3d) and a sensor drift (an offset growing with the time since the free-air
-   baseline). Uncertainty: the Jacobian covariance (inflated by
-   chi2/dof when above 1), propagated to (x, y, depth, diameter); the x-y covariance gives the uncertainty ellipse.
+   thickness known; the prior's response at three heights, planner.tissue_response3d) and a sensor drift (an offset
+   growing with the time since the free-air baseline). Uncertainty: the Jacobian covariance (inflated by chi2/dof
+   when above 1), propagated to (x, y, depth, diameter); the x-y covariance gives the uncertainty ellipse.
 4. Detection: likelihood ratio LR = chi2_0 - chi2_1 of "stone" against "no stone" (the nuisance alone), reported when
    LR >= ``LR_THRESHOLD3D``. Under "no stone" LR is the maximum over (xs, ys, depth, diameter) of a chi2: one more
    free position than in 2D, so the threshold is higher; the 3D accuracy study measures the false-alarm rate it gives
@@ -208,8 +208,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale, the true surface (offset and
     tilts, from the contact onsets) and the block's thickness jointly with the stone (default); False: only the
     drift. ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (1 sigma; 0: known, not
-    fitted). ``workers``: the
-    fits' starts on that many processes (planner.forkmap: the same estimate)."""
+    fitted). ``workers``: the fits' starts on that many processes (planner.forkmap: the same estimate)."""
     if prior.stones:
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
     if not prior.is_3d:

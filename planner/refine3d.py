@@ -12,8 +12,9 @@ scale, drift offset, thickness change) at the current estimate (surrogate deriva
 prior's force, the scale's column, taken as its median over the probes so far: the block's prior force varies by
 under 2 % over the probed region; the thickness's column, the prior's dF/d eta times the fitted scale, with the
 localizer's prior on eta: fem at each measured probe, and over the candidates interpolated from a
-``THICKNESS_GRID`` x ``THICKNESS_GRID`` grid at the design's depth, since it varies smoothly over the face). Without a detected estimate, an even grid around the contrast's peak (a weak candidate, LR above
-``WEAK_LR``) narrows in on it.
+``THICKNESS_GRID`` x ``THICKNESS_GRID`` grid at the design's depth, since it varies smoothly over the face).
+Without a detected estimate, an even grid around the contrast's peak (a weak candidate, LR above ``WEAK_LR``)
+narrows in on it.
 """
 from __future__ import annotations
 

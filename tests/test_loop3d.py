@@ -360,3 +360,19 @@ def test_design_with_the_thickness_unknown_stays_in_the_region_and_its_column_fo
     assert new.shape == (8, 2)
     assert np.all((new[:, 0] >= x0 - 1e-12) & (new[:, 0] <= x1 + 1e-12))
     assert np.all((new[:, 1] >= y0 - 1e-12) & (new[:, 1] <= y1 + 1e-12))
+
+
+def test_a_resume_that_leaves_out_an_option_given_before_is_refused(tmp_path):
+    """run_options.json keeps --thickness-sigma-m (like --depth-limit-m, --ft) only when given, so that older runs
+    resume; a re-run that leaves it out would change the localizer's prior mid-run: refused, naming it. The same
+    options resume."""
+    import json
+
+    from app.errors import UsageError
+    from app.runexec import check_resume
+    opts = {"scene": "block3d", "seed": 0}
+    (tmp_path / "run_options.json").write_text(json.dumps({**opts, "thickness_sigma_m": 0.001}))
+    (tmp_path / "probes.jsonl").write_text("")
+    with pytest.raises(UsageError, match="thickness_sigma_m was 0.001, now not given"):
+        check_resume(tmp_path, opts, fresh=False)
+    assert check_resume(tmp_path, {**opts, "thickness_sigma_m": 0.001}, fresh=False)
