@@ -387,10 +387,12 @@ def _build(cls, table, where: str):
             except OverflowError:     # an integer beyond double precision
                 raise SceneError(f"{where}.{k} = {v} is beyond double precision") from None
         kwargs[k] = v
-    try:
-        return cls(**kwargs)
-    except TypeError as e:  # a required field missing
-        raise SceneError(f"[{where}]: {e}") from None
+    required = [f.name for f in fields.values() if f.init and f.default is dataclasses.MISSING
+                and f.default_factory is dataclasses.MISSING]
+    missing = [k for k in required if k not in kwargs]
+    if missing:
+        raise SceneError(f"{where}.{missing[0]} is missing (required in [{where}]: {', '.join(required)})")
+    return cls(**kwargs)
 
 
 REQUIRED_TISSUE = ("width_m", "height_m", "youngs_pa", "poisson")

@@ -140,6 +140,10 @@ def run(args) -> int:
                          f"(scene indenter.radius_m)")
     if args.depth_m is not None and not args.depth_m <= args.depth_limit_m:
         raise UsageError(f"--depth-m {args.depth_m:g} must be at most --depth-limit-m {args.depth_limit_m:g} m")
+    if args.depth_m is not None and not args.depth_m >= args.min_depth_m:
+        raise UsageError(f"--depth-m {args.depth_m:g} is below --min-depth-m {args.min_depth_m:g} m (the shallowest "
+                         f"useful probe{'' if args.min_depth_m != OPT.min_depth_m else ', by default'}): give a depth "
+                         f"at least that, or lower --min-depth-m too")
     if not args.min_depth_m <= args.depth_limit_m:
         raise UsageError(f"--min-depth-m {args.min_depth_m:g} must be at most --depth-limit-m "
                          f"{args.depth_limit_m:g} m")
@@ -158,12 +162,20 @@ def run(args) -> int:
     if not is_3d and (args.x_min_m is not None or args.x_max_m is not None):
         lo = args.x_min_m if args.x_min_m is not None else margin_m
         hi = args.x_max_m if args.x_max_m is not None else scene.tissue.width_m - margin_m
+        for opt, v in (("--x-min-m", args.x_min_m), ("--x-max-m", args.x_max_m)):
+            if v is not None and not 0.0 <= v <= scene.tissue.width_m:
+                raise UsageError(f"{opt} {v:g}: must lie on the surface, 0 to {scene.tissue.width_m:g} m "
+                                 f"(tissue.width_m of {scene.name!r})")
+        if not lo < hi:
+            raise UsageError(f"--x-min-m {lo:g} must be below --x-max-m {hi:g} (the raster's interval, m; the end "
+                             f"not given is the margin's, {margin_m:g} m from the side)")
         n = args.waypoints or (2 if args.spacing_m else 11)
         if not hi - lo >= MIN_PROBE_SPACING_M * (n - 1):
             given = " and ".join(o for o, v in (("--x-min-m", args.x_min_m), ("--x-max-m", args.x_max_m))
                                  if v is not None)
             raise UsageError(f"{given}: the raster's interval [{lo:g}, {hi:g}] m (the other end from the margin "
-                             f"{margin_m:g} m when not given) is too short for {n} waypoints at least "
+                             f"{margin_m:g} m when not given) is too short for {n} waypoints"
+                             f"{'' if args.waypoints else ' (the default with --x-min-m or --x-max-m)'} at least "
                              f"{MIN_PROBE_SPACING_M:g} m apart (one spot for the arm)")
     if args.spacing_m is not None and not is_3d:
         lo = args.x_min_m if args.x_min_m is not None else margin_m

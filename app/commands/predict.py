@@ -180,16 +180,26 @@ def _peak(xs, ratio) -> dict | None:
     largest sample can sit a waypoint or two off; ``x_m`` is the vertex of a least-squares parabola through the
     contiguous samples in the peak's upper quarter up to a valley (``core.peak.upper_window``; ``x_max_sample_m``:
     the largest sample); ``ratio``: the parabola's value there, or the largest sample's where that is higher (a
-    lopsided hump). Undefined ratios (NaN) are skipped; None when there is none."""
+    lopsided hump). Where the window's parabola rises above the largest sample by more than the drop from it to its
+    lower neighbour (it does not describe the top), both come from the parabola through the largest sample and its
+    two neighbours. Undefined ratios (NaN) are skipped; None when there is none."""
     ratio = np.asarray(ratio, float)
     if not np.isfinite(ratio).any():
         return None
     i = int(np.nanargmax(ratio))
     out = {"x_m": float(xs[i]), "ratio": float(ratio[i]), "index": i, "x_max_sample_m": float(xs[i])}
     lo, hi = upper_window(ratio, i)
-    out["x_m"], fit = parabola_peak(xs, ratio, lo, hi)
+    x_fit, fit = parabola_peak(xs, ratio, lo, hi)
+    near = ratio[max(i - 1, 0):i + 2]
+    drop = float(ratio[i] - np.min(near)) if np.isfinite(near).all() else 0.0
+    if fit - ratio[i] > drop:
+        # the window's parabola does not describe the top (a plateau falling off steeply: it rose 2.6e-3 above a
+        # largest sample 1.3e-3 above its lower neighbour): the parabola through the top three samples, which
+        # rises at most a quarter of that drop above the largest
+        x_fit, fit = parabola_peak(xs, ratio, i - 1, i + 1) if 0 < i < len(ratio) - 1 else (float(xs[i]), ratio[i])
+    out["x_m"] = x_fit
     # the peak is at least the largest sample: on a lopsided hump (two stones) the window's parabola peaks below it
-    out["ratio"] = max(fit, float(ratio[i]))
+    out["ratio"] = max(float(fit), float(ratio[i]))
     return out
 
 

@@ -193,6 +193,18 @@ def _dimension_defaults(args, scene, prior) -> bool:
     return three_d
 
 
+def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
+    """A simulated truth whose tissue is not as wide (or, a block, as long) as the belief's is refused: the localizer
+    fits the tissue's stiffness, thickness and surface placement, not its extent, so a healthy truth of another width
+    reads as a stone near the side (a 60 mm section under a 40 mm prior: LR 2510, exit 0)."""
+    for key in ("width_m", "length_m"):
+        a, b = getattr(prior.tissue, key), getattr(truth.tissue, key)
+        if a != b:
+            raise UsageError(f"{where_prior}: tissue.{key} = {a!r} m but the simulated truth's (scene {truth_name}) "
+                             f"is {b!r} m; the localizer fits the tissue's stiffness, thickness and surface, not its "
+                             f"extent: give a belief of the same {key}")
+
+
 def _say(msg: str) -> None:
     print(f"palpate run: {msg}", file=sys.stderr, flush=True)
 
@@ -241,13 +253,17 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     else:
         prior = belief if belief is not None else scene.prior()
         plan0 = None
+    where_prior = (f"--prior {args.prior}" if belief is not None else
+                   f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}")
+    if not args.host:
+        check_same_extent(scene, prior, where_prior, args.scene)
     three_d = _dimension_defaults(args, scene, prior)
     n_coarse = len(plan0.probes) if plan0 is not None else (
         args.grid[0] * args.grid[1] if three_d else args.waypoints)
     lim = run_limits(args).depth_limit_m
     if plan0 is None and not lim < prior.indenter.radius_m:     # the run plans to this depth limit
         given = "--depth-limit-m" if args.depth_limit_m is not None else "the depth limit a run plans to by default"
-        raise UsageError(f"scene {args.scene}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above "
+        raise UsageError(f"{where_prior}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above "
                          f"{given} ({lim:g} m; the tissue would wrap the tip's sides): give --depth-limit-m D with D "
                          f"below the radius")
     if plan0 is None and lim < PlanOptions().min_depth_m:
@@ -288,7 +304,6 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
         except PlanError as e:
             raise PlanError(plan_options_hint(str(e), args)) from None
-    where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     try:
         sur = load_surrogate(prior, build=False)
     except FileNotFoundError:       # no table for this tissue: built beside the coarse raster (planner.pending)

@@ -1,0 +1,127 @@
+"""Session 42's review findings (a helper writing its own scene files and typing wrong things), each as a test:
+a belief of another width or length than the simulated truth is refused (a healthy 60 mm section under a 40 mm
+prior was reported as a stone, LR 2510, exit 0); a refusal about the belief's tip names --prior, not the truth's
+file; predict's ratio peak does not rise above what its samples support (a soft inclusion's plateau read 1.0027
+with every sample below 1); plan refuses --depth-m below --min-depth-m and an --x-min-m / --x-max-m off the surface
+or the wrong way round, naming the option; a stone without its diameter says which field is missing."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.commands.predict import _peak
+from core.peak import parabola_peak, upper_window
+from fem import scene as S
+
+ROOT = Path(__file__).resolve().parents[1]
+SECTION = """name = "{name}"
+[tissue]
+width_m = {width}
+height_m = 0.040
+youngs_pa = 4000.0
+poisson = 0.45
+{extra}
+[indenter]
+shape = "{shape}"
+radius_m = {radius}
+"""
+
+
+def _scene(tmp_path, name, width=0.060, radius=0.005, extra="", shape="cylinder") -> str:
+    path = tmp_path / f"{name}.toml"
+    path.write_text(SECTION.format(name=name, width=width, radius=radius, extra=extra, shape=shape))
+    return str(path)
+
+
+def _cli(tmp_path, *args) -> subprocess.CompletedProcess:
+    env = dict(os.environ, PALPATE_CACHE_DIR=str(tmp_path / "cache"))
+    return subprocess.run([sys.executable, "-m", "app.cli", *args], capture_output=True, text=True, cwd=ROOT,
+                          timeout=300, env=env)
+
+
+def _refused(p: subprocess.CompletedProcess, *words: str) -> None:
+    assert p.returncode == 2, p.stderr
+    lines = [ln for ln in p.stderr.strip().splitlines() if ln.startswith("palpate:")]
+    assert "Traceback" not in p.stderr and len(lines) == 1, p.stderr
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def test_a_belief_of_another_width_is_refused_before_probing(tmp_path):
+    truth, belief = _scene(tmp_path, "truth"), _scene(tmp_path, "narrow", width=0.040)
+    p = _cli(tmp_path, "run", truth, "--prior", belief, "--sim", "--out", str(tmp_path / "run"), "--no-figure")
+    _refused(p, f"--prior {belief}", "tissue.width_m = 0.04 m", "is 0.06 m")
+    assert not (tmp_path / "run").exists()              # refused before OUT is touched
+    same = _scene(tmp_path, "same")                     # the same extent, another name: not this refusal
+    p = _cli(tmp_path, "run", truth, "--prior", same, "--sim", "--out", str(tmp_path / "run2"), "--no-figure",
+             "--depth-limit-m", "0.0005")
+    _refused(p, "--depth-limit-m 0.0005")
+
+
+def test_a_belief_block_of_another_length_is_refused():
+    from app.commands.run import check_same_extent
+    from app.errors import UsageError
+    block = S.load("block3d")
+    longer = S.dataclasses.replace(block, tissue=S.dataclasses.replace(block.tissue,
+                                                                       length_m=block.tissue.length_m * 1.2))
+    check_same_extent(block, block.prior(), "--prior x", "block3d")         # the same extent: accepted
+    with pytest.raises(UsageError, match=r"--prior x: tissue\.length_m = .* but the simulated truth's"):
+        check_same_extent(block, longer.prior(), "--prior x", "block3d")
+
+
+def test_a_refusal_about_the_beliefs_tip_names_the_belief(tmp_path):
+    truth, belief = _scene(tmp_path, "truth"), _scene(tmp_path, "smalltip", radius=0.003)
+    p = _cli(tmp_path, "run", truth, "--prior", belief, "--sim", "--out", str(tmp_path / "run"), "--no-figure")
+    _refused(p, f"--prior {belief}: indenter.radius_m = 0.003 m")
+
+
+def test_the_ratio_peak_of_a_plateau_stays_within_what_its_samples_support():
+    """The helper's profile (a soft 6 mm inclusion 8 mm deep, a 2 mm flat punch at 1 mm): the ratio is flat near
+    0.9997 towards the side and falls steeply over the inclusion. The least-squares parabola of the upper quarter
+    peaked at 1.0027, above every sample; the top three samples' parabola rises at most a quarter of the drop from
+    the largest to its lower neighbour above it."""
+    left = [0.996529, 0.997187, 0.998542, 0.999135, 0.999334, 0.999696, 0.999743, 0.998478, 0.996609, 0.993273,
+            0.988041, 0.981017, 0.969175, 0.954184, 0.93, 0.89, 0.84, 0.80, 0.78, 0.777]
+    ratio = np.array(left + left[::-1][1:])
+    xs = np.linspace(0.005, 0.055, len(ratio))
+    i = int(np.argmax(ratio))
+    lo, hi = upper_window(ratio, i)
+    assert parabola_peak(xs, ratio, lo, hi)[1] > ratio[i] + (ratio[i] - ratio[i + 1])     # the case
+    pk = _peak(xs, ratio)
+    assert ratio[i] <= pk["ratio"] <= ratio[i] + 0.25 * (ratio[i] - min(ratio[i - 1], ratio[i + 1]))
+    assert pk["ratio"] < 1                              # a soft inclusion: nowhere stiffer than healthy tissue
+    assert abs(pk["x_m"] - xs[i]) <= xs[1] - xs[0]
+    hump = 1 + 0.15 * np.exp(-((xs - 0.0203) / 0.006) ** 2)       # a stiff stone's hump: the window's parabola
+    lo, hi = upper_window(hump, int(np.argmax(hump)))
+    assert _peak(xs, hump)["ratio"] == parabola_peak(xs, hump, lo, hi)[1]
+
+
+@pytest.mark.parametrize("args, words", [
+    (("--depth-m", "0.002", "--min-depth-m", "0.003"), ("--depth-m 0.002 is below --min-depth-m 0.003 m",)),
+    (("--depth-m", "0.0005"), ("--depth-m 0.0005 is below --min-depth-m 0.001 m", "by default")),
+    (("--x-min-m", "-0.01"), ("--x-min-m -0.01: must lie on the surface, 0 to 0.06 m",)),
+    (("--x-max-m", "0.07"), ("--x-max-m 0.07: must lie on the surface",)),
+    (("--x-min-m", "0.03", "--x-max-m", "0.01"), ("--x-min-m 0.03 must be below --x-max-m 0.01",)),
+])
+def test_plan_refuses_contradictory_depths_and_intervals_off_the_surface(tmp_path, args, words):
+    p = _cli(tmp_path, "plan", _scene(tmp_path, "sec"), "--out", str(tmp_path / "plan.json"), *args)
+    _refused(p, *words)
+    assert not (tmp_path / "plan.json").exists()
+
+
+def test_plan_takes_a_shallow_depth_when_the_minimum_is_lowered_too(tmp_path):
+    p = _cli(tmp_path, "plan", _scene(tmp_path, "sec"), "--out", str(tmp_path / "plan.json"), "--depth-m", "0.0005",
+             "--min-depth-m", "0.0004", "--waypoints", "5")
+    assert p.returncode == 0, p.stderr
+    assert "depth 0.50-0.50 mm" in p.stdout
+
+
+def test_a_stone_without_its_diameter_names_the_field(tmp_path):
+    stone = "[[stone]]\nx_m = 0.030\ndepth_m = 0.010\n"
+    p = _cli(tmp_path, "predict", _scene(tmp_path, "nodia", extra=stone), "--waypoints", "5", "--depth-m", "0.001")
+    _refused(p, "stone[0].diameter_m is missing", "required in [stone[0]]: x_m, depth_m, diameter_m")
