@@ -32,6 +32,7 @@ from app.isolate import ChildDied, ChildTimeout, run_in_child
 from app.options import (
     check_output_dir,
     check_output_file,
+    check_same_extent,
     check_simulated_sensor,
     float_range,
     host_name,
@@ -215,6 +216,8 @@ def _main(args, held: contextlib.ExitStack) -> int:
                                                      "the stand-in force has no scene"))
     if args.sim and args.force_model == "fem":
         truth = load_scene(truth_scene(plan, args.truth), "--truth" if args.truth else "scene")   # before anything moves: the simulator needs its truth
+        check_same_extent(truth, plan_prior(plan), f"--plan {args.plan}: its prior scene",
+                          args.truth or truth.name)
         if args.sim_mesh_m is not None:
             truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
     done = set() if args.fresh else done_indices(out)

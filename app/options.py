@@ -30,6 +30,23 @@ MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the p
 MAX_TOTAL_PROBES = 10000    # a run's probe budget
 
 
+def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
+    """A simulated truth that is not the belief's kind of tissue (a 2D section against a 3D block) or not as wide
+    (or, a block, as long) is refused: the localizer fits the tissue's stiffness, thickness and surface placement,
+    not its extent, so a healthy truth of another width reads as a stone near the side (a 60 mm section under a
+    40 mm prior: LR 2510, exit 0), and a 3D plan on a 2D truth felt the section's force at every y."""
+    if truth.is_3d != prior.is_3d:
+        kind = lambda sc: "a 3D block" if sc.is_3d else "a 2D section"     # noqa: E731
+        raise UsageError(f"{where_prior} is {kind(prior)} but the simulated truth (scene {truth_name}) is "
+                         f"{kind(truth)}: give a truth of the same kind")
+    for key in ("width_m", "length_m"):
+        a, b = getattr(prior.tissue, key), getattr(truth.tissue, key)
+        if a != b:
+            raise UsageError(f"{where_prior}: tissue.{key} = {a!r} m but the simulated truth's (scene {truth_name}) "
+                             f"is {b!r} m; the localizer fits the tissue's stiffness, thickness and surface, not its "
+                             f"extent: give a belief of the same {key}")
+
+
 def _parse(s: str, kind=float):
     try:
         v = kind(s)
@@ -86,9 +103,22 @@ def int_range(lo: int, hi: int | None = None):
 
 
 def host_name(s: str) -> str:
-    """A controller's host name or IP address: not empty (an unset shell variable), no spaces."""
+    """A controller's host name or IPv4 address: not empty (an unset shell variable), no spaces, no port or URL
+    (ur_rtde connects to its own ports), a dotted quad of 0-255 when all digits, else letters, digits and hyphens
+    in dot-separated labels (RFC 1123)."""
     if not s.strip() or any(c.isspace() for c in s):
         raise argparse.ArgumentTypeError(f"must be a host name or IP address, got {s!r}")
+    if "/" in s or ":" in s:
+        raise argparse.ArgumentTypeError(f"must be the controller's IP address or host name alone (no port or URL: "
+                                         f"ur_rtde uses the UR's own ports), got {s!r}")
+    labels = s.rstrip(".").split(".")
+    if all(lab.isdigit() for lab in labels):
+        if len(labels) != 4 or any(int(lab) > 255 for lab in labels):
+            raise argparse.ArgumentTypeError(f"must be an IPv4 address (four numbers 0-255) or a host name, got {s!r}")
+    elif len(s) > 253 or not all(lab and len(lab) <= 63 and lab[0] != "-" and lab[-1] != "-"
+                                 and all(c.isalnum() and c.isascii() or c in "-_" for c in lab) for lab in labels):
+        raise argparse.ArgumentTypeError(f"must be an IPv4 address or a host name (letters, digits and hyphens "
+                                         f"between dots), got {s!r}")
     return s
 
 

@@ -222,6 +222,8 @@ ONSET_BIAS_SIGMAS = 1.25    # the first noisy crossing of the filtered reading c
 #                             section and block3d alike; in depth 74 um there, 105-110 um on block3d's sphere)
 THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 sigma: a uniform +-10 % has 0.058)
 MAX_THICKNESS_SIGMA = 0.10  # a 3D block's (planner.localize3d, --thickness-sigma-m) at most: tabulated at 1 -+ 0.1
+MIN_THICKNESS_SIGMA = 1e-3  # ... and at least, unless 0 (known): below, its prior's residual eta / sigma overflows the
+#                             fit (1e-160 left every sigma 0 and a stone the default prior does not see; 1e-300 raised)
 DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
 #                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)

@@ -37,6 +37,7 @@ from planner.localize import (
     MAX_THICKNESS_SIGMA,
     MIN_MEASUREMENTS,
     MIN_ONSETS,
+    MIN_THICKNESS_SIGMA,
     MODEL_ABS_ERR_N,
     ONSET_SIGMA_M,
     THICKNESS_SIGMA,
@@ -213,10 +214,12 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
     if not prior.is_3d:
         raise ValueError("localize3d() takes a 3D block (tissue.length_m); planner.localize handles a 2D section")
+    if not (math.isfinite(thickness_sigma) and (thickness_sigma == 0.0 or
+                                                 MIN_THICKNESS_SIGMA <= thickness_sigma <= MAX_THICKNESS_SIGMA)):
+        raise ValueError(f"thickness_sigma={thickness_sigma}: must be 0 (known) or between {MIN_THICKNESS_SIGMA} and "
+                         f"{MAX_THICKNESS_SIGMA}")
     if len(meas) < MIN_MEASUREMENTS + 1:
         raise ValueError(f"need at least {MIN_MEASUREMENTS + 1} probe measurements, got {len(meas)}")
-    if not (math.isfinite(thickness_sigma) and 0.0 <= thickness_sigma <= MAX_THICKNESS_SIGMA):
-        raise ValueError(f"thickness_sigma={thickness_sigma}: must be between 0 and {MAX_THICKNESS_SIGMA}")
     fw = _Forward3D(prior, meas, surrogate, nuisance, thickness_sigma)
     nf = int(fw.free.sum())
     rel_err = float(getattr(surrogate, "rel_err", 0.02))

@@ -78,6 +78,8 @@ class SimNetFtBox:
         if self.client is None or t < self.silent_until:
             return
         for _ in range(self.records_per_step):
+            if self.client is None:          # gone during this step (its socket closed): stop sending to it
+                return
             self._send_record(t)
 
     def _serve_requests(self) -> None:

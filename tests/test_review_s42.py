@@ -64,8 +64,8 @@ def test_a_belief_of_another_width_is_refused_before_probing(tmp_path):
 
 
 def test_a_belief_block_of_another_length_is_refused():
-    from app.commands.run import check_same_extent
     from app.errors import UsageError
+    from app.options import check_same_extent
     block = S.load("block3d")
     longer = S.dataclasses.replace(block, tissue=S.dataclasses.replace(block.tissue,
                                                                        length_m=block.tissue.length_m * 1.2))
@@ -125,3 +125,86 @@ def test_a_stone_without_its_diameter_names_the_field(tmp_path):
     stone = "[[stone]]\nx_m = 0.030\ndepth_m = 0.010\n"
     p = _cli(tmp_path, "predict", _scene(tmp_path, "nodia", extra=stone), "--waypoints", "5", "--depth-m", "0.001")
     _refused(p, "stone[0].diameter_m is missing", "required in [stone[0]]: x_m, depth_m, diameter_m")
+
+
+# ---- the second review (3D blocks, palpate-cell, studies, the simulated Net F/T box)
+
+def test_a_thickness_sigma_too_small_to_fit_is_refused(tmp_path):
+    """1e-160 m overflowed the fit's thickness residual: every sigma 0 and a stone the default prior did not see
+    (exit 0); 1e-300 m raised ZeroDivisionError. Below 0.1 % of the height: give 0 (known)."""
+    from planner.localize import MIN_THICKNESS_SIGMA
+    from planner.localize3d import localize3d
+    for v in ("1e-160", "1e-300", "4.9e-05"):
+        p = _cli(tmp_path, "run", "block3d", "--sim", "--thickness-sigma-m", v, "--out", str(tmp_path / "r"))
+        _refused(p, f"--thickness-sigma-m {float(v):g}: give 0 (the thickness known) or at least 5e-05 m")
+    with pytest.raises(ValueError, match="must be 0 .known. or between"):
+        localize3d(S.load("block3d").prior(), None, None, thickness_sigma=0.5 * MIN_THICKNESS_SIGMA)
+
+
+def test_a_truth_of_the_other_kind_is_refused_by_run_and_cell(tmp_path):
+    """palpate-cell ran a 3D plan against the 2D paper truth and reported 'ok' (the section's force at every y), and
+    a 2D plan against a 3D truth faulted mid-run; both are refused before anything moves, as palpate run does."""
+    from app.errors import UsageError
+    from app.options import check_same_extent
+    paper, block = S.load("paper"), S.load("block3d")
+    with pytest.raises(UsageError, match="is a 3D block but the simulated truth .scene paper. is a 2D section"):
+        check_same_extent(paper, block.prior(), "--plan p.json: its prior scene", "paper")
+    plan = tmp_path / "plan.json"
+    assert _cli(tmp_path, "plan", "paper", "--waypoints", "5", "--out", str(plan)).returncode == 0
+    p = subprocess.run([sys.executable, "-m", "app.cell", "--sim", "--plan", str(plan), "--out", str(tmp_path / "c"),
+                        "--truth", "block3d"], capture_output=True, text=True, cwd=ROOT, timeout=300,
+                       env=dict(os.environ, PALPATE_CACHE_DIR=str(tmp_path / "cache")))
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert "is a 2D section but the simulated truth (scene block3d) is a 3D block" in p.stderr
+    assert not (tmp_path / "c" / "probes.jsonl").exists()
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["accuracy3d", "--runs", "5"], "--runs 5: the accuracy3d study does not take it (it is for detect)"),
+    (["accuracy3d", "--hyperelastic"], "--hyperelastic: the accuracy3d study does not take it"),
+    (["detect", "--healthy", "5"], "--healthy 5: the detect study does not take it"),
+    (["sweep", "--scene", "paper"], "--scene paper: the sweep study does not take it"),
+    (["mismatch", "--target-uncertainty-m", "0.001"], "--target-uncertainty-m 0.001: the mismatch study"),
+])
+def test_a_study_refuses_an_option_it_would_ignore(tmp_path, argv, words):
+    p = _cli(tmp_path, "study", *argv, "--out", str(tmp_path / "s"))
+    _refused(p, words)
+    assert not (tmp_path / "s").exists()
+
+
+def test_the_simulated_box_stops_sending_to_a_client_gone_within_a_step():
+    """Two records per step: the first send failing (the client's socket closed) set the client to None and the
+    second went to sendto(data, None): a TypeError traceback in the box's thread."""
+    from robot.sim import ArmModel
+    from robot.simnetft import attach_box
+    box = attach_box(ArmModel(None, sensor="ideal"), host="127.0.0.1", port=0, records_per_step=2)
+    real = box.sock
+
+    class Gone:
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        def sendto(self, data, addr):
+            raise ConnectionRefusedError(111, "gone")
+    try:
+        box.sock, box.client = Gone(), ("127.0.0.1", 9)
+        box.step()                                          # raised TypeError before
+        assert box.client is None and box.sent == 0
+    finally:
+        real.close()
+
+
+@pytest.mark.parametrize("host, ok", [("192.168.1.10", True), ("ur5e.local", True), ("localhost", True),
+                                      ("ur_5", True), ("999.1.1.1", False), ("1.2.3", False),
+                                      ("127.0.0.1:30004", False), ("http://127.0.0.1", False), ("a..b", False)])
+def test_a_controller_host_is_an_ipv4_address_or_a_host_name(host, ok):
+    """'999.1.1.1', '127.0.0.1:30004' and 'http://127.0.0.1' passed the check and reached ur_rtde ('resolve: Host
+    not found', an empty --out left behind)."""
+    import argparse
+
+    from app.options import host_name
+    if ok:
+        assert host_name(host) == host
+    else:
+        with pytest.raises(argparse.ArgumentTypeError, match="IPv4 address|alone"):
+            host_name(host)

@@ -36,6 +36,7 @@ from app.options import (
     MAX_WAYPOINTS,
     check_output_dir,
     check_output_file,
+    check_same_extent,
     check_simulated_sensor,
     finite_float,
     float_range,
@@ -67,7 +68,14 @@ from app.runexec import (
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
 from planner.detectability import detectability
 from planner.draw_run import draw_run
-from planner.localize import MAX_THICKNESS_SIGMA, MIN_MEASUREMENTS, MIN_MEASUREMENTS3D, Localization, localize
+from planner.localize import (
+    MAX_THICKNESS_SIGMA,
+    MIN_MEASUREMENTS,
+    MIN_MEASUREMENTS3D,
+    MIN_THICKNESS_SIGMA,
+    Localization,
+    localize,
+)
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
@@ -130,8 +138,9 @@ def add_parser(sub) -> None:
     p.add_argument("--thickness-sigma-m", type=float_range(0, 1.0, lo_open=False, unit="m"), metavar="M",
                    help="3D block: how well the block's thickness is known, 1 sigma in m (default 6 %% of the "
                         "prior's height, what the 2D section assumes: a thickness known to +-10 %%; 0: known exactly, "
-                        "not fitted; at most 10 %% of the height). The localizer fits the thickness with this prior: "
-                        "a broad, deep stone and a thinner block look alike, so a looser prior costs precision and a "
+                        "not fitted; else between 0.1 and 10 %% of the height). The localizer fits the thickness with "
+                        "this prior: a broad, deep stone and a thinner block look alike, so a looser prior costs "
+                        "precision and a "
                         "tighter one than the truth can raise a false stone (README)")
     p.add_argument("--refine-waypoints", type=int_range(3, MAX_WAYPOINTS),
                    help=f"waypoints per refinement round, at least 3 (a 3D block: 4; default 2D 10, 3D "
@@ -181,6 +190,10 @@ def _dimension_defaults(args, scene, prior) -> bool:
             raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: at most {top:g} m (10 % of the prior "
                              f"block's height, {prior.tissue.height_m:g} m: the localizer tabulates the block at 0.9 "
                              f"and 1.1 of it)")
+        low = MIN_THICKNESS_SIGMA * prior.tissue.height_m
+        if 0 < args.thickness_sigma_m and args.thickness_sigma_m / prior.tissue.height_m < MIN_THICKNESS_SIGMA:
+            raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: give 0 (the thickness known) or at "
+                             f"least {low:g} m (0.1 % of the prior block's height, {prior.tissue.height_m:g} m)")
     if three_d:
         args.grid = args.grid or DEFAULT_GRID3D
     else:
@@ -191,18 +204,6 @@ def _dimension_defaults(args, scene, prior) -> bool:
     args.refine_waypoints = args.refine_waypoints or (DEFAULT_REFINE3D if three_d else 10)
     args.budget_probes = args.budget_probes or (DEFAULT_BUDGET3D if three_d else 45)
     return three_d
-
-
-def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
-    """A simulated truth whose tissue is not as wide (or, a block, as long) as the belief's is refused: the localizer
-    fits the tissue's stiffness, thickness and surface placement, not its extent, so a healthy truth of another width
-    reads as a stone near the side (a 60 mm section under a 40 mm prior: LR 2510, exit 0)."""
-    for key in ("width_m", "length_m"):
-        a, b = getattr(prior.tissue, key), getattr(truth.tissue, key)
-        if a != b:
-            raise UsageError(f"{where_prior}: tissue.{key} = {a!r} m but the simulated truth's (scene {truth_name}) "
-                             f"is {b!r} m; the localizer fits the tissue's stiffness, thickness and surface, not its "
-                             f"extent: give a belief of the same {key}")
 
 
 def _say(msg: str) -> None:

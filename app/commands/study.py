@@ -112,11 +112,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--hyperelastic", action="store_true",
                    help="mismatch: a finite-strain neo-Hookean truth in half the trials (such a run took 1-3.3x a "
                         "linear one's time)")
-    p.add_argument("--target-uncertainty-m", type=positive_float, default=5e-4)
+    p.add_argument("--target-uncertainty-m", type=positive_float,
+                   help="accuracy, accuracy3d: the adaptive runs stop once x, depth (and y) are known to this, 1 "
+                        "sigma in m (default 0.0005)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", metavar="PATH", help="also write the summary here ('-': standard output)")
     p.set_defaults(func=run)
     return p
+
+
+# the options each study reads (the rest of its options are every study's); --sensor has its own refusal below
+OPTION_STUDIES = {"scene": ("accuracy", "detect", "mismatch", "accuracy3d"),
+                  "trials": ("accuracy", "mismatch", "accuracy3d"), "healthy": ("accuracy", "mismatch", "accuracy3d"),
+                  "budget_probes": ("accuracy", "mismatch", "accuracy3d"), "runs": ("detect",), "scenes": ("sweep",),
+                  "hyperelastic": ("mismatch",), "target_uncertainty_m": ("accuracy", "accuracy3d")}
 
 
 def runner_of(args) -> Runner:
@@ -144,6 +153,13 @@ def run(args) -> int:
         raise UsageError(f"--scene {args.scene}: the {args.study} study needs a "
                          f"{'3D block (tissue.length_m)' if three_d else '2D section'}, this is "
                          f"{'a 3D block' if scene.is_3d else 'a 2D section'}")
+    for opt, studies in OPTION_STUDIES.items():     # an option the chosen study would not read: refused, not ignored
+        v = getattr(args, opt)
+        if v not in (None, False) and args.study not in studies:
+            flag = "--" + opt.replace("_", "-")
+            raise UsageError(f"{flag}{'' if v is True else f' {v}'}: the {args.study} study does not take it (it is for "
+                             f"{', '.join(studies)})")
+    args.target_uncertainty_m = args.target_uncertainty_m or 5e-4
     if args.sensor is not None and args.study in ("mismatch", "sweep"):
         raise UsageError(f"--sensor {args.sensor}: the {args.study} study does not take a sensor ("
                          + ("its trials run with nano17's noise, bias and drift" if args.study == "mismatch" else
