@@ -70,7 +70,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser("predict", help="tip force and max stress at N waypoints across the surface (load B)",
                        description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", metavar="SCENE", help="built-in name (paper, paper-left, paper-right, paper-deep, "
-                                                  "healthy) or a TOML file")
+                                                  "healthy; 3D: block3d, block3d-healthy, block3d-left, "
+                                                  "block3d-front, block3d-deep) or a TOML file")
     p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), metavar="N",
                    help=f"2D scenes: number of waypoints, 2..{MAX_WAYPOINTS} (default 50)")
     p.add_argument("--depth-m", type=positive_float, default=DEFAULT_DEPTH_M,
