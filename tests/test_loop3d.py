@@ -142,6 +142,27 @@ def test_design_puts_probes_inside_the_region_and_near_the_stone(sur):
     assert len(g) == 9 and np.abs(g - 0.015).max() <= 0.004 + 1e-12
 
 
+def test_a_weak_candidate_is_refined_where_the_stone_fit_puts_it_not_at_the_contrasts_peak(sur):
+    """Below the detection threshold the stone fit's estimate still says where the stone most likely is; the
+    contrast's peak after the no-stone fit can sit in a corner (the thickness and the stiffness absorb a deep
+    stone's broad bump): block3d seed 6 refined a corner for four rounds and answered NO STONE (LR 17.6) while
+    round 0's stone fit stood 0.6 mm from the truth. The even grid now goes around the candidate; without a finite
+    one, around the peak; a detected stone gets the design."""
+    import dataclasses
+    truth = BLOCK.with_stones([STONE])
+    meas = _measure(s3.stone_model3d(truth), _grid(5), coarse_depths(np.full(25, DEPTH_M)), seed=3)
+    loc = localize3d(BLOCK.prior(), meas, sur)
+    region = probe_bounds(BLOCK)
+    weak = dataclasses.replace(loc, detected=False, peak_x_m=region[0], peak_y_m=region[2])
+    np.testing.assert_allclose(design_positions3d(weak, meas, 9, sur, region),
+                               grid_around(loc.x_m, loc.y_m, 8e-3, 9, region))
+    none = dataclasses.replace(weak, x_m=float("nan"))
+    np.testing.assert_allclose(design_positions3d(none, meas, 9, sur, region),
+                               grid_around(region[0], region[2], 8e-3, 9, region))
+    assert loc.detected and not np.allclose(design_positions3d(loc, meas, 9, sur, region),
+                                            grid_around(loc.x_m, loc.y_m, 8e-3, 9, region))
+
+
 def test_detectability_rises_with_probes_and_falls_with_depth(sur):
     prior = BLOCK.prior()
     sig = probe_sigma_n(sensor_spec("nano17"))
