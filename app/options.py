@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import ipaddress
 import math
 import os
 from pathlib import Path
@@ -41,7 +42,7 @@ def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
                          f"{kind(truth)}: give a truth of the same kind")
     for key in ("width_m", "length_m"):
         a, b = getattr(prior.tissue, key), getattr(truth.tissue, key)
-        if a != b:
+        if (a is None) != (b is None) or (a is not None and not math.isclose(a, b, rel_tol=1e-9)):
             raise UsageError(f"{where_prior}: tissue.{key} = {a!r} m but the simulated truth's (scene {truth_name}) "
                              f"is {b!r} m; the localizer fits the tissue's stiffness, thickness and surface, not its "
                              f"extent: give a belief of the same {key}")
@@ -108,13 +109,23 @@ def host_name(s: str) -> str:
     in dot-separated labels (RFC 1123)."""
     if not s.strip() or any(c.isspace() for c in s):
         raise argparse.ArgumentTypeError(f"must be a host name or IP address, got {s!r}")
+    try:
+        ipaddress.IPv6Address(s.split("%")[0])
+        raise argparse.ArgumentTypeError(f"{s!r} is an IPv6 address: a UR controller takes an IPv4 address (or a "
+                                         f"host name)")
+    except ipaddress.AddressValueError:
+        pass
     if "/" in s or ":" in s:
         raise argparse.ArgumentTypeError(f"must be the controller's IP address or host name alone (no port or URL: "
                                          f"ur_rtde uses the UR's own ports), got {s!r}")
     labels = s.rstrip(".").split(".")
-    if all(lab.isdigit() for lab in labels):
-        if len(labels) != 4 or any(int(lab) > 255 for lab in labels):
-            raise argparse.ArgumentTypeError(f"must be an IPv4 address (four numbers 0-255) or a host name, got {s!r}")
+    if all(lab.isdigit() or lab.lower().startswith("0x") for lab in labels):
+        # numbers only: the canonical dotted quad (the resolver reads 010 as octal 8 and 0x7f as hex: another host)
+        try:
+            ipaddress.IPv4Address(s.rstrip("."))
+        except ipaddress.AddressValueError:
+            raise argparse.ArgumentTypeError(f"must be an IPv4 address (four numbers 0-255, no leading zeros) or a "
+                                             f"host name, got {s!r}") from None
     elif len(s) > 253 or not all(lab and len(lab) <= 63 and lab[0] != "-" and lab[-1] != "-"
                                  and all(c.isalnum() and c.isascii() or c in "-_" for c in lab) for lab in labels):
         raise argparse.ArgumentTypeError(f"must be an IPv4 address or a host name (letters, digits and hyphens "

@@ -224,6 +224,7 @@ THICKNESS_SIGMA = 0.06      # prior uncertainty of the thickness (relative, 1 si
 MAX_THICKNESS_SIGMA = 0.10  # a 3D block's (planner.localize3d, --thickness-sigma-m) at most: tabulated at 1 -+ 0.1
 MIN_THICKNESS_SIGMA = 1e-3  # ... and at least, unless 0 (known): below, its prior's residual eta / sigma overflows the
 #                             fit (1e-160 left every sigma 0 and a stone the default prior does not see; 1e-300 raised)
+SIGMA_BOUND_TOL = 1e-9      # relative slack on both bounds: a bound printed in m (%g) and typed back is accepted
 DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
 #                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)

@@ -40,6 +40,7 @@ from planner.localize import (
     MIN_THICKNESS_SIGMA,
     MODEL_ABS_ERR_N,
     ONSET_SIGMA_M,
+    SIGMA_BOUND_TOL,
     THICKNESS_SIGMA,
     Localization,
     Measurements,
@@ -214,8 +215,8 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
     if not prior.is_3d:
         raise ValueError("localize3d() takes a 3D block (tissue.length_m); planner.localize handles a 2D section")
-    if not (math.isfinite(thickness_sigma) and (thickness_sigma == 0.0 or
-                                                 MIN_THICKNESS_SIGMA <= thickness_sigma <= MAX_THICKNESS_SIGMA)):
+    if not (math.isfinite(thickness_sigma) and (thickness_sigma == 0.0 or MIN_THICKNESS_SIGMA * (1 - SIGMA_BOUND_TOL)
+                                                 <= thickness_sigma <= MAX_THICKNESS_SIGMA * (1 + SIGMA_BOUND_TOL))):
         raise ValueError(f"thickness_sigma={thickness_sigma}: must be 0 (known) or between {MIN_THICKNESS_SIGMA} and "
                          f"{MAX_THICKNESS_SIGMA}")
     if len(meas) < MIN_MEASUREMENTS + 1:

@@ -83,7 +83,8 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
         cx, cy = ((loc.x_m, loc.y_m) if math.isfinite(loc.x_m) and math.isfinite(loc.y_m) else
                   (loc.peak_x_m, loc.peak_y_m) if math.isfinite(loc.peak_x_m) else
                   (0.5 * (region[0] + region[1]), 0.5 * (region[2] + region[3])))
-        return grid_around(cx, cy, 8e-3, n, region)
+        cx, cy = min(max(cx, region[0]), region[1]), min(max(cy, region[2]), region[3])    # (the table's patch is
+        return grid_around(cx, cy, 8e-3, n, region)                                     # the region today)
     d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m])

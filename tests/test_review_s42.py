@@ -96,6 +96,10 @@ def test_the_ratio_peak_of_a_plateau_stays_within_what_its_samples_support():
     assert ratio[i] <= pk["ratio"] <= ratio[i] + 0.25 * (ratio[i] - min(ratio[i - 1], ratio[i + 1]))
     assert pk["ratio"] < 1                              # a soft inclusion: nowhere stiffer than healthy tissue
     assert abs(pk["x_m"] - xs[i]) <= xs[1] - xs[0]
+    nan = ratio.copy()                                  # beside an undefined ratio: the largest sample itself
+    nan[i + 1] = np.nan
+    pk = _peak(xs, nan)
+    assert np.isfinite(pk["ratio"]) and np.isfinite(pk["x_m"]) and ratio[i] <= pk["ratio"] < 1
     hump = 1 + 0.15 * np.exp(-((xs - 0.0203) / 0.006) ** 2)       # a stiff stone's hump: the window's parabola
     lo, hi = upper_window(hump, int(np.argmax(hump)))
     assert _peak(xs, hump)["ratio"] == parabola_peak(xs, hump, lo, hi)[1]
@@ -185,6 +189,8 @@ def test_the_simulated_box_stops_sending_to_a_client_gone_within_a_step():
             return getattr(real, name)
 
         def sendto(self, data, addr):
+            if addr is None:                        # what a real socket raises
+                raise TypeError("sendto(): AF_INET address must be tuple, not NoneType")
             raise ConnectionRefusedError(111, "gone")
     try:
         box.sock, box.client = Gone(), ("127.0.0.1", 9)
@@ -196,7 +202,8 @@ def test_the_simulated_box_stops_sending_to_a_client_gone_within_a_step():
 
 @pytest.mark.parametrize("host, ok", [("192.168.1.10", True), ("ur5e.local", True), ("localhost", True),
                                       ("ur_5", True), ("999.1.1.1", False), ("1.2.3", False),
-                                      ("127.0.0.1:30004", False), ("http://127.0.0.1", False), ("a..b", False)])
+                                      ("127.0.0.1:30004", False), ("http://127.0.0.1", False), ("a..b", False),
+                                      ("192.168.001.010", False), ("0x7f.0.0.1", False), ("::1", False)])
 def test_a_controller_host_is_an_ipv4_address_or_a_host_name(host, ok):
     """'999.1.1.1', '127.0.0.1:30004' and 'http://127.0.0.1' passed the check and reached ur_rtde ('resolve: Host
     not found', an empty --out left behind)."""
@@ -206,5 +213,5 @@ def test_a_controller_host_is_an_ipv4_address_or_a_host_name(host, ok):
     if ok:
         assert host_name(host) == host
     else:
-        with pytest.raises(argparse.ArgumentTypeError, match="IPv4 address|alone"):
+        with pytest.raises(argparse.ArgumentTypeError, match="IPv4 address|alone|IPv6"):
             host_name(host)

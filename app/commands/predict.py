@@ -192,12 +192,14 @@ def _peak(xs, ratio) -> dict | None:
     lo, hi = upper_window(ratio, i)
     x_fit, fit = parabola_peak(xs, ratio, lo, hi)
     near = ratio[max(i - 1, 0):i + 2]
-    drop = float(ratio[i] - np.min(near)) if np.isfinite(near).all() else 0.0
-    if fit - ratio[i] > drop:
+    near = near[np.isfinite(near)]
+    if fit - ratio[i] > ratio[i] - np.min(near):
         # the window's parabola does not describe the top (a plateau falling off steeply: it rose 2.6e-3 above a
         # largest sample 1.3e-3 above its lower neighbour): the parabola through the top three samples, which
-        # rises at most a quarter of that drop above the largest
-        x_fit, fit = parabola_peak(xs, ratio, i - 1, i + 1) if 0 < i < len(ratio) - 1 else (float(xs[i]), ratio[i])
+        # rises at most a quarter of that drop above the largest; the largest sample itself at an end of the
+        # profile or beside an undefined ratio
+        three = 0 < i < len(ratio) - 1 and len(near) == 3
+        x_fit, fit = parabola_peak(xs, ratio, i - 1, i + 1) if three else (float(xs[i]), ratio[i])
     out["x_m"] = x_fit
     # the peak is at least the largest sample: on a lopsided hump (two stones) the window's parabola peaks below it
     out["ratio"] = max(float(fit), float(ratio[i]))

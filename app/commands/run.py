@@ -73,6 +73,7 @@ from planner.localize import (
     MIN_MEASUREMENTS,
     MIN_MEASUREMENTS3D,
     MIN_THICKNESS_SIGMA,
+    SIGMA_BOUND_TOL,
     Localization,
     localize,
 )
@@ -186,12 +187,13 @@ def _dimension_defaults(args, scene, prior) -> bool:
                          f"localizer takes the tissue's thickness as known to 6 %")
     if three_d and getattr(args, "thickness_sigma_m", None) is not None:
         top = MAX_THICKNESS_SIGMA * prior.tissue.height_m
-        if args.thickness_sigma_m / prior.tissue.height_m > MAX_THICKNESS_SIGMA:    # (run3d.thickness_sigma's ratio)
+        # (run3d.thickness_sigma's ratio, with the localizer's tolerance: the bounds printed here are accepted)
+        if args.thickness_sigma_m / prior.tissue.height_m > MAX_THICKNESS_SIGMA * (1 + SIGMA_BOUND_TOL):
             raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: at most {top:g} m (10 % of the prior "
                              f"block's height, {prior.tissue.height_m:g} m: the localizer tabulates the block at 0.9 "
                              f"and 1.1 of it)")
         low = MIN_THICKNESS_SIGMA * prior.tissue.height_m
-        if 0 < args.thickness_sigma_m and args.thickness_sigma_m / prior.tissue.height_m < MIN_THICKNESS_SIGMA:
+        if 0 < args.thickness_sigma_m / prior.tissue.height_m < MIN_THICKNESS_SIGMA * (1 - SIGMA_BOUND_TOL):
             raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: give 0 (the thickness known) or at "
                              f"least {low:g} m (0.1 % of the prior block's height, {prior.tissue.height_m:g} m)")
     if three_d:

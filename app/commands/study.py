@@ -98,17 +98,20 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        help="an existing dask scheduler, tcp://HOST:PORT")
     p.add_argument("--scene", help="the tissue (its prior is used; default paper, block3d for accuracy3d)")
     p.add_argument("--trials", type=int_range(1, 100000),
-                   help="accuracy, mismatch: random stones (default 100, --quick 20)")
+                   help="accuracy, mismatch, accuracy3d: random stones (default 100, --quick 20; accuracy3d 50, "
+                        "--quick 10)")
     p.add_argument("--runs", type=int_range(1, 100000), help="detect: rasters per stone (default 150, --quick 40)")
     p.add_argument("--scenes", type=int_range(1, 100000), help="sweep: random scenes (default 300, --quick 40)")
     p.add_argument("--healthy", type=int_range(0, 100000),
-                   help="accuracy, mismatch: healthy scenes (default 40, --quick 10)")
+                   help="accuracy, mismatch, accuracy3d: healthy scenes (default 40, --quick 10; accuracy3d 20, "
+                        "--quick 5)")
     p.add_argument("--seed", type=int_range(0, 2 ** 31), default=1, help="the study's seed (default 1)")
     p.add_argument("--sensor", choices=["nano17", "ur5e-builtin"],
                    help="accuracy, detect, accuracy3d: the simulated sensor (default nano17; mismatch and sweep use "
                         "none of their own and refuse it)")
     p.add_argument("--budget-probes", type=int_range(15, 10000),
-                   help="probes per trial (default: accuracy 45, mismatch 25)")
+                   help="accuracy, mismatch, accuracy3d: probes per trial (default: accuracy 45, mismatch 25, "
+                        "accuracy3d 84)")
     p.add_argument("--hyperelastic", action="store_true",
                    help="mismatch: a finite-strain neo-Hookean truth in half the trials (such a run took 1-3.3x a "
                         "linear one's time)")
@@ -147,18 +150,18 @@ def run(args) -> int:
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json")
     out = Path(args.out)
+    for opt, studies in OPTION_STUDIES.items():     # an option the chosen study would not read: refused, not ignored
+        v = getattr(args, opt)
+        if v is not None and v is not False and args.study not in studies:     # (0 is given: 0 == False)
+            flag = "--" + opt.replace("_", "-")
+            raise UsageError(f"{flag}{'' if v is True else f' {v}'}: the {args.study} study does not take it (it is for "
+                             f"{', '.join(studies)})")
     three_d = args.study == "accuracy3d"
     scene = load_scene(args.scene or ("block3d" if three_d else "paper"), "--scene")
     if scene.is_3d != three_d:
         raise UsageError(f"--scene {args.scene}: the {args.study} study needs a "
                          f"{'3D block (tissue.length_m)' if three_d else '2D section'}, this is "
                          f"{'a 3D block' if scene.is_3d else 'a 2D section'}")
-    for opt, studies in OPTION_STUDIES.items():     # an option the chosen study would not read: refused, not ignored
-        v = getattr(args, opt)
-        if v not in (None, False) and args.study not in studies:
-            flag = "--" + opt.replace("_", "-")
-            raise UsageError(f"{flag}{'' if v is True else f' {v}'}: the {args.study} study does not take it (it is for "
-                             f"{', '.join(studies)})")
     args.target_uncertainty_m = args.target_uncertainty_m or 5e-4
     if args.sensor is not None and args.study in ("mismatch", "sweep"):
         raise UsageError(f"--sensor {args.sensor}: the {args.study} study does not take a sensor ("
