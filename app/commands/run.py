@@ -141,8 +141,7 @@ def add_parser(sub) -> None:
                         "prior's height, what the 2D section assumes: a thickness known to +-10 %%; 0: known exactly, "
                         "not fitted; else between 0.1 and 10 %% of the height). The localizer fits the thickness with "
                         "this prior: a broad, deep stone and a thinner block look alike, so a looser prior costs "
-                        "precision and a "
-                        "tighter one than the truth can raise a false stone (README)")
+                        "precision and a tighter one than the truth can raise a false stone (README)")
     p.add_argument("--refine-waypoints", type=int_range(3, MAX_WAYPOINTS),
                    help=f"waypoints per refinement round, at least 3 (a 3D block: 4; default 2D 10, 3D "
                         f"{DEFAULT_REFINE3D})")
