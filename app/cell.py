@@ -260,7 +260,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
     except NotConnected as e:
         print(f"palpate-cell: cannot connect: {e}", file=sys.stderr)
         return EXIT_USAGE
-    depth = (f", {rep.n_depth_limit} at the depth limit past the contact felt (the surface higher than planned? check "
+    depth = (f", {rep.n_depth_limit} at the depth limit (the surface higher than planned? check "
              f"the registration)") if rep.n_depth_limit else ""
     print(f"run {rep.status}: {rep.n_ok} ok, {rep.n_force_limit} at the force limit{depth}, {rep.n_rejected} rejected, "
           f"{rep.n_skipped} from the log; controller time {rep.controller_time_s:.1f} s, wall {rep.wall_s:.1f} s")

@@ -17,7 +17,9 @@ What the planner hands the robot. Plain data, JSON, versioned; no CasADi, no mes
 
 Each probe: ``approach_pose`` (tip ``motion.approach_height_m`` above the undeformed surface at x_m), then a slow
 straight descent along the tool axis to ``indent_pose`` (tip ``depth_m`` below the undeformed surface), dwell,
-retract to ``approach_pose``.
+retract to ``approach_pose``. ``force_exponent`` (optional, null: unknown): the prior's force ~ depth^p over the
+chord from ``motion.contact_threshold_n`` to ``depth_m``; the driver counts its depth limit from the surface a line
+through F^(1/p) gives (robot.tissue_depth).
 
 Timing (planner/timing.py): every move is a moveL; the descent runs at ``motion.probe_speed_m_s`` over approach height
 plus depth, the retract at the approach speed; each move takes the larger of its tool-speed and joint-limit times.
@@ -36,6 +38,7 @@ from enum import StrEnum
 from pathlib import Path
 
 PLAN_VERSION = 2
+MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT = 0.5, 4.0   # a probe's force_exponent (null: unknown)
 READABLE_PLAN_VERSIONS = (1, 2)
 
 # Hard caps: no plan may ask for more, whatever its limits say; the planner's options, Plan.check and the driver's
@@ -97,6 +100,10 @@ class Probe:
     t_start_s: float = 0.0               # planned start time from the beginning of the run
     duration_s: float = 0.0              # planned time for this probe (move in, descend, dwell, retract)
     y_m: float = 0.0                     # tissue frame, along a 3D block's length (0 on a 2D section's plane)
+    # the prior's force ~ indentation^p here, p over the chord from the contact threshold to depth_m: the driver's
+    # depth limit counts the indentation at which contact was felt from it (robot.tissue_depth); None (a plan
+    # without it): the limit counts from the contact felt
+    force_exponent: float | None = None
 
 
 @dataclass
@@ -276,6 +283,10 @@ class Plan:
             if p.depth_m >= tip:
                 raise PlanError(f"plan field {w}.depth_m = {p.depth_m!r} must be below the tip radius {tip:g} m")
             number(f"{w}.predicted_force_n", p.predicted_force_n, lo=0.0, lo_open=False)
+            if p.force_exponent is not None:
+                number(f"{w}.force_exponent", p.force_exponent, lo=MIN_FORCE_EXPONENT, lo_open=False,
+                       hi=MAX_FORCE_EXPONENT, allowed=f"[{MIN_FORCE_EXPONENT:g}, {MAX_FORCE_EXPONENT:g}] or null "
+                       f"(the prior's force ~ depth^p: 1 a flat punch, 1.5 a Hertz sphere)")
             number(f"{w}.t_start_s", p.t_start_s, lo_open=False)
             number(f"{w}.duration_s", p.duration_s, lo_open=False)
             finite(f"{w}.approach_pose", p.approach_pose, 6)

@@ -44,6 +44,7 @@ from planner.raster import (
     Targets,
     choose_depths,
     default_tissue_pose,
+    force_exponents,
     raster_positions,
     targets,
 )
@@ -487,6 +488,8 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
         dc = choose_depths(force_n, where, force_limit_n=limits.force_limit_n, depth_limit_m=limits.depth_limit_m,
                            force_fraction=force_fraction, min_depth_m=min_depth_m, depth_for=depth_for)
         d, f, limited_by, target_n = dc.depth_m, dc.force_n, dc.limited_by, dc.target_force_n
+
+    expo = force_exponents(force_n, where, d, f, motion.contact_threshold_n, depth_for)
     depth_s = time.perf_counter() - t0
 
     tg = targets(x, d, frames.tissue_pose_base, motion.approach_height_m, y_m=y)
@@ -509,7 +512,7 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
         prev = pa
         extra = {} if y is None else {"y_m": float(y[k])}
         probes.append(Probe(index=k, x_m=float(x[k]), depth_m=float(d[k]), predicted_force_n=float(f[k]),
-                            approach_pose=pa, indent_pose=pi,
+                            force_exponent=expo[k], approach_pose=pa, indent_pose=pi,
                             q_approach_rad=Q[k, 0].tolist(), q_indent_rad=Q[k, 1].tolist(),
                             t_start_s=tm.t_start_s[k], duration_s=tm.duration_s[k], **extra))
     notes = {"planner": "casadi-ipopt raster v1", "target_force_n": target_n, "depth_limited_by": limited_by, "solver": info, "timing": tm.to_dict(),

@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from core.contracts import HARD_FORCE_LIMIT_N, PlanError
+from core.contracts import HARD_FORCE_LIMIT_N, MAX_FORCE_EXPONENT, MIN_FORCE_EXPONENT, PlanError
 from core.ur5e import pose_to_T
 
 
@@ -177,3 +177,31 @@ def choose_depths(force_n: Callable[..., float], x_m: Sequence, *, force_limit_n
         forces.append(f)
         why.append("depth" if d >= depth_limit_m else "force")
     return DepthChoice(np.array(depths), np.array(forces), target, why)
+
+
+def force_exponents(force_n: Callable[..., float], positions: Sequence, depth_m: Sequence[float],
+                    force_at_depth_n: Sequence[float], threshold_n: float,
+                    depth_for: Callable | None = None) -> list[float | None]:
+    """Per waypoint, the prior's force ~ depth^p over the chord from the contact threshold to the planned depth: the
+    driver counts the indentation at which it felt contact from it, so that its depth limit is below the surface,
+    not below the contact felt (robot.tissue_depth). Where the prior does not reach the threshold by the planned
+    depth, the chord over the depth's second half; None where neither is defined or p lies outside
+    [MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT] (the driver then counts from the contact felt). ``positions``,
+    ``force_n`` and ``depth_for`` as in ``choose_depths``."""
+    out, guess = [], None
+    for pos, d, f in zip(positions, depth_m, force_at_depth_n):
+        at = (float(pos),) if np.ndim(pos) == 0 else tuple(float(v) for v in pos)
+        d, f, p = float(d), float(f), None
+        if f > threshold_n:
+            if depth_for is not None:
+                d0, f0 = depth_for(at, threshold_n, d, guess)
+            else:
+                d0, f0 = depth_for_force(lambda _, dd, at=at: force_n(*at, dd), at[0], threshold_n, d, guess_m=guess)
+            if 0 < d0 < d and f0 > 0:
+                p, guess = math.log(f / f0) / math.log(d / d0), d0
+        elif f > 0:
+            f_half = float(force_n(*at, 0.5 * d))
+            if f_half > 0:
+                p = math.log(f / f_half) / math.log(2.0)
+        out.append(p if p is not None and MIN_FORCE_EXPONENT <= p <= MAX_FORCE_EXPONENT else None)
+    return out

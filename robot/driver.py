@@ -69,6 +69,7 @@ from robot.safety import (
 )
 from robot.safety import move_time as _move_time
 from robot.signals import SignalGate
+from robot.tissue_depth import SurfaceFit
 
 # contact felt within this much of a descent's start (or half the approach height, when smaller) is a fault: the
 # surface is at the approach pose (robot.driver._ForceWatch._early)
@@ -161,7 +162,7 @@ class RunReport:
     n_planned: int = 0
     n_ok: int = 0
     n_force_limit: int = 0
-    n_depth_limit: int = 0             # stopped the depth limit past the contact felt (the surface higher than planned)
+    n_depth_limit: int = 0             # stopped at the depth limit (the surface higher than planned: robot.tissue_depth)
     n_rejected: int = 0
     n_skipped: int = 0                 # already ok in the log (resume)
     fault: dict | None = None
@@ -193,6 +194,11 @@ FF_PERIODS = 500
 # after a descent stopped at the depth limit the probe dwells where the arm came to rest (its force is measured as
 # a planned dwell's is); deeper than that by more than this while it holds, the dwell ends (the arm must not creep)
 HOLD_SLACK_M = 1e-4
+# the depth limit counts from the surface fitted to a descent's force curve (robot.tissue_depth) where that stands
+# more than this above the registered surface: within it, the plan's depth (at most the limit below the registered
+# surface) governs, so a fit's error (a relaxing tissue's flatter curve lengthens its lag by up to 0.1 mm) cannot stop
+# a probe at its planned depth; the tip goes at most this much past the limit unless the fit errs by more
+SURFACE_TOL_M = 2.5e-4
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -289,8 +295,11 @@ class _ForceWatch:
     threshold) and stops the arm when the force where it will have stopped (``force_when_stopped``) exceeds the
     limit."""
 
-    def __init__(self, driver: "Driver"):
+    def __init__(self, driver: "Driver", force_exponent: float | None = None):
         self.d = driver
+        self.exponent = force_exponent  # the prior's force ~ depth^p (the plan's): the depth limit's lag
+        self.fit: SurfaceFit | None = None      # the surface from the force since contact (robot.tissue_depth)
+        self.lag_m: float | None = None         # its lag when the descent ended (held through the dwell)
         self.contact: dict = {}
         self.hist = deque(maxlen=driver.cfg.filter_window + 1)
         self.lead = stop_lead_periods(driver.cfg.filter_window)
@@ -312,12 +321,35 @@ class _ForceWatch:
                              f"probes pass (and the sensor may have been zeroed in the tissue); re-register the "
                              f"surface, or plan a larger approach height: palpate plan --approach-height-m")
 
-    def _too_deep(self, depth):
-        """The depth limit (a float or an array of periods): the limit past the contact felt while descending;
-        while holding after a stop there, deeper than where the arm came to rest by HOLD_SLACK_M."""
+    def _too_deep(self, depth, filt):
+        """The depth limit (floats or arrays of periods: the depth below the nominal surface, the filtered force):
+        while descending, the depth below the tissue's surface (robot.tissue_depth: the travel since contact was
+        felt plus the lag the force curve gives) past the limit; while holding after a stop there, deeper than
+        where the arm came to rest by HOLD_SLACK_M."""
         if self.holding:
-            return depth > self.rest_depth + HOLD_SLACK_M
-        return depth - self.contact["depth"] > self.d.lim.depth_limit_m
+            return np.atleast_1d(depth > self.rest_depth + HOLD_SLACK_M)
+        past = np.atleast_1d(depth - self.contact["depth"])
+        if self.lag_m is not None:      # dwelling: the descent's lag (a dwell's readings are not its curve)
+            lag = self.lag_m
+        else:
+            if self.fit is None:
+                self.fit = SurfaceFit(self.exponent, self.contact["depth"] - self.start_depth_m,
+                                      self.d.cfg.filter_window)
+            lag = self.fit.depth_m(past, filt) - past
+        limit = self.d.lim.depth_limit_m
+        # counted from the fitted surface where it stands SURFACE_TOL_M above the registered one (else the plan's
+        # depth, at most the limit, governs), and never more than the limit past the contact felt
+        return (past > limit) | ((past + lag > limit) & (lag - self.contact["depth"] > SURFACE_TOL_M))
+
+    def end_descent(self) -> None:
+        """The descent is over: the lag its readings gave holds through the dwell (a relaxing tissue's force
+        falls at constant depth: fitted as the curve, it would lengthen the lag and stop a probe already there)."""
+        self.lag_m = self.fit.lag_m() if self.fit is not None else 0.0
+
+    def _commit(self, depth, filt) -> None:
+        """Readings past the contact that did not stop the arm: into the surface's fit (the descent's only)."""
+        if self.fit is not None and not self.holding and self.lag_m is None:
+            self.fit.commit(depth - self.contact["depth"], filt)
 
     def _pulled(self, f: float) -> None:
         """A filtered force below minus the free-air band (the contact threshold and the drift allowed since the zero)
@@ -346,9 +378,11 @@ class _ForceWatch:
             return ProbeStatus.FORCE_LIMIT
         if self.holding and self.rest_depth is None:
             self.rest_depth = s["depth"]
-        if "depth" in self.contact and self._too_deep(s["depth"]):
-            self.d._stop()              # the depth limit counts from the surface felt, not only the plan's
-            return ProbeStatus.DEPTH_LIMIT
+        if "depth" in self.contact:
+            if self._too_deep(s["depth"], s["filt"])[0]:
+                self.d._stop()          # the depth limit counts from the surface felt, not only the plan's
+                return ProbeStatus.DEPTH_LIMIT
+            self._commit(s["depth"], s["filt"])
         return None
 
     def quiet(self, b: _Block, limit: int) -> int:
@@ -369,8 +403,9 @@ class _ForceWatch:
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
         if self.holding and self.rest_depth is None and b.n:
             self.rest_depth = float(b.depth[0])
-        if "depth" in self.contact:     # and up to the first past the depth limit below the contact felt
-            k = j + first_true(self._too_deep(b.depth[j:k]), k - j)
+        if "depth" in self.contact:     # and up to the first past the depth limit (below the fitted surface)
+            k = j + first_true(self._too_deep(b.depth[j:k], filt[j:k]), k - j)
+            self._commit(b.depth[j:k], filt[j:k])
         self.hist.extend(filt[:k].tolist())
         return k
 
@@ -793,7 +828,7 @@ class Driver(Recovery):
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
                    _Collision(self), what=f"approach to probe {p.index}")
         self._zero(p)
-        watch = _ForceWatch(self)
+        watch = _ForceWatch(self, p.force_exponent)
         self.phase = DESCENT
         outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
                              min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
@@ -801,6 +836,7 @@ class Driver(Recovery):
         if (outcome == "reached" or limited) and mo.dwell_s > 0:
             # stopped at the depth limit (the surface higher than registered): the arm holds there for the dwell
             watch.holding = limited
+            watch.end_descent()
             self.phase = DWELL
             n = [0]
 

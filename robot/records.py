@@ -2,8 +2,8 @@
 
 ``<out>/probes.jsonl``  one JSON object per probe attempt, appended, flushed and fsync'ed before the next probe.
                         Keys carry units (see ``driver.summarise``); ``status`` is "ok", "force_limit" (stopped at
-                        the force limit, e.g. over a stone), "depth_limit" (stopped the depth limit past the contact
-                        felt: the surface higher than planned), "rejected" (failed the safety checks, never moved),
+                        the force limit, e.g. over a stone), "depth_limit" (stopped the depth limit below the surface
+                        fitted to the force felt, or past the contact felt: the surface higher than planned), "rejected" (failed the safety checks, never moved),
                         "fault" or "interrupted" (the attempt ended early; its samples are still kept).
 ``<out>/raw/probe_NNN[_aK].npz``  the raw samples of that attempt: ``time_s`` (N), ``tcp_pose`` (N x 6, base
                         frame), ``wrench`` (N x 6, as read), ``force_n`` (N, contact force along the tissue normal),

@@ -31,6 +31,8 @@ from core.contracts import (  # noqa: F401  (re-exported: the driver's hard caps
     HARD_FORCE_LIMIT_N,
     HARD_PROBE_SPEED_M_S,
     HARD_TOOL_SPEED_M_S,
+    MAX_FORCE_EXPONENT,
+    MIN_FORCE_EXPONENT,
 )
 
 HARD_BOX_MIN_M = (-0.85, -0.85, -0.2)
@@ -200,6 +202,9 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             why = f"depth_m {p.depth_m} outside (0, depth limit {lim.depth_limit_m}]"
         elif not (0 <= p.predicted_force_n <= lim.force_limit_n):
             why = f"predicted_force_n {p.predicted_force_n} outside [0, force limit {lim.force_limit_n}]"
+        elif p.force_exponent is not None and not (MIN_FORCE_EXPONENT <= p.force_exponent <= MAX_FORCE_EXPONENT):
+            why = (f"force_exponent {p.force_exponent} outside [{MIN_FORCE_EXPONENT:g}, {MAX_FORCE_EXPONENT:g}] "
+                   f"(or null)")
         else:
             for name, pose, want in (("approach_pose", p.approach_pose, -mo.approach_height_m),
                                      ("indent_pose", p.indent_pose, p.depth_m)):

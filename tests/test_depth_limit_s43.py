@@ -1,0 +1,167 @@
+"""The depth limit counts from the tissue's surface estimated from the force curve, not from the contact felt
+(session 43; robot.tissue_depth). Before, a surface higher than registered let the tip go the contact's lag past
+the limit: 4 mm plus the indentation at which the tissue pushes back the contact threshold."""
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import make_plan, make_sim  # noqa: E402
+
+from core.contracts import Limits, Plan, PlanError  # noqa: E402
+from planner.raster import force_exponents  # noqa: E402
+from robot import records as records_mod  # noqa: E402
+from robot.driver import run_plan  # noqa: E402
+from robot.records import read_records  # noqa: E402
+from robot.simforce import standin_force_model  # noqa: E402
+from robot.tissue_depth import SurfaceFit  # noqa: E402
+
+XS = (0.02, 0.035, 0.05)
+LIMIT = 0.004
+HIGH = 0.003                     # the true surface this far above the registered one
+
+
+def _plan(exponent):
+    plan = make_plan(XS, depth_m=LIMIT, limits=Limits(depth_limit_m=LIMIT))
+    for p in plan.probes:
+        p.force_exponent = exponent
+    return plan
+
+
+def _deepest_in_tissue(out: Path, surface_m: float) -> list[float]:
+    """Per probe, the deepest the tip went below the true surface (the raw depth is below the registered one)."""
+    return [float(records_mod.load_raw(out, r)["depth_m"].max()) + surface_m for r in read_records(out)]
+
+
+@pytest.mark.parametrize("k", [300.0, 1500.0])        # lag at 20 mN: 1.64 mm (soft), 0.56 mm
+def test_a_high_surface_stops_the_depth_limit_below_the_true_surface(tmp_path, k):
+    lag = (0.02 / k) ** (2 / 3)
+    force = standin_force_model(k_n_per_m15=k, stones=())          # F = k d^1.5: the plan's exponent is exact
+    arm, c, r = make_sim(force, surface_height_m=lambda x: HIGH)
+    rep = run_plan(_plan(1.5), c, r, tmp_path / "new")
+    assert rep.status == "ok", rep.fault
+    assert [x.status for x in read_records(tmp_path / "new")] == ["depth_limit"] * len(XS)
+    deepest = _deepest_in_tissue(tmp_path / "new", HIGH)
+    assert max(deepest) < LIMIT + 1.5e-4 and min(deepest) > LIMIT - 5e-5, deepest
+    # the same plan without the exponent: the limit counted from the contact felt, the lag deeper (the old rule)
+    arm, c, r = make_sim(force, surface_height_m=lambda x: HIGH)
+    rep = run_plan(_plan(None), c, r, tmp_path / "old")
+    old = _deepest_in_tissue(tmp_path / "old", HIGH)
+    assert min(old) > LIMIT + 0.8 * lag, old
+
+
+@pytest.mark.parametrize("k", [300.0, 1500.0])
+def test_a_registered_surface_reaches_the_planned_depth_at_the_limit(tmp_path, k):
+    """Probes planned at the depth limit on a correctly registered surface, with the Nano17's noise: none stops
+    early (the noise guard keeps a reading lowered by noise from lengthening the lag)."""
+    force = standin_force_model(k_n_per_m15=k)                     # (its stone stiffens the middle probe)
+    for seed in range(2):
+        arm, c, r = make_sim(force, seed=seed)
+        out = tmp_path / f"s{seed}"
+        rep = run_plan(_plan(1.5), c, r, out)
+        assert rep.status == "ok" and [x.status for x in read_records(out)] == ["ok"] * len(XS)
+        assert all(abs(x.depth_reached_m - LIMIT) < 2e-5 for x in read_records(out))
+
+
+def test_the_surface_fit_is_exact_for_a_power_law_and_never_below_the_travel():
+    p, lag = 1.3, 1.2e-3
+    past = np.linspace(0.0, 4e-3, 401)
+    f = 0.02 * ((lag + past) / lag) ** p
+    fit = SurfaceFit(p, 0.01, 5)
+    got = fit.depth_m(past, f)
+    assert np.array_equal(got[:2], past[:2])                        # two readings: no line yet
+    assert np.allclose(got[2:], lag + past[2:], rtol=0, atol=1e-8)  # exact (10 nm: rounding in the residuals)
+    # one reading at a time, committed as the driver does: the same numbers, bit for bit
+    one = SurfaceFit(p, 0.01, 5)
+    seq = []
+    for a, b in zip(past, f):
+        seq.append(one.depth_m(a, b)[0])
+        one.commit(a, b)
+    assert np.array_equal(np.array(seq), got)
+    # no exponent: the travel alone (the old rule)
+    assert np.array_equal(SurfaceFit(None, 0.01, 5).depth_m(past, f), past)
+    # a force that does not rise: no line, the travel alone
+    assert np.array_equal(SurfaceFit(p, 0.01, 5).depth_m(past, np.full_like(past, 0.02)), past)
+    # the lag at most the contact's depth below the descent's start
+    assert np.allclose(SurfaceFit(p, 5e-4, 5).depth_m(past, f)[2:], past[2:] + 5e-4, rtol=0, atol=1e-12)
+    # noise: the lag is shortened by its standard errors, never below the travel; a longer window, more so
+    rng = np.random.default_rng(0)
+    noisy = f + rng.normal(0, 1e-3, f.size)
+    g5, g1 = SurfaceFit(p, 0.01, 5).depth_m(past, noisy), SurfaceFit(p, 0.01, 1).depth_m(past, noisy)
+    assert np.all(g5 >= past) and np.all(g5 <= g1) and np.all(g1 <= lag + past + 2e-4)
+    assert abs(g5[-1] - (lag + past[-1])) < 1e-4                   # (0.1 mm at 4 mm, 1 mN of noise)
+
+
+def test_the_planner_gives_a_power_laws_exponent():
+    for p in (1.0, 1.5, 2.2):
+        exps = force_exponents(lambda x, d, p=p: 40.0 * d ** p, [0.02, 0.03], [0.004, 0.003], [40 * 0.004 ** p,
+                               40 * 0.003 ** p], 1e-4)
+        assert exps == pytest.approx([p, p], rel=2e-3)
+    # a prior that never reaches the threshold by the planned depth: the chord over the depth's second half
+    assert force_exponents(lambda x, d: 3.0 * d ** 1.4, [0.02], [0.004], [3.0 * 0.004 ** 1.4], 0.5) == \
+        pytest.approx([1.4], rel=1e-9)
+    # outside the allowed range: none (the driver counts from the contact felt)
+    assert force_exponents(lambda x, d: 1e9 * d ** 5, [0.02], [0.004], [1e9 * 0.004 ** 5], 1e-4) == [None]
+
+
+def test_paper_plans_carry_the_priors_exponent():
+    from fem import scene as S
+    from planner.plan import plan_raster
+    plan = plan_raster(S.load("paper").prior(), n_waypoints=5)
+    exps = [p.force_exponent for p in plan.probes]
+    assert all(1.05 < e < 1.2 for e in exps), exps                  # a 2D section's cylinder-like contact
+    assert Plan.from_dict(plan.to_dict()).probes[0].force_exponent == exps[0]
+
+
+@pytest.mark.parametrize("bad", [0.2, 4.5, float("nan"), "1.5", True])
+def test_a_plan_with_a_bad_exponent_is_refused(bad):
+    plan = _plan(1.5)
+    d = plan.to_dict()
+    d["probes"][1]["force_exponent"] = bad
+    with pytest.raises(PlanError, match=r"probes\[1\]\.force_exponent"):
+        Plan.from_dict(d)
+
+
+def test_an_older_plan_without_exponents_still_runs(tmp_path):
+    d = _plan(1.5).to_dict()
+    for p in d["probes"]:
+        del p["force_exponent"]
+    plan = Plan.from_dict(d)
+    assert all(p.force_exponent is None for p in plan.probes)
+    arm, c, r = make_sim()
+    assert run_plan(plan, c, r, tmp_path).status == "ok"
+    assert math.isfinite(read_records(tmp_path)[0].depth_reached_m)
+    assert dataclasses.asdict(plan.probes[0])["force_exponent"] is None
+
+
+def test_fast_forward_stops_where_the_period_by_period_loop_stops(tmp_path):
+    """The fit's sums folded in the same order in the fast-forward's blocks as period by period: the same stops, the
+    same raw samples bit for bit (test_fast_forward's comparison), on a high, tilted, relaxing surface."""
+    from test_fast_forward import _assert_same, _twin_runs
+
+    from robot.truth import Relaxation
+    plan = _plan(1.5)
+
+    def arm():
+        return make_sim(standin_force_model(k_n_per_m15=300.0), seed=3, relaxation=Relaxation(0.25, 0.5),
+                        surface_height_m=lambda x: 2e-3 + (x - 0.035) * math.tan(0.05))
+    a, b = _twin_runs(tmp_path, plan, arm)
+    assert [r["status"] for r in b["recs"]] == ["depth_limit"] * len(XS)
+    _assert_same(a, b)
+
+
+def test_the_drivers_own_check_refuses_a_bad_exponent_it_was_handed(tmp_path):
+    """A plan built in code (no Plan.check) with an exponent out of range: refused before anything moves."""
+    plan = _plan(1.5)
+    plan.probes[2].force_exponent = 0.1
+    arm, c, r = make_sim()
+    t0 = arm.t_s
+    rep = run_plan(plan, c, r, tmp_path)
+    assert rep.status == "rejected" and any("force_exponent 0.1" in x for x in rep.problems), rep.problems
+    assert arm.t_s == t0
