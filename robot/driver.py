@@ -196,8 +196,8 @@ FF_PERIODS = 500
 HOLD_SLACK_M = 1e-4
 # the depth limit counts from the surface fitted to a descent's force curve (robot.tissue_depth) where that stands
 # more than this above the registered surface: within it, the plan's depth (at most the limit below the registered
-# surface) governs, so a fit's error (a relaxing tissue's flatter curve lengthens its lag by up to 0.1 mm) cannot stop
-# a probe at its planned depth; the tip goes at most this much past the limit unless the fit errs by more
+# surface) governs, so a small error of the fit (a tissue relaxing by 25 % over 2 s read its lag about 0.1 mm long)
+# cannot stop a probe at its planned depth; the tip goes at most this much past the limit unless the fit errs more
 SURFACE_TOL_M = 2.5e-4
 
 

@@ -202,7 +202,9 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             why = f"depth_m {p.depth_m} outside (0, depth limit {lim.depth_limit_m}]"
         elif not (0 <= p.predicted_force_n <= lim.force_limit_n):
             why = f"predicted_force_n {p.predicted_force_n} outside [0, force limit {lim.force_limit_n}]"
-        elif p.force_exponent is not None and not (MIN_FORCE_EXPONENT <= p.force_exponent <= MAX_FORCE_EXPONENT):
+        elif p.force_exponent is not None and (not isinstance(p.force_exponent, (int, float))
+                                               or isinstance(p.force_exponent, bool)
+                                               or not MIN_FORCE_EXPONENT <= p.force_exponent <= MAX_FORCE_EXPONENT):
             why = (f"force_exponent {p.force_exponent} outside [{MIN_FORCE_EXPONENT:g}, {MAX_FORCE_EXPONENT:g}] "
                    f"(or null)")
         else:

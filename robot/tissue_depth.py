@@ -3,23 +3,27 @@
 The driver feels contact where the filtered force first passes the contact threshold, some way into the tissue
 already: the lag, the indentation at which the tissue pushes back that force (about 1 mm in the paper's tissue with a
 Nano17's 20 mN, 1.5 mm in 1500 Pa tissue). Counted from the contact felt, the depth limit let the tip go that much
-past it wherever the surface stood higher than registered (before session 43: 4.9-5.5 mm into the tissue against
-a 4 mm limit, bench/depth_limit.py).
+past it wherever the surface stood higher than registered (before session 43: 4.9-6.0 mm into fem truths against
+a 4 mm limit with the surface 2 mm high, bench/depth_limit.py).
 
 The tissue's force rises as F = c d^p (d the indentation below the undeformed surface; ``p`` the plan's
 ``force_exponent``: the prior's own curve between the contact threshold and the probe's planned depth; c unknown, so
 any stiffness). So F^(1/p) is a straight line in the tip's travel, zero at the surface: a least-squares line through
 every filtered reading since contact was felt gives the surface as its zero, and the lag as the distance from there
-to the contact (``SurfaceFit``; running sums, so each period costs the same). Every reading counts: the single reading
-at the contact is as noisy as any (a Nano17's filtered sigma is 1.3 mN against a 20 mN threshold, and the first
-reading past a threshold is the one noise lifted: counted from it alone, probes stopped up to 0.16 mm short).
+to the contact (``SurfaceFit``; running sums, so each period costs the same). A truth flatter than the prior (q < p)
+bends that line down and would put the surface too high, so lines for a few exponents below p are fitted too and
+the one nearest p that fits as well as the best within noise is used (EXPONENT_FRACTIONS). Every reading counts:
+the single reading at the contact is as noisy as any (a Nano17's filtered sigma is 1.3 mN against a 20 mN threshold,
+and the first reading past a threshold is the one noise lifted: counted from it alone, probes stopped 0.16 mm short).
 
 Guards: the lag used is the fit's less LAG_SIGMAS standard errors (from the line's residuals, times the square root of
 the filter's window: its readings are not independent), so a fit with few or noisy readings gives a shorter lag --
 never a negative one: the depth is at least the travel since contact, the old measure -- and at most ``max_lag_m``
 (the contact's depth below the descent's start: the tip started in free air, the surface is no higher). A force
-curve steeper than the prior's (a stone, thinner tissue) bends the line and shortens the lag too; a flatter one
-(relaxing tissue) lengthens it. Measured against fem's forces (bench/depth_limit.py, docs/driver.md).
+curve steeper than the prior's (a stone, thinner tissue) bends the line and shortens the lag too (the tip goes a
+little past the limit: 0.03-0.33 mm on bench/depth_limit.py's fem truths). Not covered: a curve flatter than 0.6 p,
+or not a power law at all (a tissue relaxing by half within 0.5 s stopped one probe of three 0.21 mm short), and a
+force offset since the zeroing (5 mN makes a 1.5 mm lag read 0.3 mm long); each errs towards stopping early.
 
 The fast-forward's blocks and the period-by-period loop compute the same floating-point operations in the same
 order (sums folded left from the committed ones), so both stop at the same period.
@@ -31,31 +35,42 @@ import numpy as np
 LAG_SIGMAS = 3.0           # the lag used: the fit's less this many standard errors
 _N_MIN = 3                 # readings before a line is fitted (its residuals need n > 2)
 MIN_RISE = 0.01            # the line must rise this fraction of its mean value over the travel
+# the exponents tried, as fractions of the plan's: a truth whose force curve is flatter than the prior's (q < p: a
+# thicker or more compliant tissue, fast relaxation) bends F^(1/p) down, and a line through it puts the surface too
+# high (+0.2 mm of a 1 mm lag for q = 1.0 against p = 1.1, +1.1 mm for 1.0 against 1.5: probes stopped early on a
+# correctly registered surface); the exponent nearest the plan's whose line fits as well as the best one within
+# noise (squared residuals along the travel) is used. Only fractions <= 1: a steeper truth (a stone, thinner tissue) gives a shorter lag with p, the safe side
+EXPONENT_FRACTIONS = (0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 
 
 class SurfaceFit:
-    """The least-squares line of F^(1/p) against the travel since contact, from running sums of the readings
-    committed so far (``commit``); ``depth_m`` the depth below the fitted surface of candidate readings that follow
-    them (each with all before it, not yet committed)."""
+    """Least-squares lines of F^(1/q) against the travel since contact, for q a few fractions of the plan's exponent
+    p (EXPONENT_FRACTIONS), from running sums of the readings committed so far (``commit``); ``depth_m`` the depth
+    below the fitted surface (the best-fitting q's) after candidate readings that follow them (each with all before
+    it, not yet committed)."""
 
     def __init__(self, exponent: float | None, max_lag_m: float, window: int):
-        self.inv_p = None if exponent is None else 1.0 / exponent
+        self.inv_q = None if exponent is None else 1.0 / (exponent * np.array(EXPONENT_FRACTIONS))[:, None]
         self.max_lag = max(float(max_lag_m), 0.0)
         self.k = LAG_SIGMAS * float(np.sqrt(max(window, 1)))
-        self.sums = np.zeros(6)         # n, sum x, sum y, sum x^2, sum x y, sum y^2 (x the travel, y F^(1/p))
+        n_q = len(EXPONENT_FRACTIONS)
+        # per exponent: n, sum x, sum y, sum x^2, sum x y, sum y^2 (x the travel, y F^(1/q))
+        self.sums = np.zeros((6, n_q, 1))
         self.last_past = 0.0            # the travel of the last reading committed
 
-    def _terms(self, past, f) -> np.ndarray:
-        y = np.power(np.maximum(f, 0.0), self.inv_p)
-        return np.stack([np.ones_like(past), past, y, past * past, past * y, y * y])
+    def _terms(self, past: np.ndarray, f: np.ndarray) -> np.ndarray:
+        y = np.power(np.maximum(f, 0.0)[None, :], self.inv_q)               # (exponents, readings)
+        x = np.broadcast_to(past[None, :], y.shape)
+        return np.stack([np.ones_like(y), x, y, x * x, x * y, y * y])
 
-    def _running(self, past, f) -> np.ndarray:
+    def _running(self, past: np.ndarray, f: np.ndarray) -> np.ndarray:
         """The sums after each candidate reading: folded left from the committed sums, one reading at a time."""
         t = self._terms(past, f)
-        return np.add.accumulate(np.concatenate([self.sums[:, None], t], axis=1), axis=1)[:, 1:]
+        return np.add.accumulate(np.concatenate([self.sums, t], axis=2), axis=2)[:, :, 1:]
 
     def _lag(self, sums: np.ndarray, past: np.ndarray) -> np.ndarray:
-        """The lag (m) of the line through ``sums`` (columns: after each reading; ``past`` its travel)."""
+        """The lag (m) after each reading (``sums``: (6, exponents, readings); ``past`` the readings' travel): the
+        best-fitting exponent's line's, less its standard errors."""
         n, sx, sy, sxx, sxy, syy = sums
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             mx, my = sx / n, sy / n
@@ -64,32 +79,39 @@ class SurfaceFit:
             lag = my / a - mx                               # its zero's distance above the contact
             rss = np.maximum(vyy - a * vxy, 0.0)
             se = np.sqrt(rss / (n - 2) * (1.0 / n + (lag + mx) ** 2 / vxx)) / a
-            lag = lag - self.k * se
             # a line that rises: by MIN_RISE of its mean over the travel (rounding in a flat force's sums gives a
             # slope of 1e-20, whose zero lies anywhere), and by more than LAG_SIGMAS of its own standard error
             se_a = self.k * np.sqrt(rss / (n - 2) / vxx)
-            ok = (n >= _N_MIN) & (vxx > 0) & (a > se_a) & (a * past >= MIN_RISE * my) & np.isfinite(lag)
-        return np.clip(np.where(ok, lag, 0.0), 0.0, self.max_lag)
+            ok = (n >= _N_MIN) & (vxx > 0) & (a > se_a) & (a * past >= MIN_RISE * my) & np.isfinite(lag + se)
+            misfit = np.where(ok, rss / (a * a), np.inf)    # squared residuals along the travel (m^2)
+            # the exponent nearest the plan's whose line fits as well as the best within noise (an F-test's bound:
+            # LAG_SIGMAS^2 more than the best's residual variance, times the window for correlated readings): where
+            # noise alone makes the misfits differ, the plan's (a lower one shortens the lag: the tip goes deeper)
+            near = misfit <= (1.0 + self.k * self.k / n[0]) * np.min(misfit, axis=0)
+            best = misfit.shape[0] - 1 - np.argmax(near[::-1], axis=0)
+            cols = np.arange(misfit.shape[1])
+            used = np.where(ok[best, cols], lag[best, cols] - self.k * se[best, cols], 0.0)
+        return np.clip(used, 0.0, self.max_lag)
 
     def depth_m(self, past_m, f_n) -> np.ndarray:
         """The depth below the fitted surface after each reading of ``past_m`` (travel since contact, m) and ``f_n``
         (the filtered force, N): the travel plus the lag (0 without an exponent or a line to fit)."""
         past = np.atleast_1d(np.asarray(past_m, dtype=float))
-        if self.inv_p is None:
+        if self.inv_q is None:
             return past
         return past + self._lag(self._running(past, np.atleast_1d(np.asarray(f_n, dtype=float))), past)
 
     def lag_m(self) -> float:
         """The lag of the readings committed so far (0 without an exponent or a line to fit)."""
-        if self.inv_p is None:
+        if self.inv_q is None:
             return 0.0
-        return float(self._lag(self.sums[:, None], np.array([self.last_past]))[0])
+        return float(self._lag(self.sums, np.array([self.last_past]))[0])
 
     def commit(self, past_m, f_n) -> None:
         """The readings consumed (in order): into the sums."""
-        if self.inv_p is None:
+        if self.inv_q is None:
             return
         past = np.atleast_1d(np.asarray(past_m, dtype=float))
         if past.size:
-            self.sums = self._running(past, np.atleast_1d(np.asarray(f_n, dtype=float)))[:, -1].copy()
+            self.sums = self._running(past, np.atleast_1d(np.asarray(f_n, dtype=float)))[:, :, -1:].copy()
             self.last_past = float(past[-1])

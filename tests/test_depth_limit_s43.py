@@ -156,12 +156,34 @@ def test_fast_forward_stops_where_the_period_by_period_loop_stops(tmp_path):
     _assert_same(a, b)
 
 
-def test_the_drivers_own_check_refuses_a_bad_exponent_it_was_handed(tmp_path):
-    """A plan built in code (no Plan.check) with an exponent out of range: refused before anything moves."""
+@pytest.mark.parametrize("bad", [0.1, float("nan"), "1.5", True])
+def test_the_drivers_own_check_refuses_a_bad_exponent_it_was_handed(tmp_path, bad):
+    """A plan built in code (no Plan.check) with an exponent out of range or not a number: refused before anything
+    moves (a string raised TypeError, True ran as p = 1: an independent review of session 43)."""
     plan = _plan(1.5)
-    plan.probes[2].force_exponent = 0.1
+    plan.probes[2].force_exponent = bad
     arm, c, r = make_sim()
     t0 = arm.t_s
     rep = run_plan(plan, c, r, tmp_path)
-    assert rep.status == "rejected" and any("force_exponent 0.1" in x for x in rep.problems), rep.problems
+    assert rep.status == "rejected" and any("force_exponent" in x for x in rep.problems), rep.problems
     assert arm.t_s == t0
+
+
+@pytest.mark.parametrize("q,p", [(1.3, 1.5), (1.1, 1.5), (1.5, 2.0), (1.0, 1.1)])
+def test_a_truth_flatter_than_the_plans_exponent_does_not_stop_probes_early(tmp_path, q, p):
+    """F = k d^q with q below the plan's p bends F^(1/p) down and a line through it puts the surface too high
+    (+0.55 mm of a 1 mm lag for 1.2 against 1.5): probes planned at the limit on a registered surface stopped
+    0.4-0.6 mm short (an independent review of session 43). The exponent nearest p that fits as well as the best
+    within noise is used: none stops early; and on a surface 2 mm high they still stop near the limit."""
+    k = 0.02 / 1e-3 ** q                                          # the lag at 20 mN: 1 mm
+
+    def force(x, d):
+        return k * d ** q if d > 0 else 0.0
+    arm, c, r = make_sim(force)
+    rep = run_plan(_plan(p), c, r, tmp_path / "registered")
+    assert rep.status == "ok" and [x.status for x in read_records(tmp_path / "registered")] == ["ok"] * len(XS)
+    arm, c, r = make_sim(force, surface_height_m=lambda x: 0.002)
+    rep = run_plan(_plan(p), c, r, tmp_path / "high")
+    deepest = _deepest_in_tissue(tmp_path / "high", 0.002)
+    assert [x.status for x in read_records(tmp_path / "high")] == ["depth_limit"] * len(XS)
+    assert max(deepest) < LIMIT + 4e-4, deepest                   # (the old rule: 5 mm)
