@@ -21,7 +21,7 @@ the filter's window: its readings are not independent), so a fit with few or noi
 never a negative one: the depth is at least the travel since contact, the old measure -- and at most ``max_lag_m``
 (the contact's depth below the descent's start: the tip started in free air, the surface is no higher). A force
 curve steeper than the prior's (a stone, thinner tissue) bends the line and shortens the lag too (the tip goes a
-little past the limit: 0.03-0.33 mm on bench/depth_limit.py's fem truths). Not covered: a curve flatter than 0.6 p,
+little past the limit: 0.07-0.33 mm on bench/depth_limit.py's fem truths). Not covered: a curve flatter than 0.6 p,
 or not a power law at all (a tissue relaxing by half within 0.5 s stopped one probe of three 0.21 mm short), and a
 force offset since the zeroing (5 mN makes a 1.5 mm lag read 0.3 mm long); each errs towards stopping early.
 
