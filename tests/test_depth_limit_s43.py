@@ -12,13 +12,15 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robot_fixtures import make_plan, make_sim  # noqa: E402
+from robot_fixtures import TISSUE_POSE, make_plan, make_sim  # noqa: E402
 
-from core.contracts import Limits, Plan, PlanError  # noqa: E402
+from core.contracts import DESCENT, Limits, Plan, PlanError  # noqa: E402
 from planner.raster import force_exponents  # noqa: E402
 from robot import records as records_mod  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
 from robot.records import read_records  # noqa: E402
+from robot.safety import TissueFrame  # noqa: E402
+from robot.sim import SimRTDEReceive  # noqa: E402
 from robot.simforce import standin_force_model  # noqa: E402
 from robot.tissue_depth import SurfaceFit  # noqa: E402
 
@@ -187,3 +189,44 @@ def test_a_truth_flatter_than_the_plans_exponent_does_not_stop_probes_early(tmp_
     deepest = _deepest_in_tissue(tmp_path / "high", 0.002)
     assert [x.status for x in read_records(tmp_path / "high")] == ["depth_limit"] * len(XS)
     assert max(deepest) < LIMIT + 4e-4, deepest                   # (the old rule: 5 mm)
+
+
+class _SpikeReceive(SimRTDEReceive):
+    """Adds ``spike_n`` along the tissue normal (as the tissue pushing back) to the force for ``periods`` periods
+    from ``at_s``: a noise burst in free air."""
+    at_s, spike_n, periods = None, 0.05, 3
+
+    def getActualTCPForce(self):
+        w = super().getActualTCPForce()
+        if self.at_s is not None and self.at_s - 1e-9 <= self.arm.t_s < self.at_s + self.periods * 0.002 - 1e-9:
+            n = TissueFrame(self.arm_tissue_pose).normal
+            w = [v + self.spike_n * c for v, c in zip(w[:3], n)] + list(w[3:])
+        return w
+
+
+def _descent_start_s(tmp_path, probe: int) -> float:
+    arm, c, r = make_sim()
+    assert run_plan(_plan(1.5), c, r, tmp_path).status == "ok"
+    raw = records_mod.load_raw(tmp_path, read_records(tmp_path)[probe])
+    return float(raw["time_s"][np.flatnonzero(raw["phase"] == DESCENT)[0]])
+
+
+@pytest.mark.parametrize("periods,fault", [(3, False), (40, True)])
+def test_an_early_contact_is_a_fault_only_once_it_holds_for_a_filter_window(tmp_path, periods, fault):
+    """A burst of force in free air just after a descent starts (3 periods of 50 mN: the filtered force above the
+    20 mN threshold for 3 periods) is noise, not the surface: the probe goes on (before, the run ended with the
+    fault surface_high); a force that holds (40 periods) is still the fault, reported where it was first felt."""
+    t0 = _descent_start_s(tmp_path / "dry", 1)
+    arm, c, _ = make_sim()
+    r = _SpikeReceive(arm)
+    r.arm_tissue_pose = TISSUE_POSE
+    r.at_s, r.periods = t0 + 0.01, periods
+    rep = run_plan(_plan(1.5), c, r, tmp_path / "spike")
+    recs = read_records(tmp_path / "spike")
+    if fault:
+        assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
+        assert "contact felt 0.0" in rep.fault["message"]
+    else:
+        assert rep.status == "ok", rep.fault
+        assert [x.status for x in recs] == ["ok"] * len(XS)
+        assert recs[1].contact_depth_m > 0                       # the contact: the tissue's, not the burst's
