@@ -171,6 +171,8 @@ class RunReport:
     controller_time_s: float = 0.0
     wall_s: float = 0.0
     program_restarts: int = 0          # control programs uploaded again at rest (the watchdog ended one)
+    early_contacts_dismissed: int = 0  # readings past the contact threshold near a descent's start, back to free air
+    #                                    within a filter window: noise taken for contact (robot.driver._ForceWatch)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -199,6 +201,9 @@ HOLD_SLACK_M = 1e-4
 # surface) governs, so a small error of the fit (a tissue relaxing by 25 % over 2 s read its lag about 0.1 mm long)
 # cannot stop a probe at its planned depth; the tip goes at most this much past the limit unless the fit errs more
 SURFACE_TOL_M = 2.5e-4
+# a pending early contact (robot.driver._ForceWatch) is noise once the filtered force falls below this fraction of
+# the contact threshold (the threshold is >= 5 filtered sigmas of the free-air noise: half of it is >= 2.5 sigmas)
+EARLY_DISMISS_FRACTION = 0.5
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -307,7 +312,7 @@ class _ForceWatch:
         self.start_depth_m: float | None = None    # where the descent began (the approach pose)
         self.rest_depth: float | None = None    # (where the arm came to rest: its first dwell period)
         self.early: dict | None = None  # a reading past the threshold near the descent's start, being confirmed
-        self.early_dismissed = 0        # such readings that fell back below the threshold within a window
+        self.early_dismissed = 0        # such readings whose force fell back to free air within a window
 
     def _early(self, depth: float) -> None:
         """Contact felt within ``early_contact_m`` of the descent's start: the tissue's surface is at the approach
@@ -373,20 +378,25 @@ class _ForceWatch:
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
             if not self.holding and (self.early is not None
                                      or s["depth"] - self.start_depth_m < self.d.early_contact_m):
-                # contact this early is a fault once it holds for a filter window: one reading past the threshold
-                # in free air is noise (a quick mismatch study's trial met 8.1 mN against 8 mN, 8.5 mm above the
-                # surface, and ended with this fault)
+                # contact this early is a fault once a filter window's readings have been past the threshold
+                # before the force fell back to free air (below EARLY_DISMISS_FRACTION of the threshold): one
+                # reading past it in free air is noise (a quick mismatch study's trial met 8.1 mN against 8 mN,
+                # 8.5 mm above the surface, and ended with this fault); a real surface's force, hovering about the
+                # threshold as it rises, does not fall that far back and is still the fault
                 e = self.early = self.early or {"depth": s["depth"], "n": 0}
                 e["n"] += 1
                 if e["n"] >= self.d.cfg.filter_window:
                     self._early(e["depth"])
             else:
                 self.contact.update(depth=s["depth"], x=s["x"], t=s["t"])
-        elif "depth" not in self.contact and self.early is not None:
-            self.early = None           # back below the threshold within a window: noise, not the surface
+        elif ("depth" not in self.contact and self.early is not None
+              and s["filt"] < EARLY_DISMISS_FRACTION * self.d.contact_thr):
+            self.early = None           # back down to free air before a window's readings: noise, not the surface
             self.early_dismissed += 1
         self.hist.append(s["filt"])
         if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
+            if self.early is not None:  # the limit while an early contact is confirmed: that contact was real
+                self._early(self.early["depth"])
             self.d._stop()
             return ProbeStatus.FORCE_LIMIT
         if self.holding and self.rest_depth is None:
@@ -449,6 +459,7 @@ class Driver(Recovery):
         self.watchdog_on = False
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
         self.program_restarts = 0
+        self.early_dismissed = 0        # early contacts dismissed as noise (RunReport.early_contacts_dismissed)
         self.link_dead: str = ""        # why the link is taken for silent (a command got no answer)
         self.worker = CallWorker()      # every waiting ur_rtde call, one at a time, each with a deadline
         self.last_kick_ts = None        # controller time of the last accepted watchdog kick
@@ -845,8 +856,11 @@ class Driver(Recovery):
         self._zero(p)
         watch = _ForceWatch(self, p.force_exponent)
         self.phase = DESCENT
-        outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
-                             min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
+        try:
+            outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),
+                                 min(mo.probe_accel_m_s2, lim.accel_m_s2), watch, what=f"descent of probe {p.index}")
+        finally:
+            self.early_dismissed += watch.early_dismissed
         limited = outcome == ProbeStatus.DEPTH_LIMIT
         if (outcome == "reached" or limited) and mo.dwell_s > 0:
             # stopped at the depth limit (the surface higher than registered): the arm holds there for the dwell
@@ -897,6 +911,7 @@ class Driver(Recovery):
         def write_run():
             rep.controller_time_s, rep.wall_s = self.ts, round(time.monotonic() - wall0, 3)
             rep.program_restarts = self.program_restarts
+            rep.early_contacts_dismissed = self.early_dismissed
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
                            "commands_sent": len(self.c.sent), "force_source": self.fs.report(),
                            "periods_fast_forwarded": self.n_fast})

@@ -230,3 +230,28 @@ def test_an_early_contact_is_a_fault_only_once_it_holds_for_a_filter_window(tmp_
         assert rep.status == "ok", rep.fault
         assert [x.status for x in recs] == ["ok"] * len(XS)
         assert recs[1].contact_depth_m > 0                       # the contact: the tissue's, not the burst's
+
+
+@pytest.mark.parametrize("k,surface_m,seeds", [(600.0, 0.004, range(6)), (450.0, 0.0043, range(3))])
+def test_a_soft_surface_at_the_approach_pose_is_still_the_fault(tmp_path, k, surface_m, seeds):
+    """The surface at the approach pose (4 mm above the plan's; 0.3 mm above it: the sensor zeroed in the tissue) in
+    soft tissue: the force hovers about the threshold as it rises. Dismissing an early contact once the force fell
+    back below the threshold let later crossings past the 1 mm zone count as ordinary contacts (an independent
+    review: 4 of 6 seeds ran to the end, every probe 4.3 mm deep with the sensor zeroed in the tissue); it is
+    dismissed only once the force falls back to free air (half the threshold), so every seed is the fault."""
+    force = standin_force_model(k_n_per_m15=k, stones=())
+    for seed in seeds:
+        arm, c, r = make_sim(force, seed=seed, surface_height_m=lambda x: surface_m)
+        rep = run_plan(_plan(1.5), c, r, tmp_path / str(seed))
+        assert rep.status == "fault" and rep.fault["kind"] == "surface_high", (seed, rep.status, rep.fault)
+
+
+def test_the_force_limit_while_an_early_contact_is_confirmed_is_the_early_fault(tmp_path):
+    """A rigid surface at the approach pose: the force limit comes within the filter window that confirms the early
+    contact; that is the fault surface_high (it was recorded as a force-limit probe, and the run went on to move
+    between probes through the surface and fault on a collision)."""
+    force = standin_force_model(k_n_per_m15=1e8, stones=())
+    arm, c, r = make_sim(force, surface_height_m=lambda x: 0.004)
+    rep = run_plan(_plan(1.5), c, r, tmp_path)
+    assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
+    assert len(read_records(tmp_path)) == 1
