@@ -154,6 +154,34 @@ def print_preflight(pre: dict, where: str) -> None:
         print(f"  UNSAFE probe {k}: {v}")
 
 
+def grouped_problems(problems: list[str]) -> list[str]:
+    """The driver's refusals with the probes that share a reason on one line ("probes 0-14: ..."), in order."""
+    out: list[str] = []
+    by_why: dict[str, list[int]] = {}
+    for pr in problems:
+        head, sep, why = pr.partition(": ")
+        if sep and head.startswith("probe ") and head[6:].isdigit():
+            if why not in by_why:
+                by_why[why] = []
+                out.append(why)
+            by_why[why].append(int(head[6:]))
+        else:
+            out.append(pr)
+    return [f"{_indices(by_why[x])}: {x}" if x in by_why else x for x in out]
+
+
+def _indices(ks: list[int]) -> str:
+    """'probe 3', or 'probes 0-4, 7' (runs of consecutive indices)."""
+    if len(ks) == 1:
+        return f"probe {ks[0]}"
+    runs, start = [], ks[0]
+    for a, b in zip(ks, ks[1:] + [None]):
+        if b != a + 1:
+            runs.append(f"{start}" if start == a else f"{start}-{a}")
+            start = b
+    return "probes " + ", ".join(runs)
+
+
 def read_confirmation() -> bool:
     """Ask before a real arm moves; a closed standard input (EOF) is a no."""
     try:
@@ -265,7 +293,12 @@ def _main(args, held: contextlib.ExitStack) -> int:
     print(f"run {rep.status}: {rep.n_ok} ok, {rep.n_force_limit} at the force limit{depth}, {rep.n_rejected} rejected, "
           f"{rep.n_skipped} from the log; controller time {rep.controller_time_s:.1f} s, wall {rep.wall_s:.1f} s")
     if rep.problems:
-        print("refused:\n  " + "\n  ".join(rep.problems))
+        refused = grouped_problems(rep.problems)
+        print("refused:\n  " + "\n  ".join(refused))
+        if rep.status == "rejected":    # bad input: one line on stderr (the list above, on stdout)
+            more = f" (and {len(refused) - 1} more, above)" if len(refused) > 1 else ""
+            print(f"palpate-cell: --plan {args.plan}: refused before any motion: {refused[0]}{more}",
+                  file=sys.stderr)
     if rep.fault:
         print(f"FAULT {rep.fault['kind']}: {rep.fault['message']}")
         print(f"  stopped={rep.fault['stopped']} retracted={rep.fault['retracted']}; "

@@ -255,3 +255,26 @@ def test_the_force_limit_while_an_early_contact_is_confirmed_is_the_early_fault(
     rep = run_plan(_plan(1.5), c, r, tmp_path)
     assert rep.status == "fault" and rep.fault["kind"] == "surface_high", rep.fault
     assert len(read_records(tmp_path)) == 1
+
+
+def test_the_cell_says_in_one_line_why_it_refused_a_plan(tmp_path):
+    """palpate-cell with a plan the driver refuses (the tissue pose moved 5 m after planning): exit 2, one stderr
+    line naming the plan and the first reason, and the probes sharing a reason listed together on stdout (the
+    bad-input survey's one unclear error: 15 lines of the same reason, nothing on stderr)."""
+    import json as _json
+    import subprocess
+
+    from app.cell import grouped_problems
+    assert grouped_problems(["force_limit_n 9 N", "probe 0: a", "probe 1: a", "probe 2: b", "probe 3: a",
+                             "probe 5: a"]) == ["force_limit_n 9 N", "probes 0-1, 3, 5: a", "probe 2: b"]
+    d = _plan(1.5).to_dict()
+    d["frames"]["tissue_pose_base"][0] = 5.0
+    path = tmp_path / "p.json"
+    path.write_text(_json.dumps(d))
+    p = subprocess.run([sys.executable, "-m", "app.cell", "--sim", "--plan", str(path), "--out", str(tmp_path / "R"),
+                        "--truth", "paper"], capture_output=True, text=True, timeout=300,
+                       cwd=Path(__file__).resolve().parents[1])
+    lines = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert p.returncode == 2 and len(lines) == 1, p.stderr
+    assert "refused before any motion" in lines[0] and "frames.tissue_pose_base" in lines[0] and str(path) in lines[0]
+    assert "probes 0-2: approach_pose does not match" in p.stdout
