@@ -39,15 +39,16 @@ MIN_RISE = 0.01            # the line must rise this fraction of its mean value 
 # thicker or more compliant tissue, fast relaxation) bends F^(1/p) down, and a line through it puts the surface too
 # high (+0.2 mm of a 1 mm lag for q = 1.0 against p = 1.1, +1.1 mm for 1.0 against 1.5: probes stopped early on a
 # correctly registered surface); the exponent nearest the plan's whose line fits as well as the best one within
-# noise (squared residuals along the travel) is used. Only fractions <= 1: a steeper truth (a stone, thinner tissue) gives a shorter lag with p, the safe side
+# noise (squared residuals along the travel) is used. Only fractions <= 1: a steeper truth (a stone, thinner
+# tissue) gives a shorter lag with p, the safe side
 EXPONENT_FRACTIONS = (0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95, 1.0)
 
 
 class SurfaceFit:
     """Least-squares lines of F^(1/q) against the travel since contact, for q a few fractions of the plan's exponent
     p (EXPONENT_FRACTIONS), from running sums of the readings committed so far (``commit``); ``depth_m`` the depth
-    below the fitted surface (the best-fitting q's) after candidate readings that follow them (each with all before
-    it, not yet committed)."""
+    below the fitted surface (the line of the q nearest p that fits as well as the best within noise) after
+    candidate readings that follow them (each with all before it, not yet committed)."""
 
     def __init__(self, exponent: float | None, max_lag_m: float, window: int):
         self.inv_q = None if exponent is None else 1.0 / (exponent * np.array(EXPONENT_FRACTIONS))[:, None]
@@ -57,6 +58,7 @@ class SurfaceFit:
         # per exponent: n, sum x, sum y, sum x^2, sum x y, sum y^2 (x the travel, y F^(1/q))
         self.sums = np.zeros((6, n_q, 1))
         self.last_past = 0.0            # the travel of the last reading committed
+        self._seen = None               # (travel, force, running sums) of depth_m's last candidates
 
     def _terms(self, past: np.ndarray, f: np.ndarray) -> np.ndarray:
         y = np.power(np.maximum(f, 0.0)[None, :], self.inv_q)               # (exponents, readings)
@@ -99,7 +101,10 @@ class SurfaceFit:
         past = np.atleast_1d(np.asarray(past_m, dtype=float))
         if self.inv_q is None:
             return past
-        return past + self._lag(self._running(past, np.atleast_1d(np.asarray(f_n, dtype=float))), past)
+        f = np.atleast_1d(np.asarray(f_n, dtype=float))
+        run = self._running(past, f)
+        self._seen = (past, f, run)     # commit() of the same readings reuses the sums (the driver's period: 2 ms)
+        return past + self._lag(run, past)
 
     def lag_m(self) -> float:
         """The lag of the readings committed so far (0 without an exponent or a line to fit)."""
@@ -113,5 +118,13 @@ class SurfaceFit:
             return
         past = np.atleast_1d(np.asarray(past_m, dtype=float))
         if past.size:
-            self.sums = self._running(past, np.atleast_1d(np.asarray(f_n, dtype=float)))[:, :, -1:].copy()
+            f = np.atleast_1d(np.asarray(f_n, dtype=float))
+            seen = self._seen
+            if seen is not None and len(seen[0]) >= len(past) and np.array_equal(seen[0][:len(past)], past) \
+                    and np.array_equal(seen[1][:len(past)], f):
+                run = seen[2][:, :, :len(past)]
+            else:
+                run = self._running(past, f)
+            self.sums = run[:, :, -1:].copy()
             self.last_past = float(past[-1])
+            self._seen = None
