@@ -4,7 +4,9 @@ the limit: 4 mm plus the indentation at which the tissue pushes back the contact
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import subprocess
 import sys
 from pathlib import Path
 
@@ -13,8 +15,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import TISSUE_POSE, make_plan, make_sim  # noqa: E402
+from test_fast_forward import _assert_same, _twin_runs  # noqa: E402
 
+from app.cell import grouped_problems  # noqa: E402
 from core.contracts import DESCENT, Limits, Plan, PlanError  # noqa: E402
+from fem import scene as S  # noqa: E402
+from planner.plan import plan_raster  # noqa: E402
 from planner.raster import force_exponents  # noqa: E402
 from robot import records as records_mod  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
@@ -23,6 +29,7 @@ from robot.safety import TissueFrame  # noqa: E402
 from robot.sim import SimRTDEReceive  # noqa: E402
 from robot.simforce import standin_force_model  # noqa: E402
 from robot.tissue_depth import SurfaceFit  # noqa: E402
+from robot.truth import Relaxation  # noqa: E402
 
 XS = (0.02, 0.035, 0.05)
 LIMIT = 0.004
@@ -113,8 +120,6 @@ def test_the_planner_gives_a_power_laws_exponent():
 
 
 def test_paper_plans_carry_the_priors_exponent():
-    from fem import scene as S
-    from planner.plan import plan_raster
     plan = plan_raster(S.load("paper").prior(), n_waypoints=5)
     exps = [p.force_exponent for p in plan.probes]
     assert all(1.05 < e < 1.2 for e in exps), exps                  # a 2D section's cylinder-like contact
@@ -145,9 +150,6 @@ def test_an_older_plan_without_exponents_still_runs(tmp_path):
 def test_fast_forward_stops_where_the_period_by_period_loop_stops(tmp_path):
     """The fit's sums folded in the same order in the fast-forward's blocks as period by period: the same stops, the
     same raw samples bit for bit (test_fast_forward's comparison), on a high, tilted, relaxing surface."""
-    from test_fast_forward import _assert_same, _twin_runs
-
-    from robot.truth import Relaxation
     plan = _plan(1.5)
 
     def arm():
@@ -261,16 +263,12 @@ def test_the_cell_says_in_one_line_why_it_refused_a_plan(tmp_path):
     """palpate-cell with a plan the driver refuses (the tissue pose moved 5 m after planning): exit 2, one stderr
     line naming the plan and the first reason, and the probes sharing a reason listed together on stdout (the
     bad-input survey's one unclear error: 15 lines of the same reason, nothing on stderr)."""
-    import json as _json
-    import subprocess
-
-    from app.cell import grouped_problems
     assert grouped_problems(["force_limit_n 9 N", "probe 0: a", "probe 1: a", "probe 2: b", "probe 3: a",
                              "probe 5: a"]) == ["force_limit_n 9 N", "probes 0-1, 3, 5: a", "probe 2: b"]
     d = _plan(1.5).to_dict()
     d["frames"]["tissue_pose_base"][0] = 5.0
     path = tmp_path / "p.json"
-    path.write_text(_json.dumps(d))
+    path.write_text(json.dumps(d))
     p = subprocess.run([sys.executable, "-m", "app.cell", "--sim", "--plan", str(path), "--out", str(tmp_path / "R"),
                         "--truth", "paper"], capture_output=True, text=True, timeout=300,
                        cwd=Path(__file__).resolve().parents[1])
