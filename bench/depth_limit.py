@@ -12,6 +12,11 @@ surface registered right, 2 mm too low (the tissue higher than registered: the l
 high (shallower: the plan's depth is reached first). The same plan with its force exponents removed (an older plan)
 gives the old rule. Per case: the probes' statuses and the deepest any tip went below the true surface. Writes
 OUT/depth_limit.json and OUT/depth_limit.md.
+
+The fit's cost in the loop that runs one 2 ms period at a time (a real arm's, and the loopback controller's; the
+in-memory arm fast-forwards): the paper plan on the paper truth, surface 2 mm high, driven period by period with the
+fit and without it (the old rule, no fit), medians of REPEATS alternated runs; and the fit's own cost per reading,
+its path of floats (the loop's, since session 44) against its arrays' path (the fast-forward's; the loop's before).
 """
 from __future__ import annotations
 
@@ -28,14 +33,18 @@ import time  # noqa: E402
 from collections import Counter  # noqa: E402
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from core.contracts import PERIOD_S  # noqa: E402
 from fem import scene as S  # noqa: E402
 from planner.plan import plan_raster  # noqa: E402
-from robot.driver import run_plan  # noqa: E402
+from robot.driver import DriverConfig, run_plan  # noqa: E402
 from robot.records import load_raw, read_records  # noqa: E402
 from robot.sim import SimRTDEControl, SimRTDEReceive  # noqa: E402
 from robot.simarm import build_truth_arm  # noqa: E402
+from robot.tissue_depth import SurfaceFit  # noqa: E402
 from robot.truth import TruthConditions  # noqa: E402
 
 OFFSETS_M = (0.0, 0.002, -0.0015)        # the true surface above the registered one
@@ -56,15 +65,54 @@ def truths() -> dict:
             "block3d (3D)": (S.load("block3d"), {})}
 
 
-def drive(plan, truth, cond: TruthConditions, out: Path, seed: int) -> dict:
+REPEATS = 5
+
+
+def drive(plan, truth, cond: TruthConditions, out: Path, seed: int, config: DriverConfig | None = None) -> dict:
     arm = build_truth_arm(truth, sensor="nano17", seed=seed, tissue_pose=plan.frames.tissue_pose_base,
                           tcp_offset=plan.frames.tcp_offset, start_above_pose=plan.probes[0].approach_pose,
                           conditions=cond)
-    rep = run_plan(plan, SimRTDEControl(arm), SimRTDEReceive(arm), out)
+    t = time.perf_counter()
+    rep = run_plan(plan, SimRTDEControl(arm), SimRTDEReceive(arm), out, config=config)
+    wall = time.perf_counter() - t
     recs = read_records(out)
     deepest = [float(load_raw(out, r)["depth_m"].max()) + cond.surface_offset_m for r in recs]
     return {"run": str(rep.status), "statuses": dict(Counter(str(r.status) for r in recs)),
-            "deepest_below_true_surface_m": max(deepest), "shallowest_deepest_m": min(deepest)}
+            "deepest_below_true_surface_m": max(deepest), "shallowest_deepest_m": min(deepest),
+            "wall_s": wall, "periods": round(arm.t_s / PERIOD_S)}
+
+
+def period_cost(plan, plan_old, tmp: Path, seed: int) -> dict:
+    """The fit's cost in the period-by-period loop, and per reading (floats against arrays)."""
+    truth, cond = S.load("paper"), TruthConditions(surface_offset_m=0.002)
+    cfg = DriverConfig(fast_forward=False)
+    walls = {"fit": [], "contact": []}
+    for i in range(REPEATS):
+        for rule, pl in (("fit", plan), ("contact", plan_old)):
+            r = drive(pl, truth, cond, tmp / f"period-{rule}-{i}", seed, cfg)
+            walls[rule].append(r["wall_s"] / r["periods"])
+    med = {k: float(np.median(v)) for k, v in walls.items()}
+    p = plan.probes[0].force_exponent
+    past = np.linspace(0.0, 3e-3, 1500)
+    f = 0.02 * ((1e-3 + past) / 1e-3) ** p
+    per = {}
+    for path in ("floats", "arrays"):
+        ts = []
+        for _ in range(REPEATS):
+            fit = SurfaceFit(p, 0.01, 5)
+            t = time.perf_counter()
+            if path == "floats":
+                for a, b in zip(past.tolist(), f.tolist()):
+                    fit.depth_one(a, b)
+                    fit.commit_one(a, b)
+            else:
+                for a, b in zip(past.tolist(), f.tolist()):
+                    fit.depth_m(a, b)
+                    fit.commit(a, b)
+            ts.append((time.perf_counter() - t) / past.size)
+        per[path] = float(np.median(ts))
+    return {"loop_s_per_period": med, "loop_fit_over_contact": med["fit"] / med["contact"],
+            "fit_s_per_reading": per, "arrays_over_floats": per["arrays"] / per["floats"]}
 
 
 def main() -> int:
@@ -103,7 +151,12 @@ def main() -> int:
                       f"{f['deepest_below_true_surface_m'] * 1e3:.3f} mm (from the contact felt: "
                       f"{c['deepest_below_true_surface_m'] * 1e3:.3f}); {f['statuses']} ({c['statuses']})",
                       flush=True)
-    res = {"depth_limit_m": limit, "exponents": {k: [q.force_exponent for q in v.probes] for k, v in plans.items()},
+        cost = period_cost(plan, without_exponents(plan), Path(tmp), a.seed)
+    lp, fr = cost["loop_s_per_period"], cost["fit_s_per_reading"]
+    print(f"period by period: {lp['fit'] * 1e6:.1f} us a period with the fit, {lp['contact'] * 1e6:.1f} without "
+          f"(x{cost['loop_fit_over_contact']:.2f}); the fit per reading {fr['floats'] * 1e6:.1f} us (floats), "
+          f"{fr['arrays'] * 1e6:.1f} us (arrays, x{cost['arrays_over_floats']:.1f})", flush=True)
+    res = {"depth_limit_m": limit, "period_cost": cost, "exponents": {k: [q.force_exponent for q in v.probes] for k, v in plans.items()},
            "seed": a.seed,
            "wall_s": time.perf_counter() - t0, "rows": rows}
     (out / "depth_limit.json").write_text(json.dumps(res, indent=1))
@@ -119,6 +172,11 @@ def main() -> int:
         md.append(f"| {r['truth']} | {r['surface_offset_m'] * 1e3:+.1f} mm | "
                   f"{f['deepest_below_true_surface_m'] * 1e3:.3f} mm | {c['deepest_below_true_surface_m'] * 1e3:.3f} mm"
                   f" | {f['statuses']} | {c['statuses']} |")
+    md += ["", f"Period by period (the loop of a real arm and of the loopback controller; medians of {REPEATS}, the "
+           f"paper truth, surface 2 mm high): {lp['fit'] * 1e6:.1f} us a period with the fit, {lp['contact'] * 1e6:.1f}"
+           f" us without it (x{cost['loop_fit_over_contact']:.2f}). The fit per reading: {fr['floats'] * 1e6:.1f} us "
+           f"on its path of floats (the loop's), {fr['arrays'] * 1e6:.1f} us on its arrays' path (the fast-forward's; "
+           f"x{cost['arrays_over_floats']:.1f})."]
     (out / "depth_limit.md").write_text("\n".join(md) + "\n")
     print(f"wrote {out / 'depth_limit.md'} ({res['wall_s']:.0f} s)")
     return 0

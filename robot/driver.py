@@ -333,16 +333,17 @@ class _ForceWatch:
         while descending, the depth below the tissue's surface (robot.tissue_depth: the travel since contact was
         felt plus the lag the force curve gives) past the limit; while holding after a stop there, deeper than
         where the arm came to rest by HOLD_SLACK_M."""
+        one = isinstance(depth, float)  # one period (a float, the loop's): SurfaceFit's path of floats
         if self.holding:
-            return np.atleast_1d(depth > self.rest_depth + HOLD_SLACK_M)
-        past = np.atleast_1d(depth - self.contact["depth"])
+            return depth > self.rest_depth + HOLD_SLACK_M
+        past = depth - self.contact["depth"]
         if self.lag_m is not None:      # dwelling: the descent's lag (a dwell's readings are not its curve)
             lag = self.lag_m
         else:
             if self.fit is None:
                 self.fit = SurfaceFit(self.exponent, self.contact["depth"] - self.start_depth_m,
                                       self.d.cfg.filter_window)
-            lag = self.fit.depth_m(past, filt) - past
+            lag = (self.fit.depth_one(past, filt) if one else self.fit.depth_m(past, filt)) - past
         limit = self.d.lim.depth_limit_m
         # counted from the fitted surface where it stands SURFACE_TOL_M above the registered one (else the plan's
         # depth, at most the limit, governs), and never more than the limit past the contact felt
@@ -356,7 +357,10 @@ class _ForceWatch:
     def _commit(self, depth, filt) -> None:
         """Readings past the contact that did not stop the arm: into the surface's fit (the descent's only)."""
         if self.fit is not None and not self.holding and self.lag_m is None:
-            self.fit.commit(depth - self.contact["depth"], filt)
+            if isinstance(depth, float):
+                self.fit.commit_one(depth - self.contact["depth"], filt)
+            else:
+                self.fit.commit(depth - self.contact["depth"], filt)
 
     def _pulled(self, f: float) -> None:
         """A filtered force below minus the free-air band (the contact threshold and the drift allowed since the zero)
@@ -402,7 +406,7 @@ class _ForceWatch:
         if self.holding and self.rest_depth is None:
             self.rest_depth = s["depth"]
         if "depth" in self.contact:
-            if self._too_deep(s["depth"], s["filt"])[0]:
+            if self._too_deep(s["depth"], s["filt"]):
                 self.d._stop()          # the depth limit counts from the surface felt, not only the plan's
                 return ProbeStatus.DEPTH_LIMIT
             self._commit(s["depth"], s["filt"])

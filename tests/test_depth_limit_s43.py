@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import TISSUE_POSE, make_plan, make_sim  # noqa: E402
@@ -105,6 +107,38 @@ def test_the_surface_fit_is_exact_for_a_power_law_and_never_below_the_travel():
     g5, g1 = SurfaceFit(p, 0.01, 5).depth_m(past, noisy), SurfaceFit(p, 0.01, 1).depth_m(past, noisy)
     assert np.all(g5 >= past) and np.all(g5 <= g1) and np.all(g1 <= lag + past + 2e-4)
     assert abs(g5[-1] - (lag + past[-1])) < 1e-4                   # (0.1 mm at 4 mm, 1 mN of noise)
+
+
+@settings(max_examples=60, deadline=None)
+@given(p=st.floats(0.5, 4.0), q_frac=st.floats(0.4, 1.3), lag=st.floats(0.0, 3e-3), n=st.integers(1, 300),
+       noise=st.sampled_from([0.0, 1e-4, 1e-3, 2e-2]), window=st.integers(1, 8), max_lag=st.floats(0.0, 1e-2),
+       split=st.floats(0.0, 1.0), seed=st.integers(0, 2 ** 16))
+def test_the_period_path_of_floats_is_the_arrays_path_bit_for_bit(p, q_frac, lag, n, noise, window, max_lag, split,
+                                                                   seed):
+    """The period-by-period loop's path (depth_one, commit_one: Python floats) gives the fast-forward's (depth_m,
+    commit: arrays) numbers bit for bit, also after blocks committed before it and with blocks after it: the two
+    loops stop at the same period."""
+    rng = np.random.default_rng(seed)
+    past = np.cumsum(rng.uniform(0.0, 2e-5, n))
+    f = 0.02 * ((lag + past) / max(lag, 1e-4)) ** (p * q_frac) + rng.normal(0.0, 1.0, n) * noise
+    f[: int(n * split * 0.3)] = 0.0                                 # (a flat start: no line to fit there)
+    want = SurfaceFit(p, max_lag, window).depth_m(past, f)
+    m = int(n * split)
+    fit = SurfaceFit(p, max_lag, window)
+    fit.commit(past[:m], f[:m])                                     # a block, then one reading at a time
+    got = []
+    for a, b in zip(past[m:].tolist(), f[m:].tolist()):
+        got.append(fit.depth_one(a, b))
+        fit.commit_one(a, b)
+    assert np.array_equal(np.array(got), want[m:])
+    whole = SurfaceFit(p, max_lag, window)
+    whole.commit(past, f)
+    assert fit.lag_m() == whole.lag_m()                             # (the dwell's lag, from the sums the floats made)
+    again = SurfaceFit(p, max_lag, window)                          # and floats first, then a block
+    for a, b in zip(past[:m].tolist(), f[:m].tolist()):
+        again.depth_one(a, b)
+        again.commit_one(a, b)
+    assert np.array_equal(again.depth_m(past[m:], f[m:]), want[m:])
 
 
 def test_the_planner_gives_a_power_laws_exponent():
