@@ -227,6 +227,7 @@ MIN_THICKNESS_SIGMA = 1e-3  # ... and at least, unless 0 (known): below, its pri
 SIGMA_BOUND_TOL = 1e-9      # relative slack on both bounds: a bound printed in m (%g) and typed back is accepted
 DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
 #                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
+ONSET_RATIO_MIN = 0.5       # 1 + C / P at a contact onset at least (a contrast below -P / 2: not a hard stone's)
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 
@@ -254,9 +255,19 @@ class _Forward:
         # every evaluation)
         self._memo_tables: dict[str, dict] = {}
         self.g_onset = None
-        if self.fs is not None and len(self.on):
+        # the stone's contrast ratio C / P at each contact onset (held at the prior's onset depth, the table's first
+        # level at least, where the model takes the contrast to scale like the force): a stone reaches the threshold
+        # sooner (the onset model without it put a side stone's onsets 0.11 mm shallow, 2 onset sigmas, and a fitted
+        # tilt and offset took that: biases of 3-5 sigma, session 44's review)
+        self.d_onset = np.zeros(len(meas))
+        if len(self.on):
             d_on = self.resp.depth_at_force_m(meas.onset_threshold_n[self.on], 0.0, self.on)
-            self.g_onset = FiniteStrainRows(self.fs.rows[self.on], self.fs.depth_m).g(d_on)
+            if self.fs is not None:
+                self.g_onset = FiniteStrainRows(self.fs.rows[self.on], self.fs.depth_m).g(d_on)
+            self.d_onset[self.on] = d_on
+        if self.levels is not None:
+            self.d_onset = clip(self.d_onset, self.levels[0], self.levels[-1])
+        self.p_onset = np.maximum(self.resp.force_n(self.d_onset, 0.0)[self.on], 1e-12)
 
     def stiffening(self, d, nu) -> np.ndarray | float:
         """1 + a g(x, d): the finite-strain factor at each probe's true indentation ``d`` (1 without the term)."""
@@ -313,11 +324,40 @@ class _Forward:
         st = self._memo("stiffening", (*surf, nu[5]), lambda: self.stiffening(d, nu))
         return math.exp(nu[1]) * F * st + nu[0] * 1e-3 * self.meas.tau_s
 
-    def extra(self, nu) -> np.ndarray:
-        """Residuals of the contact onsets (the surface height and the scale) and of the drift and thickness priors."""
-        return self._memo("extra", (*nu, self.free.tobytes()), lambda: self._extra(nu))
+    def extra(self, nu, stone=None) -> np.ndarray:
+        """Residuals of the contact onsets (the surface height and the scale; with ``stone``, its contrast at the
+        onset) and of the drift and thickness priors."""
+        return self._memo("extra", (*nu, self.free.tobytes(), stone), lambda: self._extra(nu, stone))
 
-    def _extra(self, nu) -> np.ndarray:
+    def onset_ratio(self, stone) -> np.ndarray:
+        """1 + C / P at each contact onset for ``stone`` (1 without one): the stone's share of the force there,
+        floored at ONSET_RATIO_MIN."""
+        if stone is None or not len(self.on):
+            return np.ones(len(self.on))
+        xs, dep, D = stone
+        C = self._memo("onset_contrast", tuple(stone),
+                       lambda: self._many(self.d_onset, np.array([xs]), dep, D)[0][self.on])
+        return np.maximum(1.0 + C / self.p_onset, ONSET_RATIO_MIN)
+
+    def onset_ratio_slopes(self, p) -> np.ndarray:
+        """d (1 + C / P) / d(xs_mm, log s_mm, D_mm) at each contact onset: (n onsets, 3) (0 where floored)."""
+        stone = _stone(p)
+        xs, dep, D = stone
+        if hasattr(self.sur, "contrast_slopes"):
+            S = self.sur.contrast_slopes(self.meas.x_m, self.d_onset, xs, dep, D)[:3, self.on]
+            S = np.array([1e-3 * S[0], S[1], 1e-3 * S[2]])
+        else:                   # central differences in q
+            S = np.zeros((3, len(self.on)))
+            for j, h in enumerate((1e-4, 1e-6, 1e-4)):
+                qp, qm = np.array(p, float), np.array(p, float)
+                qp[j] += h
+                qm[j] -= h
+                S[j] = (self._many(self.d_onset, np.array([_stone(qp)[0]]), *_stone(qp)[1:])[0][self.on]
+                        - self._many(self.d_onset, np.array([_stone(qm)[0]]), *_stone(qm)[1:])[0][self.on]) / (2 * h)
+        floored = self.onset_ratio(stone) <= ONSET_RATIO_MIN
+        return np.where(floored[:, None], 0.0, (S / self.p_onset).T)
+
+    def _extra(self, nu, stone=None) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[4]:
             r.append(np.array([nu[4] / THICKNESS_SIGMA]))
@@ -328,6 +368,8 @@ class _Forward:
             thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
             if self.g_onset is not None:      # the finite-strain factor at the onset
                 thr = thr / (1.0 + nu[5] * self.g_onset)
+            if stone is not None:             # the stone's share of the force at the onset
+                thr = thr / self.onset_ratio(stone)
             d_thr = self.resp.depth_at_force_m(thr, nu[4], on)
             pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on])
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
@@ -401,7 +443,23 @@ class _Forward:
         J[:, 8] = K * B * g
         return J
 
-    def extra_jac(self, nu) -> np.ndarray:
+    def extra_jac(self, nu, p=None) -> np.ndarray:
+        """d extra / d(xs_mm, log s_mm, D_mm, *NUISANCE) with the stone ``_stone(p)`` (None: no stone, its columns
+        0): (len(extra), 3 + len(NUISANCE))."""
+        stone = None if p is None else _stone(p)
+        E = self._extra_jac(nu, stone)
+        Es = np.zeros((len(E), 3))
+        if p is not None and self.free[2]:   # the onsets' rows, last: d pred / d q = dd_dlf * (-d log ratio / d q)
+            on = self.on
+            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1]) / self.onset_ratio(stone)
+            if self.g_onset is not None:
+                thr = thr / (1.0 + nu[5] * self.g_onset)
+            dd_dlf = self.resp.depth_at_force_slopes(thr, nu[4], on)[0]
+            dpred = -(dd_dlf / self.onset_ratio(stone))[:, None] * self.onset_ratio_slopes(p)
+            Es[len(E) - len(on):] = -dpred / ONSET_SIGMA_M     # (the residual is onset - pred)
+        return np.hstack([Es, E])
+
+    def _extra_jac(self, nu, stone=None) -> np.ndarray:
         """d extra / d NUISANCE: (len(extra), len(NUISANCE))."""
         rows = [np.eye(len(NUISANCE))[0] * 1e-3 / DRIFT_SIGMA_N_PER_S]
         if self.free[4]:
@@ -411,6 +469,8 @@ class _Forward:
         if self.free[2]:
             on = self.on
             thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
+            if stone is not None:
+                thr = thr / self.onset_ratio(stone)
             dlf_da = np.zeros(len(on))
             if self.g_onset is not None:
                 thr = thr / (1.0 + nu[5] * self.g_onset)
@@ -428,8 +488,7 @@ class _Forward:
 
 def _jac(fw: _Forward, sig, p, nu) -> np.ndarray:
     """d residuals / d(xs_mm, log s_mm, D_mm, *free nuisance) (the stone's columns only with a stone ``p``)."""
-    E = fw.extra_jac(nu)
-    J = np.vstack([-fw.force_jac(p, nu) / sig[:, None], np.hstack([np.zeros((len(E), 3)), E])])
+    J = np.vstack([-fw.force_jac(p, nu) / sig[:, None], fw.extra_jac(nu, p)])
     cols = 3 + np.flatnonzero(fw.free)
     return J[:, np.concatenate([np.arange(3), cols]) if p is not None else cols]
 
@@ -659,7 +718,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
 
     def resid(q):     # q = (xs_mm, log s_mm, D_mm, *free nuisance)
         nu = fw.full(q[3:])
-        return np.concatenate([(meas.force_n - fw.forces(_stone(q[:3]), nu)) / sig, fw.extra(nu)])
+        stone = _stone(q[:3])
+        return np.concatenate([(meas.force_n - fw.forces(stone, nu)) / sig, fw.extra(nu, stone)])
 
     def jac(q):
         return _jac(fw, sig, q[:3], fw.full(q[3:]))

@@ -39,6 +39,7 @@ from planner.localize import (
     MIN_ONSETS,
     MIN_THICKNESS_SIGMA,
     MODEL_ABS_ERR_N,
+    ONSET_RATIO_MIN,
     ONSET_SIGMA_M,
     SIGMA_BOUND_TOL,
     THICKNESS_SIGMA,
@@ -113,6 +114,13 @@ class _Forward3D:
                               enough and np.ptp(meas.y_m[self.on]) > 0.01, thick])
         self.levels = np.asarray(surrogate.levels, float)
         self._memo_tables: dict[str, dict] = {}
+        # the stone's share of the force at each contact onset, as in 2D (planner.localize._Forward): its contrast
+        # ratio C / P at the prior's onset depth (the table's first level at least)
+        self.d_onset = np.full(len(meas), self.levels[0])
+        if len(self.on):
+            self.d_onset[self.on] = np.clip(self.resp.depth_at_force_m(meas.onset_threshold_n[self.on], self.on,
+                                                                       eta=0.0), self.levels[0], self.levels[-1])
+        self.p_onset = np.maximum(self.resp.force_n(self.d_onset, eta=0.0)[self.on], 1e-12)
 
     # the 2D model's memo of its parts (a Jacobian's one-parameter steps repeat most of them): here the prior's force
     # unless the surface or the thickness moves, the contrast when only the scale or the drift does, the onsets'
@@ -143,15 +151,26 @@ class _Forward3D:
             F = F + self._memo("contrast", (*map(float, stone), *surf, eta), lambda: self.contrast(stone, d, eta))
         return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
 
-    def extra(self, nu) -> np.ndarray:
+    def onset_ratio(self, stone) -> np.ndarray:
+        """1 + C / P at each contact onset for ``stone`` (1 without one), floored as in 2D."""
+        if stone is None or not len(self.on):
+            return np.ones(len(self.on))
+        xs, ys, dep, D = map(float, stone)
+        C = self._memo("onset_contrast", (xs, ys, dep, D), lambda: np.asarray(
+            self.sur.contrast(self.meas.x_m, self.meas.y_m, self.d_onset, xs, ys, dep, D), float)[self.on])
+        return np.maximum(1.0 + C / self.p_onset, ONSET_RATIO_MIN)
+
+    def extra(self, nu, stone=None) -> np.ndarray:
+        """Residuals of the drift's and thickness's priors and of the contact onsets (with ``stone``, its share of
+        the force at each onset)."""
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[5]:
             r.append(np.array([nu[5] / self.thickness_sigma]))
         if self.free[2]:
             on = self.on
-            d_thr = self._memo("onset", (float(nu[1]), float(nu[5])),
-                               lambda: self.resp.depth_at_force_m(self.meas.onset_threshold_n[on] / math.exp(nu[1]), on,
-                                                                  eta=nu[5]))
+            key = (float(nu[1]), float(nu[5])) + (() if stone is None else tuple(map(float, stone)))
+            d_thr = self._memo("onset", key, lambda: self.resp.depth_at_force_m(
+                self.meas.onset_threshold_n[on] / math.exp(nu[1]) / self.onset_ratio(stone), on, eta=nu[5]))
             pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on] + nu[4] * self.yc_m[on])
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
         return np.concatenate(r)
@@ -250,7 +269,8 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
 
     def resid(q):
         nu = fw.full(q[4:])
-        return np.concatenate([(meas.force_n - fw.forces(_stone(q[:4]), nu)) / sig, fw.extra(nu)])
+        stone = _stone(q[:4])
+        return np.concatenate([(meas.force_n - fw.forces(stone, nu)) / sig, fw.extra(nu, stone)])
 
     # starts: a grid of (clearance, diameter) under the peak and around it, the scale and the drift profiled out
     # (linear), the surface as the no-stone fit found it; and a coarser one across the whole probed area with that

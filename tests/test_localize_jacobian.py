@@ -1,6 +1,7 @@
 """The localizer's fits take their Jacobian in closed form (planner.localize._jac; issue 19): every part of the forward
 model is an interpolant, differentiated exactly. Checked column by column against central differences of the
-residuals themselves (the shipped paper table, its finite-strain correction and contact onsets; probe depths beyond
+residuals themselves (the shipped paper table, its finite-strain correction and contact onsets, with the stone's
+share of the force at each onset since session 44; probe depths beyond
 the table's levels; stones either side of the middle; the no-stone model; a surrogate without its own derivatives),
 and the fits it drives against the same fits on scipy's finite differences (the previous method)."""
 from __future__ import annotations
@@ -64,8 +65,8 @@ def test_the_residuals_jacobian_is_their_derivative(paper_prior, paper_surrogate
 
     def resid(q):
         nu = fw.full(q[3:] if stone else q)
-        F = fw.forces(L._stone(q[:3]) if stone else None, nu)
-        return np.concatenate([(meas.force_n - F) / sig, fw.extra(nu)])
+        st = L._stone(q[:3]) if stone else None
+        return np.concatenate([(meas.force_n - fw.forces(st, nu)) / sig, fw.extra(nu, st)])
     for q in _points(fw, 6, seed=len(case)):
         q = q if stone else q[3:]
         J = L._jac(fw, sig, q[:3] if stone else None, fw.full(q[3:] if stone else q))
@@ -82,7 +83,8 @@ def test_the_depth_held_profile_jacobian_follows_the_chain_rule(paper_prior, pap
 
     def resid(q):
         nu = fw.full(q[3:])
-        return np.concatenate([(meas.force_n - fw.forces(L._stone(q[:3]), nu)) / sig, fw.extra(nu)])
+        st = L._stone(q[:3])
+        return np.concatenate([(meas.force_n - fw.forces(st, nu)) / sig, fw.extra(nu, st)])
     for q in _points(fw, 4, seed=11):
         d_mm = math.exp(q[1]) + 0.5 * q[2]
         r, r_jac = L._depth_held(resid, lambda q: L._jac(fw, sig, q[:3], fw.full(q[3:])), d_mm)
