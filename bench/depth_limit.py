@@ -5,8 +5,8 @@ the contact felt).
     python bench/depth_limit.py --out bench-out/depth-limit [--quick]
 
 One plan on the paper section's prior (15 probes, 4 mm deep: the depth limit; the Nano17's 20 mN contact threshold)
-is driven on the in-memory arm over fem truths the planner did not see: the paper scene, its tissue at 1500 and
-4000 Pa, 40 and 60 mm high, a shallow stone, a relaxing tissue (25 % over 2 s) and a neo-Hookean one; and a 3x3
+is driven on the in-memory arm over fem truths the planner did not see: the paper scene, its tissue at 1000, 1500
+and 4000 Pa, 40 and 60 mm high, a shallow stone, a relaxing tissue (25 % over 2 s) and a neo-Hookean one; and a 3x3
 plan on block3d's prior over the block3d truth (a 3D sphere tip and stone). Each with its
 surface registered right, 2 mm too low (the tissue higher than registered: the limit stops the probes) and 1.5 mm too
 high (shallower: the plan's depth is reached first). The same plan with its force exponents removed (an older plan)
@@ -55,6 +55,7 @@ def truths() -> dict:
     t = paper.tissue
     shallow = dataclasses.replace(paper.stones[0], depth_m=0.012, diameter_m=0.012)
     return {"paper": (paper, {}),
+            "E 1000 Pa": (dataclasses.replace(paper, tissue=dataclasses.replace(t, youngs_pa=1000.0)), {}),
             "E 1500 Pa": (dataclasses.replace(paper, tissue=dataclasses.replace(t, youngs_pa=1500.0)), {}),
             "E 4000 Pa": (dataclasses.replace(paper, tissue=dataclasses.replace(t, youngs_pa=4000.0)), {}),
             "height 40 mm": (dataclasses.replace(paper, tissue=dataclasses.replace(t, height_m=0.04)), {}),

@@ -39,6 +39,10 @@ from pathlib import Path
 
 PLAN_VERSION = 2
 MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT = 0.5, 4.0   # a probe's force_exponent (null: unknown)
+# the driver's depth limit fits the descent's force curve from where it last rose past this fraction of the contact
+# threshold (robot.driver._ForceWatch, robot.tissue_depth); the planner's force_exponent is the prior's over the
+# same chord: from this fraction of the threshold to the planned depth
+SURFACE_FIT_FROM_FRACTION = 0.3
 READABLE_PLAN_VERSIONS = (1, 2)
 
 # Hard caps: no plan may ask for more, whatever its limits say; the planner's options, Plan.check and the driver's

@@ -33,7 +33,7 @@ import casadi as ca
 import numpy as np
 
 from core import ur5e
-from core.contracts import Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
+from core.contracts import SURFACE_FIT_FROM_FRACTION, Frames, Limits, Motion, Plan, PlanError, PlanOptions, Probe
 from fem import recall
 from fem.contact import surface_model
 from fem.scene import STRAIN_MAX, from_dict, load
@@ -489,7 +489,8 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
                            force_fraction=force_fraction, min_depth_m=min_depth_m, depth_for=depth_for)
         d, f, limited_by, target_n = dc.depth_m, dc.force_n, dc.limited_by, dc.target_force_n
 
-    expo = force_exponents(force_n, where, d, f, motion.contact_threshold_n, depth_for)
+    # over the chord the driver's surface fit sees: from SURFACE_FIT_FROM_FRACTION of the threshold on
+    expo = force_exponents(force_n, where, d, f, SURFACE_FIT_FROM_FRACTION * motion.contact_threshold_n, depth_for)
     depth_s = time.perf_counter() - t0
 
     tg = targets(x, d, frames.tissue_pose_base, motion.approach_height_m, y_m=y)

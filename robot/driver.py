@@ -49,6 +49,7 @@ from core.contracts import (
     NOISE_SIGMA_FACTOR,
     PERIOD_S,
     RETRACT,
+    SURFACE_FIT_FROM_FRACTION,
     FaultKind,
     ProbeRecord,
     ProbeStatus,
@@ -204,6 +205,15 @@ SURFACE_TOL_M = 2.5e-4
 # a pending early contact (robot.driver._ForceWatch) is noise once the filtered force falls below this fraction of
 # the contact threshold (the threshold is >= 5 filtered sigmas of the free-air noise: half of it is >= 2.5 sigmas)
 EARLY_DISMISS_FRACTION = 0.5
+# the surface's fit (robot.tissue_depth) takes a descent's readings from where the filtered force last rose past
+# this fraction of the contact threshold, not only those from the contact on: in soft tissue the contact is felt 2-3
+# mm in and the limit leaves 1-1.5 mm of travel after it, so a line through those alone extrapolates far to its zero
+# (1000 Pa, the surface 2 mm high: the tip went up to 0.8 mm past a 4 mm limit with a Nano17's noise, session 44's
+# review: 4.52-4.75 mm over 3 seeds, now 4.16-4.35); from FIT_FROM_FRACTION of the threshold, or FIT_FROM_SIGMAS
+# of the filtered free-air noise measured at the zeroing if that is more (a reading there is that clear of free air)
+FIT_FROM_FRACTION = SURFACE_FIT_FROM_FRACTION
+FIT_FROM_SIGMAS = 3.0
+FIT_FROM_MAX = 4096         # readings kept before the contact (the last ones: 8 s of a descent)
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -313,6 +323,33 @@ class _ForceWatch:
         self.rest_depth: float | None = None    # (where the arm came to rest: its first dwell period)
         self.early: dict | None = None  # a reading past the threshold near the descent's start, being confirmed
         self.early_dismissed = 0        # such readings whose force fell back to free air within a window
+        # the readings (depth, filtered force) before the contact since the force last rose past FIT_FROM_FRACTION of
+        # the threshold: the surface's fit starts from them
+        self.pre_depth: deque = deque(maxlen=FIT_FROM_MAX)
+        self.pre_filt: deque = deque(maxlen=FIT_FROM_MAX)
+
+    def _before_contact(self, depth, filt) -> None:
+        """Readings before the contact (floats, or arrays in order): kept for the surface's fit from the last one at
+        or below FIT_FROM_FRACTION of the threshold on."""
+        if self.exponent is None:
+            return
+        noise = self.d.noise_filt_n if math.isfinite(self.d.noise_filt_n) else 0.0
+        low = max(FIT_FROM_FRACTION * self.d.contact_thr, FIT_FROM_SIGMAS * noise)
+        if isinstance(depth, float):
+            if filt <= low:
+                self.pre_depth.clear()
+                self.pre_filt.clear()
+            else:
+                self.pre_depth.append(depth)
+                self.pre_filt.append(filt)
+            return
+        below = np.flatnonzero(filt <= low)
+        if below.size:
+            self.pre_depth.clear()
+            self.pre_filt.clear()
+            depth, filt = depth[below[-1] + 1:], filt[below[-1] + 1:]
+        self.pre_depth.extend(depth.tolist())
+        self.pre_filt.extend(filt.tolist())
 
     def _early(self, depth: float) -> None:
         """Contact felt within ``early_contact_m`` of the descent's start: the tissue's surface is at the approach
@@ -343,6 +380,8 @@ class _ForceWatch:
             if self.fit is None:
                 self.fit = SurfaceFit(self.exponent, self.contact["depth"] - self.start_depth_m,
                                       self.d.cfg.filter_window)
+                if self.pre_depth:      # the readings on the way up to the threshold first
+                    self.fit.commit(np.array(self.pre_depth) - self.contact["depth"], np.array(self.pre_filt))
             lag = (self.fit.depth_one(past, filt) if one else self.fit.depth_m(past, filt)) - past
         limit = self.d.lim.depth_limit_m
         # counted from the fitted surface where it stands SURFACE_TOL_M above the registered one (else the plan's
@@ -397,6 +436,8 @@ class _ForceWatch:
               and s["filt"] < EARLY_DISMISS_FRACTION * self.d.contact_thr):
             self.early = None           # back down to free air before a window's readings: noise, not the surface
             self.early_dismissed += 1
+        if "depth" not in self.contact:
+            self._before_contact(s["depth"], s["filt"])
         self.hist.append(s["filt"])
         if force_when_stopped(self.hist, self.lead) > self.d.lim.force_limit_n:
             if self.early is not None:  # the limit while an early contact is confirmed: that contact was real
@@ -428,8 +469,12 @@ class _ForceWatch:
             if j >= 0 and not self.holding and b.depth[j] - self.start_depth_m < self.d.early_contact_m:
                 k = j                   # that period one at a time: __call__ raises the fault
                 j = 0
+                self._before_contact(b.depth[:k], filt[:k])
             elif j >= 0:
+                self._before_contact(b.depth[:j], filt[:j])
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
+            else:
+                self._before_contact(b.depth[:k], filt[:k])
         if self.holding and self.rest_depth is None and b.n:
             self.rest_depth = float(b.depth[0])
         if "depth" in self.contact:     # and up to the first past the depth limit (below the fitted surface)
@@ -460,6 +505,7 @@ class Driver(Recovery):
         self.zeroed_ts: float | None = None      # when the sensor was last zeroed in this run (controller time)
         self.zeroed_rotvec: list | None = None   # and the tool's orientation then (a rotation vector, rad)
         self.noise_std = float("nan")
+        self.noise_filt_n = float("nan")    # the filtered force's free-air noise at the last zeroing (N, 1 sigma)
         self.watchdog_on = False
         self.watchdog_hz = watchdog_rate_hz(self.cfg, self.lim.probe_speed_m_s)
         self.program_restarts = 0
@@ -805,7 +851,7 @@ class Driver(Recovery):
         self._wait(self.cfg.noise_sample_s, vals)
         vals = np.array(vals[self.cfg.filter_window:]).reshape(-1, 2)
         self.noise_std = float(np.std(vals[:, 0])) if len(vals) > 1 else 0.0
-        noise_f = float(np.std(vals[:, 1])) if len(vals) > 1 else 0.0
+        noise_f = self.noise_filt_n = float(np.std(vals[:, 1])) if len(vals) > 1 else 0.0
         noise_thr = self.cfg.noise_sigma_factor * noise_f
         if noise_thr >= 0.5 * self.lim.force_limit_n:
             raise ProbeFault(FaultKind.SENSOR_NOISE, f"free-air force noise {noise_f:.3f} N (filtered) is too large "

@@ -9,8 +9,11 @@ a 4 mm limit with the surface 2 mm high, bench/depth_limit.py).
 The tissue's force rises as F = c d^p (d the indentation below the undeformed surface; ``p`` the plan's
 ``force_exponent``: the prior's own curve between the contact threshold and the probe's planned depth; c unknown, so
 any stiffness). So F^(1/p) is a straight line in the tip's travel, zero at the surface: a least-squares line through
-every filtered reading since contact was felt gives the surface as its zero, and the lag as the distance from there
-to the contact (``SurfaceFit``; running sums, so each period costs the same). A truth flatter than the prior (q < p)
+the filtered readings gives the surface as its zero, and the lag as the distance from there to the contact
+(``SurfaceFit``; running sums, so each period costs the same). The readings are every one since contact was felt
+and, since session 44, those before it from where the force last rose past 30 % of the threshold
+(robot.driver._ForceWatch: in soft tissue the contact is felt 2-3 mm in and the limit leaves 1-1.5 mm after it, a
+short line to extrapolate that far; the plan's p is the prior's over that same chord). A truth flatter than the prior (q < p)
 bends that line down and would put the surface too high, so lines for a few exponents below p are fitted too and
 the one nearest p that fits as well as the best within noise is used (EXPONENT_FRACTIONS). Every reading counts:
 the single reading at the contact is as noisy as any (a Nano17's filtered sigma is 1.3 mN against a 20 mN threshold,
@@ -21,7 +24,7 @@ the filter's window: its readings are not independent), so a fit with few or noi
 never a negative one: the depth is at least the travel since contact, the old measure -- and at most ``max_lag_m``
 (the contact's depth below the descent's start: the tip started in free air, the surface is no higher). A force
 curve steeper than the prior's (a stone, thinner tissue) bends the line and shortens the lag too (the tip goes a
-little past the limit: 0.07-0.33 mm on bench/depth_limit.py's fem truths). Not covered: a curve flatter than 0.6 p,
+little past the limit: 0.07-0.35 mm on bench/depth_limit.py's fem truths). Not covered: a curve flatter than 0.6 p,
 or not a power law at all (a tissue relaxing by half within 0.5 s stopped one probe of three 0.21 mm short), and a
 force offset since the zeroing (5 mN makes a 1.5 mm lag read 0.3 mm long); each errs towards stopping early.
 
