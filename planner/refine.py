@@ -208,9 +208,21 @@ def caveats(loc) -> str:
     return "".join(f"; warning: {c}" for c in out)
 
 
+def no_stone_caveats(loc, n_stone: int = 3) -> str:
+    """What makes a no-stone answer doubtful ("" when nothing): the no-stone fit the data reject, as ``caveats``
+    says of a stone's (its degrees of freedom the stone fit's plus the stone's ``n_stone`` parameters). Session 44's
+    review: a healthy soft block under a high surface, chi2 66 on 28, answered NO STONE without a word."""
+    dof = loc.dof_1 + n_stone if loc.dof_1 else 0
+    if dof and math.isfinite(loc.chi2_0) and loc.chi2_0 > dof + 4.0 * math.sqrt(2.0 * dof):
+        return (f"; warning: poor fit without a stone: chi2 {loc.chi2_0:.0f} on {dof} degrees of freedom (tissue "
+                f"unlike the prior, or a stone the fit did not find: the answer is less sure than its LR says)")
+    return ""
+
+
 def describe(loc: Localization) -> str:
     if not loc.detected:
-        return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.1f} mN)"
+        return (f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.1f} mN)"
+                + no_stone_caveats(loc))
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- "
             f"{loc.sigma_depth_m * 1e3:.2f} mm, diameter {loc.diameter_m * 1e3:.2f} +- "
             f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})" + caveats(loc))

@@ -26,7 +26,7 @@ import numpy as np
 from core.contracts import MEASURED
 from planner.localize import MIN_MEASUREMENTS3D, THICKNESS_SIGMA, Measurements
 from planner.localize3d import Localization3D, localize3d
-from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, too_few
+from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, no_stone_caveats, too_few
 from planner.tissue_response3d import prior_and_thickness_slope3d
 
 DESIGN_STEP_M = 1e-3
@@ -183,7 +183,8 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
 
 def describe3d(loc: Localization3D) -> str:
     if not loc.detected:
-        return f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.2f} mN)"
+        return (f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.2f} "
+                f"mN)" + no_stone_caveats(loc, 4))
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, y {loc.y_m * 1e3:.2f} +- "
             f"{loc.sigma_y_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- {loc.sigma_depth_m * 1e3:.2f} mm, "
             f"diameter {loc.diameter_m * 1e3:.2f} +- {loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})"

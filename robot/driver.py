@@ -213,7 +213,9 @@ EARLY_DISMISS_FRACTION = 0.5
 # of the filtered free-air noise measured at the zeroing if that is more (a reading there is that clear of free air)
 FIT_FROM_FRACTION = SURFACE_FIT_FROM_FRACTION
 FIT_FROM_SIGMAS = 3.0
-FIT_FROM_MAX = 4096         # readings kept before the contact (the last ones: 8 s of a descent)
+# readings kept before the contact (the last ones: 2 s of a descent; the rise from 30 % of the threshold to it takes
+# about 0.5 s at 2 mm/s in 1000 Pa tissue); they go into the fit at the contact's period at once (1 ms for 1000)
+FIT_FROM_MAX = 1024
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -330,7 +332,7 @@ class _ForceWatch:
 
     def _before_contact(self, depth, filt) -> None:
         """Readings before the contact (floats, or arrays in order): kept for the surface's fit from the last one at
-        or below FIT_FROM_FRACTION of the threshold on."""
+        or below FIT_FROM_FRACTION of the threshold (or FIT_FROM_SIGMAS of the filtered noise, if more) on."""
         if self.exponent is None:
             return
         noise = self.d.noise_filt_n if math.isfinite(self.d.noise_filt_n) else 0.0

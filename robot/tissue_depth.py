@@ -82,6 +82,7 @@ class SurfaceFit:
     @sums.setter
     def sums(self, value: np.ndarray) -> None:
         self._sums = value
+        self._rows = self._seen = self._seen1 = None
 
     def _terms(self, past: np.ndarray, f: np.ndarray) -> np.ndarray:
         y = np.power(np.maximum(f, 0.0)[None, :], self.inv_q)               # (exponents, readings)
@@ -107,7 +108,8 @@ class SurfaceFit:
             # a line that rises: by MIN_RISE of its mean over the travel (rounding in a flat force's sums gives a
             # slope of 1e-20, whose zero lies anywhere), and by more than LAG_SIGMAS of its own standard error
             se_a = self.k * np.sqrt(rss / (n - 2) / vxx)
-            ok = (n >= _N_MIN) & (vxx > 0) & (a > se_a) & (a * past >= MIN_RISE * my) & np.isfinite(lag + se)
+            ok = (n >= _N_MIN) & (vxx > 0) & (a > se_a) & (a * past >= MIN_RISE * my) & np.isfinite(lag + se) \
+                & (a * a > 0)           # (a slope below 1e-162 squares to 0: no misfit to compare)
             misfit = np.where(ok, rss / (a * a), np.inf)    # squared residuals along the travel (m^2)
             # the exponent nearest the plan's whose line fits as well as the best within noise (an F-test's bound:
             # LAG_SIGMAS^2 more than the best's residual variance, times the window for correlated readings): where
@@ -199,7 +201,7 @@ class SurfaceFit:
                         lag = my / a - mx
                         t = lag + mx
                         se = math.sqrt(rss / (n - 2) * (1.0 / n + t * t / vxx)) / a
-                        if math.isfinite(lag + se):
+                        if math.isfinite(lag + se) and a * a > 0:
                             fit = (lag, se, rss / (a * a))
             fits.append(fit)
             misfit.append(math.inf if fit is None else fit[2])

@@ -162,6 +162,18 @@ def test_the_period_path_of_floats_is_the_arrays_path_bit_for_bit(p, q_frac, lag
     assert np.array_equal(again.depth_m(past[m:], f[m:]), want[m:])
 
 
+def test_the_period_path_takes_a_vanishing_slope_as_the_arrays_path_does():
+    """A slope whose square underflows (1e-170 N a metre: no driver's force, a review's corner case) is no line in
+    either path, where the floats' path raised ZeroDivisionError."""
+    past, f = np.arange(6.0), 1e-170 * (np.arange(6.0) + 1.0)
+    want = SurfaceFit(1.0, 1.0, 1).depth_m(past, f)
+    fit, got = SurfaceFit(1.0, 1.0, 1), []
+    for a, b in zip(past.tolist(), f.tolist()):
+        got.append(fit.depth_one(a, b))
+        fit.commit_one(a, b)
+    assert np.array_equal(np.array(got), want) and np.array_equal(want, past)
+
+
 def test_the_planner_gives_a_power_laws_exponent():
     for p in (1.0, 1.5, 2.2):
         exps = force_exponents(lambda x, d, p=p: 40.0 * d ** p, [0.02, 0.03], [0.004, 0.003], [40 * 0.004 ** p,
