@@ -18,8 +18,8 @@ What the planner hands the robot. Plain data, JSON, versioned; no CasADi, no mes
 Each probe: ``approach_pose`` (tip ``motion.approach_height_m`` above the undeformed surface at x_m), then a slow
 straight descent along the tool axis to ``indent_pose`` (tip ``depth_m`` below the undeformed surface), dwell,
 retract to ``approach_pose``. ``force_exponent`` (optional, null: unknown): the prior's force ~ depth^p over the
-chord from ``motion.contact_threshold_n`` to ``depth_m``; the driver counts its depth limit from the surface a line
-through F^(1/p) gives (robot.tissue_depth).
+chord from SURFACE_FIT_FROM_FRACTION of ``motion.contact_threshold_n`` (before session 44: from the threshold) to
+``depth_m``; the driver counts its depth limit from the surface a line through F^(1/p) gives (robot.tissue_depth).
 
 Timing (planner/timing.py): every move is a moveL; the descent runs at ``motion.probe_speed_m_s`` over approach height
 plus depth, the retract at the approach speed; each move takes the larger of its tool-speed and joint-limit times.

@@ -182,7 +182,8 @@ def choose_depths(force_n: Callable[..., float], x_m: Sequence, *, force_limit_n
 def force_exponents(force_n: Callable[..., float], positions: Sequence, depth_m: Sequence[float],
                     force_at_depth_n: Sequence[float], threshold_n: float,
                     depth_for: Callable | None = None) -> list[float | None]:
-    """Per waypoint, the prior's force ~ depth^p over the chord from the contact threshold to the planned depth: the
+    """Per waypoint, the prior's force ~ depth^p over the chord from ``threshold_n`` to the planned depth (the planner
+    passes SURFACE_FIT_FROM_FRACTION of the contact threshold: where the driver's fit of the force curve starts): the
     driver counts the indentation at which it felt contact from it, so that its depth limit is below the surface,
     not below the contact felt (robot.tissue_depth). Where the prior does not reach the threshold by the planned
     depth, the chord over the depth's second half; None where neither is defined or p lies outside
