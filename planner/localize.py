@@ -357,6 +357,14 @@ class _Forward:
         floored = self.onset_ratio(stone) <= ONSET_RATIO_MIN
         return np.where(floored[:, None], 0.0, (S / self.p_onset).T)
 
+    def _onset_force(self, nu, stone) -> np.ndarray:
+        """The prior's force (before the scale) that reaches each onset's threshold: the threshold over the scale,
+        the finite-strain factor at the onset and, with ``stone``, its share of the force there."""
+        thr = self.meas.onset_threshold_n[self.on] / math.exp(nu[1])
+        if self.g_onset is not None:
+            thr = thr / (1.0 + nu[5] * self.g_onset)
+        return thr if stone is None else thr / self.onset_ratio(stone)
+
     def _extra(self, nu, stone=None) -> np.ndarray:
         r = [np.array([nu[0] * 1e-3 / DRIFT_SIGMA_N_PER_S])]
         if self.free[4]:
@@ -365,12 +373,7 @@ class _Forward:
             r.append(np.array([(nu[5] - FS_PRIOR_MEAN) / FS_PRIOR_SIGMA]))
         if self.free[2]:
             on = self.on
-            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
-            if self.g_onset is not None:      # the finite-strain factor at the onset
-                thr = thr / (1.0 + nu[5] * self.g_onset)
-            if stone is not None:             # the stone's share of the force at the onset
-                thr = thr / self.onset_ratio(stone)
-            d_thr = self.resp.depth_at_force_m(thr, nu[4], on)
+            d_thr = self.resp.depth_at_force_m(self._onset_force(nu, stone), nu[4], on)
             pred = d_thr - 1e-3 * (nu[2] + nu[3] * self.xc_m[on])
             r.append((self.meas.onset_m[on] - pred) / ONSET_SIGMA_M)
         return np.concatenate(r) if r else np.zeros(0)
@@ -451,10 +454,7 @@ class _Forward:
         Es = np.zeros((len(E), 3))
         if p is not None and self.free[2]:   # the onsets' rows, last: d pred / d q = dd_dlf * (-d log ratio / d q)
             on = self.on
-            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1]) / self.onset_ratio(stone)
-            if self.g_onset is not None:
-                thr = thr / (1.0 + nu[5] * self.g_onset)
-            dd_dlf = self.resp.depth_at_force_slopes(thr, nu[4], on)[0]
+            dd_dlf = self.resp.depth_at_force_slopes(self._onset_force(nu, stone), nu[4], on)[0]
             dpred = -(dd_dlf / self.onset_ratio(stone))[:, None] * self.onset_ratio_slopes(p)
             Es[len(E) - len(on):] = -dpred / ONSET_SIGMA_M     # (the residual is onset - pred)
         return np.hstack([Es, E])
@@ -468,12 +468,9 @@ class _Forward:
             rows.append(np.eye(len(NUISANCE))[5] / FS_PRIOR_SIGMA)
         if self.free[2]:
             on = self.on
-            thr = self.meas.onset_threshold_n[on] / math.exp(nu[1])
-            if stone is not None:
-                thr = thr / self.onset_ratio(stone)
+            thr = self._onset_force(nu, stone)
             dlf_da = np.zeros(len(on))
             if self.g_onset is not None:
-                thr = thr / (1.0 + nu[5] * self.g_onset)
                 dlf_da = -self.g_onset / (1.0 + nu[5] * self.g_onset)
             dd_dlf, dd_deta = self.resp.depth_at_force_slopes(thr, nu[4], on)
             Jo = np.zeros((len(on), len(NUISANCE)))      # d pred / d nu; the residual is -(that) / ONSET_SIGMA_M

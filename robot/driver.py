@@ -468,15 +468,13 @@ class _ForceWatch:
         j = 0
         if "depth" not in self.contact:
             j = first_true(filt[:k] > self.d.contact_thr, -1)
+            before = j if j >= 0 else k           # the periods before any contact's
+            self._before_contact(b.depth[:before], filt[:before])
             if j >= 0 and not self.holding and b.depth[j] - self.start_depth_m < self.d.early_contact_m:
                 k = j                   # that period one at a time: __call__ raises the fault
                 j = 0
-                self._before_contact(b.depth[:k], filt[:k])
             elif j >= 0:
-                self._before_contact(b.depth[:j], filt[:j])
                 self.contact.update(depth=float(b.depth[j]), x=float(b.x[j]), t=float(b.ts[j]))
-            else:
-                self._before_contact(b.depth[:k], filt[:k])
         if self.holding and self.rest_depth is None and b.n:
             self.rest_depth = float(b.depth[0])
         if "depth" in self.contact:     # and up to the first past the depth limit (below the fitted surface)
