@@ -68,6 +68,7 @@ from app.runexec import (
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
 from planner.detectability import detectability
 from planner.draw_run import draw_run
+from planner.finite_strain_response import prior_finite_strain, unsupported, x_nodes
 from planner.localize import (
     MAX_THICKNESS_SIGMA,
     MIN_MEASUREMENTS,
@@ -207,6 +208,23 @@ def _dimension_defaults(args, scene, prior) -> bool:
     return three_d
 
 
+def prepare_finite_strain(prior, where_prior: str) -> None:
+    """The localizer's finite-strain shape (planner.finite_strain_response) for a prior that has none yet: built
+    here, said before and after (fem sweeps of the prior: about half a minute), not silently inside the first fit."""
+    if unsupported(prior) or prior_finite_strain(prior, build=False) is not None:
+        return
+    t = time.perf_counter()
+    _say(f"no finite-strain shape for this tissue yet: building it before probing ({len(x_nodes(prior))} fem "
+         f"sweeps of the prior, about 3 s each on one core; kept in the disk cache)")
+    try:
+        shape = prior_finite_strain(prior)
+    except (RuntimeError, ArithmeticError, ValueError) as e:
+        raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
+                         f"sizes)") from None
+    if shape is not None:
+        _say(f"finite-strain shape built in {time.perf_counter() - t:.0f} s")
+
+
 def _say(msg: str) -> None:
     print(f"palpate run: {msg}", file=sys.stderr, flush=True)
 
@@ -344,6 +362,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
 
     if not isinstance(sur, PendingSurrogate):
         det, smallest = detectable(sur)
+    prepare_finite_strain(prior, where_prior)
     stats = new_stats()
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()       # controller process and ur_rtde links, closed when probing ends
