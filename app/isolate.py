@@ -57,6 +57,12 @@ def _die_with_parent() -> None:
 def _child(conn, fn, args):
     signal.signal(signal.SIGINT, signal.default_int_handler)   # Ctrl-C reaches the driver (it records, stops)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # so does a supervisor's SIGTERM
+    # a process group of its own: a terminal's Ctrl-C (sent to the foreground group) reaches the parent only, which
+    # passes one SIGINT on, as it does a SIGINT or SIGTERM sent to its process ID alone
+    try:
+        os.setpgid(0, 0)
+    except OSError:
+        pass
     _die_with_parent()
     try:
         conn.send(("ok", fn(lambda: conn.send(("started", None)), *args)))
@@ -71,8 +77,8 @@ def run_in_child(fn, *args, start_timeout_s: float | None = None, start_method: 
     """``fn(started, *args)`` in a forked child; its return value (picklable), or ChildError for an exception it
     raised, or ChildDied if it died. ``fn`` calls ``started()`` once its unbounded start is over (ur_rtde's
     constructors have no time-out of their own against a controller that accepts but never answers); without that
-    within ``start_timeout_s`` the child is killed and ChildTimeout raised. Ctrl-C is left to the child (the parent
-    ignores it while waiting). ``start_method`` "spawn": a fresh interpreter (``fn`` must then be importable by name),
+    within ``start_timeout_s`` the child is killed and ChildTimeout raised. The child runs in a process group of its
+    own; a SIGINT or SIGTERM to the parent (a terminal's Ctrl-C too) is passed on to it as one SIGINT. ``start_method`` "spawn": a fresh interpreter (``fn`` must then be importable by name),
     for a caller whose other threads may hold locks a forked child would inherit held."""
     ctx = mp.get_context(start_method)
     parent_end, child_end = ctx.Pipe(duplex=False)
@@ -81,8 +87,14 @@ def run_in_child(fn, *args, start_timeout_s: float | None = None, start_method: 
     old_term = signal.getsignal(signal.SIGTERM)
     try:
         proc.start()
-        # a supervisor's SIGTERM to this process reaches the child as Ctrl-C: it records and stops
-        signal.signal(signal.SIGTERM, lambda *_: proc.is_alive() and os.kill(proc.pid, signal.SIGINT))
+        # Ctrl-C, and a supervisor's SIGINT or SIGTERM to this process, reach the child as Ctrl-C: it records and
+        # stops (before session 45 a SIGINT to this process alone was ignored: only a terminal's, sent to the whole
+        # group, stopped the arm)
+        def forward(*_):
+            if proc.is_alive():
+                os.kill(proc.pid, signal.SIGINT)
+        signal.signal(signal.SIGINT, forward)
+        signal.signal(signal.SIGTERM, forward)
         child_end.close()
         if start_timeout_s is not None and not parent_end.poll(start_timeout_s):
             proc.kill()

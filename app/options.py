@@ -196,9 +196,11 @@ def check_output_file(path: str | None, option: str, replaced: bool = False) -> 
     """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data (nor a
     symlink to it), its directory creatable/writable. ``replaced``: the file is written beside and renamed over the
     path, so an existing path must be a regular file (a device such as /dev/null would be replaced by one; a pipe
-    can take a ``--json`` written in place). None, "" and "-" (standard output) pass."""
-    if not path or path == "-":
+    can take a ``--json`` written in place). None (not given) and "-" (standard output) pass; an empty or blank path
+    is refused (before session 45 it passed and was taken as not given: no file, and no word about it)."""
+    if path is None or path == "-":
         return
+    _not_blank(path, option, "a file path")
     refuse_measured(path, option)
     p = Path(path)
     try:
@@ -218,10 +220,17 @@ def check_output_file(path: str | None, option: str, replaced: bool = False) -> 
     _writable_parent(p.parent, option, path)
 
 
+def _not_blank(path: str, option: str, what: str) -> None:
+    if not str(path).strip():
+        raise UsageError(f"{option} {path!r}: an empty path; give {what}")
+
+
 def check_output_dir(path: str | None, option: str) -> None:
-    """A directory option (``--plots``, ``--out DIR``): not an existing file; creatable and writable."""
-    if not path:
+    """A directory option (``--plots``, ``--out DIR``): not an existing file; creatable and writable; not empty or
+    blank (``--out ''`` wrote a run into the current directory)."""
+    if path is None:
         return
+    _not_blank(path, option, "a directory")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {path}: is a file, not a directory")

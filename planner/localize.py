@@ -36,7 +36,7 @@ from scipy.optimize import least_squares
 from core.arrays import clip
 from core.contracts import FILTER_WINDOW, N_ZERO_AVERAGE
 from core.peak import parabola_peak
-from fem.contact import surface_model
+from fem.contact import STONE_LAYER_MAX, surface_model
 from planner.finite_strain_response import FiniteStrainRows, prior_finite_strain, unsupported
 from planner.forkmap import fork_map
 from planner.surrogate import load_surrogate
@@ -164,6 +164,7 @@ class Localization:
     fit_contrast_n: np.ndarray | None = None   # per probe: the fitted stone's contrast
     depth_interval_m: dict = field(default_factory=dict)   # profile likelihood: {"68": [lo, hi], "95": [lo, hi]}
     nuisance: dict = field(default_factory=dict)   # the tissue and sensor unknowns fitted with the stone (NUISANCE)
+    n_beyond_linear_range: int = 0   # readings the linear model does not cover under the fitted stone (CRUSH_REL_ERR)
 
     def to_dict(self) -> dict:
         def f(v):
@@ -178,7 +179,8 @@ class Localization:
                              "chi2_no_stone": f(self.chi2_0), "chi2_stone": f(self.chi2_1), "dof_stone": self.dof_1,
                              "peak_x_m": f(self.peak_x_m), "peak_contrast_n": f(self.peak_contrast_n),
                              "fit_at_bound": list(self.at_bound),
-                             "offset_drift_n_per_s": f(self.offset_drift_n_per_s)},
+                             "offset_drift_n_per_s": f(self.offset_drift_n_per_s),
+                             "readings_beyond_linear_range": int(self.n_beyond_linear_range)},
                 "nuisance": {k: ({"value": f(v[0]), "sigma": f(v[1])} if isinstance(v, tuple) else v)
                              for k, v in self.nuisance.items()},
                 "n_probes": self.n_probes}
@@ -228,6 +230,8 @@ SIGMA_BOUND_TOL = 1e-9      # relative slack on both bounds: a bound printed in 
 DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
 #                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
 ONSET_RATIO_MIN = 0.5       # 1 + C / P at a contact onset at least (a contrast below -P / 2: not a hard stone's)
+CRUSH_REL_ERR = 0.5         # model error, relative to the stone's contrast, of a reading the linear model does not cover
+#                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (README)
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 
@@ -825,6 +829,20 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
             fw.free[5] = False
             nf -= 1
             nlo, nhi = NUIS_LO[fw.free], NUIS_HI[fw.free]
+    # readings the linear model does not cover under the fitted stone (the tip within STONE_LAYER_MAX of the tissue
+    # layer over it: fem refuses them, the table and a simulated truth continue the force with a power law): an
+    # error of CRUSH_REL_ERR of the stone's contrast there, and the fit again from here (fixed, as the contrast's
+    # allowance is)
+    beyond = _beyond_linear_range(fw, fit.x, prior.indenter.radius_m)
+    if beyond.any():
+        nu = fw.full(fit.x[3:])
+        d_fit = fw.depth(nu)
+        c_fit = math.exp(nu[1]) * fw.contrast(_stone(fit.x[:3]), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
+        sig = np.sqrt(sig ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+        fit = least_squares(resid, fit.x, jac=_jac_or_fd(jac), bounds=(np.concatenate([lo, nlo]),
+                                                                     np.concatenate([hi, nhi])),
+                            x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
+                            max_nfev=300)
     q = fit.x
     n_res = len(fit.fun)
     dof = max(n_res - 3 - nf, 1)
@@ -867,5 +885,15 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
                        offset_drift_n_per_s=float(nu[0] * 1e-3), peak_x_m=px, peak_contrast_n=pc,
                        at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.tissue_force(d_fit, nu),
-                       prior_n=k * fw.tissue_force(d_fit, nu), fit_contrast_n=fit_c)
+                       prior_n=k * fw.tissue_force(d_fit, nu), fit_contrast_n=fit_c,
+                       n_beyond_linear_range=int(beyond.sum()))
     return loc, profile_args
+
+
+def _beyond_linear_range(fw: _Forward, q, tip_radius_m: float) -> np.ndarray:
+    """Per reading: whether the stone ``q[:3]`` lies under the tip's footprint with the reading's true indentation
+    deeper than STONE_LAYER_MAX of the tissue layer over it (fem.contact.check_waypoint's rule)."""
+    xs, dep, D = _stone(q[:3])
+    d = fw.depth(fw.full(q[3:]))
+    under = np.abs(fw.meas.x_m - xs) < tip_radius_m + 0.5 * D
+    return under & (d > STONE_LAYER_MAX * (dep - 0.5 * D))

@@ -30,8 +30,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
+from fem.contact import STONE_LAYER_MAX
 from planner.forkmap import fork_map
 from planner.localize import (
+    CRUSH_REL_ERR,
     DRIFT_SIGMA_N_PER_S,
     FLOOR_GAP_M,
     MAX_THICKNESS_SIGMA,
@@ -314,11 +316,19 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     for sol in fork_map(fit, starts, workers):
         if best is None or sol.cost < best.cost:
             best = sol
-    q = best.x
     chi2_1 = 2.0 * best.cost
     lr = max(chi2_0 - chi2_1, 0.0)
+    # readings the linear model does not cover under the fitted stone: a model error, and the fit again (the 2D
+    # localizer's, planner.localize._fit_stone)
+    beyond = _beyond_linear_range3d(fw, meas, best.x, prior.indenter.radius_m)
+    if beyond.any():
+        nu_b = fw.full(best.x[4:])
+        c_fit = math.exp(nu_b[1]) * fw.contrast(_stone(best.x[:4]), fw.depth(nu_b), nu_b[5])
+        sig = np.sqrt(sig ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+        best = fit(best.x)
+    q = best.x
     dof = max(len(best.fun) - 4 - nf, 1)
-    infl = max(1.0, chi2_1 / dof)
+    infl = max(1.0, 2.0 * best.cost / dof)
     cov_q = np.linalg.pinv(best.jac.T @ best.jac) * infl
     xs, ys, dep, D = _stone(q[:4])
     s = math.exp(q[2]) * 1e-3
@@ -363,4 +373,14 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         chi2_1=float(chi2_1), dof_1=dof, offset_drift_n_per_s=float(nu[0] * 1e-3), peak_x_m=px, peak_y_m=py,
         peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
         contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - prior_n, prior_n=prior_n,
-        fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]))
+        fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]),
+        n_beyond_linear_range=int(beyond.sum()))
+
+
+def _beyond_linear_range3d(fw: _Forward3D, meas: Measurements, q, tip_radius_m: float) -> np.ndarray:
+    """Per reading: whether the stone ``q[:4]`` lies under the tip's footprint with the reading's true indentation
+    deeper than STONE_LAYER_MAX of the tissue layer over it (fem.contact3d's rule)."""
+    xs, ys, dep, D = _stone(q[:4])
+    d = fw.depth(fw.full(q[4:]))
+    under = np.hypot(meas.x_m - xs, meas.y_m - ys) < tip_radius_m + 0.5 * D
+    return under & (d > STONE_LAYER_MAX * (dep - 0.5 * D))

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
-from planner.localize import MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
+from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import THICKNESS_STEP, fem_deepest_m, prior_and_thickness_slope
 
@@ -201,6 +201,11 @@ def caveats(loc) -> str:
     if SIDE in loc.at_bound:
         out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")
+    n_beyond = getattr(loc, "n_beyond_linear_range", 0)
+    if n_beyond:
+        out.append(f"the stone's top lies within the probes' reach: {n_beyond} readings pressed the tissue over it "
+                   f"beyond what the linear model covers (taken with a {CRUSH_REL_ERR:.0%} error on the stone's "
+                   f"contrast there, in the sigmas)")
     dof = loc.dof_1
     if dof and loc.chi2_1 > dof + 4.0 * math.sqrt(2.0 * dof):
         out.append(f"poor fit: chi2 {loc.chi2_1:.0f} on {dof} degrees of freedom (another stone, or tissue unlike "

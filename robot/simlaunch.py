@@ -33,7 +33,11 @@ class ControllerProcess:
         # overwritten; the safety review of session 38)
         err = open(self.log_path, "a") if self.log_path else subprocess.DEVNULL
         self.proc = subprocess.Popen([sys.executable, "-m", "robot.simcontroller", "--exit-on-stdin-eof", *args],
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True, env=env)
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=err, text=True, env=env,
+                                     # (a session of its own: a terminal's Ctrl-C to the run does not end the
+                                     # simulated controller under the driver's stop, as it would not a real one;
+                                     # it ends at stop(), or when this process's end closes its stdin)
+                                     start_new_session=True)
         if err is not subprocess.DEVNULL:
             err.close()
         lines: list[str] = []

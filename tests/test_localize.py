@@ -329,7 +329,9 @@ def test_a_fitted_stone_that_would_cross_the_side_is_flagged_and_warned_about(pr
     assert not crosses_side(0.035, 0.017, 0.070) and not crosses_side(0.0081, 0.016, 0.070)
     x = np.linspace(0.003, 0.067, 31)
     sur = WideToySurrogate()
-    near = localize(prior, synth(prior, Stone(x_m=0.006, depth_m=0.012, diameter_m=0.014), x, sur=sur), sur)
+    # (its top 6 mm deep: the 4 mm probes stay within the linear model's range over it, no model error there)
+    near = localize(prior, synth(prior, Stone(x_m=0.006, depth_m=0.013, diameter_m=0.014), x, sur=sur), sur)
+    assert near.n_beyond_linear_range == 0
     assert near.detected and abs(near.x_m - 0.006) < 4 * near.sigma_x_m + 1e-4
     assert SIDE in near.at_bound and SIDE in near.to_dict()["evidence"]["fit_at_bound"]
     assert "would cross the section's side" in caveats(near) and "would cross the section's side" in describe(near)

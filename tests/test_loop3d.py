@@ -142,6 +142,22 @@ def test_design_puts_probes_inside_the_region_and_near_the_stone(sur):
     assert len(g) == 9 and np.abs(g - 0.015).max() <= 0.004 + 1e-12
 
 
+def test_the_design_takes_probes_stopped_above_the_nominal_surface(sur):
+    """A surface higher than registered by more than the depth limit stops probes above the nominal surface: negative
+    nominal depths. The design's thickness column asked fem for the prior's force there (a session-45 review's
+    block3d run, the surface 4.5 mm high: a traceback after round 0); it takes them at the contrast's clipped depths."""
+    import dataclasses
+    truth = BLOCK.with_stones([STONE])
+    xy = _grid(5)
+    meas = _measure(s3.stone_model3d(truth), xy, coarse_depths(np.full(len(xy), DEPTH_M)), seed=3)
+    loc = localize3d(BLOCK.prior(), meas, sur)
+    high = dataclasses.replace(meas, depth_m=meas.depth_m - 0.0045)
+    assert (high.depth_m < 0).any()
+    region = probe_bounds(BLOCK)
+    new = design_positions3d(loc, high, 8, sur, region, prior=BLOCK.prior())
+    assert new.shape == (8, 2) and np.isfinite(new).all()
+
+
 def test_a_weak_candidate_is_refined_where_the_stone_fit_puts_it_not_at_the_contrasts_peak(sur):
     """Below the detection threshold the stone fit's estimate still says where the stone most likely is; the
     contrast's peak after the no-stone fit can sit in a corner (the thickness and the stiffness absorb a deep
