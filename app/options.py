@@ -303,3 +303,14 @@ def load_scene(spec: str, option: str = "scene") -> Scene:
     except SceneError as e:
         msg = str(e)
         raise SceneError(msg if option in msg else f"{option} {spec}: {msg}") from None
+
+
+def analysis_changes(args, sc) -> dict:
+    """The scene's analysis fields a command's options override (``--order``, ``--mesh-size-m``,
+    ``--surface-refine``, ``--plane``), checked against the scene as options (``--plane`` on a 3D block was reported
+    as the scene's own field)."""
+    if args.plane is not None and sc.is_3d:
+        raise UsageError(f"--plane {args.plane}: {sc.name!r} is a 3D block, which has no plane assumption (plane "
+                         f"strain or stress is for 2D sections); drop --plane")
+    return {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
+                              ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}

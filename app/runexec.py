@@ -372,9 +372,11 @@ FIRST_FIX = {"free_air_force": "the same command resumes once the sensor reads s
 def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None) -> str:
     """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
     to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NOT
-    DETECTABLE when no probe felt contact (``nc``: ``no_contact``), whatever the fit says; NO RESULT when the arm run
+    DETECTABLE when no probe felt contact (``nc``: ``no_contact``) and the fit found no stone (a fit that did found
+    it in the forces below the threshold: a session-45 review's 200 Pa tissue, located within its sigmas while the
+    line said nothing could be measured; the no-contact warning is said beside it); NO RESULT when the arm run
     ended with a fault."""
-    if nc is not None and nc["n"] == nc["of"] and res is not None:
+    if nc is not None and nc["n"] == nc["of"] and res is not None and not (localized(loc) and loc.detected):
         return ("NOT DETECTABLE: no probe felt contact down to its planned depth (the tissue is absent, lower than "
                 "the prior says, or too soft to pass the contact threshold): nothing about a stone could be measured")
     if res is None:

@@ -16,6 +16,7 @@ from app.errors import UsageError
 from app.isolate import run_in_child
 from fem.scene import load
 from planner.surrogate import check_error, load_surrogate
+from tests.test_onset_stone import SIDE_STONE
 
 
 def test_a_missing_finite_strain_shape_is_built_before_probing_and_said(monkeypatch, capsys):
@@ -60,29 +61,9 @@ def test_the_surrogates_error_check_leaves_out_the_probes_fem_refuses():
     assert r["rel_rms_max"] < 0.01 and r["rel_max_max"] < 0.03
 
 
-SHALLOW_STONE = """name = "shallow-stone"
-[tissue]
-width_m = 0.070
-height_m = 0.050
-youngs_pa = 2500.0
-poisson = 0.4
-[[stone]]
-x_m = 0.030
-depth_m = 0.008
-diameter_m = 0.010
-youngs_pa = 5.0e9
-poisson = 0.3
-[indenter]
-shape = "cylinder"
-radius_m = 0.005
-youngs_pa = 60.0e6
-thickness_m = 0.020
-[analysis]
-plane = "strain"
-order = 2
-mesh_size_m = 0.002
-surface_refine = 4.0
-"""
+# the side stone's scene of session 44 with a shallow stone mid-section: its top 3 mm under the surface
+SHALLOW_STONE = SIDE_STONE.replace("name = \"side-stone\"", "name = \"shallow-stone\"").replace(
+    "x_m = 0.013\ndepth_m = 0.015", "x_m = 0.030\ndepth_m = 0.008")
 
 
 def test_a_stone_within_the_probes_reach_is_not_reported_with_false_confidence(tmp_path):
@@ -150,3 +131,36 @@ def test_an_empty_output_path_is_refused_in_one_line(argv, option, what, capsys,
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"palpate: {option} {argv[-1]!r}: an empty path; give {what}"]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_stone_found_below_the_contact_threshold_is_reported_and_the_plan_warned():
+    """A session-45 review's 200 Pa tissue: every predicted force (5-8 mN) below the 20 mN contact threshold, planned
+    without a word; the run located the stone within its sigmas (result.json `detected`: true) while its last line
+    said NOT DETECTABLE, nothing could be measured. Now the plan says so, and a stone the fit finds is reported (the
+    no-contact warning beside it); no stone found still reads NOT DETECTABLE."""
+    import dataclasses
+
+    from app.commands.plan import below_contact_threshold
+    from app.runexec import verdict
+    from planner.localize import Localization
+    from planner.plan import plan_raster
+    paper = load("paper").prior()
+    soft = dataclasses.replace(paper, tissue=dataclasses.replace(paper.tissue, youngs_pa=200.0))
+    plan = plan_raster(soft, n_waypoints=5)
+    assert max(p.predicted_force_n for p in plan.probes) < plan.motion.contact_threshold_n
+    assert "below the contact threshold" in below_contact_threshold(plan)
+    assert below_contact_threshold(plan_raster(paper, n_waypoints=5)) == ""
+    nc = {"n": 5, "of": 5, "index": list(range(5))}
+    found = Localization(detected=True, lr=480.0, lr_threshold=20.0)
+    assert verdict(found, object(), "stone at x 35.13", "ok", None, nc) == "STONE stone at x 35.13"
+    none = Localization(detected=False, lr=0.4, lr_threshold=20.0)
+    assert verdict(none, object(), "no stone", "ok", None, nc).startswith("NOT DETECTABLE: no probe felt contact")
+
+
+@pytest.mark.parametrize("argv", [["predict", "block3d", "--force-only", "--plane", "stress"],
+                                  ["simulate", "block3d", "--load", "uniform", "--plane", "strain"]])
+def test_plane_on_a_3d_block_names_the_option(argv, capsys):
+    """The error named the scene's field (`analysis.plane = 'stress' is 2D only`) where the user gave --plane."""
+    from app.cli import main
+    assert main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"palpate: --plane {argv[-1]}: 'block3d' is a 3D block")

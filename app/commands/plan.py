@@ -246,7 +246,25 @@ def run(args) -> int:
               f"planning took {plan.notes['times_s']['total']:.2f} s", file=stream)
     for f in figs:
         print(f"figure: {f}", file=stream)
+    warning = below_contact_threshold(plan)
+    if warning:
+        print(f"palpate plan: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def below_contact_threshold(plan) -> str:
+    """A warning when no probe's predicted force reaches the contact threshold ("" otherwise): the probes then feel
+    no contact on the prior tissue (no contact onsets: the surface cannot be registered from them), and a run's
+    forces are close to the sensor's noise (a session-45 review's 200 Pa tissue: 5-8 mN against 20 mN, planned
+    without a word)."""
+    top = max((p.predicted_force_n for p in plan.probes), default=0.0)
+    thr = plan.motion.contact_threshold_n
+    if top >= thr:
+        return ""
+    return (f"every probe's predicted force (at most {top:.3g} N) is below the contact threshold "
+            f"({thr:g} N, motion.contact_threshold_n): no probe will feel contact on the prior tissue, so the "
+            f"surface is not registered from the contact onsets; lower motion.contact_threshold_n in the plan file if "
+            f"the sensor's noise allows, or probe deeper (--depth-limit-m)")
 
 
 def _plan_area(scene, args, margin_m, limits, motion, frames, options):

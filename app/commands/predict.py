@@ -19,6 +19,7 @@ from app.commands.output import write_json
 from app.errors import UsageError
 from app.options import (
     MAX_WAYPOINTS,
+    analysis_changes,
     check_output_dir,
     check_output_file,
     finite_float,
@@ -99,8 +100,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def _scenes(args):
     sc = load_scene(args.scene)
-    changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
-                                 ("surface_refine", args.surface_refine), ("plane", args.plane)) if v is not None}
+    changes = analysis_changes(args, sc)
     if changes:
         sc = sc.with_analysis(**changes)
     if args.indenter_radius_m is not None:

@@ -16,7 +16,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from app.options import check_output_dir, check_output_file, finite_float, load_scene, positive_float
+from app.options import analysis_changes, check_output_dir, check_output_file, finite_float, load_scene, positive_float
 from fem.contact import surface_model
 from fem.rigid_stress import nodal_fields
 from fem.stress import components, nodal_poisson, recovery_operator
@@ -231,9 +231,7 @@ def _indent_summary(sc, r, out, stream) -> None:
 
 def _scene(args):
     sc = load_scene(args.scene)
-    changes = {k: v for k, v in (("order", args.order), ("mesh_size_m", args.mesh_size_m),
-                                 ("surface_refine", args.surface_refine), ("plane", args.plane))
-               if v is not None}
+    changes = analysis_changes(args, sc)
     return sc.with_analysis(**changes) if changes else sc
 
 
