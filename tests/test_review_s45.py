@@ -1,20 +1,30 @@
-"""Session 45: the surrogate's error check skips what fem refuses; a run on a tissue the localizer has no finite-strain shape for says so and builds it before probing
-(app.commands.run.prepare_finite_strain), where it was built silently inside the first fit (about half a minute)."""
+"""Session 45's reviews, on inputs and scenes of their own: a stone within the probes' reach is not reported with
+false confidence (planner.localize.CRUSH_REL_ERR); the surrogate's error check skips what fem refuses; a missing
+finite-strain shape is built before probing and said; a SIGINT to palpate-cell's process reaches the arm's child;
+empty output paths and --plane on a 3D block are refused in one line; a tissue below the contact threshold is warned
+about and a stone found there reported."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
 import subprocess
 import sys
 import threading
+import time
 
 import pytest
 
 import app.commands.run as run_cmd
+from app.cli import main
+from app.commands.plan import below_contact_threshold
 from app.errors import UsageError
 from app.isolate import run_in_child
+from app.runexec import verdict
 from fem.scene import load
+from planner.localize import Localization
+from planner.plan import plan_raster
 from planner.surrogate import check_error, load_surrogate
 from tests.test_onset_stone import SIDE_STONE
 
@@ -91,7 +101,6 @@ def test_a_stone_within_the_probes_reach_is_not_reported_with_false_confidence(t
 
 
 def _wait_for_ctrl_c(started):
-    import time
     started()
     try:
         time.sleep(30)
@@ -125,7 +134,6 @@ def test_a_signal_to_the_cell_process_alone_reaches_the_arms_child(sig):
 def test_an_empty_output_path_is_refused_in_one_line(argv, option, what, capsys, tmp_path, monkeypatch):
     """`--out ''` made `plan` solve and then raise a traceback, and `run` write a whole run into the current
     directory; an empty `--json`, `--vtu` or `--plots` was taken as not given (a session-45 review)."""
-    from app.cli import main
     monkeypatch.chdir(tmp_path)
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -138,12 +146,6 @@ def test_a_stone_found_below_the_contact_threshold_is_reported_and_the_plan_warn
     without a word; the run located the stone within its sigmas (result.json `detected`: true) while its last line
     said NOT DETECTABLE, nothing could be measured. Now the plan says so, and a stone the fit finds is reported (the
     no-contact warning beside it); no stone found still reads NOT DETECTABLE."""
-    import dataclasses
-
-    from app.commands.plan import below_contact_threshold
-    from app.runexec import verdict
-    from planner.localize import Localization
-    from planner.plan import plan_raster
     paper = load("paper").prior()
     soft = dataclasses.replace(paper, tissue=dataclasses.replace(paper.tissue, youngs_pa=200.0))
     plan = plan_raster(soft, n_waypoints=5)
@@ -161,6 +163,5 @@ def test_a_stone_found_below_the_contact_threshold_is_reported_and_the_plan_warn
                                   ["simulate", "block3d", "--load", "uniform", "--plane", "strain"]])
 def test_plane_on_a_3d_block_names_the_option(argv, capsys):
     """The error named the scene's field (`analysis.plane = 'stress' is 2D only`) where the user gave --plane."""
-    from app.cli import main
     assert main(argv) == 2
     assert capsys.readouterr().err.startswith(f"palpate: --plane {argv[-1]}: 'block3d' is a 3D block")
