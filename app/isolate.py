@@ -55,14 +55,15 @@ def _die_with_parent() -> None:
 
 
 def _child(conn, fn, args):
+    # a process group of its own (first: a terminal's Ctrl-C must not reach both this process and, passed on, the
+    # parent's copy): a terminal's Ctrl-C (sent to the foreground group) reaches the parent only, which passes a
+    # SIGINT on, as it does a SIGINT or SIGTERM sent to its process ID alone. A background group's output or input
+    # on the terminal would stop it (SIGTTOU with `stty tostop`, SIGTTIN): ignored, so it writes on (a read fails)
+    _own_group()
+    signal.signal(signal.SIGTTOU, signal.SIG_IGN)
+    signal.signal(signal.SIGTTIN, signal.SIG_IGN)
     signal.signal(signal.SIGINT, signal.default_int_handler)   # Ctrl-C reaches the driver (it records, stops)
     signal.signal(signal.SIGTERM, signal.default_int_handler)  # so does a supervisor's SIGTERM
-    # a process group of its own: a terminal's Ctrl-C (sent to the foreground group) reaches the parent only, which
-    # passes one SIGINT on, as it does a SIGINT or SIGTERM sent to its process ID alone
-    try:
-        os.setpgid(0, 0)
-    except OSError:
-        pass
     _die_with_parent()
     try:
         conn.send(("ok", fn(lambda: conn.send(("started", None)), *args)))
@@ -73,28 +74,42 @@ def _child(conn, fn, args):
     # multiprocessing ends a forked child with os._exit: threads ur_rtde leaves behind cannot hold up the exit
 
 
+def _own_group(pid: int = 0) -> None:
+    try:
+        os.setpgid(pid, pid)
+    except OSError:          # (the child's own call came first, or it has already ended)
+        pass
+
+
 def run_in_child(fn, *args, start_timeout_s: float | None = None, start_method: str = "fork"):
     """``fn(started, *args)`` in a forked child; its return value (picklable), or ChildError for an exception it
     raised, or ChildDied if it died. ``fn`` calls ``started()`` once its unbounded start is over (ur_rtde's
     constructors have no time-out of their own against a controller that accepts but never answers); without that
     within ``start_timeout_s`` the child is killed and ChildTimeout raised. The child runs in a process group of its
-    own; a SIGINT or SIGTERM to the parent (a terminal's Ctrl-C too) is passed on to it as one SIGINT. ``start_method`` "spawn": a fresh interpreter (``fn`` must then be importable by name),
-    for a caller whose other threads may hold locks a forked child would inherit held."""
+    own; a SIGINT or SIGTERM to the parent (a terminal's Ctrl-C too) is passed on to it as one SIGINT.
+    ``start_method`` "spawn": a fresh interpreter (``fn`` must then be importable by name), for a caller whose other
+    threads may hold locks a forked child would inherit held."""
     ctx = mp.get_context(start_method)
     parent_end, child_end = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(child_end, fn, args), daemon=False)
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    old_term = signal.getsignal(signal.SIGTERM)
+    # Ctrl-C, and a supervisor's SIGINT or SIGTERM to this process, reach the child as Ctrl-C: it records and stops
+    # (before session 45 a SIGINT to this process alone was ignored: only a terminal's, sent to the whole group,
+    # stopped the arm). One SIGINT passed on for each received; installed before the child starts, one received
+    # before it has started is passed on once it has
+    early = []
+
+    def forward(*_):
+        if proc.pid is None:
+            early.append(True)
+        elif proc.is_alive():
+            os.kill(proc.pid, signal.SIGINT)
+    old = signal.signal(signal.SIGINT, forward)
+    old_term = signal.signal(signal.SIGTERM, forward)
     try:
         proc.start()
-        # Ctrl-C, and a supervisor's SIGINT or SIGTERM to this process, reach the child as Ctrl-C: it records and
-        # stops (before session 45 a SIGINT to this process alone was ignored: only a terminal's, sent to the whole
-        # group, stopped the arm)
-        def forward(*_):
-            if proc.is_alive():
-                os.kill(proc.pid, signal.SIGINT)
-        signal.signal(signal.SIGINT, forward)
-        signal.signal(signal.SIGTERM, forward)
+        _own_group(proc.pid)        # (as the child does: whichever runs first)
+        if early:
+            forward()
         child_end.close()
         if start_timeout_s is not None and not parent_end.poll(start_timeout_s):
             proc.kill()

@@ -385,6 +385,9 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
                 + FIRST_FIX.get(kind, "the same command resumes"))
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
+    if nc is not None and nc["n"] == nc["of"]:         # (found in forces below the contact threshold)
+        described += ("; warning: no probe felt contact: the surface was taken as registered (no contact onsets), "
+                      "and the forces were below the contact threshold")
     return ("STONE " if loc.detected else "NO STONE ") + described
 
 

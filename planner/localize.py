@@ -165,6 +165,8 @@ class Localization:
     depth_interval_m: dict = field(default_factory=dict)   # profile likelihood: {"68": [lo, hi], "95": [lo, hi]}
     nuisance: dict = field(default_factory=dict)   # the tissue and sensor unknowns fitted with the stone (NUISANCE)
     n_beyond_linear_range: int = 0   # readings the linear model does not cover under the fitted stone (CRUSH_REL_ERR)
+    chi2_fit: float = float("nan")   # the stone fit's chi2 with its final weights (those readings' model error in
+    #                                  them: the poor-fit check's); chi2_1, the LR's, is the first fit's, as chi2_0
 
     def to_dict(self) -> dict:
         def f(v):
@@ -180,7 +182,8 @@ class Localization:
                              "peak_x_m": f(self.peak_x_m), "peak_contrast_n": f(self.peak_contrast_n),
                              "fit_at_bound": list(self.at_bound),
                              "offset_drift_n_per_s": f(self.offset_drift_n_per_s),
-                             "readings_beyond_linear_range": int(self.n_beyond_linear_range)},
+                             "readings_beyond_linear_range": int(self.n_beyond_linear_range),
+                             "chi2_stone_final": f(self.chi2_fit)},
                 "nuisance": {k: ({"value": f(v[0]), "sigma": f(v[1])} if isinstance(v, tuple) else v)
                              for k, v in self.nuisance.items()},
                 "n_probes": self.n_probes}
@@ -232,6 +235,7 @@ DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 
 ONSET_RATIO_MIN = 0.5       # 1 + C / P at a contact onset at least (a contrast below -P / 2: not a hard stone's)
 CRUSH_REL_ERR = 0.5         # model error, relative to the stone's contrast, of a reading the linear model does not cover
 #                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (README)
+CRUSH_PASSES = 3            # refits at most while the fitted stone moves to another set of such readings
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
 
@@ -833,12 +837,18 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     # layer over it: fem refuses them, the table and a simulated truth continue the force with a power law): an
     # error of CRUSH_REL_ERR of the stone's contrast there, and the fit again from here (fixed, as the contrast's
     # allowance is)
-    beyond = _beyond_linear_range(fw, fit.x, prior.indenter.radius_m)
-    if beyond.any():
+    # (again while the refit moves the stone to another set of such readings: CRUSH_PASSES at most)
+    sig_fit = sig
+    beyond = np.zeros(len(meas), dtype=bool)
+    for _ in range(CRUSH_PASSES):
+        now = _beyond_linear_range(fw, fit.x, prior.indenter.radius_m)
+        if np.array_equal(now, beyond):
+            break
+        beyond = now
         nu = fw.full(fit.x[3:])
         d_fit = fw.depth(nu)
         c_fit = math.exp(nu[1]) * fw.contrast(_stone(fit.x[:3]), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
-        sig = np.sqrt(sig ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+        sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
         fit = least_squares(resid, fit.x, jac=_jac_or_fd(jac), bounds=(np.concatenate([lo, nlo]),
                                                                      np.concatenate([hi, nhi])),
                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
@@ -886,7 +896,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
                        at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.tissue_force(d_fit, nu),
                        prior_n=k * fw.tissue_force(d_fit, nu), fit_contrast_n=fit_c,
-                       n_beyond_linear_range=int(beyond.sum()))
+                       n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(fit.cost))
     return loc, profile_args
 
 

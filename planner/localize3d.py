@@ -33,6 +33,7 @@ from scipy.optimize import least_squares
 from fem.contact import STONE_LAYER_MAX
 from planner.forkmap import fork_map
 from planner.localize import (
+    CRUSH_PASSES,
     CRUSH_REL_ERR,
     DRIFT_SIGMA_N_PER_S,
     FLOOR_GAP_M,
@@ -320,11 +321,16 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     lr = max(chi2_0 - chi2_1, 0.0)
     # readings the linear model does not cover under the fitted stone: a model error, and the fit again (the 2D
     # localizer's, planner.localize._fit_stone)
-    beyond = _beyond_linear_range3d(fw, meas, best.x, prior.indenter.radius_m)
-    if beyond.any():
+    sig_fit = sig
+    beyond = np.zeros(len(meas), dtype=bool)
+    for _ in range(CRUSH_PASSES):
+        now = _beyond_linear_range3d(fw, meas, best.x, prior.indenter.radius_m)
+        if np.array_equal(now, beyond):
+            break
+        beyond = now
         nu_b = fw.full(best.x[4:])
         c_fit = math.exp(nu_b[1]) * fw.contrast(_stone(best.x[:4]), fw.depth(nu_b), nu_b[5])
-        sig = np.sqrt(sig ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+        sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
         best = fit(best.x)
     q = best.x
     dof = max(len(best.fun) - 4 - nf, 1)
@@ -374,7 +380,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
         contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - prior_n, prior_n=prior_n,
         fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]),
-        n_beyond_linear_range=int(beyond.sum()))
+        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(best.cost))
 
 
 def _beyond_linear_range3d(fw: _Forward3D, meas: Measurements, q, tip_radius_m: float) -> np.ndarray:

@@ -207,8 +207,9 @@ def caveats(loc) -> str:
                    f"beyond what the linear model covers (taken with a {CRUSH_REL_ERR:.0%} error on the stone's "
                    f"contrast there, in the sigmas)")
     dof = loc.dof_1
-    if dof and loc.chi2_1 > dof + 4.0 * math.sqrt(2.0 * dof):
-        out.append(f"poor fit: chi2 {loc.chi2_1:.0f} on {dof} degrees of freedom (another stone, or tissue unlike "
+    chi2 = loc.chi2_fit if math.isfinite(getattr(loc, "chi2_fit", math.nan)) else loc.chi2_1
+    if dof and chi2 > dof + 4.0 * math.sqrt(2.0 * dof):
+        out.append(f"poor fit: chi2 {chi2:.0f} on {dof} degrees of freedom (another stone, or tissue unlike "
                    f"the prior?)")
     return "".join(f"; warning: {c}" for c in out)
 

@@ -86,7 +86,7 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
         cx, cy = min(max(cx, region[0]), region[1]), min(max(cy, region[2]), region[3])    # (the table's patch is
         return grid_around(cx, cy, 8e-3, n, region)                                     # the region today)
     d = float(np.median(meas.depth_m)) if depth_m is None else depth_m
-    d = float(np.clip(d, surrogate.levels[0], surrogate.levels[-1]))     # (probes stopped above the nominal surface)
+    d = max(d, float(surrogate.levels[0]))           # (most probes stopped above the nominal surface)
     sig = float(np.median(meas.sigma_n))
     th = np.array([loc.x_m, loc.y_m, loc.depth_m, loc.diameter_m])
     P = float(np.median(loc.prior_n)) if loc.prior_n is not None else 0.0
@@ -108,11 +108,11 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
     cand = np.c_[gx.ravel(), gy.ravel()]
     thick = prior is not None and thickness_sigma > 0
     if thick:
-        # at the depths the contrast columns take (a surface higher than registered stops a probe above the nominal
-        # one: a negative nominal depth, which fem refuses; a review's block3d run with the surface 4.5 mm high
-        # ended in a traceback after round 0)
-        dP_meas = prior_and_thickness_slope3d(prior, meas.x_m, meas.y_m, np.clip(meas.depth_m, surrogate.levels[0],
-                                                                                  surrogate.levels[-1]))[1]
+        # a probe stopped above the nominal surface (one higher than registered: a negative nominal depth, which
+        # fem refuses; a review's block3d run with the surface 4.5 mm high ended in a traceback after round 0) at
+        # the table's shallowest level, as the contrast columns take it
+        dP_meas = prior_and_thickness_slope3d(prior, meas.x_m, meas.y_m,
+                                              np.maximum(meas.depth_m, surrogate.levels[0]))[1]
         nx, ny = np.linspace(x0, x1, THICKNESS_GRID), np.linspace(y0, y1, THICKNESS_GRID)
         X, Y = np.meshgrid(nx, ny, indexing="ij")
         V = prior_and_thickness_slope3d(prior, X.ravel(), Y.ravel(), d)[1].reshape(X.shape)

@@ -609,8 +609,6 @@ def check_error(sur: Surrogate, prior, n: int = 10, seed: int = 0, depth_m: floa
         raise ValueError(f"fem refused every probe of all {n} stones at {depth_m * 1e3:g} mm: check a shallower depth")
     rel_rms = np.array([r["rms_err_n"] / r["peak_contrast_n"] for r in rows_ok])
     rel_max = np.array([r["max_err_n"] / r["peak_contrast_n"] for r in rows_ok])
-    rel_rms = np.array([r["rms_err_n"] / r["peak_contrast_n"] for r in rows])
-    rel_max = np.array([r["max_err_n"] / r["peak_contrast_n"] for r in rows])
     return {"n": n, "n_compared": len(rows_ok), "probes_refused": sum(r["refused"] for r in rows),
             "probe_depth_m": depth_m, "rel_rms_median": float(np.median(rel_rms)),
             "rel_rms_max": float(rel_rms.max()), "rel_max_median": float(np.median(rel_max)),

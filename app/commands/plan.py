@@ -252,7 +252,7 @@ def run(args) -> int:
     return 0
 
 
-def below_contact_threshold(plan) -> str:
+def below_contact_threshold(plan, how: str = "lower motion.contact_threshold_n in the plan file") -> str:
     """A warning when no probe's predicted force reaches the contact threshold ("" otherwise): the probes then feel
     no contact on the prior tissue (no contact onsets: the surface cannot be registered from them), and a run's
     forces are close to the sensor's noise (a session-45 review's 200 Pa tissue: 5-8 mN against 20 mN, planned
@@ -263,8 +263,8 @@ def below_contact_threshold(plan) -> str:
         return ""
     return (f"every probe's predicted force (at most {top:.3g} N) is below the contact threshold "
             f"({thr:g} N, motion.contact_threshold_n): no probe will feel contact on the prior tissue, so the "
-            f"surface is not registered from the contact onsets; lower motion.contact_threshold_n in the plan file if "
-            f"the sensor's noise allows, or probe deeper (--depth-limit-m)")
+            f"surface is not registered from the contact onsets; if the sensor's noise allows, {how}, or probe deeper "
+            f"(--depth-limit-m)")
 
 
 def _plan_area(scene, args, margin_m, limits, motion, frames, options):

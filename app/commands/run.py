@@ -211,12 +211,12 @@ def _dimension_defaults(args, scene, prior) -> bool:
 
 def prepare_finite_strain(prior, where_prior: str) -> None:
     """The localizer's finite-strain shape (planner.finite_strain_response) for a prior that has none yet: built
-    here, said before and after (fem sweeps of the prior: about half a minute), not silently inside the first fit."""
+    here, said before and after (a dozen fem sweeps of the prior, some 3 s each), not silently inside the first fit."""
     if unsupported(prior) or prior_finite_strain(prior, build=False) is not None:
         return
     t = time.perf_counter()
     _say(f"no finite-strain shape for this tissue yet: building it before probing ({len(x_nodes(prior))} fem "
-         f"sweeps of the prior, about 3 s each on one core; kept in the disk cache)")
+         f"sweeps of the prior, about 3 s each on one core; kept in the disk cache when it is on)")
     try:
         shape = prior_finite_strain(prior)
     except (RuntimeError, ArithmeticError, ValueError) as e:
@@ -325,8 +325,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
         except PlanError as e:
             raise PlanError(plan_options_hint(str(e), args)) from None
-        if below_contact_threshold(plan0):
-            _say(f"warning: {below_contact_threshold(plan0)}")
+    if below_contact_threshold(plan0):
+        _say("warning: " + below_contact_threshold(plan0, "plan with `palpate plan`, lower motion.contact_threshold_n "
+                                                           "in the plan file and pass it with --plan"))
     try:
         sur = load_surrogate(prior, build=False)
     except FileNotFoundError:       # no table for this tissue: built beside the coarse raster (planner.pending)
