@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import tempfile
 from collections.abc import Callable, Sequence
@@ -102,9 +103,19 @@ def dask_client(runner: Runner):
         finally:
             client.close()
         return
+    # no dashboard; the scheduler's own HTTP server (health routes) on a free port of this host only, not on dask's
+    # 8787 (taken by another cluster: dask warned "Port 8787 is already in use"); each worker runs dask_setup below
     with LocalCluster(n_workers=runner.workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, preload=[__name__],
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
         yield client
+
+
+def dask_setup(worker) -> None:
+    """dask's preload hook, run in each LocalCluster worker process as it starts (``preload`` above): a Ctrl-C at
+    the terminal reaches the whole process group, workers included, and each printed a KeyboardInterrupt traceback
+    under the run's "interrupted". The workers leave it to this process, which stops them as it ends."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _bar(runner: Runner, total: int, done: int, desc: str):

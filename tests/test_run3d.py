@@ -15,6 +15,7 @@ import math
 import numpy as np
 import pytest
 
+import app.commands.run3d as run3d
 from app.cli import main
 from robot.records import read_records
 
@@ -133,3 +134,31 @@ def test_an_off_centre_3d_stone_is_found_when_the_no_stone_fits_tilt_takes_its_s
     assert math.hypot(loc.x_m - 0.026, loc.y_m - 0.045) < 1.5e-3
     monkeypatch.setattr(L, "N_FLAT_STARTS", 0)              # the starts around the peak only: the miss
     assert not L.localize3d(prior, meas, sur).detected
+
+
+class _Stop(Exception):
+    """Raised where the 3D run would load its surrogate table: after the plan's checks, before any probing."""
+
+
+def test_a_3d_run_whose_plan_never_reaches_the_contact_threshold_is_warned(tmp_path, monkeypatch, capsys):
+    """Said for 2D runs and `palpate plan` only until session 46 (the 3D run took such a plan without a word). In this
+    module: block3d's prior model is built once for its runs."""
+    plan = tmp_path / "plan.json"
+    assert main(["plan", "block3d", "--grid", "3x3", "--out", str(plan)]) == 0
+    d = json.loads(plan.read_text())
+    top = max(p["predicted_force_n"] for p in d["probes"])
+    d["motion"]["contact_threshold_n"] = 1.5 * top          # a hand-edited plan: no probe reaches it
+    plan.write_text(json.dumps(d))
+    seen = []
+
+    def stop(prior, where):
+        seen.append(capsys.readouterr().err)
+        raise _Stop
+    monkeypatch.setattr(run3d, "_table", stop)
+    try:
+        main(["run", "block3d", "--sim", "--plan", str(plan), "--no-figure", "--out", str(tmp_path / "run")])
+    except _Stop:
+        pass
+    assert seen, "the run did not reach its table"
+    assert "warning: every probe's predicted force" in seen[0] and "below the contact threshold" in seen[0]
+    assert "--plan" in seen[0]
