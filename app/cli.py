@@ -103,6 +103,9 @@ def check_environment() -> None:
     except ValueError as e:
         raise UsageError(str(e)) from None
     where = os.environ.get("PALPATE_CACHE_DIR")
+    if where and not where.strip():      # (empty is unset, as for any variable; blank made a directory named "  ")
+        raise UsageError(f"PALPATE_CACHE_DIR={where!r}: a blank path; give the disk cache's directory (made if "
+                         f"absent), or unset it for ~/.cache/palpate")
     if where and os.path.exists(where) and not os.path.isdir(where):
         raise UsageError(f"PALPATE_CACHE_DIR={where!r}: not a directory; give the disk cache's directory (made if "
                          f"absent; unset: ~/.cache/palpate)")

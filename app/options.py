@@ -63,6 +63,18 @@ def finite_float(s: str) -> float:
     return v
 
 
+# below this an indentation means nothing to a continuum model (an atom is about 1e-10 m across); far below it the
+# stresses underflow (1e-300 m reported a von Mises peak of 0 Pa at x = 0)
+MIN_DEPTH_M = 1e-12
+
+
+def check_depth_floor(depth_m: float | None, option: str = "--depth-m") -> None:
+    """UsageError for a positive indentation below MIN_DEPTH_M (0 and negative ones are each command's own)."""
+    if depth_m is not None and 0 < depth_m < MIN_DEPTH_M:
+        raise UsageError(f"{option} {depth_m:g}: below {MIN_DEPTH_M:g} m, where a continuum model means nothing (an "
+                         f"atom is about 1e-10 m across); allowed: {MIN_DEPTH_M:g} m or deeper")
+
+
 def positive_float(s: str) -> float:
     v = _parse(s)
     if not (math.isfinite(v) and v > 0):
@@ -232,6 +244,9 @@ def check_output_dir(path: str | None, option: str) -> None:
         return
     _not_blank(path, option, "a directory")
     p = Path(path)
+    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in (p.absolute(), *p.absolute().parents)):
+        raise UsageError(f"{option} {path}: inside a run's raw/ directory (its measured samples); choose another "
+                         f"directory")
     if p.exists() and not p.is_dir():
         raise UsageError(f"{option} {path}: is a file, not a directory")
     _writable_parent(p, option)
@@ -248,7 +263,7 @@ def is_measured(path: str | Path) -> bool:
         return True
     if p.name == "probes.jsonl" or p.suffix == ".jsonl" and p.exists():
         return True
-    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in p.parents):
+    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in (p, *p.parents)):   # raw/ itself too
         return True
     if p.name == "run.json" and (p.parent / "probes.jsonl").exists():
         return True

@@ -94,6 +94,7 @@ def max_bytes() -> float:
 
 def size_text(n: float) -> str:
     """A size in bytes as a person reads it (GB from 10 MB, else MB; decimal units)."""
+    n = n + 0.0                  # (-0, a bound given as "-0", reads 0.00 MB)
     return f"{n / 1e9:.2f} GB" if n >= 1e7 else f"{n / 1e6:.2f} MB"
 
 

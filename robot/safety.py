@@ -187,6 +187,8 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
     off = plan.frames.tcp_offset
     if math.dist(off[:3], (0, 0, 0)) > MAX_TCP_OFFSET_M:
         problems.append(f"frames.tcp_offset {off} longer than {MAX_TCP_OFFSET_M} m")
+    if not off[2] > 0:
+        problems.append(f"frames.tcp_offset {off}: z must be positive (the tip beyond the flange)")
     seen = set()
     for p in plan.probes:
         why = None

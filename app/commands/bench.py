@@ -58,6 +58,10 @@ def bench_dir(given: str | None = None) -> Path:
     for c in cands:
         if c and (Path(c) / "bench_runtime_error.py").is_file():
             return Path(c).resolve()
+    if explicit:
+        where = f"--bench-dir {given}" if given else f"PALPATE_BENCH_DIR={explicit}"
+        raise FileNotFoundError(f"{where}: no bench_runtime_error.py there; palpate bench runs from a source "
+                                f"checkout: give its bench/ directory")
     raise FileNotFoundError("palpate bench runs from a source checkout: no bench/ directory with "
                             "bench_runtime_error.py found next to the planner package or in the current directory; "
                             "give --bench-dir or set PALPATE_BENCH_DIR")

@@ -116,7 +116,7 @@ def _print_listing(d: dict) -> None:
 
 def run(args) -> int:
     root = diskcache.cache_dir()
-    if args.json and args.json != "-":
+    if args.json is not None and args.json != "-":     # ('' too: refused there, as by every command)
         check_output_file(args.json, "--json")
     if args.max_bytes is not None and args.action != "prune":
         raise UsageError(f"--max-bytes {args.max_bytes:g}: only for `palpate cache prune`")

@@ -36,8 +36,8 @@ def add_parser(sub) -> None:
                    help="the same as --ft-port (default 49152)")
     p.add_argument("--duration-s", "--seconds", type=float_range(0.0, 600.0, unit="s"), default=2.0,
                    help="how long to read (default 2 s)")
-    p.add_argument("--sensor", default="nano17", choices=list(SENSORS), help="the simulated box's sensor preset")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sensor", choices=list(SENSORS), help="the simulated box's sensor preset (default nano17)")
+    p.add_argument("--seed", type=int, help="the simulated box's noise seed (default 0)")
     p.add_argument("--json", metavar="PATH", help="also write the report here ('-': standard output)")
     p.set_defaults(func=run)
 
@@ -59,6 +59,11 @@ def _check(args) -> None:
                      "ft_counts_per_torque"):
             if getattr(args, name) is not None:
                 raise UsageError(f"--{name.replace('_', '-')}: the simulated box's settings are its own")
+        args.sensor = args.sensor or "nano17"
+        args.seed = 0 if args.seed is None else args.seed
+    elif args.sensor is not None or args.seed is not None:      # a real box's noise is its own
+        flag = f"--sensor {args.sensor}" if args.sensor is not None else f"--seed {args.seed}"
+        raise UsageError(f"{flag}: only for the simulated box (--ft netft); a real box at {ft.host} is read as it is")
     elif args.ft_sensor_pose is not None:
         raise UsageError("--ft-sensor-pose: palpate ft reports the sensor frame; the mounting is not used here")
     if (args.ft_counts_per_force is None) != (args.ft_counts_per_torque is None):

@@ -38,6 +38,7 @@ from core.contracts import (
 from planner.area import Region, default_block_pose, default_region, grid_positions
 from planner.plan import DEFAULT_GRID, plan_raster
 from planner.raster import default_tissue_pose, interval_positions
+from robot.safety import HARD_BOX_MAX_M, HARD_BOX_MIN_M, MAX_TCP_OFFSET_M
 
 LIM, MOT, OPT = Limits(), Motion(), PlanOptions()      # the defaults, defined once in core.contracts
 
@@ -194,6 +195,7 @@ def run(args) -> int:
     motion = Motion(approach_height_m=args.approach_height_m, approach_speed_m_s=args.approach_speed_m_s,
                     probe_speed_m_s=args.probe_speed_m_s, dwell_s=args.dwell_s)
     frames = None
+    check_frames(args)
     if args.tissue_pose or args.tcp_offset:
         t = scene.tissue
         pose = (default_block_pose(t.width_m, t.length_m, t.height_m) if is_3d
@@ -250,6 +252,27 @@ def run(args) -> int:
     if warning:
         print(f"palpate plan: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def check_frames(args) -> None:
+    """--tcp-offset and --tissue-pose within what the driver's safety check takes (robot.safety: the tip within
+    MAX_TCP_OFFSET_M of the flange and beyond it, the tissue inside the arm's hard box), and rotation vectors no
+    longer than 2 pi: one line naming the option (1e308 overflowed inside the planner, "math domain error")."""
+    for opt, v in (("--tcp-offset", args.tcp_offset), ("--tissue-pose", args.tissue_pose)):
+        if v is None:
+            continue
+        given = " ".join(f"{a:g}" for a in v)
+        if math.hypot(*v[3:]) > 2 * math.pi:
+            raise UsageError(f"{opt} {given}: the rotation vector (rx, ry, rz) is {math.hypot(*v[3:]):.3g} rad long; "
+                             f"allowed: at most 2 pi (its length is the angle)")
+        if opt == "--tcp-offset" and not (v[2] > 0 and math.hypot(*v[:3]) <= MAX_TCP_OFFSET_M):
+            raise UsageError(f"{opt} {given}: the tip must lie beyond the flange (z > 0) and within "
+                             f"{MAX_TCP_OFFSET_M:g} m of it")
+        if opt == "--tissue-pose" and not all(lo <= a <= hi for a, lo, hi in zip(v[:3], HARD_BOX_MIN_M,
+                                                                                 HARD_BOX_MAX_M)):
+            box = " x ".join(f"[{lo:g}, {hi:g}]" for lo, hi in zip(HARD_BOX_MIN_M, HARD_BOX_MAX_M))
+            raise UsageError(f"{opt} {given}: out of reach: the tissue's origin must lie in the arm's workspace box "
+                             f"{box} m (base frame)")
 
 
 def below_contact_threshold(plan, how: str = "lower motion.contact_threshold_n in the plan file") -> str:

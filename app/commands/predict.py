@@ -20,6 +20,7 @@ from app.errors import UsageError
 from app.options import (
     MAX_WAYPOINTS,
     analysis_changes,
+    check_depth_floor,
     check_output_dir,
     check_output_file,
     finite_float,
@@ -212,6 +213,7 @@ def run(args) -> int:
     check_output_dir(args.plots, "--plots")
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")
+    check_depth_floor(args.depth_m)
     sc, ref = _scenes(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         for opt, v in (("--waypoints", args.waypoints), ("--margin-m", args.margin_m)):

@@ -16,7 +16,15 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
-from app.options import analysis_changes, check_output_dir, check_output_file, finite_float, load_scene, positive_float
+from app.options import (
+    analysis_changes,
+    check_depth_floor,
+    check_output_dir,
+    check_output_file,
+    finite_float,
+    load_scene,
+    positive_float,
+)
 from fem.contact import surface_model
 from fem.rigid_stress import nodal_fields
 from fem.stress import components, nodal_poisson, recovery_operator
@@ -113,6 +121,7 @@ def run(args) -> int:
         if given:
             raise UsageError(f"{given[0]}: an option of --load indent; --load uniform (the default) moves the whole top "
                              f"surface down by the scene's analysis.top_displacement_m")
+    check_depth_floor(args.depth_m)
     sc = _scene(args)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         if args.indenter_radius_m is not None:

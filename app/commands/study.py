@@ -23,11 +23,11 @@ from app.mismatch import Shared, make_plan
 from app.mismatch import run_trial as run_mismatch_trial
 from app.mismatch import study_trials as mismatch_trials
 from app.mismatch_report import write_report as write_mismatch
-from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float
+from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float, refuse_measured
 from fem.sweep import sweep_piece
 from fem.sweep import write_results as write_sweep
 from planner.accuracy import run_accuracy, study_trials
-from planner.accuracy3d import run_accuracy3d, study_trials3d
+from planner.accuracy3d import COARSE, run_accuracy3d, study_trials3d
 from planner.accuracy3d_report import write_report as write_accuracy3d
 from planner.accuracy_report import write_report
 from planner.detect_study import run_detect, study_cases
@@ -148,6 +148,7 @@ def _say(msg: str) -> None:
 
 def run(args) -> int:
     check_output_dir(args.out, "--out")
+    refuse_measured(args.out, "--out")          # a run's directory: the study's pieces would go in beside its probes
     check_output_file(args.json, "--json")
     out = Path(args.out)
     for opt, studies in OPTION_STUDIES.items():     # an option the chosen study would not read: refused, not ignored
@@ -290,6 +291,10 @@ def run_accuracy3d_study(args, scene, runner: Runner, out: Path) -> dict:
     stones = args.trials if args.trials is not None else (10 if args.quick else 50)
     healthy = args.healthy if args.healthy is not None else (5 if args.quick else 20)
     budget = args.budget_probes or 84
+    n_coarse = COARSE[0] * COARSE[1]
+    if budget < n_coarse:        # (the coarse grid is probed whole before the budget is looked at)
+        raise UsageError(f"--budget-probes {budget}: the accuracy3d study's coarse grid alone is {COARSE[0]} x "
+                         f"{COARSE[1]} = {n_coarse} probes; allowed: {n_coarse} to 10000")
     prior = scene.prior()
     options = {"scene": prior.key(), "stones": stones, "healthy": healthy, "seed": args.seed, "sensor": args.sensor,
                "budget": budget, "target_m": args.target_uncertainty_m}
