@@ -244,7 +244,7 @@ def check_output_dir(path: str | None, option: str) -> None:
         return
     _not_blank(path, option, "a directory")
     p = Path(path)
-    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in (p.absolute(), *p.absolute().parents)):
+    if any(_in_raw(Path(q)) for q in (os.path.abspath(p), os.path.realpath(p))):     # (".." collapsed; links)
         raise UsageError(f"{option} {path}: inside a run's raw/ directory (its measured samples); choose another "
                          f"directory")
     if p.exists() and not p.is_dir():
@@ -255,15 +255,20 @@ def check_output_dir(path: str | None, option: str) -> None:
 MEASURED_NAMES = ("probes.jsonl", "raw", "run.json")
 
 
+def _in_raw(p: Path) -> bool:
+    """Is the absolute path ``p`` a run's raw/ directory or inside it?"""
+    return any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in (p, *p.parents))
+
+
 def is_measured(path: str | Path) -> bool:
     """Is ``path`` a run's measured file (probes.jsonl, anything under raw/, a run.json next to a probes.jsonl) or a
     directory holding one?"""
-    p = Path(path).absolute()
+    p = Path(os.path.abspath(path))       # ("RUN/raw/../other" is not under raw/)
     if p.is_dir() and ((p / "probes.jsonl").exists() or (p / "raw").is_dir()):
         return True
     if p.name == "probes.jsonl" or p.suffix == ".jsonl" and p.exists():
         return True
-    if any(a.name == "raw" and (a.parent / "probes.jsonl").exists() for a in (p, *p.parents)):   # raw/ itself too
+    if _in_raw(p):              # raw/ itself too
         return True
     if p.name == "run.json" and (p.parent / "probes.jsonl").exists():
         return True

@@ -1,8 +1,10 @@
 """Test-session settings: a private, empty disk cache (tests compute from scratch and never read a developer's
-~/.cache/palpate; removed at the end), single-threaded BLAS (2 shared cores), and a non-interactive matplotlib backend."""
+~/.cache/palpate; removed at the end), single-threaded BLAS (2 shared cores), a non-interactive matplotlib backend, and
+Ctrl-C's handler as a terminal's process has it."""
 import atexit
 import os
 import shutil
+import signal
 import tempfile
 
 import pytest
@@ -15,6 +17,11 @@ os.environ["PALPATE_CACHE_DIR"] = _CACHE_DIR
 # removed when the session's process ends (each xdist worker has its own): with the 3D operators a session leaves
 # about 1.5 GB, and sessions left behind filled this machine's disk (72 GB in /tmp)
 atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
+# a suite started as a background job of a non-interactive shell (`nohup bash .ci/run &`) inherits SIGINT ignored,
+# and Python then installs no KeyboardInterrupt handler: the Ctrl-C tests (which send it to themselves and their
+# children) failed there, three of them in session 46's first rehearsal, while passing from a terminal
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # Tests that drive the simulated UR controller or sensor box in real time (sockets, 500 Hz data, watchdogs and
 # time-outs in wall-clock time): run on their own, after the rest, so no other test's CPU load delays their

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -60,19 +61,23 @@ def _wait_started(p: subprocess.Popen, marker: str) -> None:
 
 
 def test_ctrl_c_during_a_local_cluster_ends_in_one_line_without_worker_tracebacks(tmp_path):
-    first, m1 = _start(tmp_path, "first")       # a cluster already running on this machine: its port is taken
-    second, m2 = _start(tmp_path, "second")
+    held = socket.socket()                      # dask's port taken, as by another cluster on this machine
     try:
-        _wait_started(first, m1)
-        _wait_started(second, m2)
-        os.killpg(second.pid, signal.SIGINT)    # Ctrl-C: the whole process group, the workers included
-        _, err = second.communicate(timeout=60)
+        held.bind(("", 8787))
+        held.listen()
+    except OSError:                             # taken already
+        pass
+    p, marker = _start(tmp_path, "run")
+    try:
+        _wait_started(p, marker)
+        os.killpg(p.pid, signal.SIGINT)         # Ctrl-C: the whole process group, the workers included
+        _, err = p.communicate(timeout=60)
     finally:
-        for p in (first, second):
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGKILL)
-                p.communicate()
-    assert second.returncode == 130, err
+        held.close()
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 130, err
     assert err.strip() == "interrupted", err
 
 
@@ -136,7 +141,14 @@ def test_a_runs_raw_folder_and_directory_are_refused_as_outputs(a_run, capsys):
     assert main(["plan", "paper", "--out", str(a_run.parent / "p.json"), "--plots", str(a_run / "raw")]) == 2
     assert "--plots" in capsys.readouterr().err
     assert main(["study", "accuracy", "--quick", "--out", str(a_run)]) == 2
-    assert capsys.readouterr().err.startswith(f"palpate: --out {a_run}: would overwrite a run's data")
+    assert capsys.readouterr().err.startswith(f"palpate: --out {a_run}: a run's directory")
+    # through a link, and not for a path that only passes through raw/ ("RUN/raw/../figs" is RUN/figs)
+    link = a_run.parent / "rawlink"
+    link.symlink_to(a_run / "raw")
+    assert main(["plan", "paper", "--out", str(a_run.parent / "p.json"), "--plots", str(link / "sub")]) == 2
+    assert "inside a run's raw/" in capsys.readouterr().err
+    link.unlink()
+    assert not is_measured(a_run / "raw" / ".." / ".." / "other")
     assert sorted(p.name for p in a_run.iterdir()) == ["probes.jsonl", "raw"] and not list((a_run / "raw").iterdir())
 
 

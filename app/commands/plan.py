@@ -287,7 +287,7 @@ def below_contact_threshold(plan, how: str = "lower motion.contact_threshold_n i
     return (f"every probe's predicted force (at most {top:.3g} N) is below the contact threshold "
             f"({thr:g} N, motion.contact_threshold_n): no probe will feel contact on the prior tissue, so the "
             f"surface is not registered from the contact onsets; if the sensor's noise allows, {how}, or probe deeper "
-            f"(--depth-limit-m)")
+            f"(`palpate plan --depth-limit-m`)")
 
 
 def _plan_area(scene, args, margin_m, limits, motion, frames, options):

@@ -23,7 +23,7 @@ from app.mismatch import Shared, make_plan
 from app.mismatch import run_trial as run_mismatch_trial
 from app.mismatch import study_trials as mismatch_trials
 from app.mismatch_report import write_report as write_mismatch
-from app.options import check_output_dir, check_output_file, int_range, load_scene, positive_float, refuse_measured
+from app.options import check_output_dir, check_output_file, int_range, is_measured, load_scene, positive_float
 from fem.sweep import sweep_piece
 from fem.sweep import write_results as write_sweep
 from planner.accuracy import run_accuracy, study_trials
@@ -148,7 +148,9 @@ def _say(msg: str) -> None:
 
 def run(args) -> int:
     check_output_dir(args.out, "--out")
-    refuse_measured(args.out, "--out")          # a run's directory: the study's pieces would go in beside its probes
+    if is_measured(args.out) or is_measured(os.path.realpath(args.out)):
+        raise UsageError(f"--out {args.out}: a run's directory (its probes.jsonl, raw/); a study's pieces go into a "
+                         f"directory of their own")
     check_output_file(args.json, "--json")
     out = Path(args.out)
     for opt, studies in OPTION_STUDIES.items():     # an option the chosen study would not read: refused, not ignored
