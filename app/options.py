@@ -322,7 +322,10 @@ def load_scene(spec: str, option: str = "scene") -> Scene:
         raise UsageError(f"{option} {spec}: cannot read: {e.strerror or e}") from None
     except SceneError as e:
         msg = str(e)
-        raise SceneError(msg if option in msg else f"{option} {spec}: {msg}") from None
+        # the option (or the scene argument's file) named, unless the message does already ("a 2D scene ..." does
+        # not name the file: 'scene' in it was taken for that)
+        named = option in msg if option.startswith("-") else str(spec) in msg
+        raise SceneError(msg if named else f"{option} {spec}: {msg}") from None
 
 
 def analysis_changes(args, sc) -> dict:

@@ -157,3 +157,13 @@ def test_a_hand_edited_plan_whose_tool_points_back_through_the_flange_is_refused
     assert check_plan(plan)[0] == []
     plan.frames.tcp_offset = [0.0, 0.0, -0.1, 0.0, 0.0, 0.0]
     assert any("z must be positive" in p for p in check_plan(plan)[0])
+
+
+def test_a_scene_files_error_names_the_file(tmp_path, capsys):
+    """Errors whose words contain 'scene' ("in a 2D scene") were taken as naming it, and the file went unnamed."""
+    f = tmp_path / "sphere2d.toml"
+    f.write_text('[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                 '[indenter]\nshape = "sphere"\n')
+    assert main(["predict", str(f), "--waypoints", "5", "--force-only"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"palpate: scene {f}: indenter.shape must be"), err
