@@ -454,16 +454,20 @@ def check_depth(scene, depth_m: float) -> None:
     """ValueError unless depth_m lies in [0, STRAIN_MAX * height] and, for a round tip (a cylinder in 2D, a sphere
     in 3D), below its radius."""
     H = scene.tissue.height_m
-    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or not (0.0 <= depth_m < H):
-        raise ValueError(f"depth_m={depth_m!r} must lie in [0, {H}) m")
+    if not (isinstance(depth_m, (int, float)) and math.isfinite(depth_m)) or depth_m < 0.0:
+        raise ValueError(f"depth_m={depth_m!r} must be a finite depth of 0 m or more")
     R = scene.indenter.radius_m
-    if scene.indenter.shape in ("cylinder", "sphere") and depth_m >= R:
+    round_tip = scene.indenter.shape in ("cylinder", "sphere")
+    if round_tip and R <= STRAIN_MAX * H and depth_m >= R:      # the tighter bound first: the one to name
         raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
                          f"tip's sides, which this contact model does not represent")
     if depth_m > STRAIN_MAX * H:
         raise ValueError(f"depth_m={depth_m} is {depth_m / H:.0%} of the tissue height {H} m: the linear model "
                          f"allows at most {STRAIN_MAX:.0%} (depth_m <= {STRAIN_MAX * H:.4g} m; stated for up to "
                          f"{STRAIN_WARN:.0%})")
+    if round_tip and depth_m >= R:
+        raise ValueError(f"depth_m={depth_m} must be below the tip radius {R} m: deeper, tissue would wrap the "
+                         f"tip's sides, which this contact model does not represent")
 
 
 def check_waypoint(scene, x_m: float, depth_m: float) -> None:

@@ -275,6 +275,11 @@ def check_frames(args) -> None:
                              f"{box} m (base frame)")
 
 
+# what a run's warning suggests (a run refuses --depth-limit-m beside --plan)
+RUN_THRESHOLD_HINT = ("plan with `palpate plan`, lower motion.contact_threshold_n in the plan file and pass it with "
+                      "--plan")
+
+
 def below_contact_threshold(plan, how: str = "lower motion.contact_threshold_n in the plan file") -> str:
     """A warning when no probe's predicted force reaches the contact threshold ("" otherwise): the probes then feel
     no contact on the prior tissue (no contact onsets: the surface cannot be registered from them), and a run's

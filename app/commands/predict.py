@@ -229,12 +229,13 @@ def run(args) -> int:
                          f"--waypoints N")
     try:
         xs = waypoints(sc.tissue.width_m, args.waypoints, args.margin_m)
-        check_waypoint(sc, float(xs[0]), args.depth_m)
-        if not args.depth_m > 0:
-            raise ValueError(f"--depth-m must be positive, got {args.depth_m}")
     except ValueError as e:
         print(f"palpate predict: {e}", file=sys.stderr)
         return 2
+    try:
+        check_waypoint(sc, float(xs[0]), args.depth_m)
+    except ValueError as e:
+        raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
     stresses = not args.force_only
     verbose = not args.quiet and args.waypoints > BATCH
 

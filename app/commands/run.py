@@ -28,7 +28,7 @@ from pathlib import Path
 
 from app.cell import sim_range_report
 from app.commands.output import write_json
-from app.commands.plan import below_contact_threshold
+from app.commands.plan import RUN_THRESHOLD_HINT, below_contact_threshold
 from app.errors import UsageError
 from app.figchild import FigureChild
 from app.ftoptions import add_ft_options, check_ft
@@ -325,9 +325,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
         except PlanError as e:
             raise PlanError(plan_options_hint(str(e), args)) from None
-    if below_contact_threshold(plan0):
-        _say("warning: " + below_contact_threshold(plan0, "plan with `palpate plan`, lower motion.contact_threshold_n "
-                                                           "in the plan file and pass it with --plan"))
+    if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):
+        _say("warning: " + warning)
     try:
         sur = load_surrogate(prior, build=False)
     except FileNotFoundError:       # no table for this tissue: built beside the coarse raster (planner.pending)

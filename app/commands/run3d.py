@@ -19,7 +19,7 @@ from pathlib import Path
 
 from app.cell import sim_range_report
 from app.commands.output import write_json
-from app.commands.plan import below_contact_threshold
+from app.commands.plan import RUN_THRESHOLD_HINT, below_contact_threshold
 from app.errors import UsageError
 from app.figchild import FigureChild
 from app.outlock import holding
@@ -125,9 +125,8 @@ def run_block(args, ctx: RunContext) -> int:
             hint = (f" (the depth limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)"
                     if "radius" in str(e) and "depth" in str(e) else "")
             raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e}{hint}") from None
-    if below_contact_threshold(plan0):
-        _say("warning: " + below_contact_threshold(plan0, "plan with `palpate plan`, lower motion.contact_threshold_n "
-                                                           "in the plan file and pass it with --plan"))
+    if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):
+        _say("warning: " + warning)
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
     t0 = time.perf_counter()
     sur = _table(prior, where_prior)

@@ -254,7 +254,8 @@ def run_predict(args, sc, ref) -> int:
             for y in (ys[0], ys[-1]):
                 check_waypoint3d(sc, float(x), float(y), args.depth_m)
     except ValueError as e:
-        print(f"palpate predict: {e}", file=sys.stderr)
+        named = f"--depth-m {args.depth_m:g} on scene {sc.name}: " if str(e).startswith("depth_m") else ""
+        print(f"palpate predict: {named}{e}", file=sys.stderr)
         return 2
     stresses = not args.force_only
     main = _predict(sc, xs, ys, args.depth_m, stresses, args.quiet)
