@@ -149,12 +149,14 @@ def _is_number(value) -> bool:
 
 def check_load_a(scene: "Scene") -> None:
     """Load A's own limit, checked where load A is solved (fem.uniform, fem.uniform3d): the top moved down by
-    ``analysis.top_displacement_m`` (default 5 mm, the study's) within [0, height) and at most STRAIN_MAX of the
+    ``analysis.top_displacement_m`` (default 5 mm, the study's) within (0, height) and at most STRAIN_MAX of the
     height. Not at load time: the other loads never use it, and a tissue thinner than 16.7 mm was refused by every
-    command for a default the user never set."""
+    command for a default the user never set. 0 is refused here: it loads nothing (every stress 0 Pa, the "peak" at
+    an arbitrary point)."""
     d, h = scene.analysis.top_displacement_m, scene.tissue.height_m
-    if not 0 <= d < h:
-        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) must lie in [0, height_m = {h:g}) m")
+    if not 0 < d < h:
+        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) must lie in (0, height_m = {h:g}) m"
+                         + (": 0 moves the top by nothing, so load A would load nothing" if d == 0 else ""))
     if d > STRAIN_MAX * h:
         raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) is {d / h:.0%} of the tissue height "
                          f"({h:g} m): the linear model allows at most {STRAIN_MAX:.0%} "
