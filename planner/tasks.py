@@ -95,6 +95,7 @@ def load_piece(store: Path, name: str):
 @contextmanager
 def dask_client(runner: Runner):
     """A dask.distributed Client for ``runner`` (a LocalCluster it starts and stops, or the scheduler's)."""
+    import dask
     from distributed import Client, LocalCluster
     if runner.scheduler:
         client = Client(runner.scheduler, timeout="20s")
@@ -104,9 +105,12 @@ def dask_client(runner: Runner):
             client.close()
         return
     # no dashboard; the scheduler's own HTTP server (health routes) on a free port of this host only, not on dask's
-    # 8787 (taken by another cluster: dask warned "Port 8787 is already in use"); each worker runs dask_setup below
+    # 8787 (taken by another cluster: dask warned "Port 8787 is already in use"); each worker runs dask_setup below,
+    # then the user's own preloads (dask's distributed.worker.preload setting, which an explicit preload replaces)
+    preload = dask.config.get("distributed.worker.preload", None) or []
+    preload = [__name__, *([preload] if isinstance(preload, str) else preload)]
     with LocalCluster(n_workers=runner.workers, threads_per_worker=1, processes=True, dashboard_address=None,
-                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, preload=[__name__],
+                      scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}, preload=preload,
                       silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
         yield client
 

@@ -3,6 +3,8 @@ names the tighter of its bounds (the tip's radius or the linear model's strain l
 from __future__ import annotations
 
 import dataclasses
+import os
+import signal
 
 import pytest
 
@@ -33,3 +35,24 @@ def test_the_tighter_bound_is_named():
     with pytest.raises(ValueError, match="0 m or more"):
         check_depth(thin, -1e-3)
     check_depth(thin, 0.002)                 # within both
+
+
+def test_a_users_own_dask_worker_preload_still_runs_beside_palpates(tmp_path, monkeypatch):
+    """palpate's LocalCluster preloads its SIGINT hook (planner.tasks.dask_setup); an explicit preload replaces
+    dask's distributed.worker.preload setting, so the user's own would silently not run: both run."""
+    import dask
+
+    from planner.tasks import Runner, dask_client
+    (tmp_path / "users_preload_s47.py").write_text(
+        "import os\n\ndef dask_setup(worker):\n"
+        "    open(os.path.join(os.environ['S47_MARKS'], f'w{os.getpid()}'), 'w').close()\n")
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    monkeypatch.setenv("S47_MARKS", str(marks))
+    monkeypatch.syspath_prepend(str(tmp_path))      # the nanny (here) and the workers it spawns import it
+    with dask.config.set({"distributed.worker.preload": ["users_preload_s47"]}):
+        with dask_client(Runner(workers=2, progress=False)) as client:
+            handlers = client.run(lambda: signal.getsignal(signal.SIGINT))
+            pids = client.run(os.getpid)
+    assert set(handlers.values()) == {signal.SIG_IGN}                     # palpate's hook ran
+    assert {p.name for p in marks.iterdir()} == {f"w{p}" for p in pids.values()}   # and the user's, in each worker
