@@ -403,7 +403,10 @@ REQUIRED_TISSUE = ("width_m", "height_m", "youngs_pa", "poisson")
 def from_dict(d: dict, default_name: str = "scene") -> Scene:
     """A scene from a parsed TOML file or ``Scene.to_dict()``. The [tissue] table and its four fields are required
     (a file without them would otherwise silently describe the default tissue); stones, [indenter] and [analysis]
-    may be left out (no stones, the default tip and analysis options)."""
+    may be left out (no stones, the default tip and analysis options). A block (``tissue.length_m``) leaves out a
+    block's: a spherical tip and block3d's element sizes (``BLOCK_DEFAULTS``; the dataclasses' defaults are a 2D
+    section's: a cylinder, which a block refuses, and 2 mm / 0.5 mm elements, a mesh of millions of DOFs in 3D).
+    ``Scene.to_dict()`` always holds these fields, so it reads back unchanged."""
     if not isinstance(d, dict):
         raise SceneError(f"a scene must be a table, got {type(d).__name__}")
     unknown = sorted(set(d) - {"name", "truth", *_SECTIONS})    # [truth]: the simulator's (robot.truth), skipped
@@ -420,9 +423,15 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
         raise SceneError("stone must be an array of tables ([[stone]])")
     tissue_table = d.get("tissue", {})
     tissue = _build(Tissue, tissue_table, "tissue")
+    indenter_table, analysis_table = d.get("indenter", {}), d.get("analysis", {})
+    if tissue.length_m is not None:     # a block: what it leaves out is a block's, not a 2D section's (BLOCK_DEFAULTS)
+        if isinstance(indenter_table, dict):
+            indenter_table = {"shape": BLOCK_DEFAULTS["shape"], **indenter_table}
+        if isinstance(analysis_table, dict):
+            analysis_table = {k: BLOCK_DEFAULTS[k] for k in ("mesh_size_m", "surface_refine")} | analysis_table
     built = dict(stones=tuple(_build(Stone, s, f"stone[{i}]") for i, s in enumerate(stones)),
-                 indenter=_build(Indenter, d.get("indenter", {}), "indenter"),
-                 analysis=_build(Analysis, d.get("analysis", {}), "analysis"))
+                 indenter=_build(Indenter, indenter_table, "indenter"),
+                 analysis=_build(Analysis, analysis_table, "analysis"))
     if "tissue" not in d:
         raise SceneError(f"the scene has no [tissue] table: give [tissue] with {', '.join(REQUIRED_TISSUE)} "
                          f"(no default tissue is assumed)")
@@ -479,6 +488,10 @@ BUILTIN = {
 # the coarsest of the uniformly refined family within 1 % of the converged force at every benchmark waypoint with a
 # margin (0.69 % at worst; the first default: 1.36 %); README's convergence table, bench/bench_3d.py.
 BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.0096, surface_refine=8.0, patch_m=0.050, grade=0.2)
+# what a block's scene file leaves out (from_dict): the 3D tip, and block3d's element sizes (its patch and grading are
+# not taken: patch_m suits a 70 mm face only; absent, the whole face is probed and the grading is fem's 0.5)
+BLOCK_DEFAULTS = {"shape": "sphere", "mesh_size_m": BLOCK3D_ANALYSIS.mesh_size_m,
+                  "surface_refine": BLOCK3D_ANALYSIS.surface_refine}
 
 
 def _block3d(name: str, stone: bool = True, x_m: float = 0.035, y_m: float = 0.035, depth_m: float = 0.025,

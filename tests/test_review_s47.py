@@ -56,3 +56,35 @@ def test_a_users_own_dask_worker_preload_still_runs_beside_palpates(tmp_path, mo
             pids = client.run(os.getpid)
     assert set(handlers.values()) == {signal.SIG_IGN}                     # palpate's hook ran
     assert {p.name for p in marks.iterdir()} == {f"w{p}" for p in pids.values()}   # and the user's, in each worker
+
+
+def test_a_block_file_that_leaves_out_the_tip_and_mesh_gets_a_blocks_not_a_sections(tmp_path):
+    """A block's scene file with only [tissue] and a stone was refused for a cylinder it never named; given a
+    sphere, it meshed 2D's 2 mm / 0.5 mm elements (about 700k DOFs) and was then refused for its patch's size."""
+    from fem.scene import BLOCK3D_ANALYSIS, SceneError
+    f = tmp_path / "blk.toml"
+    f.write_text("[tissue]\nwidth_m = 0.05\nlength_m = 0.06\nheight_m = 0.03\nyoungs_pa = 6000\npoisson = 0.45\n"
+                 "[[stone]]\nx_m = 0.02\ny_m = 0.035\ndepth_m = 0.012\ndiameter_m = 0.008\n")
+    sc = load(str(f))
+    assert sc.indenter.shape == "sphere"
+    assert (sc.analysis.mesh_size_m, sc.analysis.surface_refine) == (BLOCK3D_ANALYSIS.mesh_size_m,
+                                                                     BLOCK3D_ANALYSIS.surface_refine)
+    assert sc.analysis.patch_m is None and sc.analysis.grade is None        # not taken: block3d's 70 mm face's
+    # what a file gives is kept; a section's defaults stay a section's
+    f.write_text(f.read_text() + '[indenter]\nshape = "flat"\n[analysis]\nsurface_refine = 4.0\n')
+    sc = load(str(f))
+    assert (sc.indenter.shape, sc.analysis.surface_refine, sc.analysis.mesh_size_m) == ("flat", 4.0, 0.0096)
+    assert load("paper").indenter.shape == "cylinder" and load("paper").analysis.mesh_size_m == 0.002
+    f.write_text(f.read_text().replace('"flat"', '"cylinder"'))
+    with pytest.raises(SceneError, match="'sphere' or 'flat'"):
+        load(str(f))
+
+
+@pytest.mark.parametrize("changes", [{}, {"patch_m": None, "grade": None}, {"order": 1, "surface_refine": 3.0}])
+def test_a_blocks_dict_reads_back_unchanged(changes):
+    """plan.json and the studies' pieces carry the prior as Scene.to_dict(): a block's reads back equal, whatever
+    the fields the block defaults fill in a hand-written file."""
+    from fem.scene import from_dict
+    for name in ("block3d", "block3d-healthy"):
+        sc = load(name).with_analysis(**changes)
+        assert from_dict(sc.to_dict(), default_name=sc.name) == sc
