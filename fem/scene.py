@@ -403,10 +403,7 @@ REQUIRED_TISSUE = ("width_m", "height_m", "youngs_pa", "poisson")
 def from_dict(d: dict, default_name: str = "scene") -> Scene:
     """A scene from a parsed TOML file or ``Scene.to_dict()``. The [tissue] table and its four fields are required
     (a file without them would otherwise silently describe the default tissue); stones, [indenter] and [analysis]
-    may be left out (no stones, the default tip and analysis options). A block (``tissue.length_m``) leaves out a
-    block's: a spherical tip and block3d's element sizes (``BLOCK_DEFAULTS``; the dataclasses' defaults are a 2D
-    section's: a cylinder, which a block refuses, and 2 mm / 0.5 mm elements, a mesh of millions of DOFs in 3D).
-    ``Scene.to_dict()`` always holds these fields, so it reads back unchanged."""
+    may be left out (no stones, the default tip and analysis options; a block's file: ``load_toml``)."""
     if not isinstance(d, dict):
         raise SceneError(f"a scene must be a table, got {type(d).__name__}")
     unknown = sorted(set(d) - {"name", "truth", *_SECTIONS})    # [truth]: the simulator's (robot.truth), skipped
@@ -423,15 +420,9 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
         raise SceneError("stone must be an array of tables ([[stone]])")
     tissue_table = d.get("tissue", {})
     tissue = _build(Tissue, tissue_table, "tissue")
-    indenter_table, analysis_table = d.get("indenter", {}), d.get("analysis", {})
-    if tissue.length_m is not None:     # a block: what it leaves out is a block's, not a 2D section's (BLOCK_DEFAULTS)
-        if isinstance(indenter_table, dict):
-            indenter_table = {"shape": BLOCK_DEFAULTS["shape"], **indenter_table}
-        if isinstance(analysis_table, dict):
-            analysis_table = {k: BLOCK_DEFAULTS[k] for k in ("mesh_size_m", "surface_refine")} | analysis_table
     built = dict(stones=tuple(_build(Stone, s, f"stone[{i}]") for i, s in enumerate(stones)),
-                 indenter=_build(Indenter, indenter_table, "indenter"),
-                 analysis=_build(Analysis, analysis_table, "analysis"))
+                 indenter=_build(Indenter, d.get("indenter", {}), "indenter"),
+                 analysis=_build(Analysis, d.get("analysis", {}), "analysis"))
     if "tissue" not in d:
         raise SceneError(f"the scene has no [tissue] table: give [tissue] with {', '.join(REQUIRED_TISSUE)} "
                          f"(no default tissue is assumed)")
@@ -443,16 +434,50 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
 
 
 def load_toml(path: str | Path) -> Scene:
+    """A scene file. A block's (``tissue.length_m``) that leaves out its tip or mesh gets a block's
+    (``block_file_defaults``), not the dataclasses' defaults, which are a 2D section's."""
     import tomllib  # lazy: TOML scenes only (4 ms of a built-in scene's 0.2 s command; issue 19)
     path = Path(path)
     try:
         d = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
-    return from_dict(d, default_name=path.stem)
+    return from_dict(block_file_defaults(d), default_name=path.stem)
+
+
+# A block's scene file leaves out what a block needs (load_toml): the 3D tip, and block3d's mesh (its element sizes
+# and grading, chosen by README's convergence study). The probed patch: the whole top face up to 50 mm across
+# (block3d's probed side; a block 50 x 60 mm: 9,857 patch nodes), else a centred square with a 10 mm margin, at
+# most 50 mm (a 70 mm face whole: 16,217 nodes, beyond fem.contact3d.MAX_PATCH_NODES).
+BLOCK_FILE_PATCH_MAX_M = 0.050
+BLOCK_FILE_PATCH_MARGIN_M = 0.010
+
+
+def block_file_defaults(d: dict) -> dict:
+    """``d`` (a parsed scene file) with what a block's file leaves out filled in; anything else as it is."""
+    tissue, indenter, analysis = d.get("tissue"), d.get("indenter", {}), d.get("analysis", {})
+    if not (isinstance(tissue, dict) and isinstance(indenter, dict) and isinstance(analysis, dict)):
+        return d                           # from_dict says what is wrong
+    W, L = tissue.get("width_m"), tissue.get("length_m")
+    if L is None or not (_is_number(W) and _is_number(L)) or not (math.isfinite(W) and math.isfinite(L)):
+        return d
+    fill = {"mesh_size_m": BLOCK3D_ANALYSIS.mesh_size_m, "surface_refine": BLOCK3D_ANALYSIS.surface_refine,
+            "grade": BLOCK3D_ANALYSIS.grade}
+    side = min(W, L)
+    if side > BLOCK_FILE_PATCH_MAX_M:
+        fill["patch_m"] = min(side - 2 * BLOCK_FILE_PATCH_MARGIN_M, BLOCK_FILE_PATCH_MAX_M)
+    return {**d, "indenter": {"shape": "sphere", **indenter}, "analysis": fill | analysis}
 
 
 def dump_toml(scene: Scene) -> str:
+    """A scene file that ``load_toml`` reads back equal. ValueError for a block whose patch or grading is unset: a
+    file cannot say "unset" (TOML has no null), and a block's file without them means ``block_file_defaults``'."""
+    if scene.is_3d and (scene.analysis.grade is None or scene.analysis.patch_m is None):
+        back = from_dict(block_file_defaults(scene.to_dict()), scene.name)
+        if back != scene:
+            raise ValueError(f"scene {scene.name!r}: a block with analysis.patch_m or analysis.grade unset cannot be "
+                             f"written as a file (a file without them gets a block file's defaults); set them")
+
     def val(v):
         return json.dumps(v) if isinstance(v, str) else repr(v)
     d = scene.to_dict()
@@ -488,10 +513,6 @@ BUILTIN = {
 # the coarsest of the uniformly refined family within 1 % of the converged force at every benchmark waypoint with a
 # margin (0.69 % at worst; the first default: 1.36 %); README's convergence table, bench/bench_3d.py.
 BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.0096, surface_refine=8.0, patch_m=0.050, grade=0.2)
-# what a block's scene file leaves out (from_dict): the 3D tip, and block3d's element sizes (its patch and grading are
-# not taken: patch_m suits a 70 mm face only; absent, the whole face is probed and the grading is fem's 0.5)
-BLOCK_DEFAULTS = {"shape": "sphere", "mesh_size_m": BLOCK3D_ANALYSIS.mesh_size_m,
-                  "surface_refine": BLOCK3D_ANALYSIS.surface_refine}
 
 
 def _block3d(name: str, stone: bool = True, x_m: float = 0.035, y_m: float = 0.035, depth_m: float = 0.025,

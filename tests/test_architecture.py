@@ -30,7 +30,7 @@ ROBOT_FEM_USERS = {"robot.simarm"}
 # imports allowed inside functions: optional heavy libraries that keep CLI start-up fast
 LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dashboard_client", "fem.plots",
            "fem.export", "fem.export3d", "fem.plots3d", "cvxopt", "pymetis", "planner.plots_plan", "planner.plots_run",
-           "planner.plots_accuracy", "importlib.metadata", "distributed",
+           "planner.plots_accuracy", "importlib.metadata", "distributed", "dask",
            "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d", "tomllib",
            "fem.condense", "fem.interior_factor", "urllib.request", "tqdm",
            "fem.contact3d", "fem.recall3d", "fem.mesh3d", "planner.depth3d")

@@ -180,11 +180,13 @@ def test_3d_detectability_names_no_stone_that_cannot_fit_in_the_block():
 
 
 def test_a_3d_prior_fem_cannot_model_is_said_without_an_unrelated_hint(tmp_path):
-    """A block without [analysis] (block3d's patch refinement over a 60 mm block: a 36 GB compliance) was refused
-    with a hint about the depth limit and the tip's radius appended, which had nothing to do with it."""
+    """A block with a 2D section's mesh (0.5 mm elements over a 60 mm face: a 36 GB compliance; what a block's file
+    without [analysis] got before session 47) was refused with a hint about the depth limit and the tip's radius
+    appended, which had nothing to do with it."""
     scene = tmp_path / "n01.toml"
     scene.write_text('name = "n01"\n[tissue]\nwidth_m = 0.060\nheight_m = 0.040\nlength_m = 0.060\n'
-                     'youngs_pa = 3000.0\npoisson = 0.4\n[indenter]\nshape = "sphere"\nradius_m = 0.005\n')
+                     'youngs_pa = 3000.0\npoisson = 0.4\n[indenter]\nshape = "sphere"\nradius_m = 0.005\n'
+                     '[analysis]\nmesh_size_m = 0.002\nsurface_refine = 4.0\n')
     p = subprocess.run([sys.executable, "-m", "app.cli", "run", str(scene), "--sim", "--out", str(tmp_path / "o")],
                        cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert p.returncode == 2, p.stderr

@@ -63,21 +63,40 @@ def test_a_block_file_that_leaves_out_the_tip_and_mesh_gets_a_blocks_not_a_secti
     sphere, it meshed 2D's 2 mm / 0.5 mm elements (about 700k DOFs) and was then refused for its patch's size."""
     from fem.scene import BLOCK3D_ANALYSIS, SceneError
     f = tmp_path / "blk.toml"
+    stone = "[[stone]]\nx_m = 0.02\ny_m = 0.035\ndepth_m = 0.012\ndiameter_m = 0.008\n"
     f.write_text("[tissue]\nwidth_m = 0.05\nlength_m = 0.06\nheight_m = 0.03\nyoungs_pa = 6000\npoisson = 0.45\n"
-                 "[[stone]]\nx_m = 0.02\ny_m = 0.035\ndepth_m = 0.012\ndiameter_m = 0.008\n")
+                 + stone)
     sc = load(str(f))
     assert sc.indenter.shape == "sphere"
-    assert (sc.analysis.mesh_size_m, sc.analysis.surface_refine) == (BLOCK3D_ANALYSIS.mesh_size_m,
-                                                                     BLOCK3D_ANALYSIS.surface_refine)
-    assert sc.analysis.patch_m is None and sc.analysis.grade is None        # not taken: block3d's 70 mm face's
+    a = sc.analysis
+    assert (a.mesh_size_m, a.surface_refine, a.grade) == (BLOCK3D_ANALYSIS.mesh_size_m,
+                                                          BLOCK3D_ANALYSIS.surface_refine, BLOCK3D_ANALYSIS.grade)
+    assert a.patch_m is None                  # a face up to 50 mm across is probed whole
+    # a wider face: a centred square with a 10 mm margin, at most block3d's 50 mm
+    for width, patch in ((0.06, 0.04), (0.07, 0.05), (0.2, 0.05)):
+        f.write_text(f"[tissue]\nwidth_m = {width}\nlength_m = 0.08\nheight_m = 0.03\nyoungs_pa = 6000\n"
+                     f"poisson = 0.45\n" + stone)
+        assert load(str(f)).analysis.patch_m == pytest.approx(patch)
     # what a file gives is kept; a section's defaults stay a section's
-    f.write_text(f.read_text() + '[indenter]\nshape = "flat"\n[analysis]\nsurface_refine = 4.0\n')
+    f.write_text(f.read_text() + '[indenter]\nshape = "flat"\n[analysis]\nsurface_refine = 4.0\npatch_m = 0.03\n')
     sc = load(str(f))
-    assert (sc.indenter.shape, sc.analysis.surface_refine, sc.analysis.mesh_size_m) == ("flat", 4.0, 0.0096)
+    assert (sc.indenter.shape, sc.analysis.surface_refine, sc.analysis.patch_m) == ("flat", 4.0, 0.03)
     assert load("paper").indenter.shape == "cylinder" and load("paper").analysis.mesh_size_m == 0.002
     f.write_text(f.read_text().replace('"flat"', '"cylinder"'))
     with pytest.raises(SceneError, match="'sphere' or 'flat'"):
         load(str(f))
+
+
+def test_a_block_file_reads_back_equal_or_is_not_written(tmp_path):
+    """dump_toml writes what load_toml reads back equal; a block whose patch or grading is unset cannot be said in a
+    file (a file without them gets a block file's defaults), so it is refused, not written to read back otherwise."""
+    from fem.scene import dump_toml
+    for sc in (load("block3d"), load("block3d-healthy").with_analysis(order=1)):
+        f = tmp_path / "b.toml"
+        f.write_text(dump_toml(sc))
+        assert load(str(f)) == sc
+    with pytest.raises(ValueError, match="patch_m or analysis.grade unset"):
+        dump_toml(load("block3d").with_analysis(patch_m=None))
 
 
 @pytest.mark.parametrize("changes", [{}, {"patch_m": None, "grade": None}, {"order": 1, "surface_refine": 3.0}])
