@@ -625,6 +625,25 @@ def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, n
 
 
 SIDE = "side"      # at_bound's entry for a fitted stone that would cross the section's side
+STONE_PARAMS = ("x", "y", "clearance", "diameter")     # at_bound's entries for the stone's own parameters
+# at_bound's names for the nuisance parameters (NUISANCE's order; None: unbounded)
+NUISANCE_BOUND_NAMES = (None, "stiffness_scale", "surface_offset", "surface_tilt", "thickness_scale",
+                        "finite_strain_amplitude")
+
+
+def nuisance_at_bound(v, free, lo, hi, names) -> list[str]:
+    """The free nuisance parameters ``v`` (of ``names``, masked by ``free``) within 1e-3 of their range from a bound
+    (the fit stretched the tissue or the surface as far as it may, so the stone's estimate may be pulled off with
+    it; a session-47 review: a stone 7 mm from the side reported 32 mm away, the thickness at its bound). The
+    finite-strain amplitude's lower bound (0, linear tissue) is where it belongs, not a stretch."""
+    out = []
+    for x, a, z, n in zip(v, np.asarray(lo)[free], np.asarray(hi)[free], np.asarray(names, dtype=object)[free]):
+        if n is None or not (math.isfinite(a) and math.isfinite(z)):
+            continue
+        tol = 1e-3 * (z - a)
+        if z - x < tol or (x - a < tol and n != "finite_strain_amplitude"):
+            out.append(n)
+    return out
 
 
 def crosses_side(x_m: float, diameter_m: float, width_m: float) -> bool:
@@ -870,6 +889,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
     if crosses_side(xs, D, prior.tissue.width_m):
         at_bound.append(SIDE)
+    at_bound += nuisance_at_bound(q[3:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES)
     nu = fw.full(q[3:])
     sd_nu = np.zeros(len(NUISANCE))
     sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))

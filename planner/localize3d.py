@@ -50,6 +50,7 @@ from planner.localize import (
     Measurements,
     _Forward,
     dwell_relaxation,
+    nuisance_at_bound,
 )
 from planner.tissue_response3d import PriorResponse3D
 
@@ -63,6 +64,8 @@ NUISANCE3D = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "sur
 NUIS_X_SCALE = np.array([0.1, 0.05, 0.1, 1.0, 1.0, 0.03])
 NUIS_LO = np.array([-np.inf, -1.5, -6.0, -200.0, -200.0, -0.25])
 NUIS_HI = np.array([np.inf, 1.5, 6.0, 200.0, 200.0, 0.25])
+NUISANCE_BOUND_NAMES3D = (None, "stiffness_scale", "surface_offset", "surface_tilt_x", "surface_tilt_y",
+                          "thickness_scale")       # at_bound's names (planner.localize.nuisance_at_bound)
 
 
 def _f(v):
@@ -347,6 +350,7 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         return float(cov[i, j] / (sd[i] * sd[j])) if sd[i] > 0 and sd[j] > 0 else float("nan")
     names = ("x", "y", "clearance", "diameter")
     at_bound = [n for n, v, a, z in zip(names, q[:4], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
+    at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
     detected = bool(lr >= lr_threshold)
     nu_1 = fw.full(q[4:])
     # the tissue and sensor unknowns as the accepted model fitted them: with the stone when one is reported, else

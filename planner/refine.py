@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
-from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, Localization, Measurements, localize
+from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, STONE_PARAMS, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import THICKNESS_STEP, fem_deepest_m, prior_and_thickness_slope
 
@@ -194,10 +194,15 @@ def caveats(loc) -> str:
     the data reject (chi2 above its degrees of freedom by more than 4 standard deviations, sqrt(2 dof): one stone in
     the prior's tissue does not explain the forces)."""
     out = []
-    bounds = [b for b in loc.at_bound if b != SIDE]
+    bounds = [b for b in loc.at_bound if b in STONE_PARAMS]
     if bounds:
         out.append(f"at the fit's bound: {', '.join(bounds)} (the stone may lie beyond the range the table "
                    f"covers, and the rest of the estimate be pulled off with it: its sigmas do not say so)")
+    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b != SIDE]
+    if tissue:
+        out.append(f"the tissue's {', '.join(tissue)} at the fit's bound (the tissue or its surface is unlike the "
+                   f"prior beyond what the fit allows: the stone's estimate may be pulled off with it, and its sigmas "
+                   f"do not say so)")
     if SIDE in loc.at_bound:
         out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")

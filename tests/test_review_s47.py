@@ -3,9 +3,11 @@ names the tighter of its bounds (the tip's radius or the linear model's strain l
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import signal
 
+import numpy as np
 import pytest
 
 from app.cli import main
@@ -107,3 +109,26 @@ def test_a_blocks_dict_reads_back_unchanged(changes):
     for name in ("block3d", "block3d-healthy"):
         sc = load(name).with_analysis(**changes)
         assert from_dict(sc.to_dict(), default_name=sc.name) == sc
+
+
+def test_a_tissue_parameter_at_its_bound_is_said(tmp_path, capsys):
+    """A session-47 review: a rigid 8 mm stone 7 mm from the side (outside the table's stone positions) was
+    reported 32 mm away with a 0.5 mm sigma; the fit had stretched the tissue's thickness to its bound, which no
+    warning named (only the stone's own parameters were checked)."""
+    from planner.localize import nuisance_at_bound
+    names = (None, "stiffness_scale", "thickness_scale", "finite_strain_amplitude")
+    lo, hi = np.array([-np.inf, -1.5, -0.25, 0.0]), np.array([np.inf, 1.5, 0.25, 5.0])
+    free = np.array([True, True, True, True])
+    assert nuisance_at_bound([1e9, 0.0, -0.25, 0.0], free, lo, hi, names) == ["thickness_scale"]   # a = 0: linear
+    assert nuisance_at_bound([0.0, 1.5, 0.1, 5.0], free, lo, hi, names) == ["stiffness_scale",
+                                                                              "finite_strain_amplitude"]
+    assert nuisance_at_bound([0.0, 0.0], np.array([True, False, True, False]), lo, hi, names) == []
+    scene = tmp_path / "edge7.toml"
+    scene.write_text('name = "edge7"\n[tissue]\nwidth_m = 0.070\nheight_m = 0.050\nyoungs_pa = 2500\npoisson = 0.4\n'
+                     '[[stone]]\nx_m = 0.007\ndepth_m = 0.012\ndiameter_m = 0.008\nyoungs_pa = 5.0e9\npoisson = 0.3\n')
+    assert main(["run", str(scene), "--sim", "--out", str(tmp_path / "o"), "--no-figure"]) == 0
+    final = capsys.readouterr().out.strip().splitlines()[-1]
+    result = json.loads((tmp_path / "o" / "result.json").read_text())
+    # the requirement: an answer within 5 mm of the truth, or a line that says why it may not be (today: 39 mm,
+    # with the thickness at its bound said)
+    assert abs(result["estimate"]["x_m"]["value"] - 0.007) < 0.005 or "at the fit's bound" in final, final
