@@ -356,8 +356,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                 k = f"{r['depth_m'] * 1e3:g}"
                 smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
         nothing = (f"no stone the table covers (diameters up to {max(r['diameter_m'] for r in det['rows']) * 1e3:g} "
-                   f"mm) at any depth: the forces this tissue gives are too small for the sensor; a NO STONE "
-                   f"answer will mean little") if det["rows"] else "nothing"
+                   f"mm) at any depth: the coarse raster's probes are too few or too weak for the sensor's noise "
+                   f"(more waypoints, a deeper depth limit or a quieter sensor may help); a NO STONE answer will mean "
+                   f"little") if det["rows"] else "nothing"
         _say(f"detectable {when} (coarse raster, sensor {args.sensor}): " + (
             (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) or nothing)
             if det["usable"] else det["reason"]))
