@@ -132,3 +132,15 @@ def test_a_tissue_parameter_at_its_bound_is_said(tmp_path, capsys):
     # the requirement: an answer within 5 mm of the truth, or a line that says why it may not be (today: 39 mm,
     # with the thickness at its bound said)
     assert abs(result["estimate"]["x_m"]["value"] - 0.007) < 0.005 or "at the fit's bound" in final, final
+
+
+@pytest.mark.parametrize("depth, warned", [("0.0002", True), ("0.003", False)])
+def test_a_2d_contact_the_top_mesh_does_not_resolve_is_warned(depth, warned, capsys):
+    """A session-47 review: 2D said nothing below one element across the contact (force -9 to +11 %, pressure and
+    stress peaks to 50 % off), where 3D warns. The paper section's top elements are 0.5 mm: at 0.2 mm deep the
+    half-width is 0.63 mm (1.3 elements), at 3 mm 2.6 mm (5.3)."""
+    assert main(["simulate", "healthy", "--load", "indent", "--x-m", "0.035", "--depth-m", depth]) == 0
+    err = [e for e in capsys.readouterr().err.splitlines() if "warning" in e]
+    assert bool(err) == warned, err
+    if warned:
+        assert len(err) == 1 and "the contact half-width spans 1.3 of the top's elements (0.5 mm)" in err[0]

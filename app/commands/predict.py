@@ -28,6 +28,7 @@ from app.options import (
     load_scene,
     positive_float,
 )
+from app.resolution import warn_unresolved2d
 from core.peak import or_null, parabola_peak, ratio_of, upper_window
 from fem.contact import check_waypoint, surface_model
 from fem.scene import SceneError
@@ -249,6 +250,7 @@ def run(args) -> int:
         main = predict(sc, xs, args.depth_m, stresses=stresses, progress=progress(sc.name))
     except ValueError as e:
         raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
+    warn_unresolved2d(sc, "predict", main["half_width_m"], stresses)
     out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "margin_m": args.margin_m,
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
            "stones": [dataclasses.asdict(s) for s in sc.stones], "waypoints": main, "files": {}}

@@ -25,6 +25,7 @@ from app.options import (
     load_scene,
     positive_float,
 )
+from app.resolution import warn_unresolved2d
 from fem.contact import surface_model
 from fem.rigid_stress import nodal_fields
 from fem.stress import components, nodal_poisson, recovery_operator
@@ -187,6 +188,7 @@ def _run_indent(args) -> int:
         out["files"].update(_indent_figures(Path(args.plots), sc, m, r, u, nodal))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
     _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
+    warn_unresolved2d(sc, "simulate", [r.half_width_m])
     write_json(args.json, out)
     return 0
 
