@@ -43,6 +43,7 @@ def test_a_users_own_dask_worker_preload_still_runs_beside_palpates(tmp_path, mo
     """palpate's LocalCluster preloads its SIGINT hook (planner.tasks.dask_setup); an explicit preload replaces
     dask's distributed.worker.preload setting, so the user's own would silently not run: both run."""
     import dask
+    import distributed  # noqa: F401 -- its config loaded first: set() would otherwise drop the whole section on exit
 
     from planner.tasks import Runner, dask_client
     (tmp_path / "users_preload_s47.py").write_text(
