@@ -145,3 +145,18 @@ def test_a_2d_contact_the_top_mesh_does_not_resolve_is_warned(depth, warned, cap
     assert bool(err) == warned, err
     if warned:
         assert len(err) == 1 and "the contact half-width spans 1.3 of the top's elements (0.5 mm)" in err[0]
+
+
+def test_a_tool_offset_edited_by_under_a_millimetre_is_refused():
+    """A session-47 review: frames.tcp_offset z edited from 0.1 to 0.0991 m passed robot.safety.check_plan (the joint
+    agreement's tolerance was 1 mm), and the real tip, with the tool unchanged, would go 0.9 mm past the depth
+    limit. The planner's joints agree with its poses to round-off, so the tolerance is now 10 um."""
+    from robot.safety import check_plan
+    from tests.robot_fixtures import make_plan
+    plan = make_plan()
+    assert check_plan(plan) == ([], {})
+    off = list(plan.frames.tcp_offset)
+    off[2] -= 0.0009
+    edited = dataclasses.replace(plan, frames=dataclasses.replace(plan.frames, tcp_offset=off))
+    problems, bad = check_plan(edited)
+    assert bad and all("does not reach its pose" in why for why in bad.values()), (problems, bad)
