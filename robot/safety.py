@@ -225,7 +225,7 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
                     why = f"{name}: {e}"
                     break
             if why is None:
-                why = _joints_disagree(p, plan.frames.tcp_offset)
+                why = _joints_disagree(p, plan.frames.tcp_offset) or _arm_not_clear(p, lim, tf)
         seen.add(p.index)
         if why:
             bad[p.index] = why
@@ -304,6 +304,20 @@ def preflight(plan, done=()) -> dict:
 # then 0.9 mm deeper than the depth limit (session 47's review)
 JOINT_TOL_M = 1e-5
 JOINT_LIMIT_RAD = 2 * math.pi   # UR5e: every joint within +-360 deg
+
+
+def _arm_not_clear(p, lim, tf) -> str | None:
+    """Why the flange would go into the tissue at a probe's joint targets, or None: a tool offset whose rotation turns
+    the flange towards the tissue puts it on the tissue's side of the surface (a session-47 review: a tool rotated
+    180 degrees about x was planned with the flange 0.1 m under the surface, and accepted). The arm's other links are
+    not checked (no model of where the arm is mounted: the test fixtures' own elbow-down plans put the elbow 0.12 m
+    below the base)."""
+    for name, q in (("q_approach_rad", p.q_approach_rad), ("q_indent_rad", p.q_indent_rad)):
+        depth = tf.xy_depth([*ur5e.fk_flange(q)[:3, 3], 0.0, 0.0, 0.0])[2]
+        if depth >= 0.0:
+            return (f"{name}: the flange lies {depth:.3g} m inside the tissue's surface (the tool offset's rotation "
+                    f"turns the flange towards the tissue?)")
+    return None
 
 
 def _joints_disagree(p, tcp_offset) -> str | None:

@@ -160,3 +160,17 @@ def test_a_tool_offset_edited_by_under_a_millimetre_is_refused():
     edited = dataclasses.replace(plan, frames=dataclasses.replace(plan.frames, tcp_offset=off))
     problems, bad = check_plan(edited)
     assert bad and all("does not reach its pose" in why for why in bad.values()), (problems, bad)
+
+
+@pytest.mark.parametrize("extra", [["--tcp-offset", "0", "0", "0.1", "3.14159", "0", "0"],
+                                   ["--tcp-offset", "0", "0.05", "0.08", "1.5708", "0", "0"]])
+def test_a_plan_whose_flange_would_go_into_the_tissue_is_refused(extra, tmp_path, capsys):
+    """A session-47 review: only the tip was checked; a tool rotated about x put the flange under the tissue's
+    surface. `palpate plan` and robot.safety.check_plan (which the run and the driver apply) now refuse it."""
+    says = "the flange lies"
+    out = tmp_path / "p.json"
+    assert main(["plan", "paper", "--out", str(out), *extra]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "the driver would refuse this plan" in err[0] and says in err[0], err
+    assert not out.exists()
+    assert main(["plan", "paper", "--out", str(out)]) == 0          # the default branch and tool are clear

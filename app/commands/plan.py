@@ -38,7 +38,7 @@ from core.contracts import (
 from planner.area import Region, default_block_pose, default_region, grid_positions
 from planner.plan import DEFAULT_GRID, plan_raster
 from planner.raster import default_tissue_pose, interval_positions
-from robot.safety import HARD_BOX_MAX_M, HARD_BOX_MIN_M, MAX_TCP_OFFSET_M
+from robot.safety import HARD_BOX_MAX_M, HARD_BOX_MIN_M, MAX_TCP_OFFSET_M, check_plan
 
 LIM, MOT, OPT = Limits(), Motion(), PlanOptions()      # the defaults, defined once in core.contracts
 
@@ -225,6 +225,11 @@ def run(args) -> int:
                                options=options)
     except (PlanError, ValueError) as e:
         raise UsageError(f"cannot plan: {e}") from None
+    problems, bad = check_plan(plan)           # what the driver would refuse (the arm's own clearance, say)
+    if problems or bad:
+        first = problems[0] if problems else f"probe {min(bad)}: {bad[min(bad)]}"
+        raise UsageError(f"cannot plan: the driver would refuse this plan ({len(bad)} of {len(plan.probes)} probes"
+                         f"{' and the plan' if problems else ''}): {first}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     plan.save(out)
