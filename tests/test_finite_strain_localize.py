@@ -9,6 +9,7 @@ the prior as a neo-Hookean solid is F_lin (1 + g), exactly as the simulated trut
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ from fem.hypertruth import HyperelasticForce
 from fem.scene import load
 from planner.finite_strain_response import prior_finite_strain, unsupported
 from planner.localize import LR_THRESHOLD, Measurements, localize
+from planner.refine import WEAK_LR
 from robot.records import read_records
 
 DEPTH_M = 0.004
@@ -114,6 +116,24 @@ def test_a_healthy_neo_hookean_mismatch_trial_is_not_a_stone(paper_prior, paper_
     assert 0.8 < loc.nuisance["finite_strain_amplitude"][0] < 1.4
     assert abs(loc.nuisance["sensor_drift_n_per_s"][0]) < 1e-3
     assert localize(paper_prior, meas, paper_surrogate, finite_strain=False).detected
+
+
+def test_a_small_shallow_stone_at_the_end_gets_a_start_at_the_contrast_peak(paper_prior, paper_surrogate):
+    """A mismatch-study trial (tests/data/mismatch-hyper-trial-0016: the coarse raster's 15 records and the truth;
+    ``palpate study mismatch --hyperelastic --workers 2``, seed 1): a 4.2 mm stone 6.0 mm deep at x = 59.95 mm in
+    neo-Hookean tissue half as stiff, the surface 0.86 mm low and tilted 26 mrad. The contrast peaks at 60.5 mm,
+    but on the no-stone fit's surface every candidate start there ranked below central ones (chi2 43 against 27):
+    all four starts went to the middle and the fit ended there (LR 8.5, below the refinement's 12: the run stopped,
+    missed). With the best candidate at the peak always started: LR 18.9 at 60.0 mm (the whole run then refines
+    there and finds it: x 60.00 +- 1.14 mm, depth 6.31 mm, LR 48)."""
+    data = Path(__file__).parent / "data" / "mismatch-hyper-trial-0016"
+    stone = tomllib.loads((data / "truth.toml").read_text())["stone"][0]
+    meas = Measurements.from_records(read_records(data), statuses=("ok", "force_limit", "depth_limit"))
+    assert len(meas) == 15
+    loc = localize(paper_prior, meas, paper_surrogate)
+    assert loc.lr > WEAK_LR, loc.lr                                         # measured 18.9 (8.5 before)
+    assert abs(loc.x_m - stone["x_m"]) < 2e-3, loc.x_m                      # measured 60.00 mm
+    assert abs(loc.depth_m - stone["depth_m"]) < 3e-3, loc.depth_m          # measured 6.35 mm
 
 
 def test_the_table_agrees_with_a_fresh_sweep_between_its_nodes_on_the_mirrored_side(paper_prior):
