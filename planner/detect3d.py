@@ -12,11 +12,17 @@ The surface offset and tilts are pinned by the contact onsets and left out, as i
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-from planner.detectability import P_DETECT, ncx2_sf, noncentrality, probe_sigma_n, probe_tau_s, sensor_usable
+from planner.detectability import (
+    P_DETECT,
+    ncx2_sf,
+    noncentrality,
+    probe_sigma_n,
+    probe_tau_s,
+    sensor_usable,
+    smallest_detectable,
+)
 from planner.localize import DRIFT_SIGMA_N_PER_S, FLOOR_GAP_M, MODEL_ABS_ERR_N, THICKNESS_SIGMA
 from planner.localize3d import LR_THRESHOLD3D
 
@@ -57,7 +63,7 @@ def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None,
     one for all: the median planned force); ``thickness_slope_n``: its derivative with respect to the thickness change
     at each probe, with the prior ``thickness_sigma`` (None or 0: the thickness taken as known). Returns {"usable",
     "reason", "sigma_n", "rows": [{diameter_m, depth_m, p_detect, detectable}],
-    "smallest_detectable_diameter_m_by_depth_mm"}."""
+    "smallest_detectable": [{depth_m, diameter_m}]}."""
     x = np.array([p.x_m for p in plan.probes])
     y = np.array([p.y_m for p in plan.probes])
     d = np.array([p.depth_m for p in plan.probes])
@@ -68,7 +74,7 @@ def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None,
     if stones is None:
         stones = [(D, dep) for D in (6e-3, 8e-3, 10e-3, 12e-3, 15e-3) for dep in (10e-3, 15e-3, 20e-3, 25e-3, 30e-3)]
     xc, yc = 0.5 * (x.min() + x.max()), 0.5 * (y.min() + y.max())
-    rows, smallest = [], {}
+    rows = []
     for D, dep in stones:
         s = dep - D / 2
         if "height_m" in b and dep + D / 2 > b["height_m"] - FLOOR_GAP_M:
@@ -84,8 +90,5 @@ def detectability3d(plan, surrogate, prior_force_n, *, sensor_spec, stones=None,
                        thickness_sigma=thickness_sigma) if usable else 0.0
         ok = bool(usable and p >= P_DETECT)
         rows.append({"diameter_m": D, "depth_m": dep, "p_detect": p, "detectable": ok})
-        if ok:
-            k = f"{dep * 1e3:g}"
-            smallest[k] = min(smallest.get(k, math.inf), D)
     return {"usable": usable, "reason": reason, "sigma_n": sig, "rows": rows,
-            "smallest_detectable_diameter_m_by_depth_mm": smallest}
+            "smallest_detectable": smallest_detectable(rows)}

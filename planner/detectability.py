@@ -149,6 +149,21 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
             "nuisance": nuisance, "rows": rows}
 
 
+def smallest_detectable(rows) -> list[dict]:
+    """The smallest detectable stone at each depth of a detectability table's ``rows``: [{"depth_m", "diameter_m"}],
+    by depth (depths with none detectable left out)."""
+    best: dict[float, float] = {}
+    for r in rows:
+        if r.get("detectable"):
+            best[r["depth_m"]] = min(best.get(r["depth_m"], math.inf), r["diameter_m"])
+    return [{"depth_m": dep, "diameter_m": D} for dep, D in sorted(best.items())]
+
+
+def describe_smallest(smallest: list[dict]) -> str:
+    """``smallest_detectable``'s list on one line ("depth 10 mm: >= 6 mm, ..."; empty when there is none)."""
+    return ", ".join(f"depth {s['depth_m'] * 1e3:g} mm: >= {s['diameter_m'] * 1e3:g} mm" for s in smallest)
+
+
 def ncx2_sf(x: float, df: float, nc: float) -> float:
     """The non-central chi-squared survival function: 1 - scipy.special.chndtr, scipy.stats.ncx2.sf's value to
     2e-15 absolute over the range detection asks (tested), without scipy.stats (0.27 s of a command's start-up)."""

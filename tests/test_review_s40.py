@@ -174,7 +174,7 @@ def test_3d_detectability_names_no_stone_that_cannot_fit_in_the_block():
     for r in det["rows"]:
         fits = r["depth_m"] + r["diameter_m"] / 2 <= 0.035 - 2e-3
         assert (r.get("note") == "does not fit in the block") is (not fits), r
-    assert all(float(k) * 1e-3 + v / 2 <= 0.033 for k, v in det["smallest_detectable_diameter_m_by_depth_mm"].items())
+    assert all(s["depth_m"] + s["diameter_m"] / 2 <= 0.033 for s in det["smallest_detectable"])
     full = detectability3d(plan, sur, 0.07, sensor_spec=SENSORS["nano17"])       # block3d itself: all fit
     assert not any(r.get("note") == "does not fit in the block" for r in full["rows"])
 

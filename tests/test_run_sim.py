@@ -45,8 +45,8 @@ def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
     truth = load(scene).stones[0]
     est = r["estimate"]
     if depth_tol is None:
-        smallest = r["detectability"]["smallest_detectable_diameter_m_by_depth_mm"]
-        assert smallest.get("40", 1.0) > truth.diameter_m                  # predicted undetectable...
+        smallest = {round(s["depth_m"], 6): s["diameter_m"] for s in r["detectability"]["smallest_detectable"]}
+        assert smallest.get(0.04, 1.0) > truth.diameter_m                  # predicted undetectable...
         assert r["detected"] is False, r["evidence"]                       # ...and not detected
         return
     assert r["detected"] is True, r["evidence"]
