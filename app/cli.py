@@ -7,6 +7,7 @@ import argparse
 import gc
 import importlib
 import os
+import re
 import sys
 
 # Single-threaded BLAS unless the environment says otherwise (before any numpy import, so before app.errors, which
@@ -66,9 +67,27 @@ def build_parser(chosen: str | None = None) -> argparse.ArgumentParser:
     return p
 
 
+# a list of numbers that starts with a minus (``--branch -1,1,1``): argparse takes it for an option and refuses the
+# option before it ("expected one argument"); only a lone negative number passes as a value
+_NEGATIVE_LIST = re.compile(r"-[0-9.][0-9.eE+-]*(,[0-9.eE+-]+)+")
+
+
+def join_negative_lists(argv: list[str]) -> list[str]:
+    """``--opt -1,1,1`` as ``--opt=-1,1,1``: a long option (no ``=`` of its own) followed by a list of numbers with a
+    leading minus takes it as its value, as the user meant."""
+    out: list[str] = []
+    for a in argv:
+        if (out and _NEGATIVE_LIST.fullmatch(a) and out[-1].startswith("--") and "=" not in out[-1]
+                and out[-1] != "--"):
+            out[-1] = f"{out[-1]}={a}"
+        else:
+            out.append(a)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     own_process = argv is None          # the console script's (tests call main with their arguments)
-    argv = sys.argv[1:] if argv is None else list(argv)
+    argv = join_negative_lists(sys.argv[1:] if argv is None else list(argv))
     chosen = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(chosen if chosen in COMMANDS else None)
     try:

@@ -381,6 +381,9 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
                 "the prior says, or too soft to pass the contact threshold): nothing about a stone could be measured")
     if res is None:
         kind = fault["fault"]["kind"] if fault and fault.get("fault") else status
+        if kind == "interrupted":       # the user's Ctrl-C (or a supervisor's SIGTERM): no fault of the cell
+            return ("NO RESULT: interrupted (Ctrl-C or a stop signal): the arm was stopped and its probes are kept; "
+                    "the same command resumes")
         return (f"NO RESULT: the arm run ended with a fault ({kind}): its probes are kept; "
                 + FIRST_FIX.get(kind, "the same command resumes"))
     if not localized(loc):
@@ -389,6 +392,14 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
         described += ("; warning: no probe felt contact: the surface was taken as registered (no contact onsets), "
                       "and the forces were below the contact threshold")
     return ("STONE " if loc.detected else "NO STONE ") + described
+
+
+EXIT_INTERRUPTED = 130         # a run the user interrupted (as the shell reports a SIGINT; palpate-cell's too)
+
+
+def exit_code(status: str) -> int:
+    """A run's exit status: 0 when the arm run ended well, 130 when interrupted, 1 after a fault."""
+    return 0 if status == "ok" else EXIT_INTERRUPTED if status == "interrupted" else 1
 
 
 VERDICTS = (("NOT DETECTABLE", "not_detectable"), ("NOT LOCALIZED", "not_localized"), ("NO RESULT", "no_result"),

@@ -54,6 +54,7 @@ from app.runexec import (
     check_resume,
     choose_executor,
     conclude,
+    exit_code,
     localized,
     measured_on_disk,
     new_stats,
@@ -67,7 +68,7 @@ from app.runexec import (
     workers_for_fits,
 )
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
-from planner.detectability import detectability
+from planner.detectability import describe_smallest, detectability, smallest_detectable
 from planner.draw_run import draw_run
 from planner.finite_strain_response import prior_finite_strain, unsupported, x_nodes
 from planner.localize import (
@@ -342,7 +343,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                          f"sizes)") from None
 
-    def detectable(table, when: str = "before probing") -> tuple[dict, dict]:
+    def detectable(table, when: str = "before probing") -> tuple[dict, list]:
         try:
             det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
                                 depth_limit_m=plan0.limits.depth_limit_m,
@@ -350,17 +351,13 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         except (RuntimeError, ArithmeticError, ValueError) as e:
             raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                              f"sizes)") from None
-        smallest = {}
-        for r in det["rows"]:
-            if r["detectable"]:
-                k = f"{r['depth_m'] * 1e3:g}"
-                smallest[k] = min(smallest.get(k, 1.0), r["diameter_m"])
+        smallest = smallest_detectable(det["rows"])
         nothing = (f"no stone the table covers (diameters up to {max(r['diameter_m'] for r in det['rows']) * 1e3:g} "
                    f"mm) at any depth: the coarse raster's probes are too few or too weak for the sensor's noise "
                    f"(more waypoints, a deeper depth limit or a quieter sensor may help); a NO STONE answer will mean "
                    f"little") if det["rows"] else "nothing"
         _say(f"detectable {when} (coarse raster, sensor {args.sensor}): " + (
-            (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items()) or nothing)
+            (describe_smallest(smallest) or nothing)
             if det["usable"] else det["reason"]))
         return det, smallest
 
@@ -392,7 +389,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                        strategy=args.strategy, workers=fit_workers)
         stats["clean_end"] = True      # probing ended without a fault: the control script is stopped at the end
     except RunAborted as e:
-        status, fault, res = "fault", e.report.to_dict(), None
+        status = "interrupted" if e.report.status == "interrupted" else "fault"
+        fault, res = e.report.to_dict(), None
         stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
     except TableBuildError as e:    # the measured probes are on disk; a re-run resumes them
@@ -426,7 +424,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                       "planned_s": stats["planned_s"]}
     result["detectability"] = {"sensor": det["sensor"], "usable": det["usable"], "reason": det["reason"],
                                "probe_sigma_n": det["sigma_n"],
-                               "smallest_detectable_diameter_m_by_depth_mm": smallest}
+                               "smallest_detectable": smallest}
     result["surrogate"] = {"build_s": sur.build_s, "bounds": {k: list(v) for k, v in sur.bounds.items()}}
     if truth is not None:        # comparison only, after the fact
         st = [{"x_m": s.x_m, "depth_m": s.depth_m, "diameter_m": s.diameter_m} for s in truth.stones]
@@ -460,4 +458,4 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     print(head
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
-    return 0 if status == "ok" else 1
+    return exit_code(status)

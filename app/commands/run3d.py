@@ -27,6 +27,7 @@ from app.runexec import (
     RunAborted,
     choose_executor,
     conclude,
+    exit_code,
     localized,
     measured_on_disk,
     new_stats,
@@ -40,6 +41,7 @@ from app.runexec import (
 from core.contracts import Plan, PlanError, sensor_spec
 from planner.area import probe_bounds
 from planner.detect3d import detectability3d
+from planner.detectability import describe_smallest
 from planner.draw_run3d import draw_run3d
 from planner.localize import THICKNESS_SIGMA
 from planner.localize3d import Localization3D, surrogate_bounds
@@ -97,16 +99,16 @@ def _detectable(prior, plan0, sur, sensor: str, th_sigma: float) -> dict:
 
 def _said(det: dict, sensor: str, th_sigma: float) -> dict:
     """The detectability said on one line; its dict for result.json."""
-    smallest = det["smallest_detectable_diameter_m_by_depth_mm"]
+    smallest = det["smallest_detectable"]
     sizes = [r["diameter_m"] for r in det["rows"] if r["p_detect"] is not None]
-    text = (", ".join(f"depth {k} mm: >= {v * 1e3:g} mm" for k, v in smallest.items())
+    text = (describe_smallest(smallest)
             or (f"no stone of {min(sizes) * 1e3:g}-{max(sizes) * 1e3:g} mm at any depth the table covers: a NO STONE "
                 f"answer will mean little" if sizes else "nothing the table covers")) if det["usable"] else det["reason"]
     known = f"thickness known to {th_sigma * 100:.3g} %" if th_sigma > 0 else "thickness known exactly"
     _say(f"detectable before probing (coarse grid, sensor {sensor}; a stone under the grid's middle; {known}): "
          f"{text}")
     return {"sensor": sensor, "usable": det["usable"], "reason": det["reason"], "probe_sigma_n": det["sigma_n"],
-            "smallest_detectable_diameter_m_by_depth_mm": smallest, "thickness_prior_sigma": th_sigma}
+            "smallest_detectable": smallest, "thickness_prior_sigma": th_sigma}
 
 
 def run_block(args, ctx: RunContext) -> int:
@@ -159,7 +161,8 @@ def run_block(args, ctx: RunContext) -> int:
                          workers=workers_for_fits(args), thickness_sigma=th_sigma)
         stats["clean_end"] = True
     except RunAborted as e:
-        status, fault = "fault", e.report.to_dict()
+        status = "interrupted" if e.report.status == "interrupted" else "fault"
+        fault = e.report.to_dict()
         stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
     finally:
@@ -215,7 +218,7 @@ def run_block(args, ctx: RunContext) -> int:
     print(head
           + f"; {result['probes_used']} probes; results in {out}",
           file=sys.stderr if args.json == "-" else sys.stdout)
-    return 0 if status == "ok" else 1
+    return exit_code(status)
 
 
 def full_limit_m(args) -> float:
