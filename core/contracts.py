@@ -119,6 +119,30 @@ class PlanOptions:
     min_depth_m: float = 0.001                 # shallowest useful indentation
 
 
+# a probe's fields an older plan may lack: y_m (2D plans before the 3D work: 0, the section's plane; a 3D plan must
+# have it) and force_exponent (before session 43: None, the depth limit counts from the contact felt)
+OPTIONAL_PROBE_FIELDS = ("y_m", "force_exponent")
+
+
+def _table(cls, d, where: str, optional: tuple = ()):
+    """``cls(**d)`` for a plan file's table ``where``, every field present (no default is taken for a limit, a speed
+    or a pose the file left out: a hand-edited plan that dropped its force limit ran with 2 N) but ``optional``'s."""
+    if d is None:
+        raise PlanError(f"plan field '{where}' is missing: re-plan with palpate plan or restore it")
+    if not isinstance(d, dict):
+        raise PlanError(f"plan field '{where}' must be a table, got {type(d).__name__}")
+    names = [f.name for f in dataclasses.fields(cls)]
+    unknown = sorted(set(d) - set(names))
+    if unknown:
+        raise PlanError(f"plan field {where}.{unknown[0]} is unknown: {where} has {', '.join(names)}")
+    missing = [n for n in names if n not in d and n not in optional]
+    if missing:
+        raise PlanError(f"plan field {where}.{missing[0]} is missing: no default is taken for it (a plan palpate "
+                        f"writes has {', '.join(n for n in names if n not in optional)}); re-plan with palpate plan "
+                        f"or restore the field")
+    return cls(**d)
+
+
 @dataclass
 class Plan:
     scene: dict                          # the prior scene (Scene.to_dict() of scene.prior()): no stones
@@ -163,19 +187,18 @@ class Plan:
             if d["version"] == 1:       # options lived in notes
                 opts = {k: notes[k] for k in ("branch", "tilt_tol_rad", "force_fraction", "min_depth_m") if k in notes}
             else:
-                opts = d["options"]
-            parts = {}
-            for name, cls in (("frames", Frames), ("limits", Limits), ("motion", Motion)):
-                if not isinstance(d.get(name), dict):
-                    raise PlanError(f"plan field '{name}' must be a table, got {type(d.get(name)).__name__}")
-                parts[name] = cls(**d[name])
-            if not isinstance(opts, dict):
-                raise PlanError(f"plan field 'options' must be a table, got {type(opts).__name__}")
+                opts = d.get("options")
+            parts = {name: _table(cls, d.get(name), name) for name, cls in
+                     (("frames", Frames), ("limits", Limits), ("motion", Motion))}
+            # (version 1 kept its options in notes, some of them left out: those take PlanOptions' defaults)
+            options = PlanOptions(**opts) if d["version"] == 1 else _table(PlanOptions, opts, "options")
             if not isinstance(d.get("probes"), list) or not all(isinstance(p, dict) for p in d["probes"]):
                 raise PlanError("plan field 'probes' must be a list of tables")
-            plan = Plan(scene=d["scene"], **parts, options=PlanOptions(**opts),
-                        probes=[Probe(**p) for p in d["probes"]], total_time_s=d.get("total_time_s", 0.0),
-                        version=PLAN_VERSION, notes=notes)
+            three_d = isinstance(d["scene"].get("tissue"), dict) and d["scene"]["tissue"].get("length_m") is not None
+            optional = OPTIONAL_PROBE_FIELDS if not three_d else tuple(set(OPTIONAL_PROBE_FIELDS) - {"y_m"})
+            plan = Plan(scene=d["scene"], **parts, options=options,
+                        probes=[_table(Probe, p, f"probes[{i}]", optional) for i, p in enumerate(d["probes"])],
+                        total_time_s=d.get("total_time_s", 0.0), version=PLAN_VERSION, notes=notes)
         except (KeyError, TypeError, ValueError) as e:
             if isinstance(e, PlanError):
                 raise
@@ -315,6 +338,9 @@ FREE, DESCENT, DWELL, RETRACT = 0, 1, 2, 3          # raw "phase" codes
 BASELINE_CLEARANCE_M = 1e-3      # free-air baseline: descent samples at least this far above the surface
 MIN_BASELINE_SAMPLES = 50        # fewer: no baseline (the force is then relative to the sensor's zeroing)
 BASELINE_SETTLE_S = 0.05         # ... and not in the descent's first 50 ms (acceleration)
+ZERO_SETTLE_S = 0.04             # before each probe the driver waits this long, zeroes the sensor, waits again,
+NOISE_SAMPLE_S = 0.1             # and samples the free-air noise this long (the plan's timing counts the three)
+RETRACT_SPEED_M_S = 0.02         # the driver retracts from the tissue at this tool speed (at most), probe acceleration
 
 
 # Plausibility of a probe's force (dwell mean minus its free-air baseline) against the prior's prediction at the

@@ -504,7 +504,8 @@ def plan_raster(scene, *, n_waypoints: int | None = None, spacing_m: float | Non
     Q, info = solve_raster(tg, tissue_x, frames.tcp_offset, branch=branch, margins=margins,
                            tilt_tol_rad=tilt_tol_rad, mapped=True)     # (the one-graph NLP: a reference)
     t_timing = time.perf_counter()
-    tm = raster_timing(tg.approach_m, tg.indent_m, Q[:, 0], Q[:, 1], motion, joint_limits)
+    tm = raster_timing(tg.approach_m, tg.indent_m, Q[:, 0], Q[:, 1], motion, joint_limits,
+                       tool_speed_m_s=limits.max_tool_speed_m_s)
     probes, prev = [], None
     T_all = kin.fk_batch(Q.reshape(-1, 6), frames.tcp_offset)[0].reshape(len(x), 2, 4, 4)
     for k in range(len(x)):

@@ -58,7 +58,7 @@ def joint_timeline(plan):
     tm = plan.notes.get("timing", {})
     ts, qs = [], []
     for k, p in enumerate(plan.probes):
-        t0 = p.t_start_s + (tm["move_in_s"][k] if tm else 0.0)
+        t0 = p.t_start_s + (tm["move_in_s"][k] + tm.get("zero_s", [0.0] * (k + 1))[k] if tm else 0.0)
         t1 = t0 + (tm["descend_s"][k] if tm else 0.0)
         t2 = t1 + (tm["dwell_s"][k] if tm else 0.0)
         t3 = p.t_start_s + p.duration_s

@@ -46,10 +46,13 @@ from core.contracts import (
     DWELL,
     FILTER_WINDOW,
     FREE,
+    NOISE_SAMPLE_S,
     NOISE_SIGMA_FACTOR,
     PERIOD_S,
     RETRACT,
+    RETRACT_SPEED_M_S,
     SURFACE_FIT_FROM_FRACTION,
+    ZERO_SETTLE_S,
     FaultKind,
     ProbeRecord,
     ProbeStatus,
@@ -91,11 +94,11 @@ GRAVITY_M_S2 = 9.81
 class DriverConfig:
     period_s: float = PERIOD_S         # controller period (500 Hz on e-Series)
     filter_window: int = FILTER_WINDOW  # moving average for contact / force-limit decisions
-    settle_s: float = 0.04             # wait before and after zeroing
-    noise_sample_s: float = 0.1        # free-air sampling after zeroing
+    settle_s: float = ZERO_SETTLE_S    # wait before and after zeroing
+    noise_sample_s: float = NOISE_SAMPLE_S  # free-air sampling after zeroing
     noise_sigma_factor: float = NOISE_SIGMA_FACTOR  # thresholds must exceed this many filtered-noise sigmas
     stop_decel_m_s2: float = 10.0
-    retract_speed_m_s: float = 0.02
+    retract_speed_m_s: float = RETRACT_SPEED_M_S
     timeout_factor: float = 2.0
     timeout_margin_s: float = 2.0
     stale_periods: int = 100           # timestamp not advancing this many periods (0.2 s): a silent link. A real

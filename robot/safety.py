@@ -33,6 +33,9 @@ from core.contracts import (  # noqa: F401  (re-exported: the driver's hard caps
     HARD_TOOL_SPEED_M_S,
     MAX_FORCE_EXPONENT,
     MIN_FORCE_EXPONENT,
+    NOISE_SAMPLE_S,
+    RETRACT_SPEED_M_S,
+    ZERO_SETTLE_S,
 )
 
 HARD_BOX_MIN_M = (-0.85, -0.85, -0.2)
@@ -290,7 +293,8 @@ def preflight(plan, done=()) -> dict:
         if prev is not None:
             t += move_time(math.dist(prev[:3], p.approach_pose[:3]), mo.approach_speed_m_s, mo.approach_accel_m_s2)
         h = mo.approach_height_m + p.depth_m
-        t += 0.2 + move_time(h, mo.probe_speed_m_s, mo.probe_accel_m_s2) + mo.dwell_s + h / 0.02 + 0.05
+        t += (2 * ZERO_SETTLE_S + NOISE_SAMPLE_S + move_time(h, mo.probe_speed_m_s, mo.probe_accel_m_s2) + mo.dwell_s
+              + move_time(h, RETRACT_SPEED_M_S, mo.probe_accel_m_s2))      # as planner.timing counts a probe
         prev = p.approach_pose
     return {"workspace_min_m": list(lim.box_min), "workspace_max_m": list(lim.box_max),
             "force_limit_n": lim.force_limit_n, "depth_limit_m": lim.depth_limit_m,
