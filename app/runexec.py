@@ -22,7 +22,7 @@ from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session, receive_once
-from robot.records import done_indices, latest_by_index, move_aside
+from robot.records import done_indices, latest_by_index, move_aside, read_records
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -333,7 +333,17 @@ def resuming_note(out: Path) -> str:
     """What a resumed run keeps and what it presses again (a stop at a limit may have been a spike: pressed again)."""
     done, measured = len(done_indices(out)), measured_on_disk(out)
     again = f" ({measured - done} stopped at the force or depth limit are pressed again)" if measured > done else ""
-    return f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
+    note = f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
+    damaged: list = []
+    read_records(out, damaged)
+    if damaged:
+        where = "; ".join(f"line {k}: {why}" for k, why in damaged[:3]) + ("; ..." if len(damaged) > 3 else "")
+        note += (f"\nwarning: {len(damaged)} line(s) of {out / 'probes.jsonl'} are not probe records (edited or "
+                 f"damaged; {where}): they are left as they are and not used, and their probes are pressed again")
+    if not (out / "probes.jsonl").exists() and any((out / "raw").glob("probe_*.npz")):
+        note += (f"\nwarning: {out / 'probes.jsonl'} is missing but {out / 'raw'} holds probes' samples: they are "
+                 f"kept, and every probe is pressed again (new samples get new file names)")
+    return note
 
 
 def no_contact(out: Path) -> dict | None:

@@ -115,17 +115,27 @@ def _jsonable(v):
     raise TypeError(f"not JSON serialisable: {type(v).__name__}")
 
 
-def read_records(out_dir: str | Path) -> list[ProbeRecord]:
-    """Every complete line of probes.jsonl, in order (a torn final line is skipped)."""
+def _non_finite(constant: str):
+    raise ValueError(f"{constant} (the driver writes finite numbers only)")
+
+
+def read_records(out_dir: str | Path, damaged: list | None = None) -> list[ProbeRecord]:
+    """Every readable line of probes.jsonl, in order. A torn final line (a crash mid-write: no newline after it) is
+    skipped; any other line that is not a record (edited or damaged: not JSON, a non-finite or absurd number, a
+    field of the wrong type) is skipped too and, with ``damaged``, listed there as (line number, why)."""
     path = Path(out_dir) / "probes.jsonl"
     if not path.exists():
         return []
+    text = path.read_text(encoding="utf-8", errors="replace")
+    lines = text.splitlines()
     out = []
-    for line in path.read_text(encoding="utf-8").splitlines():
+    for k, line in enumerate(lines, 1):
         try:
-            out.append(ProbeRecord.from_dict(json.loads(line)))
-        except (json.JSONDecodeError, TypeError, ValueError):
-            continue
+            out.append(ProbeRecord.from_dict(json.loads(line, parse_constant=_non_finite)))
+        except (json.JSONDecodeError, TypeError, ValueError, AttributeError) as e:
+            torn = k == len(lines) and not text.endswith("\n")
+            if damaged is not None and not torn:
+                damaged.append((k, str(e).splitlines()[0][:120] if str(e) else type(e).__name__))
     return out
 
 

@@ -139,3 +139,36 @@ def test_a_plans_time_is_the_simulated_drivers(tmp_path):
     assert r["probes_used"] == 15
     planned, robot = r["time"]["planned_s"], r["time"]["robot_s"]
     assert abs(robot - planned) < 0.01 * planned, (robot, planned)
+
+
+def test_damaged_record_lines_are_listed_and_never_reach_the_fit(tmp_path):
+    """A review's edits of probes.jsonl: a garbage line mid-file was dropped without a word (its probe pressed again
+    silently), and a NaN or 1e308 force reached the localizer (a traceback). Now each is listed with its line and
+    why, skipped, and said when the run resumes; a torn final line (a crash mid-write) is still skipped quietly."""
+    import shutil
+
+    from app.runexec import resuming_note
+    from robot.records import read_records
+    src = ROOT / "tests" / "data" / "mismatch-trial-0048"
+    lines = (src / "probes.jsonl").read_text().splitlines()
+    good = len(lines)
+    edits = {3: "garbage{", 5: ("force_mean_n", float("nan")), 6: ("force_mean_n", 1e308),
+             7: ("depth_reached_m", "deep"), 8: ("x_m", None)}
+    for k, e in edits.items():
+        if isinstance(e, str):
+            lines[k - 1] = e
+        else:
+            d = json.loads(lines[k - 1])
+            d[e[0]] = e[1]
+            lines[k - 1] = json.dumps(d)
+    (tmp_path / "probes.jsonl").write_text("\n".join(lines) + "\n" + '{"index": 99, "x_')    # + a torn last line
+    damaged: list = []
+    recs = read_records(tmp_path, damaged)
+    assert [k for k, _ in damaged] == sorted(edits) and len(recs) == good - len(edits)
+    assert "force_mean_n = 1e+308" in dict(damaged)[6] and "NaN" in dict(damaged)[5]
+    note = resuming_note(tmp_path)
+    assert f"warning: {len(edits)} line(s)" in note and "line 3:" in note
+    (tmp_path / "probes.jsonl").unlink()
+    (tmp_path / "raw").mkdir()
+    shutil.copy(src / "probes.jsonl", tmp_path / "raw" / "probe_000.npz")      # (any file of that name)
+    assert "is missing but" in resuming_note(tmp_path)

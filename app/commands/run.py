@@ -310,7 +310,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             raise UsageError(f"--out {out}: cannot resume: {e}; use --fresh or another --out") from None
         plan0 = saved
         if not three_d:
-            _say(resuming_note(out))
+            for line in resuming_note(out).splitlines():
+                _say(line)
     fig_child = None
     if not args.no_figure and not args.host:    # simulated: matplotlib loads in a child meanwhile (app.figchild)
         fig_child = FigureChild.start(_say)

@@ -143,7 +143,8 @@ def run_block(args, ctx: RunContext) -> int:
     (ctx.on_exit if ctx.on_exit is not None else cleanup).enter_context(holding(out))   # one process in OUT
     open_out(args, out, ctx.opts, _say)
     if ctx.resume:
-        _say(resuming_note(out))
+        for line in resuming_note(out).splitlines():
+            _say(line)
     _say(f"probing on the {where}")
     t_first: dict = {}
     plan_round = round_planner(plan0, out)
