@@ -264,7 +264,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
         raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
     held.enter_context(holding(out))       # one process at a time in OUT (app.outlock)
     if args.fresh:
-        moved = move_aside(out)
+        moved = move_aside(out, keep=[args.plan])        # (a plan file kept in OUT stays: the command's input)
         if moved is not None:
             print(f"--fresh: the previous run's files are in {moved}")
     arm = None

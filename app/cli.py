@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import gc
 import importlib
+import math
 import os
 import re
 import sys
@@ -45,7 +46,8 @@ EPILOG = """examples:
 scenes: a built-in name (2D: paper, paper-left, paper-right, paper-deep, healthy; 3D blocks: block3d,
   block3d-healthy, block3d-left, block3d-front, block3d-deep) or a TOML file (see README).
 environment: PALPATE_CACHE_DIR (the disk cache; default ~/.cache/palpate), PALPATE_CACHE=0 (no disk cache),
-  PALPATE_CACHE_MAX_BYTES (its size bound in bytes; default 20e9: the entries used least recently go first).
+  PALPATE_CACHE_MAX_BYTES (its size bound in bytes; default 20e9: the entries used least recently go first),
+  PALPATE_MAX_DOFS (the largest finite-element model a command builds; default 2e6 degrees of freedom).
 Add --debug to any command to see a traceback instead of a one-line error."""
 
 
@@ -121,6 +123,15 @@ def check_environment() -> None:
         cachesize.max_bytes()
     except ValueError as e:
         raise UsageError(str(e)) from None
+    dofs = os.environ.get("PALPATE_MAX_DOFS", "").strip()
+    if dofs:
+        try:
+            n = float(dofs)
+        except ValueError:
+            n = math.nan
+        if not (math.isfinite(n) and n >= 1 and n == int(n)):
+            raise UsageError(f"PALPATE_MAX_DOFS={dofs!r}: give a whole number of degrees of freedom, 1 or more (such "
+                             f"as 500000 or 2e6; unset: 2e6), the largest model a command may build")
     where = os.environ.get("PALPATE_CACHE_DIR")
     if where and not where.strip():      # (empty is unset, as for any variable; blank made a directory named "  ")
         raise UsageError(f"PALPATE_CACHE_DIR={where!r}: a blank path; give the disk cache's directory (made if "

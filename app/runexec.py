@@ -231,6 +231,33 @@ def _previous_options(out: Path) -> dict | None:
     return d if isinstance(d, dict) else {}
 
 
+# an optional option left out is its default: given at that value, or left out where it was given at it, it is the
+# same run (a review's resume with --depth-limit-m 0.004, the default, was refused as other options)
+OPTIONAL_DEFAULTS = {"depth_limit_m": Limits().depth_limit_m}
+
+
+def _same_option(k: str, prev: dict, now: dict) -> bool:
+    """Do two runs' option ``k`` differ only in how it was written? The scene by another path or name to the same
+    content (its key), the prior's file by another path to the same file, an optional option at its default."""
+    if k == "scene":
+        return prev.get("scene_key") == now.get("scene_key")       # (the content decides; the key is compared too)
+    if k == "prior":
+        return _same_file(prev.get(k), now.get(k))
+    if k in OPTIONAL_DEFAULTS:
+        return prev.get(k, OPTIONAL_DEFAULTS[k]) == now.get(k, OPTIONAL_DEFAULTS[k])
+    return False
+
+
+def _same_file(a, b) -> bool:
+    """Two spellings of one existing file (a built-in scene's name is not a file: names must be equal)."""
+    if not (isinstance(a, str) and isinstance(b, str)):
+        return a == b
+    try:
+        return Path(a).is_file() and Path(b).is_file() and Path(a).resolve() == Path(b).resolve()
+    except OSError:
+        return False
+
+
 def check_resume(out: Path, opts: dict, fresh: bool) -> bool:
     """True if this run resumes the one in ``out``; raises UsageError if it may neither resume nor start."""
     if fresh or not holds_run(out):
@@ -239,9 +266,13 @@ def check_resume(out: Path, opts: dict, fresh: bool) -> bool:
     if prev is None:
         raise UsageError(f"--out {out} holds a run without run_options.json (an older palpate?): it cannot be "
                          f"resumed safely; use --fresh (moves the old files to {out}/previous-<time>/) or another --out")
-    diff = [f"{k} was {prev.get(k)!r}, now {v!r}" for k, v in opts.items() if prev.get(k) != v]
+    def said(k, d):
+        return repr(d[k]) if k in d else f"not given (default {OPTIONAL_DEFAULTS[k]!r})"
+    diff = [f"{k} was {said(k, prev) if k in OPTIONAL_DEFAULTS else repr(prev.get(k))}, now {v!r}"
+            for k, v in opts.items() if prev.get(k) != v and not _same_option(k, prev, opts)]
     # options kept only when given (older runs resume without them): given before, left out now is a change too
-    diff += [f"{k} was {prev[k]!r}, now not given" for k in OPTIONAL_RUN_OPTIONS if k in prev and k not in opts]
+    diff += [f"{k} was {prev[k]!r}, now not given" for k in OPTIONAL_RUN_OPTIONS
+             if k in prev and k not in opts and not _same_option(k, prev, opts)]
     if diff:
         raise UsageError(f"--out {out} holds a run with other options ({'; '.join(diff)}): re-run with the same "
                          f"options to resume, or use --fresh (moves the old files to {out}/previous-<time>/) or "
@@ -287,7 +318,8 @@ def open_out(args, out: Path, opts: dict, say) -> None:
     """Create OUT (after every check passed): ``--fresh`` moves a previous run's files aside (never deletes them);
     run_options.json is written once."""
     if args.fresh:
-        moved = move_aside(out) if holds_run(out) else None
+        inputs = [getattr(args, k, None) for k in ("scene", "plan", "prior")]     # (a built-in's name is no file)
+        moved = move_aside(out, keep=[a for a in inputs if isinstance(a, str)]) if holds_run(out) else None
         if moved is not None:
             say(f"--fresh: the previous run's files are in {moved}")
     out.mkdir(parents=True, exist_ok=True)

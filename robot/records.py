@@ -274,16 +274,21 @@ def implausibility(rec: ProbeRecord) -> str | None:
     return None
 
 
-def move_aside(out_dir: str | Path) -> Path | None:
-    """Move everything in ``out_dir`` (except earlier previous-* folders) into ``out_dir/previous-<UTC time>/`` and
-    return that folder; None when there is nothing to move. Measured data are never deleted."""
+def move_aside(out_dir: str | Path, keep=()) -> Path | None:
+    """Move everything in ``out_dir`` (except earlier previous-* folders and the files ``keep`` names: the command's
+    own inputs, a scene or plan file kept there) into ``out_dir/previous-<UTC time>/`` and return that folder; None
+    when there is nothing to move. Measured data are never deleted."""
     out = Path(out_dir)
-    if not out.is_dir() or not any(not p.name.startswith("previous-") for p in out.iterdir()):
+    kept = {Path(k).resolve() for k in keep if k is not None and Path(k).exists()}
+
+    def moves(p: Path) -> bool:
+        return not p.name.startswith("previous-") and p.resolve() not in kept
+    if not out.is_dir() or not any(moves(p) for p in out.iterdir()):
         return None
     dest = out / f"previous-{datetime.now(timezone.utc).strftime('%Y%m%dT%H%M%S.%fZ')}"
     dest.mkdir()
     for p in sorted(out.iterdir()):
-        if p != dest and not p.name.startswith("previous-"):
+        if p != dest and moves(p):
             p.rename(dest / p.name)
     _fsync_dir(out)
     return dest

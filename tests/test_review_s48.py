@@ -172,3 +172,74 @@ def test_damaged_record_lines_are_listed_and_never_reach_the_fit(tmp_path):
     (tmp_path / "raw").mkdir()
     shutil.copy(src / "probes.jsonl", tmp_path / "raw" / "probe_000.npz")      # (any file of that name)
     assert "is missing but" in resuming_note(tmp_path)
+
+
+def _a_run_dir(tmp_path, opts: dict) -> Path:
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run_options.json").write_text(json.dumps(opts))
+    (out / "probes.jsonl").write_text("")
+    return out
+
+
+def test_resume_takes_an_option_at_its_default_and_a_scene_by_another_path(tmp_path):
+    """A review's resumes refused as "other options": --depth-limit-m given at its default (0.004) after a run
+    without it, and the same scene file as ./st.toml after st.toml. A real change is still refused."""
+    from app.errors import UsageError
+    from app.runexec import check_resume
+    base = {"scene": "st.toml", "scene_key": "abc", "seed": 0}
+    out = _a_run_dir(tmp_path, base)
+    assert check_resume(out, dict(base, depth_limit_m=0.004), fresh=False)
+    assert check_resume(out, dict(base, scene="./st.toml"), fresh=False)
+    with pytest.raises(UsageError, match=r"depth_limit_m was not given \(default 0.004\), now 0.003"):
+        check_resume(out, dict(base, depth_limit_m=0.003), fresh=False)
+    with pytest.raises(UsageError, match="scene_key"):
+        check_resume(out, dict(base, scene="./st.toml", scene_key="def"), fresh=False)
+    out2 = tmp_path / "b"
+    out2.mkdir()
+    (out2 / "run_options.json").write_text(json.dumps(dict(base, depth_limit_m=0.004)))
+    (out2 / "probes.jsonl").write_text("")
+    assert check_resume(out2, base, fresh=False)
+
+
+def test_fresh_leaves_the_commands_own_input_files_in_place(tmp_path):
+    """--fresh moved everything in OUT aside, the scene file the command was running included: the next run with
+    the same command then failed for a missing scene file."""
+    from robot.records import move_aside
+    out = tmp_path / "K"
+    out.mkdir()
+    for n in ("mine.toml", "notes.txt", "probes.jsonl", "plan.json"):
+        (out / n).write_text(n)
+    dest = move_aside(out, keep=[str(out / "mine.toml"), str(tmp_path / "K" / "." / "plan.json"), "paper"])
+    assert sorted(p.name for p in out.iterdir() if p != dest) == ["mine.toml", "plan.json"]
+    assert sorted(p.name for p in dest.iterdir()) == ["notes.txt", "probes.jsonl"]
+    assert move_aside(out, keep=[str(out / "mine.toml"), str(out / "plan.json")]) is None     # nothing else to move
+
+
+@pytest.mark.parametrize("name", ["a\nSTONE fake line", "red\x1b[31m", "", "   ", "x" * 101])
+def test_a_scene_name_that_would_garble_the_output_is_refused(name):
+    from fem.scene import SceneError, from_dict, load
+    d = load("healthy").to_dict()
+    with pytest.raises(SceneError, match="name = .*printable"):
+        from_dict(dict(d, name=name))
+    assert from_dict(dict(d, name="kidney 7 (left)")).name == "kidney 7 (left)"
+
+
+@pytest.mark.parametrize("value, ok", [("1.5", False), ("abc", False), ("-3", False), ("inf", False), ("0", False),
+                                       ("500000", True), ("2e6", True)])
+def test_palpate_max_dofs_is_a_whole_positive_number(value, ok, monkeypatch):
+    from app.cli import check_environment
+    from app.errors import UsageError
+    monkeypatch.setenv("PALPATE_MAX_DOFS", value)
+    if ok:
+        check_environment()
+    else:
+        with pytest.raises(UsageError, match="PALPATE_MAX_DOFS"):
+            check_environment()
+
+
+def test_ft_seed_is_range_checked(capsys):
+    from app.cli import main
+    assert main(["ft", "--ft", "netft", "--seed", "-200000", "--duration-s", "0.2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--seed" in err[0] and "[0, 4294967295]" in err[0]

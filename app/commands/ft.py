@@ -8,6 +8,7 @@ Exit 0 when the stream was healthy, 1 on a sensor fault (the line says which), 2
 """
 from __future__ import annotations
 
+import argparse
 import sys
 import threading
 import time
@@ -28,8 +29,9 @@ def add_parser(sub) -> None:
     p = sub.add_parser("ft", help="read an ATI Net F/T box for a while: rate, lost records, mean and noise per axis",
                        description=__doc__.split("\n\n")[0],
                        epilog="examples:\n  palpate ft --ft netft:192.168.1.1 --ft-range-n 25 --ft-range-nm 0.25\n"
-                              "  palpate ft --netft 192.168.1.1 --seconds 5 --json ft.json\n"
-                              "  palpate ft --ft netft            (a simulated box on loopback)")
+                              "  palpate ft --ft netft:192.168.1.1 --duration-s 5 --json ft.json\n"
+                              "  palpate ft --ft netft            (a simulated box on loopback)",
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     add_ft_options(p, sim_help="on loopback")
     p.add_argument("--netft", metavar="HOST", help="the box at HOST: the same as --ft netft:HOST")
     p.add_argument("--port", dest="ft_port", type=int_range(1, 65535), metavar="PORT",
@@ -37,7 +39,7 @@ def add_parser(sub) -> None:
     p.add_argument("--duration-s", "--seconds", type=float_range(0.0, 600.0, unit="s"), default=2.0,
                    help="how long to read (default 2 s)")
     p.add_argument("--sensor", choices=list(SENSORS), help="the simulated box's sensor preset (default nano17)")
-    p.add_argument("--seed", type=int, help="the simulated box's noise seed (default 0)")
+    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), help="the simulated box's noise seed (default 0)")
     p.add_argument("--json", metavar="PATH", help="also write the report here ('-': standard output)")
     p.set_defaults(func=run)
 
