@@ -404,7 +404,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             sur = sur.result()
         except TableBuildError as e:
             raise UsageError(f"{where_prior} cannot be modelled: {e}") from None
-        det, smallest = detectable(sur, "with the coarse raster (stated once the table was built)")
+        det, smallest = detectable(sur, "once the table was built")
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status,
               "strategy": args.strategy}
     if res is not None:
