@@ -22,7 +22,7 @@ from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session, receive_once
-from robot.records import done_indices, latest_by_index, move_aside, read_records
+from robot.records import DONE, done_indices, latest_by_index, move_aside, read_records
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -51,11 +51,14 @@ def _runner(get_interfaces, out: Path, stats: dict):
         if not path.exists():
             plan.save(path)
         stats["next_index"] += len(plan.probes)
-        stats["planned_s"] += plan.total_time_s
         latest = latest_by_index(out)
         if all(p.index in latest and latest[p.index].status in MEASURED for p in plan.probes):
             recs = [latest[p.index] for p in plan.probes]      # measured before: replay, the arm is not needed
         else:
+            # the plan's time of the probes pressed now (robot_s counts those only: a resumed run's earlier ones
+            # are neither; before session 48 every round's whole plan was counted, a resume's robot_s far below it)
+            stats["planned_s"] += sum(p.duration_s for p in plan.probes
+                                      if not (p.index in latest and latest[p.index].status in DONE))
             c, r, fs = get_interfaces(plan)
             rep = run_plan(plan, c, r, out, resume=True, progress=lambda rec, i, n: None, force_source=fs)
             stats["controller_s"] += sum(rec.duration_s or 0.0 for rec in rep.records)   # arm time probing
