@@ -79,8 +79,8 @@ def join_negative_lists(argv: list[str]) -> list[str]:
     leading minus takes it as its value, as the user meant."""
     out: list[str] = []
     for a in argv:
-        if (out and _NEGATIVE_LIST.fullmatch(a) and out[-1].startswith("--") and "=" not in out[-1]
-                and out[-1] != "--"):
+        if (_NEGATIVE_LIST.fullmatch(a) and out and out[-1].startswith("--") and "=" not in out[-1]
+                and "--" not in out):   # (after a bare --, every argument is a positional one)
             out[-1] = f"{out[-1]}={a}"
         else:
             out.append(a)

@@ -330,7 +330,7 @@ def _is_num(v) -> bool:
 # ---------------------------------------------------------------------------------------------------------------
 # The probe protocol: how the driver measures, what the planner and localizer assume of it
 
-RECORD_ABS_MAX = 1e6             # no number in a probe record is larger (N, m, s: forces <= 10 N, times of a run)
+RECORD_ABS_MAX = 1e6             # no force (N) or length (m) in a probe record is larger (forces <= 10 N)
 
 PERIOD_S = 0.002                 # controller period (500 Hz on e-Series)
 FILTER_WINDOW = 5                # moving average for contact / force-limit decisions (periods)
@@ -447,13 +447,19 @@ class ProbeRecord:
 
     @staticmethod
     def from_dict(d: dict) -> "ProbeRecord":
-        """A record from its probes.jsonl line's dict; ValueError for a number no driver writes (not finite, or
-        beyond RECORD_ABS_MAX: a force of 1e308 N overflowed the localizer's residuals)."""
+        """A record from its probes.jsonl line's dict; ValueError for a number no driver writes (not finite; a force
+        or length beyond RECORD_ABS_MAX: 1e308 N overflowed the localizer's residuals; times are a controller's
+        clock, days of uptime, and only finite) or of the wrong type."""
         kinds = {f.name: str(f.type) for f in dataclasses.fields(ProbeRecord)}
         for k, v in d.items():
-            if _is_num(v) and not (math.isfinite(v) and abs(v) <= RECORD_ABS_MAX):
-                raise ValueError(f"{k} = {v!r} is not a number a probe records (finite, within +-{RECORD_ABS_MAX:g})")
-            t = kinds.get(k, "")
+            if k not in kinds:          # (a later version's field: not read)
+                continue
+            if _is_num(v) and not math.isfinite(v):
+                raise ValueError(f"{k} = {v!r} is not a number a probe records (finite)")
+            if _is_num(v) and k.endswith(("_n", "_m")) and abs(v) > RECORD_ABS_MAX:
+                raise ValueError(f"{k} = {v!r} is not a force or length a probe records (within "
+                                 f"+-{RECORD_ABS_MAX:g})")
+            t = kinds[k]
             if t.startswith(("float", "int")) and not (_is_num(v) or (v is None and "None" in t)):
                 raise ValueError(f"{k} = {v!r} is not a number")
         return ProbeRecord(**{k: v for k, v in d.items() if k in kinds})

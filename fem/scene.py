@@ -400,9 +400,6 @@ def _build(cls, table, where: str):
 REQUIRED_TISSUE = ("width_m", "height_m", "youngs_pa", "poisson")
 
 
-MAX_NAME_CHARS = 100
-
-
 def from_dict(d: dict, default_name: str = "scene") -> Scene:
     """A scene from a parsed TOML file or ``Scene.to_dict()``. The [tissue] table and its four fields are required
     (a file without them would otherwise silently describe the default tissue); stones, [indenter] and [analysis]
@@ -416,10 +413,9 @@ def from_dict(d: dict, default_name: str = "scene") -> Scene:
     name = d.get("name", default_name)
     if not isinstance(name, str):
         raise SceneError(f"name must be a string, got {type(name).__name__}")
-    if not (name.strip() and name.isprintable() and len(name) <= MAX_NAME_CHARS):
-        raise SceneError(f"name = {name[:MAX_NAME_CHARS]!r}{'...' if len(name) > MAX_NAME_CHARS else ''}: give 1 to "
-                         f"{MAX_NAME_CHARS} printable characters, no line breaks or control codes (the name is "
-                         f"printed in the commands' lines)")
+    if not (name.strip() and name.isprintable()):
+        raise SceneError(f"name = {name[:80]!r}{'...' if len(name) > 80 else ''}: give printable characters, not "
+                         f"blank, no line breaks or control codes (the name is printed in the commands' lines)")
     stones = d.get("stone", [])
     if isinstance(stones, dict):
         stones = [stones]

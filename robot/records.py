@@ -60,15 +60,27 @@ class RunLog:
         self.out = Path(out_dir)
         (self.out / "raw").mkdir(parents=True, exist_ok=True)
         self.jsonl = self.out / "probes.jsonl"
-        torn = False
         if self.jsonl.exists() and self.jsonl.stat().st_size:
-            with open(self.jsonl, "rb") as f:
-                f.seek(-1, os.SEEK_END)
-                torn = f.read(1) != b"\n"       # killed mid-line: end it, so the next record is a line of its own
+            self._set_torn_line_aside()
         self._f = open(self.jsonl, "a", encoding="utf-8")
-        if torn:
-            self._f.write("\n")
-            self._f.flush()
+
+    def _set_torn_line_aside(self) -> None:
+        """A process killed mid-line left a torn last line (no newline after it): appended to probes.jsonl.torn
+        (fsync'ed; kept, never read as a record) and cut from probes.jsonl, so the next record is a line of its own
+        and the file holds records only (read_records lists any other line as damaged). Before session 48 the torn
+        line was ended with a newline and stayed, and a resumed run then called it damaged."""
+        data = self.jsonl.read_bytes()
+        if data.endswith(b"\n"):
+            return
+        keep = data.rfind(b"\n") + 1
+        with open(self.out / "probes.jsonl.torn", "ab") as f:
+            f.write(data[keep:] + b"\n")
+            f.flush()
+            os.fsync(f.fileno())
+        with open(self.jsonl, "r+b") as f:
+            f.truncate(keep)
+            f.flush()
+            os.fsync(f.fileno())
 
     def _raw_path(self, index: int) -> Path:
         p = self.out / "raw" / f"probe_{index:03d}.npz"

@@ -81,6 +81,7 @@ def test_a_list_option_starting_with_a_minus_is_taken_as_its_value(tmp_path, cap
     assert join_negative_lists(["plan", "--branch", "-1,1,1", "--x", "-0.5"]) == ["plan", "--branch=-1,1,1", "--x",
                                                                                    "-0.5"]
     assert join_negative_lists(["--", "-1,2"]) == ["--", "-1,2"]
+    assert join_negative_lists(["--", "--x", "-1,2"]) == ["--", "--x", "-1,2"]
     assert join_negative_lists(["--a=1", "-1,2"]) == ["--a=1", "-1,2"]
     assert main(["plan", "paper", "--branch", "-1,1,-1", "--out", str(tmp_path / "p.json")]) == 0
     assert json.loads((tmp_path / "p.json").read_text())["options"]["branch"] == [-1, 1, -1]
@@ -217,13 +218,15 @@ def test_fresh_leaves_the_commands_own_input_files_in_place(tmp_path):
     assert move_aside(out, keep=[str(out / "mine.toml"), str(out / "plan.json")]) is None     # nothing else to move
 
 
-@pytest.mark.parametrize("name", ["a\nSTONE fake line", "red\x1b[31m", "", "   ", "x" * 101])
+@pytest.mark.parametrize("name", ["a\nSTONE fake line", "red\x1b[31m", "", "   ", "tab\there"])
 def test_a_scene_name_that_would_garble_the_output_is_refused(name):
     from fem.scene import SceneError, from_dict, load
     d = load("healthy").to_dict()
     with pytest.raises(SceneError, match="name = .*printable"):
         from_dict(dict(d, name=name))
     assert from_dict(dict(d, name="kidney 7 (left)")).name == "kidney 7 (left)"
+    long = from_dict(dict(d, name="n" * 200))           # (its prior's name, with "-prior", reads back too)
+    assert from_dict(long.prior().to_dict()).name == "n" * 200 + "-prior"
 
 
 @pytest.mark.parametrize("value, ok", [("1.5", False), ("abc", False), ("-3", False), ("inf", False), ("0", False),
@@ -244,3 +247,26 @@ def test_ft_seed_is_range_checked(capsys):
     assert main(["ft", "--ft", "netft", "--seed", "-200000", "--duration-s", "0.2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--seed" in err[0] and "[0, 4294967295]" in err[0]
+
+
+def test_a_real_controllers_clock_and_a_torn_line_are_not_damage(tmp_path):
+    """A review's two false alarms: t_s is the controller's clock (seconds since it started: past 1e6 after 11.6
+    days of uptime), and a bound on it made every record of such an arm "damaged" (none reached the fit, every probe
+    pressed again); a line torn by a crash, ended by the next run's log and then mid-file, was called damaged. Now
+    times need only be finite, and the torn line is set aside in probes.jsonl.torn (kept, never read)."""
+    from core.contracts import ProbeRecord
+    from robot.records import RunLog, read_records
+
+    def rec(i, **kw):
+        return ProbeRecord(index=i, x_m=0.01 * i, status="ok", force_mean_n=0.5, t_s=1_036_800.0, **kw)
+    (tmp_path / "probes.jsonl").write_text(json.dumps(rec(0).to_dict(), default=str) + "\n" + '{"index": 1, "x_')
+    log = RunLog(tmp_path)
+    log.write_probe(rec(1))
+    log.close()
+    damaged: list = []
+    assert [r.index for r in read_records(tmp_path, damaged)] == [0, 1] and damaged == []
+    assert (tmp_path / "probes.jsonl.torn").read_text() == '{"index": 1, "x_\n'
+    assert "warning" not in __import__("app.runexec", fromlist=["x"]).resuming_note(tmp_path)
+    with pytest.raises(ValueError, match="force_mean_n"):
+        ProbeRecord.from_dict(dict(rec(2).to_dict(), status="ok", force_mean_n=2e6))
+    assert ProbeRecord.from_dict(dict(rec(2).to_dict(), status="ok", later_field=1e300)).index == 2
