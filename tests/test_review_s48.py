@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -13,9 +14,14 @@ from pathlib import Path
 
 import pytest
 
-from app.runexec import exit_code, verdict
-from core.contracts import Limits
+from app.cli import check_environment, join_negative_lists, main
+from app.errors import UsageError
+from app.runexec import check_resume, exit_code, resuming_note, verdict
+from core.contracts import Limits, Plan, PlanError, ProbeRecord
+from fem.scene import SceneError, from_dict, load
 from planner.detectability import describe_smallest, smallest_detectable
+from planner.plan import plan_raster
+from robot.records import RunLog, move_aside, read_records
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -77,7 +83,6 @@ def test_smallest_detectable_is_si_and_by_depth():
 def test_a_list_option_starting_with_a_minus_is_taken_as_its_value(tmp_path, capsys):
     """``--branch -1,1,1`` read "expected one argument" (argparse took the list for an option); now it is the
     option's value, as ``--branch=-1,1,1`` is, and a bad one is still refused naming the option."""
-    from app.cli import join_negative_lists, main
     assert join_negative_lists(["plan", "--branch", "-1,1,1", "--x", "-0.5"]) == ["plan", "--branch=-1,1,1", "--x",
                                                                                    "-0.5"]
     assert join_negative_lists(["--", "-1,2"]) == ["--", "-1,2"]
@@ -104,9 +109,6 @@ def test_a_list_option_starting_with_a_minus_is_taken_as_its_value(tmp_path, cap
 def test_a_plan_missing_a_limit_or_motion_field_is_refused_not_defaulted(edit, names):
     """A review's hand-edited plan without limits.force_limit_n ran on palpate-cell with the 2 N default, four times
     its planned 0.5 N; a missing workspace, probe speed or contact threshold took defaults the same way."""
-    from core.contracts import Plan, PlanError
-    from fem.scene import load
-    from planner.plan import plan_raster
     d = json.loads(json.dumps(plan_raster(load("paper").prior(), n_waypoints=3,
                                           limits=Limits(force_limit_n=0.5)).to_dict()))
     assert Plan.from_dict(json.loads(json.dumps(d))).limits.force_limit_n == 0.5
@@ -116,9 +118,6 @@ def test_a_plan_missing_a_limit_or_motion_field_is_refused_not_defaulted(edit, n
 
 
 def test_an_older_2d_plan_may_lack_y_but_a_3d_plan_may_not():
-    from core.contracts import Plan, PlanError
-    from fem.scene import load
-    from planner.plan import plan_raster
     d = plan_raster(load("paper").prior(), n_waypoints=3).to_dict()
     for p in d["probes"]:
         del p["y_m"]
@@ -134,7 +133,6 @@ def test_a_plans_time_is_the_simulated_drivers(tmp_path):
     """The plan's timing counts the driver's free-air zeroing before each descent and its slow retract (a helper's
     phase-by-phase comparison: the plan was 7 % short on the paper section, 0.18 s zeroing and 0.41 s retract of
     8.60 s a probe; now measured within 0.3 %). The coarse raster alone, every probe to its planned depth."""
-    from app.cli import main
     assert main(["plan", "paper", "--out", str(tmp_path / "p.json")]) == 0
     assert main(["run", "paper", "--sim", "--plan", str(tmp_path / "p.json"), "--budget-probes", "15",
                  "--no-figure", "--out", str(tmp_path / "run")]) == 0
@@ -148,10 +146,7 @@ def test_damaged_record_lines_are_listed_and_never_reach_the_fit(tmp_path):
     """A review's edits of probes.jsonl: a garbage line mid-file was dropped without a word (its probe pressed again
     silently), and a NaN or 1e308 force reached the localizer (a traceback). Now each is listed with its line and
     why, skipped, and said when the run resumes; a torn final line (a crash mid-write) is still skipped quietly."""
-    import shutil
 
-    from app.runexec import resuming_note
-    from robot.records import read_records
     src = ROOT / "tests" / "data" / "mismatch-trial-0048"
     lines = (src / "probes.jsonl").read_text().splitlines()
     good = len(lines)
@@ -188,8 +183,6 @@ def _a_run_dir(tmp_path, opts: dict) -> Path:
 def test_resume_takes_an_option_at_its_default_and_a_scene_by_another_path(tmp_path):
     """A review's resumes refused as "other options": --depth-limit-m given at its default (0.004) after a run
     without it, and the same scene file as ./st.toml after st.toml. A real change is still refused."""
-    from app.errors import UsageError
-    from app.runexec import check_resume
     base = {"scene": "st.toml", "scene_key": "abc", "seed": 0}
     out = _a_run_dir(tmp_path, base)
     assert check_resume(out, dict(base, depth_limit_m=0.004), fresh=False)
@@ -208,7 +201,6 @@ def test_resume_takes_an_option_at_its_default_and_a_scene_by_another_path(tmp_p
 def test_fresh_leaves_the_commands_own_input_files_in_place(tmp_path):
     """--fresh moved everything in OUT aside, the scene file the command was running included: the next run with
     the same command then failed for a missing scene file."""
-    from robot.records import move_aside
     out = tmp_path / "K"
     out.mkdir()
     for n in ("mine.toml", "notes.txt", "probes.jsonl", "plan.json"):
@@ -221,7 +213,6 @@ def test_fresh_leaves_the_commands_own_input_files_in_place(tmp_path):
 
 @pytest.mark.parametrize("name", ["a\nSTONE fake line", "red\x1b[31m", "", "   ", "tab\there"])
 def test_a_scene_name_that_would_garble_the_output_is_refused(name):
-    from fem.scene import SceneError, from_dict, load
     d = load("healthy").to_dict()
     with pytest.raises(SceneError, match="name = .*printable"):
         from_dict(dict(d, name=name))
@@ -233,8 +224,6 @@ def test_a_scene_name_that_would_garble_the_output_is_refused(name):
 @pytest.mark.parametrize("value, ok", [("1.5", False), ("abc", False), ("-3", False), ("inf", False), ("0", False),
                                        ("500000", True), ("2e6", True)])
 def test_palpate_max_dofs_is_a_whole_positive_number(value, ok, monkeypatch):
-    from app.cli import check_environment
-    from app.errors import UsageError
     monkeypatch.setenv("PALPATE_MAX_DOFS", value)
     if ok:
         check_environment()
@@ -244,7 +233,6 @@ def test_palpate_max_dofs_is_a_whole_positive_number(value, ok, monkeypatch):
 
 
 def test_ft_seed_is_range_checked(capsys):
-    from app.cli import main
     assert main(["ft", "--ft", "netft", "--seed", "-200000", "--duration-s", "0.2"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--seed" in err[0] and "[0, 4294967295]" in err[0]
@@ -255,8 +243,6 @@ def test_a_real_controllers_clock_and_a_torn_line_are_not_damage(tmp_path):
     days of uptime), and a bound on it made every record of such an arm "damaged" (none reached the fit, every probe
     pressed again); a line torn by a crash, ended by the next run's log and then mid-file, was called damaged. Now
     times need only be finite, and the torn line is set aside in probes.jsonl.torn (kept, never read)."""
-    from core.contracts import ProbeRecord
-    from robot.records import RunLog, read_records
 
     def rec(i, **kw):
         return ProbeRecord(index=i, x_m=0.01 * i, status="ok", force_mean_n=0.5, t_s=1_036_800.0, **kw)
@@ -267,7 +253,7 @@ def test_a_real_controllers_clock_and_a_torn_line_are_not_damage(tmp_path):
     damaged: list = []
     assert [r.index for r in read_records(tmp_path, damaged)] == [0, 1] and damaged == []
     assert (tmp_path / "probes.jsonl.torn").read_text() == '{"index": 1, "x_\n'
-    assert "warning" not in __import__("app.runexec", fromlist=["x"]).resuming_note(tmp_path)
+    assert "warning" not in resuming_note(tmp_path)
     with pytest.raises(ValueError, match="force_mean_n"):
         ProbeRecord.from_dict(dict(rec(2).to_dict(), status="ok", force_mean_n=2e6))
     assert ProbeRecord.from_dict(dict(rec(2).to_dict(), status="ok", later_field=1e300)).index == 2
