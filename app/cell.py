@@ -43,7 +43,7 @@ from app.options import (
 from app.outlock import holding
 from app.parser import Parser
 from core.contracts import SENSORS, FaultKind, Plan, RunStatus
-from fem.scene import BUILTIN, load
+from fem.scene import BUILTIN, SceneError, load
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
@@ -247,7 +247,11 @@ def _main(args, held: contextlib.ExitStack) -> int:
         check_same_extent(truth, plan_prior(plan), f"--plan {args.plan}: its prior scene",
                           args.truth or truth.name)
         if args.sim_mesh_m is not None:
-            truth.with_analysis(mesh_size_m=args.sim_mesh_m)          # a SceneError now, not after the pre-flight
+            try:                                # a usage error now, not after the pre-flight
+                truth.with_analysis(mesh_size_m=args.sim_mesh_m)
+            except SceneError as e:             # said as the option the user gave, not as the scene's field
+                raise UsageError(f"--sim-mesh-m {args.sim_mesh_m:g}: not a mesh for {truth.name} "
+                                 f"(the simulator's analysis.mesh_size_m): {e}") from None
     done = set() if args.fresh else done_indices(out)
     other = None if args.fresh else foreign_record(out, plan)
     if other is not None:

@@ -198,11 +198,13 @@ def workers_for_fits(args) -> int:
 OPTIONAL_RUN_OPTIONS = ("ft", "depth_limit_m", "thickness_sigma_m")     # in run_options only when given
 
 
-def run_options(args, scene, cond: TruthConditions | None = None) -> dict:
-    """What decides the rounds of a run: a re-run resumes only with all of these equal."""
+def run_options(args, scene, cond: TruthConditions | None = None, belief=None) -> dict:
+    """What decides the rounds of a run: a re-run resumes only with all of these equal. ``belief``: the --prior
+    scene's prior (its content key is kept, as the scene's: an edited prior file is another run)."""
     plan_sha = hashlib.sha256(Path(args.plan).read_bytes()).hexdigest() if args.plan else None
     return {"scene": args.scene, "scene_key": scene.key(), "plan_sha256": plan_sha,
-            "prior": args.prior, "truth_conditions": None if cond is None or cond.ideal else cond.to_dict(),
+            "prior": args.prior, **({"prior_key": belief.key()} if belief is not None else {}),
+            "truth_conditions": None if cond is None or cond.ideal else cond.to_dict(),
             "arm": f"host {args.host}" if args.host else f"sim {args.sim or 'inmemory'}",
             "sensor": args.sensor, "seed": args.seed, "waypoints": None if args.plan else args.waypoints,
             **({"grid": list(args.grid)} if getattr(args, "grid", None) and not args.plan else {}),
@@ -240,12 +242,16 @@ OPTIONAL_DEFAULTS = {"depth_limit_m": Limits().depth_limit_m}
 
 
 def _same_option(k: str, prev: dict, now: dict) -> bool:
-    """Do two runs' option ``k`` differ only in how it was written? The scene by another path or name to the same
-    content (its key), the prior's file by another path to the same file, an optional option at its default."""
+    """Do two runs' option ``k`` differ only in how it was written? The scene or the prior by another path or name
+    to the same content (its key), an optional option at its default."""
     if k == "scene":
         return prev.get("scene_key") == now.get("scene_key")       # (the content decides; the key is compared too)
-    if k == "prior":
+    if k == "prior":            # the content decides; a run before session 49 kept no prior_key: the same file
+        if "prior_key" in prev and "prior_key" in now:
+            return prev["prior_key"] == now["prior_key"]
         return _same_file(prev.get(k), now.get(k))
+    if k == "prior_key":
+        return k not in prev
     if k in OPTIONAL_DEFAULTS:
         return prev.get(k, OPTIONAL_DEFAULTS[k]) == now.get(k, OPTIONAL_DEFAULTS[k])
     return False
@@ -315,6 +321,21 @@ def choose_executor(args, out: Path, scene, cond, plan0, resume: bool, stats: di
         where += (f"; force from the Net F/T box ({args.ft.host or 'simulated'}), which the UR's own force "
                   f"protection does not see: the driver's force limit is the only guard on it")
     return execute, where, truth
+
+
+def check_fresh_inputs(args, out: Path) -> None:
+    """UsageError for ``--fresh`` with an input file that is one of OUT's run files (``--plan OUT/plan_round1.json``):
+    kept in OUT as the command's input, the new run would take it for its own round's plan or options."""
+    if not args.fresh:
+        return
+    for opt in ("scene", "plan", "prior"):
+        given = getattr(args, opt, None)
+        if not isinstance(given, str) or not Path(given).is_file():
+            continue
+        p = Path(given).resolve()
+        if p.parent == out.resolve() and (p.name.startswith("plan_round") or p.name in RUN_FILES):
+            raise UsageError(f"--{opt} {given}: a file of the run in --out {out}, which --fresh sets aside (kept "
+                             f"there, the new run would take it for its own); copy it out of {out} first")
 
 
 def open_out(args, out: Path, opts: dict, say) -> None:

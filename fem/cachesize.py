@@ -51,6 +51,11 @@ _ENTRY = re.compile(r"^(?P<kind>[a-z][a-z0-9]*)-(?:[0-9a-f]{20}|[0-9a-f]{16})(?P
 _PARTIAL = re.compile(r"^(?P<stem>[a-z][a-z0-9]*-(?:[0-9a-f]{20}|[0-9a-f]{16})(?:-cal-[0-9.e+-]+-[0-9.e+-]+)?)"
                       r"\.[A-Za-z0-9_]+\.tmp$")
 KIND_NAME = re.compile(r"^[a-z][a-z0-9]*(?:-cal)?$")
+# Every kind palpate's code writes (tests/test_review_s49.py finds each in the code): `palpate cache clear --kind`
+# refuses any other name rather than clear nothing and succeed (a typo such as factor3 would look done)
+KINDS = frozenset({"band3d", "factor", "factor3d", "fingerprint", "fingerprint3d", "forces", "forces3d", "hyper",
+                   "hypershape", "influence", "mesh", "mesh3d", "surface", "surface3d", "surrogate",
+                   "surrogate3d", "surrogate3d-cal", "tip3d"})
 
 _in_use: set[str] = set()         # entries this process read or wrote (never removed by its own pruning)
 _warned: set[str] = set()

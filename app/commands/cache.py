@@ -140,6 +140,10 @@ def run(args) -> int:
                     raise UsageError(f"--kind {bad[0]!r}: a kind is a lower-case name such as mesh or factor3d "
                                      f"(`palpate cache` lists those present)")
                 present = sorted({e.kind for e in ents})
+                unknown = [k for k in args.kind if k not in cachesize.KINDS and k not in present]
+                if unknown:
+                    raise UsageError(f"--kind {unknown[0]!r}: not a kind palpate's cache holds; one of "
+                                     f"{', '.join(sorted(cachesize.KINDS))}")
                 for k in args.kind:
                     if k not in present:
                         print(f"disk cache {root}: no entries of kind {k} (present: {', '.join(present) or 'none'})")

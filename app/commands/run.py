@@ -51,6 +51,7 @@ from app.outlock import holding
 from app.runexec import (
     RUN_FILES,
     RunAborted,
+    check_fresh_inputs,
     check_resume,
     choose_executor,
     conclude,
@@ -301,7 +302,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if not args.host:          # the simulated sensor is this preset: a run the driver would stop is refused first
         check_simulated_sensor(args.sensor, plan0.limits.force_limit_n if plan0 is not None else
                                Limits().force_limit_n)
-    opts = run_options(args, scene, cond)
+    opts = run_options(args, scene, cond, belief)
+    check_fresh_inputs(args, out)
     resume = check_resume(out, opts, args.fresh)
     if resume and (out / "plan_round0.json").exists():
         try:
