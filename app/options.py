@@ -24,6 +24,7 @@ from pathlib import Path
 
 from app.errors import UsageError
 from core.contracts import HARD_FORCE_LIMIT_N, NOISE_SIGMA_FACTOR, SENSORS
+from core.textfile import InputFileError
 from fem.scene import BUILTIN, Scene, SceneError, load
 from robot.truth import TruthError, conditions_of
 
@@ -46,6 +47,17 @@ def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
             raise UsageError(f"{where_prior}: tissue.{key} = {a!r} m but the simulated truth's (scene {truth_name}) "
                              f"is {b!r} m; the localizer fits the tissue's stiffness, thickness and surface, not its "
                              f"extent: give a belief of the same {key}")
+    # the tip is the instrument in the arm's hand, known exactly: a belief with another one plans its depths and
+    # reads its forces for a tip that is not there (a session-49 review: a 3 mm truth tip under a 5 mm belief ran,
+    # pressed 4 mm with the 3 mm tip, and said STONE)
+    for key in ("shape", "radius_m", "thickness_m"):
+        a, b = getattr(prior.indenter, key), getattr(truth.indenter, key)
+        same = a == b if isinstance(a, str) or a is None or b is None else math.isclose(a, b, rel_tol=1e-9)
+        if not same:
+            said = (lambda v: repr(v)) if key == "shape" else (lambda v: f"{v:g} m")
+            raise UsageError(f"{where_prior}: indenter.{key} = {said(a)} but the simulated truth's (scene "
+                             f"{truth_name}) is {said(b)}; the tip is the instrument, the same in the belief and the "
+                             f"world: give the truth's [indenter] to the belief")
 
 
 def _parse(s: str, kind=float):
@@ -318,6 +330,8 @@ def load_scene(spec: str, option: str = "scene") -> Scene:
         raise UsageError(f"{option} {spec}: not a UTF-8 text (TOML) file ({e.reason} at byte {e.start})") from None
     except IsADirectoryError:
         raise UsageError(f"{option} {spec}: is a directory; give a scene TOML file or a built-in name") from None
+    except InputFileError as e:
+        raise UsageError(f"{option} {spec}: {e.reason}") from None
     except OSError as e:
         raise UsageError(f"{option} {spec}: cannot read: {e.strerror or e}") from None
     except SceneError as e:

@@ -435,7 +435,27 @@ FIRST_FIX = {"free_air_force": "the same command resumes once the sensor reads s
                              "allowance (until then it ends the same way)"}
 
 
-def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None) -> str:
+def unplaced(loc, tissue) -> str | None:
+    """Why a detected stone's estimate is no location (None when it is one): its 1-sigma interval across the surface
+    wider than a quarter of the tissue (x, or y on a block) or in depth wider than the tissue is thick. A
+    session-49 review: a sensor drifting 0.01 N/s (inside the [truth] table's range) gave LR 20 at a threshold of 20
+    with chi2 3810 on 32 degrees of freedom, and the line said STONE at x 22.93 +- 69.94 mm, depth 10 +- 276 mm.
+    (The studies' widest detected estimate: 5.4 mm across, 21.8 mm deep, a 6.5 mm stone 39 mm down.)"""
+    if tissue is None or not (localized(loc) and loc.detected):
+        return None
+    spans = [("x", loc.sigma_x_m, tissue.width_m / 4, "a quarter of the width")]
+    if getattr(loc, "sigma_y_m", None) is not None and tissue.length_m is not None:
+        spans.append(("y", loc.sigma_y_m, tissue.length_m / 4, "a quarter of the length"))
+    spans.append(("depth", loc.sigma_depth_m, tissue.height_m, "the thickness"))
+    for name, sigma, limit, what in spans:
+        if not sigma <= limit:          # (nan too)
+            return (f"its {name} sigma, {sigma * 1e3:.1f} mm, is wider than {what} ({limit * 1e3:.1f} mm); chi2 "
+                    f"{loc.chi2_1:.0f} on {loc.dof_1} degrees of freedom with the stone, {loc.chi2_0:.0f} without")
+    return None
+
+
+def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict | None = None,
+            tissue=None) -> str:
     """The run's last line's head: STONE / NO STONE and the estimate; NOT LOCALIZED when too few probes were usable
     to fit (a localization needs more measurements than a stone's parameters: the reason says how many); NOT
     DETECTABLE when no probe felt contact (``nc``: ``no_contact``) and the fit found no stone (a fit that did found
@@ -454,6 +474,11 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
                 + FIRST_FIX.get(kind, "the same command resumes"))
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
+    why = unplaced(loc, tissue)
+    if why is not None:
+        return (f"NOT LOCALIZED: the likelihood ratio ({loc.lr:.0f}, threshold {loc.lr_threshold:.0f}) says a stone, "
+                f"but the fit cannot place it: {why}: the records fit neither model (a drifting sensor, or tissue "
+                f"unlike the prior?); " + described)
     if nc is not None and nc["n"] == nc["of"]:         # (found in forces below the contact threshold)
         described += ("; warning: no probe felt contact: the surface was taken as registered (no contact onsets), "
                       "and the forces were below the contact threshold")
@@ -479,14 +504,14 @@ def verdict_kind(line: str) -> str:
 
 
 def conclude(result: dict, out: Path, loc, res, described: str, status: str, fault: dict | None, say,
-             three_d: bool = False) -> str:
+             three_d: bool = False, tissue=None) -> str:
     """The run's closing findings into ``result``: the probes that felt no contact (said as a warning too) and the
     verdict; returns the last line's head (``verdict``)."""
     nc = no_contact(out) if res is not None else None
     if nc is not None:
         result["no_contact_probes"] = nc
         say(no_contact_warning(nc, three_d=three_d))
-    head = verdict(loc, res, described, status, fault, nc)
+    head = verdict(loc, res, described, status, fault, nc, tissue)
     result["verdict"] = verdict_kind(head)
     return head
 

@@ -37,6 +37,8 @@ from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 
+from core.textfile import NESTED_TOO_DEEP, InputFileError, read_user_text
+
 PLAN_VERSION = 2
 MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT = 0.5, 4.0   # a probe's force_exponent (null: unknown)
 # the driver's depth limit fits the descent's force curve from where it last rose past this fraction of the contact
@@ -209,9 +211,13 @@ class Plan:
     @staticmethod
     def load(path: str | Path) -> "Plan":
         try:
-            d = json.loads(Path(path).read_text(encoding="utf-8"))
+            d = json.loads(read_user_text(path, "plan"))
+        except InputFileError as e:
+            raise PlanError(str(e)) from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
             raise PlanError(f"cannot read plan {path}: {e}") from None
+        except RecursionError:
+            raise PlanError(f"cannot read plan {path}: {NESTED_TOO_DEEP}") from None
         return Plan.from_dict(d)
 
     def tip_radius_m(self) -> float:

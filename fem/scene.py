@@ -21,6 +21,8 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from core.textfile import NESTED_TOO_DEEP, read_user_text
+
 
 class SceneError(ValueError):
     """A scene description that cannot be used; the message names the offending field."""
@@ -155,7 +157,8 @@ def check_load_a(scene: "Scene") -> None:
     an arbitrary point)."""
     d, h = scene.analysis.top_displacement_m, scene.tissue.height_m
     if not 0 < d < h:
-        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) must lie in (0, height_m = {h:g}) m"
+        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A; default {Analysis().top_displacement_m:g} "
+                         f"when not given) must lie in (0, height_m = {h:g}) m, at most {STRAIN_MAX * h:.4g} m"
                          + (": 0 moves the top by nothing, so load A would load nothing" if d == 0 else ""))
     if d > STRAIN_MAX * h:
         raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) is {d / h:.0%} of the tissue height "
@@ -280,6 +283,9 @@ def _validate_indenter(scene: Scene) -> None:
         raise SceneError(f"indenter.radius_m = {ind.radius_m!r} must be at most half the tissue length "
                          f"({t.length_m / 2:g} m): a wider tip does not fit on the surface")
     _check_length("indenter.thickness_m", ind.thickness_m)
+    if scene.is_3d and ind.thickness_m != Indenter.thickness_m:
+        raise SceneError(f"indenter.thickness_m = {ind.thickness_m!r} is a 2D tip's out-of-plane length; a 3D tip "
+                         f"(a {ind.shape}) has none: drop it")
     if ind.youngs_pa is not None:
         _check_modulus("indenter.youngs_pa", ind.youngs_pa)
     _check_poisson("indenter.poisson", ind.poisson)
@@ -325,7 +331,10 @@ def _validate_analysis(scene: Scene) -> None:
     _check_range("analysis.surface_refine", a.surface_refine, SURFACE_REFINE_MIN, SURFACE_REFINE_MAX, "",
                  " (the surface element size is mesh_size_m / surface_refine)")
     if a.mesh_size_m > min(t.width_m, t.height_m) / 2:
-        raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m} is larger than half the tissue")
+        side = "height_m" if t.height_m <= t.width_m else "width_m"
+        raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m:g} is larger than half the tissue's {side} "
+                         f"({min(t.width_m, t.height_m):g} m): give [analysis] mesh_size_m <= "
+                         f"{min(t.width_m, t.height_m) / 2:g} (when not given, it is the scene's default)")
     if a.mesh_size_m / a.surface_refine < ELEMENT_MIN_M:
         raise SceneError(f"analysis.mesh_size_m / surface_refine = {a.mesh_size_m:g} / {a.surface_refine:g} m = "
                          f"{a.mesh_size_m / a.surface_refine:.3g} m: the finest element must be at least "
@@ -340,8 +349,9 @@ def _validate_analysis(scene: Scene) -> None:
             raise SceneError(f"analysis.formulation = {a.formulation!r} is 2D only; a 3D scene uses "
                              f"'displacement' (P1/P2 tetrahedra)")
         if a.mesh_size_m > t.length_m / 2:
-            raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m} is larger than half the tissue length "
-                             f"({t.length_m / 2:g} m)")
+            raise SceneError(f"analysis.mesh_size_m={a.mesh_size_m:g} is larger than half the tissue's length_m "
+                             f"({t.length_m / 2:g} m): give [analysis] mesh_size_m <= {t.length_m / 2:g} (when not "
+                             f"given, it is the scene's default)")
         if a.patch_m is not None:
             _check_length("analysis.patch_m", a.patch_m)
             if a.patch_m > min(t.width_m, t.length_m):
@@ -441,10 +451,13 @@ def load_toml(path: str | Path) -> Scene:
     (``block_file_defaults``), not the dataclasses' defaults, which are a 2D section's."""
     import tomllib  # lazy: TOML scenes only (4 ms of a built-in scene's 0.2 s command; issue 19)
     path = Path(path)
+    text = read_user_text(path, "scene")
     try:
-        d = tomllib.loads(path.read_text())
+        d = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise SceneError(f"{path}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise SceneError(f"{path}: not valid TOML: {NESTED_TOO_DEEP}") from None
     return from_dict(block_file_defaults(d), default_name=path.stem)
 
 

@@ -30,7 +30,7 @@ scene's name, the tissue modulus, the stones, a rigid-treated tip's modulus, loa
 The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``) and carries a
 behavioural fingerprint of the fem that built it (``fingerprint``: fem's forces for the prior and one grid stone at a
 few probes, computed at the prior's own modulus (0.4-0.9 s; once per version of fem and its libraries, then read
-from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (~10 min on 2 busy cores; 360 fem models; on dask.distributed with
+from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (6.5 min on 2 cores; 471 fem models; on dask.distributed with
 ``planner.tasks``) and read in milliseconds. A table for the built-in paper tissue is shipped in planner/data/ (same
 file name, same check).
 ``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.
@@ -65,7 +65,7 @@ FORMAT = 2           # 2: keyed by table_scene (unit modulus), youngs_ref_pa sto
 class Grid:
     s_m: tuple = (1.5e-3, 2.2e-3, 3.2e-3, 4.5e-3, 6.2e-3, 8.5e-3, 11.5e-3, 15.5e-3, 20.5e-3, 27e-3, 36e-3)
     diam_m: tuple = (4e-3, 6e-3, 8.5e-3, 11e-3, 14e-3, 17e-3)
-    xs_m: tuple = (10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3)   # left half (for a 70 mm section; scaled by width)
+    xs_m: tuple = (5e-3, 7.5e-3, 10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3)   # left half (70 mm; scaled by width)
     levels_m: tuple = (1e-3, 1.5e-3, 2e-3, 2.5e-3, 3e-3, 3.5e-3, 4e-3)
     dx0_m: float = 0.5e-3
 

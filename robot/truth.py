@@ -33,6 +33,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from core.textfile import NESTED_TOO_DEEP, read_user_text
+
 DEFAULT_RELAXATION = (0.25, 2.0)      # (fraction, tau_s) when relaxation is on without values
 
 
@@ -124,9 +126,11 @@ def conditions_of(scene_spec) -> TruthConditions:
     if not (p.suffix == ".toml" or p.is_file()):
         return TruthConditions()
     try:
-        d = tomllib.loads(Path(scene_spec).read_text())
+        d = tomllib.loads(read_user_text(scene_spec, "scene"))
     except tomllib.TOMLDecodeError as e:
         raise TruthError(f"{scene_spec}: not valid TOML ({e})") from None
+    except RecursionError:
+        raise TruthError(f"{scene_spec}: not valid TOML ({NESTED_TOO_DEEP})") from None
     return TruthConditions.from_dict(d.get("truth", {}), f"[truth] of {scene_spec}")
 
 

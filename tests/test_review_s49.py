@@ -10,9 +10,11 @@ import pytest
 from app import cell
 from app.cli import build_parser, main
 from app.errors import UsageError
-from app.runexec import check_resume, run_options
+from app.runexec import check_resume, run_options, unplaced, verdict, verdict_kind
 from fem import cachesize
-from fem.scene import load
+from fem.scene import SceneError, from_dict, load
+from planner.localize import Localization
+from planner.localize3d import Localization3D
 
 ROOT = Path(__file__).resolve().parents[1]
 # the first argument of every call that names a cache entry's kind, the 3D table's calibrations, and KIND constants
@@ -92,3 +94,108 @@ def test_fresh_refuses_an_input_that_is_one_of_the_runs_own_files(tmp_path, caps
     err = capsys.readouterr().err
     assert rc == 2 and "--plan " in err and "copy it out of" in err
     assert sorted(p.name for p in out.iterdir()) == ["plan_round1.json", "probes.jsonl", "run_options.json"]
+
+
+def test_a_stone_near_the_far_side_is_found(tmp_path, capsys):
+    """A 6 mm stone 7 mm from the right side, 10 mm deep: with the table's stone positions at 10-60 mm it was
+    reported at x 31.3 +- 0.6 mm (LR 304, only a poor-fit warning); the table now reaches 5-65 mm, as the coarse
+    raster does (62.84 +- 0.23 mm)."""
+    scene = tmp_path / "edge63.toml"
+    scene.write_text('name = "edge63"\n[tissue]\nwidth_m = 0.070\nheight_m = 0.050\nyoungs_pa = 2500\npoisson = 0.4\n'
+                     '[[stone]]\nx_m = 0.063\ndepth_m = 0.010\ndiameter_m = 0.006\nyoungs_pa = 5.0e9\npoisson = 0.3\n')
+    assert main(["run", str(scene), "--sim", "--out", str(tmp_path / "o"), "--no-figure"]) == 0
+    final = capsys.readouterr().out.strip().splitlines()[-1]
+    est = json.loads((tmp_path / "o" / "result.json").read_text())["estimate"]
+    assert abs(est["x_m"]["value"] - 0.063) < 0.0015 and abs(est["depth_m"]["value"] - 0.010) < 0.002, final
+
+
+@pytest.mark.parametrize("kind", ["device", "pipe", "deep-toml"])
+def test_a_scene_that_is_no_regular_file_or_nested_too_deep_is_one_line(kind, tmp_path, capsys):
+    """/dev/zero filled the memory (a MemoryError traceback under a memory limit), a pipe blocked the command for
+    good, a file nested 5000 levels deep overflowed the TOML parser (a RecursionError traceback)."""
+    import os
+    spec = {"device": "/dev/zero", "pipe": str(tmp_path / "p.toml"), "deep-toml": str(tmp_path / "d.toml")}[kind]
+    if kind == "pipe":
+        os.mkfifo(spec)
+    if kind == "deep-toml":
+        Path(spec).write_text("name = " + "[" * 5000 + "]" * 5000 + "\n")
+    assert main(["predict", spec, "--waypoints", "3", "--force-only"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and spec in err
+    assert {"device": "is a device", "pipe": "is a pipe", "deep-toml": "nested too deeply"}[kind] in err
+
+
+def test_a_plan_nested_too_deep_or_a_device_is_one_line(tmp_path, capsys):
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 100000 + "]" * 100000)
+    for plan in (str(deep), "/dev/zero"):
+        rc = cell.main(["--sim", "--plan", plan, "--out", str(tmp_path / "r")])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and len(err.splitlines()) == 1 and plan in err, err
+
+
+def _loc(cls=Localization, **k):
+    base = dict(detected=True, lr=20.2, lr_threshold=20.0, x_m=0.0229, depth_m=0.010, diameter_m=0.017,
+                sigma_x_m=0.0699, sigma_depth_m=0.276, sigma_diameter_m=0.436, chi2_0=3830.0, chi2_1=3810.0, dof_1=32)
+    return cls(**{**base, **k})
+
+
+def test_a_detection_the_fit_cannot_place_is_not_said_as_a_stone():
+    """A session-49 review: a sensor drifting 0.01 N/s gave LR 20.2 (threshold 20) with chi2 3810 on 32 degrees
+    of freedom, and the last line said STONE at x 22.93 +- 69.94 mm, depth 10 +- 276 mm."""
+    tissue = load("paper").tissue
+    line = verdict(_loc(), object(), "stone at x 22.93 +- 69.94 mm", "ok", None, None, tissue)
+    assert line.startswith("NOT LOCALIZED: the likelihood ratio (20, threshold 20) says a stone") and "69.9 mm" in line
+    assert verdict_kind(line) == "not_localized"
+    # the studies' widest detected estimate (a 6.5 mm stone 39 mm deep: 5.4 mm across, 21.8 mm in depth) is a stone
+    assert unplaced(_loc(sigma_x_m=0.0054, sigma_depth_m=0.0218), tissue) is None
+    assert verdict(_loc(sigma_x_m=0.0054, sigma_depth_m=0.0218), object(), "s", "ok", None, None, tissue) == "STONE s"
+    assert "depth sigma" in unplaced(_loc(sigma_x_m=0.001, sigma_depth_m=0.051), tissue)
+    assert unplaced(_loc(detected=False), tissue) is None                  # NO STONE stays what it is
+    assert "its x sigma" in unplaced(_loc(sigma_x_m=float("nan")), tissue)
+    block = load("block3d").tissue
+    assert "its y sigma" in unplaced(_loc(Localization3D, sigma_x_m=0.001, sigma_y_m=block.length_m / 3,
+                                          sigma_depth_m=0.002), block)
+
+
+def test_a_belief_with_another_tip_than_the_truths_is_refused(tmp_path, capsys):
+    """A 3 mm truth tip under a 5 mm belief ran: the plan pressed 4 mm with the 3 mm tip (beyond its radius) and the
+    line said STONE. The tip is the instrument: the belief and the simulated world share it, as they share the
+    tissue's extent."""
+    truth = tmp_path / "t3.toml"
+    truth.write_text('name = "t3"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                     '[indenter]\nradius_m = 0.003\n')
+    assert main(["run", str(truth), "--prior", "healthy", "--sim", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "indenter.radius_m = 0.005 m" in err and "is 0.003 m" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o" / "probes.jsonl").exists()
+
+
+def test_a_refused_default_says_its_limit_and_that_it_was_a_default(tmp_path, capsys):
+    """A 3 mm section without [analysis] was refused for 'analysis.mesh_size_m=0.002 is larger than half the
+    tissue', a value the user never wrote, with no limit; load A's default on a 5 mm tissue the same."""
+    thin = tmp_path / "thin.toml"
+    thin.write_text('name = "thin"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.003\nyoungs_pa = 2500.0\npoisson = 0.4\n')
+    assert main(["predict", str(thin), "--depth-m", "0.0005", "--force-only"]) == 2
+    err = capsys.readouterr().err
+    assert "height_m (0.003 m)" in err and "mesh_size_m <= 0.0015" in err and "default" in err
+    five = tmp_path / "five.toml"
+    five.write_text(thin.read_text().replace("0.003", "0.005").replace('"thin"', '"five"'))
+    assert main(["simulate", str(five), "--load", "uniform"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"palpate: scene {five}: ") and "default 0.005" in err and "at most 0.0015 m" in err
+
+
+def test_a_3d_tip_with_a_2d_thickness_is_refused():
+    d = load("block3d").to_dict()
+    d["indenter"]["thickness_m"] = 5.0
+    with pytest.raises(SceneError, match="indenter.thickness_m = 5.0 is a 2D tip's"):
+        from_dict(d)
+
+
+def test_compare_says_it_probes_the_reference_with_the_scenes_tip(tmp_path, capsys):
+    ref = tmp_path / "ref.toml"
+    ref.write_text('name = "ref"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                   '[indenter]\nradius_m = 0.003\n')
+    assert main(["predict", "healthy", "--compare", str(ref), "--waypoints", "3", "--force-only"]) == 0
+    assert "its [indenter] differs from scene healthy's" in capsys.readouterr().err

@@ -82,7 +82,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--margin-m", type=finite_float,
                    help=f"2D scenes: keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
     p.add_argument("--compare", metavar="SCENE", default="prior",
-                   help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML, or 'none'")
+                   help="reference scene: 'prior' (SCENE without stones, default), a scene name or TOML (its tissue "
+                        "and stones, probed with SCENE's tip and analysed with SCENE's [analysis]), or 'none'")
     p.add_argument("--grid", metavar="NXxNY",
                    help="3D scenes: an NX x NY grid of waypoints over the probed patch less the tip radius "
                         "(default 10x10); 2D scenes use --waypoints")
@@ -122,6 +123,11 @@ def _scenes(args):
             if a != b:
                 raise UsageError(f"--compare {c}: its tissue.{name} is {a:g} m and scene {sc.name}'s {b:g} m: the "
                                  f"reference is probed at the scene's waypoints, so they must be equal")
+        dropped = [t for t in ("indenter", "analysis") if getattr(other, t) != getattr(sc, t)]
+        if dropped:         # said, not silently replaced: the comparison is of tissues under one tip
+            print(f"palpate predict: --compare {c}: its [{'] and ['.join(dropped)}] {'differs' if len(dropped) == 1 else 'differ'} from scene {sc.name}'s; "
+                  f"the reference is probed with {sc.name}'s tip and analysis (the comparison is of the tissues)",
+                  file=sys.stderr)
         try:
             ref = dataclasses.replace(other, indenter=sc.indenter, analysis=sc.analysis)
         except SceneError as e:

@@ -69,6 +69,7 @@ from app.runexec import (
     workers_for_fits,
 )
 from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
+from fem.scene import BUILTIN
 from planner.detectability import describe_smallest, detectability, smallest_detectable
 from planner.draw_run import draw_run
 from planner.finite_strain_response import prior_finite_strain, unsupported, x_nodes
@@ -86,7 +87,7 @@ from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe
 from planner.surrogate import check_table_fits, load_surrogate
 from robot.safety import check_plan
-from robot.truth import DEFAULT_RELAXATION
+from robot.truth import DEFAULT_RELAXATION, conditions_of
 
 DEFAULT_GRID3D = (6, 6)        # 3D: the coarse grid, refinement rounds and budget
 DEFAULT_REFINE3D = 12
@@ -249,6 +250,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             raise UsageError(f"--json {args.json}: would overwrite the run's own {j.name}; choose another path")
     scene = load_scene(args.scene)
     belief = load_scene(args.prior, "--prior").prior() if args.prior else None
+    if args.prior and args.prior not in BUILTIN and not conditions_of(args.prior).ideal:
+        _say(f"note: --prior {args.prior}: its [truth] table is not used (the belief is the scene's prior; the "
+             f"simulated world's conditions come from SCENE's file or the --truth-* options)")
     cond = truth_conditions(args, scene)
     check_ft(args, sim=not args.host, real_host=bool(args.host))
     if args.host and args.fit_workers not in (None, 1):
@@ -446,7 +450,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
     head = conclude(result, out, loc, res, describe(loc) if res is not None else "", status, fault, _say,
-                    three_d=False)
+                    three_d=False, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure:   # nothing to draw unless a fit was made

@@ -204,7 +204,7 @@ def run_block(args, ctx: RunContext) -> int:
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
     head = conclude(result, out, loc, res, describe3d(loc) if res is not None else "", status, fault, _say,
-                    three_d=True)
+                    three_d=True, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
     if res is not None and localized(loc) and not args.no_figure and res.measurements is not None:

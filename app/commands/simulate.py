@@ -28,6 +28,7 @@ from app.options import (
 from app.resolution import warn_unresolved2d
 from fem.contact import surface_model
 from fem.rigid_stress import nodal_fields
+from fem.scene import SceneError, check_load_a
 from fem.stress import components, nodal_poisson, recovery_operator
 from fem.uniform import Profile, solve_uniform
 
@@ -274,6 +275,11 @@ def _run_uniform(args) -> int:
                 raise UsageError(f"--compare {name}: a 3D block (tissue.length_m); {args.scene} is a 2D section "
                                  f"and --compare takes 2D sections (for blocks: palpate predict SCENE --compare)")
     want_field = bool(args.plots or args.vtu)
+    for name, scene in ((args.scene, sc), *others.items()):     # load A's own limit, named with its scene
+        try:
+            check_load_a(scene)
+        except SceneError as e:
+            raise UsageError(f"scene {name}: {e}") from None
     res = solve_uniform(sc, full_field=want_field, rigid_stones=_rigid(args))
     mesh = res.model.mesh
     out = {"scene": sc.name, "load": "uniform", "analysis": dataclasses.asdict(sc.analysis),
