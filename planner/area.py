@@ -255,7 +255,7 @@ def check_positions(scene, positions_m, option: str = "positions") -> np.ndarray
                  else "outside fem's probed patch")
         raise PlanError(f"{option}: waypoint (x, y) = ({P[k, 0]:.6g}, {P[k, 1]:.6g}) m is {where} ({len(bad)} of "
                         f"{len(P)} waypoints are): a probe's centre must lie in x {x0:.6g}..{x1:.6g}, y {y0:.6g}.."
-                        f"{y1:.6g} m (the probed patch analysis.patch_m = {scene.analysis.patch_m} shrunk by the tip "
+                        f"{y1:.6g} m (the probed patch, {_patch_said(scene.analysis.patch_m)}, shrunk by the tip "
                         f"radius {scene.indenter.radius_m:g} m)")
     return P
 
@@ -266,3 +266,8 @@ def default_block_pose(width_m: float, length_m: float, height_m: float) -> list
     base y, tissue z = base z (up, the tool points straight down), the face's middle 0.40 m in front of the base on
     its x axis. Tissue y then runs along base -x."""
     return [0.40 + 0.5 * length_m, -0.5 * width_m, float(height_m), 0.0, 0.0, math.pi / 2]
+
+
+def _patch_said(patch_m) -> str:
+    """``analysis.patch_m`` as a person reads it: None is the whole top face."""
+    return "the whole top face (analysis.patch_m not given)" if patch_m is None else f"analysis.patch_m = {patch_m:g} m"

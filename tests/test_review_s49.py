@@ -11,8 +11,10 @@ from app import cell
 from app.cli import build_parser, main
 from app.errors import UsageError
 from app.runexec import check_resume, run_options, unplaced, verdict, verdict_kind
+from core.contracts import PlanError
 from fem import cachesize
-from fem.scene import SceneError, from_dict, load
+from fem.scene import SceneError, block_file_defaults, from_dict, load
+from planner.area import check_positions
 from planner.localize import Localization
 from planner.localize3d import Localization3D
 
@@ -199,3 +201,12 @@ def test_compare_says_it_probes_the_reference_with_the_scenes_tip(tmp_path, caps
                    '[indenter]\nradius_m = 0.003\n')
     assert main(["predict", "healthy", "--compare", str(ref), "--waypoints", "3", "--force-only"]) == 0
     assert "its [indenter] differs from scene healthy's" in capsys.readouterr().err
+
+
+def test_a_3d_waypoint_refusal_says_the_whole_face_not_none():
+    """A block file's patch left out is the whole top face; the refusal printed 'analysis.patch_m = None'."""
+    sc = from_dict(block_file_defaults({"name": "b40", "tissue": {"width_m": 0.04, "length_m": 0.04, "height_m": 0.03,
+                                                                  "youngs_pa": 3000.0, "poisson": 0.45}}))
+    with pytest.raises(PlanError, match=r"the whole top face \(analysis.patch_m not given\)") as e:
+        check_positions(sc, [(0.001, 0.02)], "--positions")
+    assert "None" not in str(e.value)
