@@ -44,6 +44,8 @@ from app.outlock import holding
 from app.parser import Parser
 from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, SceneError, load
+from fem.scene_mesh import check_mesh_budget, check_surface_budget
+from fem.scene_mesh3d import check_mesh_budget3d
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
@@ -248,7 +250,12 @@ def _main(args, held: contextlib.ExitStack) -> int:
                           args.truth or truth.name)
         if args.sim_mesh_m is not None:
             try:                                # a usage error now, not after the pre-flight
-                truth.with_analysis(mesh_size_m=args.sim_mesh_m)
+                coarse = truth.with_analysis(mesh_size_m=args.sim_mesh_m)
+                if coarse.is_3d:
+                    check_mesh_budget3d(coarse)
+                else:                           # (a mesh too fine was refused only after the pre-flight)
+                    check_surface_budget(coarse)
+                    check_mesh_budget(coarse)
             except SceneError as e:             # said as the option the user gave, not as the scene's field
                 raise UsageError(f"--sim-mesh-m {args.sim_mesh_m:g}: not a mesh for {truth.name} "
                                  f"(the simulator's analysis.mesh_size_m): {e}") from None
@@ -268,7 +275,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
         raise UsageError("not confirmed (type 'yes' to move the arm, or give --yes); nothing sent, nothing moved")
     held.enter_context(holding(out))       # one process at a time in OUT (app.outlock)
     if args.fresh:
-        moved = move_aside(out, keep=[args.plan])        # (a plan file kept in OUT stays: the command's input)
+        moved = move_aside(out, keep=[args.plan, args.truth])    # (the command's input files kept in OUT stay)
         if moved is not None:
             print(f"--fresh: the previous run's files are in {moved}")
     arm = None

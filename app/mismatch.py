@@ -195,7 +195,10 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
         return row
     r = json.loads((d / "run" / "result.json").read_text())
     est, nu = r["estimate"], r["nuisance"]
-    row.update(detected=r["detected"], lr=r["evidence"]["likelihood_ratio"], probes=r["probes_used"],
+    # a detection the fit cannot place (verdict not_localized: app.runexec.unplaced) is no found stone
+    detected = bool(r["detected"]) and r.get("verdict") != "not_localized"
+    row.update(detected=detected, verdict=r.get("verdict"), lr=r["evidence"]["likelihood_ratio"],
+               probes=r["probes_used"],
                stiffness_scale=nu["stiffness_scale"]["value"], thickness_est=nu["thickness_scale"]["value"],
                offset_est_m=nu["surface_offset_m"]["value"], tilt_est_rad=nu["surface_tilt_rad"]["value"],
                relax_est=nu["dwell_relaxation_fraction"]["value"], onsets=nu["contact_onsets_used"],
@@ -213,7 +216,7 @@ def run_trial(shared: Shared, t: MismatchTrial) -> dict:
                                    sigma_n=probe_sigma_n(sensor_spec("nano17")), surrogate=sur,
                                    tau_s=probe_tau_s(Motion(), dep))
         row["p_detect_truth"] = p_detect_in_truth(prior, sur, stone, t.mismatch, coarse_x)
-        if r["detected"]:
+        if detected:
             iv = est["depth_interval_m"]
             row.update(err_x_m=est["x_m"]["value"] - stone.x_m, err_depth_m=est["depth_m"]["value"] - stone.depth_m,
                        err_diam_m=est["diameter_m"]["value"] - stone.diameter_m, sigma_x_m=est["x_m"]["sigma"],

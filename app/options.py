@@ -25,7 +25,7 @@ from pathlib import Path
 from app.errors import UsageError
 from core.contracts import HARD_FORCE_LIMIT_N, NOISE_SIGMA_FACTOR, SENSORS
 from core.textfile import InputFileError
-from fem.scene import BUILTIN, Scene, SceneError, load
+from fem.scene import BUILTIN, Scene, SceneError, load, tip_taken_as_rigid
 from robot.truth import TruthError, conditions_of
 
 MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the planning NLP and fem cost explode
@@ -58,6 +58,12 @@ def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:
             raise UsageError(f"{where_prior}: indenter.{key} = {said(a)} but the simulated truth's (scene "
                              f"{truth_name}) is {said(b)}; the tip is the instrument, the same in the belief and the "
                              f"world: give the truth's [indenter] to the belief")
+    if tip_taken_as_rigid(prior) != tip_taken_as_rigid(truth):     # its modulus only where fem does not neglect it
+        said = lambda sc: ("rigid" if tip_taken_as_rigid(sc) else    # noqa: E731
+                           f"elastic (indenter.youngs_pa = {sc.indenter.youngs_pa:g} Pa)")
+        raise UsageError(f"{where_prior}: the tip is {said(prior)} but the simulated truth's (scene {truth_name}) is "
+                         f"{said(truth)}; the tip is the instrument, the same in the belief and the world: give the "
+                         f"truth's [indenter] to the belief")
 
 
 def _parse(s: str, kind=float):

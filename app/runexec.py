@@ -6,6 +6,7 @@ that decide a run's rounds and the resume rules over an output directory. Shared
 from __future__ import annotations
 
 import contextlib
+import fnmatch
 import hashlib
 import json
 import re
@@ -333,7 +334,7 @@ def check_fresh_inputs(args, out: Path) -> None:
         if not isinstance(given, str) or not Path(given).is_file():
             continue
         p = Path(given).resolve()
-        if p.parent == out.resolve() and (p.name.startswith("plan_round") or p.name in RUN_FILES):
+        if p.parent == out.resolve() and (fnmatch.fnmatch(p.name, "plan_round*.json") or p.name in RUN_FILES):
             raise UsageError(f"--{opt} {given}: a file of the run in --out {out}, which --fresh sets aside (kept "
                              f"there, the new run would take it for its own); copy it out of {out} first")
 

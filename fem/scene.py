@@ -161,7 +161,8 @@ def check_load_a(scene: "Scene") -> None:
                          f"when not given) must lie in (0, height_m = {h:g}) m, at most {STRAIN_MAX * h:.4g} m"
                          + (": 0 moves the top by nothing, so load A would load nothing" if d == 0 else ""))
     if d > STRAIN_MAX * h:
-        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A) is {d / h:.0%} of the tissue height "
+        raise SceneError(f"analysis.top_displacement_m = {d!r} (load A; default {Analysis().top_displacement_m:g} "
+                         f"when not given) is {d / h:.0%} of the tissue height "
                          f"({h:g} m): the linear model allows at most {STRAIN_MAX:.0%} "
                          f"(top_displacement_m <= {STRAIN_MAX * h:.4g} m; it is stated for up to "
                          f"{STRAIN_WARN:.0%})")
@@ -304,6 +305,12 @@ def _validate_indenter(scene: Scene) -> None:
 # An elastic tip that would change the force by less than this is taken as rigid: fem.tip.TIP_TOLERANCE (the same
 # value, tested; fem.tip imports this module)
 ELASTIC_TIP_NEGLIGIBLE = 1e-3
+
+
+def tip_taken_as_rigid(scene: Scene) -> bool:
+    """Whether fem models the scene's tip as rigid (fem.tip.treated_as_rigid's "auto", without importing fem.tip):
+    no modulus given, or one that changes the force by less than ELASTIC_TIP_NEGLIGIBLE."""
+    return scene.indenter.youngs_pa is None or _tip_relative_compliance(scene) < ELASTIC_TIP_NEGLIGIBLE
 
 
 def _tip_relative_compliance(scene: Scene) -> float:

@@ -201,6 +201,47 @@ def test_compare_says_it_probes_the_reference_with_the_scenes_tip(tmp_path, caps
                    '[indenter]\nradius_m = 0.003\n')
     assert main(["predict", "healthy", "--compare", str(ref), "--waypoints", "3", "--force-only"]) == 0
     assert "its [indenter] differs from scene healthy's" in capsys.readouterr().err
+    same = tmp_path / "same.toml"          # a file's rigid default tip against the built-in's 60 MPa one: the same
+    same.write_text(ref.read_text().replace("radius_m = 0.003", "radius_m = 0.005"))
+    assert main(["predict", "healthy", "--compare", str(same), "--waypoints", "3", "--force-only"]) == 0
+    assert "differs" not in capsys.readouterr().err
+
+
+def test_a_soft_truth_tip_under_a_rigid_belief_is_refused(tmp_path, capsys):
+    soft = tmp_path / "soft.toml"
+    soft.write_text('name = "soft"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                    '[indenter]\nradius_m = 0.005\nyoungs_pa = 20000.0\n')
+    assert main(["run", str(soft), "--prior", "paper", "--sim", "--out", str(tmp_path / "o")]) == 2
+    assert "the tip is rigid but the simulated truth's" in capsys.readouterr().err
+
+
+def test_cell_refuses_a_too_fine_sim_mesh_before_the_pre_flight(tmp_path, capsys):
+    """A --sim-mesh-m too fine passed the early check and was refused after the pre-flight, naming the field."""
+    assert main(["plan", "paper", "--out", str(tmp_path / "plan.json")]) == 0
+    capsys.readouterr()
+    rc = cell.main(["--sim", "--plan", str(tmp_path / "plan.json"), "--sim-mesh-m", "0.00001",
+                    "--out", str(tmp_path / "r")])
+    err = capsys.readouterr()
+    assert rc == 2 and err.err.startswith("palpate-cell: --sim-mesh-m 1e-05: ") and "pre-flight" not in err.out
+    assert "top-surface nodes" in err.err and not (tmp_path / "r").exists()
+
+
+def test_cell_fresh_keeps_its_truth_file_in_out(tmp_path, capsys):
+    """--fresh moved a --truth file kept in OUT aside with the previous run; the simulator then could not read it."""
+    out = tmp_path / "co"
+    out.mkdir()
+    assert main(["plan", "paper", "--out", str(tmp_path / "plan.json")]) == 0
+    truth = out / "truth.toml"
+    truth.write_text('name = "t"\n[tissue]\nwidth_m = 0.07\nheight_m = 0.05\nyoungs_pa = 2500.0\npoisson = 0.4\n'
+                     '[indenter]\nyoungs_pa = 6.0e7\npoisson = 0.3\n')
+    (out / "run.json").write_text("{}")
+    (out / "probes.jsonl").write_text("")
+    rc = cell.main(["--sim", "--plan", str(tmp_path / "plan.json"), "--truth", str(truth), "--fresh",
+                    "--out", str(out)])
+    assert rc == 0, capsys.readouterr().err
+    assert truth.exists() and len((out / "probes.jsonl").read_text().splitlines()) >= 15
+    (moved,) = [p for p in out.iterdir() if p.name.startswith("previous-")]
+    assert sorted(p.name for p in moved.iterdir()) == ["probes.jsonl", "run.json"]
 
 
 def test_a_3d_waypoint_refusal_says_the_whole_face_not_none():

@@ -31,7 +31,7 @@ from app.options import (
 from app.resolution import warn_unresolved2d
 from core.peak import or_null, parabola_peak, ratio_of, upper_window
 from fem.contact import check_waypoint, surface_model
-from fem.scene import SceneError
+from fem.scene import SceneError, tip_taken_as_rigid
 
 DEFAULT_DEPTH_M = 0.004
 DEFAULT_MARGIN_M = 0.005
@@ -123,7 +123,10 @@ def _scenes(args):
             if a != b:
                 raise UsageError(f"--compare {c}: its tissue.{name} is {a:g} m and scene {sc.name}'s {b:g} m: the "
                                  f"reference is probed at the scene's waypoints, so they must be equal")
-        dropped = [t for t in ("indenter", "analysis") if getattr(other, t) != getattr(sc, t)]
+        tip = lambda x: (x.indenter.shape, x.indenter.radius_m, x.indenter.thickness_m,    # noqa: E731
+                         tip_taken_as_rigid(x) or x.indenter)       # (a rigid-treated tip's modulus changes nothing)
+        dropped = [t for t, differs in (("indenter", tip(other) != tip(sc)), ("analysis", other.analysis != sc.analysis))
+                   if differs]
         if dropped:         # said, not silently replaced: the comparison is of tissues under one tip
             print(f"palpate predict: --compare {c}: its [{'] and ['.join(dropped)}] {'differs' if len(dropped) == 1 else 'differ'} from scene {sc.name}'s; "
                   f"the reference is probed with {sc.name}'s tip and analysis (the comparison is of the tissues)",
