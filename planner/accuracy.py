@@ -52,14 +52,15 @@ DEPTH_M = 0.004           # the planner's depth on this tissue (depth limit 4 mm
 
 def continued_force(model):
     """``model.force_n``, continued where fem refuses the indentation (a stone so shallow that the tip would crush
-    the tissue against it: fem.contact.check_waypoint) with the local power law in depth, as the surrogate's table
-    does (planner.surrogate._forces); a real probe there stops at its force limit first. Elsewhere unchanged."""
+    the tissue against it: fem.contact.check_waypoint) with the local power law in depth (planner.surrogate._forces
+    with the limit kept; the table itself holds the linear model's forces there since session 49); a real probe
+    there stops at its force limit first. Elsewhere unchanged."""
     def f(x_m: float, depth_m: float) -> float:
         try:
             return model.force_n(x_m, depth_m)
         except ValueError:
             levels = depth_m * np.array([0.25, 0.375, 0.5, 0.625, 0.75, 0.875, 1.0])
-            return float(_forces(model, levels, [x_m])[-1, 0])
+            return float(_forces(model, levels, [x_m], past_crush=False)[-1, 0])
     return f
 
 
