@@ -45,7 +45,6 @@ from app.parser import Parser
 from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, SceneError, load
 from fem.scene_mesh import check_mesh_budget, check_surface_budget
-from fem.scene_mesh3d import check_mesh_budget3d
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
@@ -251,7 +250,8 @@ def _main(args, held: contextlib.ExitStack) -> int:
         if args.sim_mesh_m is not None:
             try:                                # a usage error now, not after the pre-flight
                 coarse = truth.with_analysis(mesh_size_m=args.sim_mesh_m)
-                if coarse.is_3d:
+                if coarse.is_3d:                # (the 3D path, imported only for a block: a 2D run never loads it)
+                    from fem.scene_mesh3d import check_mesh_budget3d
                     check_mesh_budget3d(coarse)
                 else:                           # (a mesh too fine was refused only after the pre-flight)
                     check_surface_budget(coarse)

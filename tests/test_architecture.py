@@ -33,11 +33,12 @@ LAZY_OK = ("matplotlib", "gmsh", "meshio", "rtde_control", "rtde_receive", "dash
            "planner.plots_accuracy", "importlib.metadata", "distributed", "dask",
            "scipy.sparse", "app.commands.sim3d", "app.commands.run3d", "planner.plots_run3d", "tomllib",
            "fem.condense", "fem.interior_factor", "urllib.request", "tqdm",
-           "fem.contact3d", "fem.recall3d", "fem.mesh3d", "planner.depth3d")
+           "fem.contact3d", "fem.recall3d", "fem.mesh3d", "planner.depth3d", "fem.scene_mesh3d")
 # scipy.sparse: a cached model predicts with numpy alone (issue 19); app.commands.sim3d and run3d: the 3D path
 # (scipy.linalg, CHOLMOD) loaded for a 3D scene only; tomllib: TOML scenes only (4 ms of a cached predict's start-up);
 # fem.condense, fem.interior_factor (scipy.sparse, scipy.linalg, CHOLMOD): a 2D surface model's fields only;
-# fem.contact3d, fem.recall3d, fem.mesh3d, planner.depth3d: fem's 3D code (25 ms) where a scene is a block;
+# fem.contact3d, fem.recall3d, fem.mesh3d, planner.depth3d, fem.scene_mesh3d: fem's 3D code (25 ms) where a scene
+# is a block;
 # urllib.request (http, ssl, email: 15 ms): a real Net F/T box's calibration only; tqdm: where a study's pieces run
 
 

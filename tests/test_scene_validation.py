@@ -93,7 +93,7 @@ def test_out_of_range_values_name_field_value_and_range(section, key, value, exp
 
 
 @pytest.mark.parametrize("value, expect", [
-    ("0.049", "analysis.top_displacement_m = 0.049 (load A) is 98% of the tissue height"),
+    ("0.049", "analysis.top_displacement_m = 0.049 (load A; default 0.005 when not given) is 98% of the tissue height"),
     ("0.016", "the linear model allows at most 30%"),
     ("0.05", "must lie in (0, height_m = 0.05) m"),
     ("0", "0 moves the top by nothing"),
