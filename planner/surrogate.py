@@ -44,6 +44,7 @@ import hashlib
 import json
 import math
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,12 +166,22 @@ def _past_the_crush_limit():
     last allowed level: on the mismatch study's records, linear tissue's shallow stones' depths fell within 2 sigma
     in 67 % of cases, against 100 % with these). The localizer gives the readings past the limit a model error of
     half the contrast (planner.localize.CRUSH_REL_ERR), and the simulated truth continues its force itself."""
-    saved = fem_contact.STONE_LAYER_MAX
-    fem_contact.STONE_LAYER_MAX = math.inf
+    with _LIFT_LOCK:           # a worker of a user's dask cluster may run several stones at once, in threads:
+        if _LIFTED[0] == 0:    # the limit comes back when the last of them is done, not when the first is
+            _LIFTED[1] = fem_contact.STONE_LAYER_MAX
+            fem_contact.STONE_LAYER_MAX = math.inf
+        _LIFTED[0] += 1
     try:
         yield
     finally:
-        fem_contact.STONE_LAYER_MAX = saved
+        with _LIFT_LOCK:
+            _LIFTED[0] -= 1
+            if _LIFTED[0] == 0:
+                fem_contact.STONE_LAYER_MAX = _LIFTED[1]
+
+
+_LIFT_LOCK = threading.Lock()
+_LIFTED = [0, None]            # (builds in progress in this process, fem's limit to restore)
 
 
 def _forces(model, levels, x0, past_crush: bool = True) -> np.ndarray:

@@ -15,11 +15,12 @@ from app.errors import UsageError
 from app.runexec import check_resume, run_options, unplaced, verdict, verdict_kind
 from core.contracts import PlanError
 from fem import cachesize
-from fem.scene import SceneError, Stone, block_file_defaults, from_dict, load
+from fem.scene import SceneError, Stone, block_file_defaults, from_dict, load, tip_taken_as_rigid
+from fem.tip import treated_as_rigid
 from planner.area import check_positions
 from planner.localize import Localization
 from planner.localize3d import Localization3D
-from planner.surrogate import _forces, stone_model
+from planner.surrogate import _forces, _past_the_crush_limit, stone_model
 
 ROOT = Path(__file__).resolve().parents[1]
 # the first argument of every call that names a cache entry's kind, the 3D table's calibrations, and KIND constants
@@ -274,3 +275,26 @@ def test_the_table_takes_the_linear_models_force_past_the_crush_limit(monkeypatc
     own = model.force_n(0.035, 0.003)                           # the linear model's own force there
     assert past[2, 0] == pytest.approx(own, rel=1e-12)
     assert abs(continued[2, 0] - own) > 1e-3 * own              # the power law's is another (2.2 % here)
+
+
+def test_the_crush_limit_comes_back_when_the_last_overlapping_build_ends():
+    """Two stones built at once in one process (a dask worker with two threads): the first to finish must not
+    restore fem's limit under the second."""
+    first, second = _past_the_crush_limit(), _past_the_crush_limit()
+    first.__enter__()
+    second.__enter__()
+    first.__exit__(None, None, None)
+    assert fc.STONE_LAYER_MAX == float("inf")
+    second.__exit__(None, None, None)
+    assert fc.STONE_LAYER_MAX == 0.75
+
+
+@pytest.mark.parametrize("tip_pa", [None, 6.0e7, 2.5e6, 2.0e4])
+def test_the_light_rigid_tip_test_is_fems(tip_pa):
+    """fem.scene.tip_taken_as_rigid (for the CLI's checks, without importing fem.tip) says what fem models."""
+    d = load("paper").to_dict()
+    d["indenter"]["youngs_pa"] = tip_pa
+    if tip_pa is None:
+        del d["indenter"]["youngs_pa"]
+    sc = from_dict(d)
+    assert tip_taken_as_rigid(sc) == treated_as_rigid(sc)
