@@ -37,6 +37,7 @@ from app.options import (
     float_range,
     host_name,
     int_range,
+    load_plan_option,
     load_scene,
     positive_float,
 )
@@ -222,7 +223,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
     if args.json and Path(args.json).absolute().parent == out.absolute() and Path(args.json).name in (
             "probes.jsonl", "run.json"):
         raise UsageError(f"--json {args.json}: would overwrite the run's own {Path(args.json).name}")
-    plan = Plan.load(args.plan)
+    plan = load_plan_option(args.plan)
     if args.sim:               # the simulated sensor is this preset: a run the driver would stop is refused first
         check_simulated_sensor(args.sensor, plan.limits.force_limit_n)
     if args.inject and not args.sim:

@@ -23,13 +23,26 @@ import os
 from pathlib import Path
 
 from app.errors import UsageError
-from core.contracts import HARD_FORCE_LIMIT_N, NOISE_SIGMA_FACTOR, SENSORS
+from core.contracts import HARD_FORCE_LIMIT_N, NOISE_SIGMA_FACTOR, SENSORS, Plan, PlanError
 from core.textfile import InputFileError
 from fem.scene import BUILTIN, Scene, SceneError, load, tip_taken_as_rigid
 from robot.truth import TruthError, conditions_of
 
 MAX_WAYPOINTS = 2000        # one raster (plan, run, predict): beyond this the planning NLP and fem cost explode
 MAX_TOTAL_PROBES = 10000    # a run's probe budget
+
+
+def load_plan_option(path: str, option: str = "--plan") -> Plan:
+    """The plan a command's ``option`` names; a plan that cannot be read or is malformed is one line naming the option
+    and the file (``--plan p.json: plan version None is not supported ...``)."""
+    try:
+        return Plan.load(path)
+    except PlanError as e:
+        msg = str(e)
+        for said in (f"cannot read plan {path}: ", f"plan {path}: "):   # (Plan.load's own prefix, said once)
+            if msg.startswith(said):
+                msg = msg[len(said):]
+        raise UsageError(f"{option} {path}: {msg}") from None
 
 
 def check_same_extent(truth, prior, where_prior: str, truth_name: str) -> None:

@@ -214,11 +214,16 @@ class Plan:
             d = json.loads(read_user_text(path, "plan"))
         except InputFileError as e:
             raise PlanError(str(e)) from None
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        except json.JSONDecodeError as e:
+            raise PlanError(f"cannot read plan {path}: not valid JSON ({e})") from None
+        except (OSError, UnicodeDecodeError) as e:
             raise PlanError(f"cannot read plan {path}: {e}") from None
         except RecursionError:
             raise PlanError(f"cannot read plan {path}: {NESTED_TOO_DEEP}") from None
-        return Plan.from_dict(d)
+        try:
+            return Plan.from_dict(d)
+        except PlanError as e:          # which file (a run's own saved plans are read too)
+            raise PlanError(f"plan {path}: {e}") from None
 
     def tip_radius_m(self) -> float:
         """The probe tip's radius from the plan's scene (``scene.indenter.radius_m``)."""

@@ -755,8 +755,14 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     nu_prior[4] = 0.0
     nu_nominal = np.zeros(len(NUISANCE))
     nu_nominal[5] = nu0[5]
+    # and H0's tissue taken as linear (a = 0): a stone's bump can drive H0's finite-strain amplitude up (it stiffens
+    # the deep probes as the stone does), and starts holding that amplitude can all stay in a valley of a wrong
+    # stone (the mismatch study v6's trial 43: a 9.5 mm stone 7 mm from the side of neo-Hookean tissue, H0's a 4.1;
+    # every start's fit ended at a 17 mm stone 42 mm deep, 41 mm away, chi2 409, where a = 0 fits chi2 85 at the stone)
+    nu_linear = nu0.copy()
+    nu_linear[5] = 0.0
     starts = [(nu0, 4)]
-    for nu_s in (nu_prior, nu_nominal):    # and the prior's tissue on the nominal surface
+    for nu_s in (nu_prior, nu_nominal, nu_linear):    # and the prior's tissue on the nominal surface
         if not any(np.allclose(nu_s, a) for a, _ in starts):
             starts.append((nu_s, 2))
     # the candidates' positions: around the peak, and across the whole section (a big deep stone near an end under
@@ -764,6 +770,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     # only there end at the bounds with chi2 above the no-stone fit's; the mismatch study found 5 in 100)
     xs_peak = np.unique(np.clip(px * 1e3 + np.array([-3.0, 0.0, 3.0]), lo[0], hi[0]))
     xs_c = np.unique(np.r_[xs_peak, np.linspace(lo[0], hi[0], N_X_STARTS)])
+    peak_set = set(xs_peak.tolist())     # (a set: np.isin on each of some 2,000 candidates took 50 ms a run)
     # the starts' fits hold the finite-strain amplitude at their start's value (H0's: it is close to the answer, and
     # with it free each fit took 1.6 times the iterations); the best is then polished with it free
     held = bool(fw.free[5])         # a is the last free nuisance parameter
@@ -788,8 +795,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
         # whole section, a thickness and tilt trade can rank a central stone's candidates above every one at the
         # peak (the neo-Hookean study's trial 16: a 4.2 mm stone 6 mm deep at the end, its candidates chi2 43
         # against 27 in the middle, its fit 35 against 44 there: LR 8.5 -> 18.9)
-        at_peak = [c for c in cands if np.isin(c[1][0], xs_peak)]
-        if nu_s is nu0 and at_peak and not any(np.isin(c[1][0], xs_peak) for c in chosen):
+        at_peak = [c for c in cands if float(c[1][0]) in peak_set]
+        if nu_s is nu0 and at_peak and not any(float(c[1][0]) in peak_set for c in chosen):
             chosen.append(at_peak[0])
         for chi2, p, coef in chosen:
             nu = nu_s.copy()

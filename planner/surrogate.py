@@ -62,14 +62,15 @@ from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
 from planner.tasks import Runner, run_pieces
 
-FORMAT = 3           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored; 3: forces past the crush limit
+FORMAT = 4           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored; 3: forces past the crush limit;
+#                      4: a section wider than 70 mm keeps the positions near its sides (_grid_xs)
 
 
 @dataclass(frozen=True)
 class Grid:
     s_m: tuple = (1.5e-3, 2.2e-3, 3.2e-3, 4.5e-3, 6.2e-3, 8.5e-3, 11.5e-3, 15.5e-3, 20.5e-3, 27e-3, 36e-3)
     diam_m: tuple = (4e-3, 6e-3, 8.5e-3, 11e-3, 14e-3, 17e-3)
-    xs_m: tuple = (5e-3, 7.5e-3, 10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3)   # left half (70 mm; scaled by width)
+    xs_m: tuple = (5e-3, 7.5e-3, 10e-3, 15e-3, 20e-3, 25e-3, 30e-3, 35e-3)   # left half of 70 mm (_grid_xs)
     levels_m: tuple = (1e-3, 1.5e-3, 2e-3, 2.5e-3, 3e-3, 3.5e-3, 4e-3)
     dx0_m: float = 0.5e-3
 
@@ -138,8 +139,25 @@ def _fingerprint_now(own, grid: Grid) -> np.ndarray:
                               lambda: fingerprint(own, grid))
 
 
+REF_WIDTH_M = 0.070        # the section Grid.xs_m is laid out for (its last position is the middle)
+NEAR_SIDE_M = 15e-3        # on a wider section, the positions this close to a side keep their distance from it
+
+
 def _grid_xs(prior, grid: Grid) -> np.ndarray:
-    return np.asarray(grid.xs_m) * prior.tissue.width_m / 0.070
+    """The stone positions (left half) of ``grid`` on the prior's section. Up to 70 mm wide: Grid.xs_m scaled with
+    the width. Wider: the positions within NEAR_SIDE_M of the side stay where they are (the coarse raster's first
+    probe is 5 mm from a side on any section, and the side's effect on a stone's contrast changes fastest there;
+    scaled, a 120 mm section's first position was 8.6 mm from the side, and a stone nearer the side than that lay
+    beyond the table), the others spread evenly over the rest of the half-width (the contrast is nearly translation
+    invariant away from a side, and the table shifts it: see the module doc). At 70 mm both rules give Grid.xs_m."""
+    g = np.asarray(grid.xs_m, float)
+    W = prior.tissue.width_m
+    if W <= REF_WIDTH_M:
+        return g * W / REF_WIDTH_M
+    far = g > NEAR_SIDE_M
+    out = g.copy()
+    out[far] = NEAR_SIDE_M + (g[far] - NEAR_SIDE_M) * (W / 2 - NEAR_SIDE_M) / (REF_WIDTH_M / 2 - NEAR_SIDE_M)
+    return out
 
 
 def stone_model(scene):

@@ -44,6 +44,7 @@ from app.options import (
     grid_counts,
     host_name,
     int_range,
+    load_plan_option,
     load_scene,
     positive_float,
 )
@@ -263,7 +264,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
                 else "--depth-limit-m")
         raise UsageError(f"--plan {args.plan}: the plan holds the coarse raster and its limits; drop {drop}")
     if args.plan:
-        plan0 = Plan.load(args.plan)
+        plan0 = load_plan_option(args.plan)
         problems, bad = check_plan(plan0)       # what the driver would refuse: before anything starts
         refused = problems + [f"probe {k}: {v}" for k, v in bad.items()]
         if refused:

@@ -1,0 +1,87 @@
+"""Session 50: a plan file's errors name the option and the file; a section wider than 70 mm keeps the localizer's
+table positions near its sides; the 2D stone fit also starts with H0's tissue taken as linear."""
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app import cell
+from app.cli import main
+from core.contracts import Plan, PlanError
+from fem.scene import load
+from planner.localize import Measurements, localize
+from planner.surrogate import REF_WIDTH_M, Grid, _grid_xs
+from robot.records import read_records
+
+
+@pytest.mark.parametrize("text, said", [("{}", "plan version None is not supported"),
+                                         ("not json", "not valid JSON"),
+                                         ('{"version": 2, "extra": 1}', "unknown")])
+@pytest.mark.parametrize("command", ["run", "cell"])
+def test_a_bad_plan_file_is_one_line_naming_the_option_and_the_file(tmp_path, capsys, text, said, command):
+    """`--plan p.json` with no version said only "plan version None is not supported": neither the option nor the
+    file."""
+    plan = tmp_path / "p.json"
+    plan.write_text(text)
+    if command == "run":
+        rc = main(["run", "paper", "--sim", "--plan", str(plan), "--out", str(tmp_path / "o")])
+    else:
+        rc = cell.main(["--plan", str(plan), "--sim", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1
+    assert f": --plan {plan}: " in err and said in err and err.count(str(plan)) == 1, err
+
+
+def test_plan_load_names_the_file_of_a_malformed_plan(tmp_path):
+    """A run's own saved plans are read by Plan.load too: its message says which file."""
+    plan = tmp_path / "plan_round0.json"
+    plan.write_text('{"version": 7}')
+    with pytest.raises(PlanError, match=f"^plan {plan}: plan version 7 is not supported"):
+        Plan.load(plan)
+
+
+def _prior(width_m: float):
+    p = load("paper").prior()
+    return dataclasses.replace(p, tissue=dataclasses.replace(p.tissue, width_m=width_m))
+
+
+@pytest.mark.parametrize("width_m", [0.05, 0.07])
+def test_table_positions_up_to_70_mm_scale_with_the_width(width_m):
+    assert np.array_equal(_grid_xs(_prior(width_m), Grid()), np.asarray(Grid().xs_m) * width_m / REF_WIDTH_M)
+
+
+@pytest.mark.parametrize("width_m", [0.0701, 0.09, 0.12, 0.3])
+def test_a_wider_section_keeps_the_positions_near_its_side(width_m):
+    """Scaled, a 120 mm section's first position was 8.6 mm from the side, beyond the coarse raster's first probe
+    (5 mm): a stone between them lay outside the table. Now the positions within 15 mm of the side stay, the others
+    spread evenly to the middle; at 70 mm the two rules agree."""
+    g = np.asarray(Grid().xs_m)
+    xs = _grid_xs(_prior(width_m), Grid())
+    assert np.array_equal(xs[g <= 0.015], g[g <= 0.015])
+    assert xs[-1] == pytest.approx(width_m / 2) and np.all(np.diff(xs) > 0)
+    far = xs[g >= 0.015]
+    assert np.allclose(np.diff(far), np.diff(far)[0])
+    near70 = _grid_xs(_prior(0.07 + 1e-9), Grid())
+    assert np.allclose(near70, g, atol=1e-9)
+
+
+def test_a_big_side_stone_in_neo_hookean_tissue_is_not_placed_in_the_middle(paper_prior, paper_surrogate):
+    """The mismatch study v6's trial 43 (tests/data/mismatch-hyper-trial-0043: its 25 records and the truth;
+    ``palpate study mismatch --hyperelastic --workers 2``, seed 1): a 9.5 mm stone 8.2 mm deep, 6.9 mm from the side
+    of neo-Hookean tissue 1.5 times as stiff. The no-stone fit took the stone's bump as finite-strain stiffening
+    (amplitude 4.1), every start held that amplitude, and all ended at a 17 mm stone 42 mm deep at x 47.6 +- 3.6 mm
+    (chi2 409 on 44 dof; LR 1630): a confident answer 41 mm away. A start with H0's tissue taken as linear finds the
+    family's better minimum at the stone (chi2 19; measured x 5.66 mm, depth 7.43 mm, amplitude 1.1)."""
+    data = Path(__file__).parent / "data" / "mismatch-hyper-trial-0043"
+    stone = tomllib.loads((data / "truth.toml").read_text())["stone"][0]
+    meas = Measurements.from_records(read_records(data), statuses=("ok", "force_limit", "depth_limit"))
+    assert len(meas) == 25
+    loc = localize(paper_prior, meas, paper_surrogate)
+    assert loc.detected and loc.chi2_1 < 2 * loc.dof_1, (loc.chi2_1, loc.dof_1)      # measured 19.3 (409 before)
+    assert abs(loc.x_m - stone["x_m"]) < 3e-3, loc.x_m                                 # measured 5.66 mm
+    assert abs(loc.depth_m - stone["depth_m"]) < 3e-3, loc.depth_m                     # measured 7.43 mm
+    assert 0.5 < loc.nuisance["finite_strain_amplitude"][0] < 2.0                      # neo-Hookean: near 1
