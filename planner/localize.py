@@ -605,6 +605,11 @@ def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, n
                             max_nfev=200)
         return 2 * sol.cost
     prof = np.array(fork_map(chi2_at, grid, workers))
+    # at the estimate's own depth the fit itself is a point of the profile: its chi2 at most (a held fit there may
+    # find none: an estimate with the smallest diameter at the smallest clearance leaves the diameter no room, and
+    # the interval was built around the next depth, excluding the estimate; session 50's review, a 30 mm section)
+    k_hat = int(np.argmin(np.abs(grid - d_hat)))
+    prof[k_hat] = min(prof[k_hat], chi2_min)
     base = min(chi2_min, prof.min())
     out = {}
     k0 = int(np.argmin(prof))

@@ -63,10 +63,13 @@ class PendingSurrogate:
         return self._done.is_set()
 
     def result(self) -> Surrogate:
-        """The table (waiting for the build, with a status line every ``every_s``); a failed build raises
+        """The table (waiting for the build, with a status line every ``every_s``: the build's own as stones finish,
+        else this one; not both, as each said the same every 15 s before session 50); a failed build raises
         TableBuildError."""
         while not self._done.wait(self._every_s):
-            self._say("waiting for the table: " + self.status())
+            if time.perf_counter() - self._last_say >= self._every_s:    # the build's own line not said meanwhile
+                self._last_say = time.perf_counter()
+                self._say("waiting for the table: " + self.status())
         if isinstance(self._error, Exception):
             raise TableBuildError(f"the surrogate table could not be built: {self._error}") from self._error
         if self._error is not None:

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from core.contracts import MEASURED
+from fem.contact import STONE_LAYER_MAX
 from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, STONE_PARAMS, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
 from planner.tissue_response import THICKNESS_STEP, fem_deepest_m, prior_and_thickness_slope
@@ -188,6 +189,11 @@ def too_few(usable: int, used: int, need: int) -> str:
     return f"too few usable measurements: {usable} of {used} probes, a fit needs at least {need}{why}"
 
 
+MIN_HINT_DEPTH_M = 5e-4      # a shallower depth limit than this is not suggested (a stone within half a mm)
+HINT_MARGIN = 0.9            # the suggested limit's share of what the linear model covers over the fitted stone (its
+#                              top is an estimate: at the full share a re-run still pressed 29 readings past it)
+
+
 def caveats(loc) -> str:
     """What makes a detected stone's estimate doubtful, for the line that reports it ("" when nothing): a parameter
     at its fit's bound (the table's range: the stone may lie beyond it, and the rest of the estimate with it) and a fit
@@ -208,9 +214,14 @@ def caveats(loc) -> str:
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")
     n_beyond = getattr(loc, "n_beyond_linear_range", 0)
     if n_beyond:
+        # (session 50's review: on a 30 mm section, shallow stones' diameters 3-6 sigma small with only this warning,
+        # and within 1 sigma when probed no deeper than the linear model covers over them)
+        safe_m = math.floor(HINT_MARGIN * STONE_LAYER_MAX * (loc.depth_m - 0.5 * loc.diameter_m) * 1e4) / 1e4
+        hint = (f"; probes no deeper than {safe_m * 1e3:.1f} mm over it stay within that model: "
+                f"--depth-limit-m {safe_m:g}" if safe_m >= MIN_HINT_DEPTH_M else "")
         out.append(f"the stone's top lies within the probes' reach: {n_beyond} readings pressed the tissue over it "
                    f"beyond what the linear model covers (taken with a {CRUSH_REL_ERR:.0%} error on the stone's "
-                   f"contrast there, in the sigmas)")
+                   f"contrast there, in the sigmas; its depth and diameter may still be biased beyond them){hint}")
     dof = loc.dof_1
     chi2 = loc.chi2_fit if math.isfinite(getattr(loc, "chi2_fit", math.nan)) else loc.chi2_1
     if dof and chi2 > dof + 4.0 * math.sqrt(2.0 * dof):

@@ -30,7 +30,7 @@ scene's name, the tissue modulus, the stones, a rigid-treated tip's modulus, loa
 The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``) and carries a
 behavioural fingerprint of the fem that built it (``fingerprint``: fem's forces for the prior and one grid stone at a
 few probes, computed at the prior's own modulus (0.4-0.9 s; once per version of fem and its libraries, then read
-from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (3-7 min on 2 cores; 471 fem models; on dask.distributed with
+from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (3-7 min on 2 cores; 471 fem models on the paper section, fewer where wide stones leave a narrow or thin one: 355 on 100 x 30 mm, 426 on 55 x 45 mm; on dask.distributed with
 ``planner.tasks``) and read in milliseconds. A table for the built-in paper tissue is shipped in planner/data/ (same
 file name, same check).
 ``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.

@@ -85,3 +85,71 @@ def test_a_big_side_stone_in_neo_hookean_tissue_is_not_placed_in_the_middle(pape
     assert abs(loc.x_m - stone["x_m"]) < 3e-3, loc.x_m                                 # measured 5.66 mm
     assert abs(loc.depth_m - stone["depth_m"]) < 3e-3, loc.depth_m                     # measured 7.43 mm
     assert 0.5 < loc.nuisance["finite_strain_amplitude"][0] < 2.0                      # neo-Hookean: near 1
+
+
+def test_the_depth_interval_holds_the_estimate_at_the_tables_shallowest_smallest_stone():
+    """An estimate with the smallest diameter at the smallest clearance (a 4 mm stone, its top 1.5 mm deep): at its
+    own depth the held fit had no room for the diameter and counted as infinite, so the intervals were built around
+    the next depth and excluded the estimate (the review's 100 x 30 mm section: depth 3.50 mm, 68 % interval
+    3.58-3.59 mm). A synthetic chi2 with its minimum there: the intervals now start at the estimate."""
+    from planner.localize import _depth_profile
+    lo = np.array([5.0, np.log(1.5), 4.0])
+    hi = np.array([65.0, np.log(36.0), 17.0])
+
+    def resid(q):         # q = (x mm, log s, D mm, one nuisance): the depth pulled to 3.5 mm, D to 4 mm
+        dep = np.exp(q[1]) + q[2] / 2
+        return np.array([(q[0] - 35.0) / 0.3, (dep - 3.5) / 0.4, (q[2] - 4.0) / 2.0, q[3]])
+
+    def jac(q):
+        s = np.exp(q[1])
+        return np.array([[1 / 0.3, 0, 0, 0], [0, s / 0.4, 0.5 / 0.4, 0], [0, 0, 0.5, 0], [0, 0, 0, 1.0]])
+    q = np.array([35.0, np.log(1.5), 4.0, 0.0])
+    out = _depth_profile(resid, jac, q, lo, hi, 3.5e-3, 0.5e-3, 0.0, 1.0, 50.0, np.array([-1.0]), np.array([1.0]))
+    for key in ("68", "95"):
+        a, b = out[key]
+        assert a <= 3.5e-3 + 1e-9 < b, (key, out[key])
+    assert out["68"][1] == pytest.approx(3.9e-3, abs=0.05e-3)     # chi2 = ((d - 3.5) / 0.4)^2 = 1 at 3.9 mm
+
+
+def test_readings_past_the_linear_range_warn_of_bias_and_suggest_a_depth_limit_that_avoids_them():
+    """The review's shallow stones on a 100 x 30 mm section: diameters 0.8-1.9 mm small (3-6 sigma) with only a
+    warning that the error was in the sigmas; with --depth-limit-m 0.002 (the tissue over them within the linear
+    model) within 1 sigma. The warning now says the bias may exceed the sigmas and gives that depth limit."""
+    from types import SimpleNamespace
+
+    from fem.contact import STONE_LAYER_MAX
+    from planner.refine import caveats
+    loc = SimpleNamespace(at_bound=[], n_beyond_linear_range=12, depth_m=0.00694, diameter_m=0.0080, dof_1=84,
+                          chi2_fit=80.0, chi2_1=80.0)
+    said = caveats(loc)
+    top = 0.00694 - 0.004
+    assert "biased beyond them" in said and "--depth-limit-m 0.0019" in said, said
+    assert float(said.split("--depth-limit-m ")[1].split()[0]) <= STONE_LAYER_MAX * top
+    loc.depth_m, loc.diameter_m = 0.0043, 0.008        # its top 0.3 mm deep: no depth limit suggested
+    assert "--depth-limit-m" not in caveats(loc) and "biased beyond them" in caveats(loc)
+
+
+def test_waiting_for_a_building_table_says_one_status_line_at_a_time(monkeypatch):
+    """While the run waited for the table, the build's progress line and a "waiting for the table" line with the same
+    numbers were both said every 15 s. Now the waiting line comes only when the build has said nothing for as long."""
+    import threading
+    import time as _time
+
+    import planner.pending as pending
+    release = threading.Event()
+
+    def slow_build(prior, grid, progress, runner):
+        for k in range(1, 9):
+            _time.sleep(0.05)
+            progress(k, 8, 0.05 * k)            # a stone every 50 ms: the build speaks every 0.1 s
+        release.wait(0.6)                       # then silent for a while: the waiting line speaks
+        return "table"
+    monkeypatch.setattr(pending, "load_surrogate", slow_build)
+    said: list[tuple[float, str]] = []
+    p = pending.PendingSurrogate(None, lambda m: said.append((_time.perf_counter(), m)), runner=object(),
+                                 every_s=0.1)
+    assert p.result() == "table"
+    span = said[-1][0] - said[0][0]
+    assert len(said) <= span / 0.1 + 2, said        # one line per 0.1 s (both spoke: about two)
+    assert any(m.startswith("waiting for the table") for _, m in said)
+    assert any(m.startswith("surrogate table: ") for _, m in said)
