@@ -39,9 +39,9 @@ def load_plan_option(path: str, option: str = "--plan") -> Plan:
         return Plan.load(path)
     except PlanError as e:
         msg = str(e)
-        for said in (f"cannot read plan {path}: ", f"plan {path}: "):   # (Plan.load's own prefix, said once)
-            if msg.startswith(said):
-                msg = msg[len(said):]
+        for said, instead in ((f"cannot read plan {path}: ", "cannot read it: "), (f"plan {path}: ", "")):
+            if msg.startswith(said):            # (Plan.load's own naming of the file: said once)
+                msg = instead + msg[len(said):]
         raise UsageError(f"{option} {path}: {msg}") from None
 
 

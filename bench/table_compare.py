@@ -43,6 +43,9 @@ def main(argv=None) -> int:
             tabs[name] = Surrogate({k: z[k] for k in z.files}, prior)
         print(f"{name}: {path}: positions (mm) {np.round(tabs[name].xs * 1e3, 2).tolist()}")
     W = prior.tissue.width_m
+    for name, t in tabs.items():
+        if abs(t.W - W) > 1e-9:
+            p.error(f"{name}: a table for a section {t.W} m wide, not SCENE's {W} m")
     m0 = surface_model(prior)
     x0 = np.linspace(0.005, W - 0.005, 111)
     rows = []
@@ -74,10 +77,11 @@ def main(argv=None) -> int:
         summary[n] = {f"{part}_{k}": float(f(v[sel])) if sel.any() else None
                       for part, sel in (("inside_A", inside), ("outside_A", ~inside))
                       for k, f, v in (("rms_median", np.median, rms), ("rms_max", np.max, rms), ("max_max", np.max, mx))}
-        print(f"{n}: {int(inside.sum())} stones inside A's range: RMS median {summary[n]['inside_A_rms_median']:.3%}, "
-              f"worst {summary[n]['inside_A_rms_max']:.3%}, pointwise worst {summary[n]['inside_A_max_max']:.3%}"
-              + (f"; {int((~inside).sum())} outside: RMS median {summary[n]['outside_A_rms_median']:.3%}, worst "
-                 f"{summary[n]['outside_A_rms_max']:.3%}" if (~inside).any() else ""))
+        parts = [f"{int(sel.sum())} stones {part.replace('_', ' ')}'s range: RMS median "
+                 f"{summary[n][part + '_rms_median']:.3%}, worst {summary[n][part + '_rms_max']:.3%}, pointwise worst "
+                 f"{summary[n][part + '_max_max']:.3%}" for part, sel in (("inside_A", inside), ("outside_A", ~inside))
+                 if sel.any()]
+        print(f"{n}: " + "; ".join(parts))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table_compare.json").write_text(json.dumps({"scene": a.scene, "a": a.a, "b": a.b, "seed": a.seed,

