@@ -62,8 +62,7 @@ from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
 from planner.tasks import Runner, run_pieces
 
-FORMAT = 4           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored; 3: forces past the crush limit;
-#                      4: a section wider than 70 mm keeps the positions near its sides (_grid_xs)
+FORMAT = 3           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored; 3: forces past the crush limit
 
 
 @dataclass(frozen=True)
@@ -95,9 +94,18 @@ def table_scene(prior, youngs_pa: float = 1.0):
 def cache_path(prior, grid: Grid, root: Path | None = None) -> Path:
     """Where the table of ``prior`` lives in ``root`` (default: fem's disk cache directory)."""
     root = diskcache.cache_dir() if root is None else root
-    key = hashlib.sha256(json.dumps({"scene": table_scene(prior).key(), "grid": grid.to_dict(), "format": FORMAT},
-                                    sort_keys=True).encode()).hexdigest()[:16]
+    key = hashlib.sha256(json.dumps(_key(table_scene(prior), grid), sort_keys=True).encode()).hexdigest()[:16]
     return root / f"surrogate-{key}.npz"
+
+
+def _key(scene, grid: Grid) -> dict:
+    """What a table (and its fingerprint) is keyed by: the scene, the grid and FORMAT; on a section wider than 70 mm
+    also its stone positions (since session 50 they are not the grid's scaled ones there: ``_grid_xs``; a section
+    up to 70 mm keeps its key, and its table)."""
+    key = {"scene": scene.key(), "grid": grid.to_dict(), "format": FORMAT}
+    if scene.tissue.width_m > REF_WIDTH_M:
+        key["xs_m"] = [repr(float(x)) for x in _grid_xs(scene, grid)]
+    return key
 
 
 FP_X = (0.012, 0.024, 0.030, 0.036, 0.047)      # fingerprint probe positions (fraction of 70 mm; scaled)
@@ -135,8 +143,7 @@ def fingerprint_stone(prior, grid: Grid) -> tuple[int, int, int] | None:
 def _fingerprint_now(own, grid: Grid) -> np.ndarray:
     """``fingerprint(own, grid)``, read from fem's disk cache when today's fem and libraries computed it before
     (planner.fingerprint: the same numbers, without the 0.7 s of a mesh and a factorization per process)."""
-    return cached_fingerprint("fingerprint", {"scene": own.key(), "grid": grid.to_dict(), "format": FORMAT},
-                              lambda: fingerprint(own, grid))
+    return cached_fingerprint("fingerprint", _key(own, grid), lambda: fingerprint(own, grid))
 
 
 REF_WIDTH_M = 0.070        # the section Grid.xs_m is laid out for (its last position is the middle)

@@ -154,3 +154,13 @@ def test_waiting_for_a_building_table_says_one_status_line_at_a_time(monkeypatch
     assert len(said) <= span / 0.1 + 2, said        # one line per 0.1 s (both spoke: about two)
     assert any(m.startswith("waiting for the table") for _, m in said)
     assert any(m.startswith("surrogate table: ") for _, m in said)
+
+
+def test_a_table_key_changes_only_where_the_positions_did():
+    """Up to 70 mm the tables keep their keys (the shipped paper table's name included); a wider section's key holds
+    its positions, so a table built with the old scaled ones is never read for it."""
+    from planner.surrogate import SHIPPED, _key, cache_path, table_scene
+    assert cache_path(load("paper").prior(), Grid(), SHIPPED).exists()
+    assert "xs_m" not in _key(table_scene(_prior(0.07)), Grid())
+    wide = _key(table_scene(_prior(0.12)), Grid())
+    assert wide["xs_m"] == [repr(float(x)) for x in _grid_xs(_prior(0.12), Grid())]
