@@ -167,6 +167,8 @@ class Localization:
     n_beyond_linear_range: int = 0   # readings the linear model does not cover under the fitted stone (CRUSH_REL_ERR)
     chi2_fit: float = float("nan")   # the stone fit's chi2 with its final weights (those readings' model error in
     #                                  them: the poor-fit check's); chi2_1, the LR's, is the first fit's, as chi2_0
+    surface_rise_at_stone_m: float = 0.0   # the fitted surface above the nominal one over the stone (offset and tilt;
+    #                                  a probe planned d deep there indents d + this)
 
     def to_dict(self) -> dict:
         def f(v):
@@ -183,7 +185,8 @@ class Localization:
                              "fit_at_bound": list(self.at_bound),
                              "offset_drift_n_per_s": f(self.offset_drift_n_per_s),
                              "readings_beyond_linear_range": int(self.n_beyond_linear_range),
-                             "chi2_stone_final": f(self.chi2_fit)},
+                             "chi2_stone_final": f(self.chi2_fit),
+                             "surface_rise_at_stone_m": f(self.surface_rise_at_stone_m)},
                 "nuisance": {k: ({"value": f(v[0]), "sigma": f(v[1])} if isinstance(v, tuple) else v)
                              for k, v in self.nuisance.items()},
                 "n_probes": self.n_probes}
@@ -931,7 +934,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
                        at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
                        contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - k * fw.tissue_force(d_fit, nu),
                        prior_n=k * fw.tissue_force(d_fit, nu), fit_contrast_n=fit_c,
-                       n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(fit.cost))
+                       n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(fit.cost),
+                       surface_rise_at_stone_m=1e-3 * float(nu[2] + nu[3] * (xs - 0.5 * prior.tissue.width_m)))
     return loc, profile_args
 
 

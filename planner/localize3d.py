@@ -384,7 +384,9 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
         contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - prior_n, prior_n=prior_n,
         fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]),
-        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(best.cost))
+        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(best.cost),
+        surface_rise_at_stone_m=1e-3 * float(nu[2] + nu[3] * (xs - 0.5 * prior.tissue.width_m)
+                                             + nu[4] * (ys - 0.5 * prior.tissue.length_m)))
 
 
 def _beyond_linear_range3d(fw: _Forward3D, meas: Measurements, q, tip_radius_m: float) -> np.ndarray:

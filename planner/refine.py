@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.contracts import MEASURED
+from core.contracts import MEASURED, PlanOptions
 from fem.contact import STONE_LAYER_MAX
 from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, STONE_PARAMS, Localization, Measurements, localize
 from planner.surrogate import load_surrogate
@@ -189,9 +189,22 @@ def too_few(usable: int, used: int, need: int) -> str:
     return f"too few usable measurements: {usable} of {used} probes, a fit needs at least {need}{why}"
 
 
-MIN_HINT_DEPTH_M = 5e-4      # a shallower depth limit than this is not suggested (a stone within half a mm)
+MIN_HINT_DEPTH_M = PlanOptions().min_depth_m   # a shallower depth limit is not suggested: `palpate run` refuses a
+#                              --depth-limit-m below the shallowest useful probe (the suggestion said 0.5 mm before)
 HINT_MARGIN = 0.9            # the suggested limit's share of what the linear model covers over the fitted stone (its
 #                              top is an estimate: at the full share a re-run still pressed 29 readings past it)
+
+
+def linear_range_depth_m(loc) -> float:
+    """The planned (nominal) probe depth that keeps a probe over the fitted stone within what the linear model covers
+    (``HINT_MARGIN`` of fem.contact.STONE_LAYER_MAX of the tissue over its top, less the fitted surface's rise there:
+    a surface higher than registered is indented deeper by the same planned depth), floored to 0.1 mm; NaN without a
+    finite estimate."""
+    top = loc.depth_m - 0.5 * loc.diameter_m
+    rise = getattr(loc, "surface_rise_at_stone_m", 0.0)
+    if not (math.isfinite(top) and math.isfinite(rise)):
+        return math.nan
+    return math.floor((HINT_MARGIN * STONE_LAYER_MAX * max(top, 0.0) - rise) * 1e4) / 1e4
 
 
 def caveats(loc) -> str:
@@ -216,9 +229,10 @@ def caveats(loc) -> str:
     if n_beyond:
         # (session 50's review: on a 30 mm section, shallow stones' diameters 3-6 sigma small with only this warning,
         # and within 1 sigma when probed no deeper than the linear model covers over them)
-        safe_m = math.floor(HINT_MARGIN * STONE_LAYER_MAX * (loc.depth_m - 0.5 * loc.diameter_m) * 1e4) / 1e4
+        safe_m = linear_range_depth_m(loc)
         hint = (f"; probes no deeper than {safe_m * 1e3:.1f} mm over it stay within that model: "
-                f"--depth-limit-m {safe_m:g}" if safe_m >= MIN_HINT_DEPTH_M else "")
+                f"--depth-limit-m {safe_m:g}" if safe_m >= MIN_HINT_DEPTH_M else
+                f"; no probe the planner accepts ({MIN_HINT_DEPTH_M * 1e3:g} mm deep at least) stays within it")
         out.append(f"the stone's top lies within the probes' reach: {n_beyond} readings pressed the tissue over it "
                    f"beyond what the linear model covers (taken with a {CRUSH_REL_ERR:.0%} error on the stone's "
                    f"contrast there, in the sigmas; its depth and diameter may still be biased beyond them){hint}")

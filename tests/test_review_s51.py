@@ -1,0 +1,57 @@
+"""Session 51: the depth limit a shallow stone's warning suggests is a planned depth: a surface fitted higher than
+registered is indented deeper by the same plan."""
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+from fem.contact import STONE_LAYER_MAX
+from planner.refine import HINT_MARGIN, caveats, linear_range_depth_m
+
+
+def _loc(rise_m=0.0, depth_m=0.007, diameter_m=0.008, detected=True):
+    return SimpleNamespace(detected=detected, depth_m=depth_m, diameter_m=diameter_m, n_beyond_linear_range=4,
+                           at_bound=[], dof_1=0, chi2_1=math.nan, chi2_fit=math.nan, surface_rise_at_stone_m=rise_m)
+
+
+def test_the_suggested_depth_limit_is_the_planned_depth_that_keeps_the_true_one_within_the_model():
+    top = 0.007 - 0.004
+    covered = HINT_MARGIN * STONE_LAYER_MAX * top          # true indentation the linear model covers over the stone
+    assert linear_range_depth_m(_loc()) == math.floor(covered * 1e4) / 1e4 == 0.002
+    # a surface 0.6 mm higher than registered: a probe planned d deep indents d + 0.6 mm there
+    assert linear_range_depth_m(_loc(rise_m=6e-4)) == math.floor((covered - 6e-4) * 1e4) / 1e4 == 0.0014
+    assert "--depth-limit-m 0.0014" in caveats(_loc(rise_m=6e-4))
+    # lower than registered: deeper
+    assert "--depth-limit-m 0.0025" in caveats(_loc(rise_m=-5e-4))
+    # nothing a probe could keep clear of (the fitted surface reaches the linear model's depth): no suggestion
+    text = caveats(_loc(rise_m=2.5e-3))
+    assert "readings pressed the tissue over it" in text and "--depth-limit-m" not in text
+    assert "no probe the planner accepts (1 mm deep at least) stays within it" in text
+    # nor one below the shallowest useful probe, which `palpate run --depth-limit-m` refuses (it suggested 0.0007)
+    text = caveats(_loc(rise_m=1.3e-3))
+    assert "--depth-limit-m" not in text and "no probe the planner accepts" in text
+    assert math.isnan(linear_range_depth_m(_loc(depth_m=math.nan)))
+
+
+def test_the_localization_reports_the_surface_rise_over_the_stone():
+    """The localizer's JSON names the fitted surface's height over the stone (the offset plus the tilt there)."""
+    from planner.localize import Localization
+    d = Localization(detected=True, lr=30.0, lr_threshold=20.0, surface_rise_at_stone_m=4e-4).to_dict()
+    assert d["evidence"]["surface_rise_at_stone_m"] == 4e-4
+
+
+def test_the_fitted_rise_over_the_stone_is_the_offset_and_the_tilt_there(paper_prior, paper_surrogate):
+    """On a study trial's records (tests/data/mismatch-hyper-trial-0043: the true surface is offset and tilted), the
+    rise over the stone is the fitted offset plus the fitted tilt times the stone's distance from the section's
+    middle: the surface the fit's own indentations use."""
+    from pathlib import Path
+
+    from planner.localize import Measurements, localize
+    from robot.records import read_records
+    data = Path(__file__).parent / "data" / "mismatch-hyper-trial-0043"
+    meas = Measurements.from_records(read_records(data), statuses=("ok", "force_limit", "depth_limit"))
+    loc = localize(paper_prior, meas, paper_surrogate)
+    off, tilt = loc.nuisance["surface_offset_m"][0], loc.nuisance["surface_tilt_rad"][0]
+    want = off + tilt * (loc.x_m - 0.5 * paper_prior.tissue.width_m)
+    assert loc.detected and abs(tilt) > 1e-3         # the trial's surface is tilted: the tilt term counts
+    assert math.isclose(loc.surface_rise_at_stone_m, want, rel_tol=1e-9, abs_tol=1e-12)
