@@ -162,7 +162,9 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
         dep = [p.depth_m for p in plan.probes] if plan is not None else list(m.depth_m)
         rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.to_dict(), plan,
                             time.perf_counter() - t0))
-        say(f"round {k}: {len(x)} probes ({used} in all): " + describe(loc))
+        if k == 0:
+            feel = contact_floor_m(plan)      # (the coarse plan's: where a re-run's probes still feel the tissue)
+        say(f"round {k}: {len(x)} probes ({used} in all): " + describe(loc, feel))
         if converged(loc, target_m):
             reason = "target uncertainty reached"
             break
@@ -207,11 +209,54 @@ def linear_range_depth_m(loc) -> float:
     return math.floor((HINT_MARGIN * STONE_LAYER_MAX * max(top, 0.0) - rise) * 1e4) / 1e4
 
 
-def caveats(loc) -> str:
+CONTACT_MARGIN = 1.5         # a suggested depth limit leaves every probe pressing at least this many contact thresholds
+#                              (session 51: a 3D block's shallow stone was told 1.1 mm, where probes press 0.01 N
+#                              against a 0.02 N threshold and feel no contact)
+FORCE_EXPONENT = 1.5         # a probe's force ~ depth^p where its plan has no exponent: Hertz's sphere (a deeper floor
+#                              than the 2D cylinder's 1.1-1.2)
+
+
+def contact_floor_m(plan) -> float:
+    """The shallowest depth limit (0.1 mm steps) at which every probe of ``plan`` is still predicted to press
+    ``CONTACT_MARGIN`` x the contact threshold on the prior tissue: its predicted force continued from its planned
+    depth as depth^p (its plan's force exponent, else ``FORCE_EXPONENT``). NaN without a plan or its predictions, or
+    when that is not shallower than the plan's own depth limit."""
+    probes = getattr(plan, "probes", None)
+    if not probes or getattr(plan, "limits", None) is None:
+        return math.nan
+    target = CONTACT_MARGIN * plan.motion.contact_threshold_n
+    need = []
+    for p in probes:
+        f, d = p.predicted_force_n, p.depth_m
+        if not (f is not None and f > 0 and d > 0):
+            return math.nan
+        need.append(d * (target / f) ** (1.0 / (p.force_exponent or FORCE_EXPONENT)))
+    floor = math.ceil(max(need) * 1e4 - 1e-6) / 1e4
+    return floor if floor < plan.limits.depth_limit_m else math.nan
+
+
+def depth_hint(loc, feel_m: float = math.nan) -> str:
+    """The depth limit that keeps a re-run's probes within the linear model over the fitted stone (``; ...`` or "").
+    ``feel_m``: ``contact_floor_m`` of the run's plan (NaN: unknown); a shallower limit is not suggested, nor one
+    below the shallowest probe the planner accepts (`palpate run` refuses it)."""
+    safe = linear_range_depth_m(loc)
+    if not math.isfinite(safe):
+        return ""
+    lo = max(MIN_HINT_DEPTH_M, feel_m) if math.isfinite(feel_m) else MIN_HINT_DEPTH_M
+    if safe >= lo:
+        return f"; probes no deeper than {safe * 1e3:.1f} mm over it stay within that model: --depth-limit-m {safe:g}"
+    if math.isfinite(feel_m) and feel_m >= MIN_HINT_DEPTH_M:
+        return (f"; that model holds over it only for probes no deeper than {max(safe, 0.0) * 1e3:.1f} mm, but they "
+                f"press the tissue {CONTACT_MARGIN:g}x the contact threshold only from {feel_m * 1e3:.1f} mm: "
+                f"--depth-limit-m {feel_m:g} comes nearest")
+    return f"; no probe the planner accepts ({MIN_HINT_DEPTH_M * 1e3:g} mm deep at least) stays within it"
+
+
+def caveats(loc, feel_m: float = math.nan) -> str:
     """What makes a detected stone's estimate doubtful, for the line that reports it ("" when nothing): a parameter
     at its fit's bound (the table's range: the stone may lie beyond it, and the rest of the estimate with it) and a fit
     the data reject (chi2 above its degrees of freedom by more than 4 standard deviations, sqrt(2 dof): one stone in
-    the prior's tissue does not explain the forces)."""
+    the prior's tissue does not explain the forces). ``feel_m``: as ``depth_hint`` takes it."""
     out = []
     bounds = [b for b in loc.at_bound if b in STONE_PARAMS]
     if bounds:
@@ -229,10 +274,7 @@ def caveats(loc) -> str:
     if n_beyond:
         # (session 50's review: on a 30 mm section, shallow stones' diameters 3-6 sigma small with only this warning,
         # and within 1 sigma when probed no deeper than the linear model covers over them)
-        safe_m = linear_range_depth_m(loc)
-        hint = (f"; probes no deeper than {safe_m * 1e3:.1f} mm over it stay within that model: "
-                f"--depth-limit-m {safe_m:g}" if safe_m >= MIN_HINT_DEPTH_M else
-                f"; no probe the planner accepts ({MIN_HINT_DEPTH_M * 1e3:g} mm deep at least) stays within it")
+        hint = depth_hint(loc, feel_m)
         out.append(f"the stone's top lies within the probes' reach: {n_beyond} readings pressed the tissue over it "
                    f"beyond what the linear model covers (taken with a {CRUSH_REL_ERR:.0%} error on the stone's "
                    f"contrast there, in the sigmas; its depth and diameter may still be biased beyond them){hint}")
@@ -255,13 +297,14 @@ def no_stone_caveats(loc, n_stone: int = 3) -> str:
     return ""
 
 
-def describe(loc: Localization) -> str:
+def describe(loc: Localization, feel_m: float = math.nan) -> str:
+    """A localization in one line (its caveats after "; warning: "); ``feel_m`` as ``depth_hint`` takes it."""
     if not loc.detected:
         return (f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.1f} mN)"
                 + no_stone_caveats(loc))
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- "
             f"{loc.sigma_depth_m * 1e3:.2f} mm, diameter {loc.diameter_m * 1e3:.2f} +- "
-            f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})" + caveats(loc))
+            f"{loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})" + caveats(loc, feel_m))
 
 
 def renumber(plan, start: int):

@@ -55,3 +55,32 @@ def test_the_fitted_rise_over_the_stone_is_the_offset_and_the_tilt_there(paper_p
     want = off + tilt * (loc.x_m - 0.5 * paper_prior.tissue.width_m)
     assert loc.detected and abs(tilt) > 1e-3         # the trial's surface is tilted: the tilt term counts
     assert math.isclose(loc.surface_rise_at_stone_m, want, rel_tol=1e-9, abs_tol=1e-12)
+
+
+def test_a_suggested_depth_limit_leaves_the_probes_feeling_the_tissue(paper_prior):
+    """A 3D block's shallow stone was told `--depth-limit-m 0.0011`, where its probes press 0.01 N against a 0.02 N
+    contact threshold and feel nothing. The suggestion is now never shallower than the depth at which every probe of
+    the run's plan presses CONTACT_MARGIN x the threshold; checked here against fem's own force at that depth."""
+    from planner.plan import default_force_model, plan_raster
+    from planner.refine import CONTACT_MARGIN, contact_floor_m, depth_hint
+
+    plan = plan_raster(paper_prior, n_waypoints=15)
+    floor = contact_floor_m(plan)
+    target = CONTACT_MARGIN * plan.motion.contact_threshold_n
+    force = default_force_model(paper_prior)
+    at_floor = [force(p.x_m, floor) for p in plan.probes]
+    shallower = [force(p.x_m, floor - 2e-4) for p in plan.probes]
+    assert min(at_floor) >= 0.95 * target, (floor, min(at_floor))        # continued by the exponent: within 5 %
+    assert min(shallower) < target, (floor, min(shallower))              # and not needlessly deep
+    assert 1e-3 < floor < plan.limits.depth_limit_m
+    # the linear model over the stone asks for less: the floor is suggested instead, and says why
+    text = depth_hint(_loc(depth_m=0.0055, diameter_m=0.008), floor)
+    assert f"--depth-limit-m {floor:g} comes nearest" in text and "only from" in text
+    # it asks for more: its own depth
+    assert "--depth-limit-m 0.002" in depth_hint(_loc(), 1.5e-3)
+    # a plan that feels the tissue only at its own limit has no shallower floor
+    soft = plan_raster(paper_prior, n_waypoints=5)
+    for p in soft.probes:
+        p.predicted_force_n = 0.5 * target
+    assert math.isnan(contact_floor_m(soft)) and math.isnan(contact_floor_m(None))
+
