@@ -26,7 +26,7 @@ import numpy as np
 from core.contracts import MEASURED
 from planner.localize import MIN_MEASUREMENTS3D, THICKNESS_SIGMA, Measurements
 from planner.localize3d import Localization3D, localize3d
-from planner.refine import WEAK_LR, AdaptiveResult, Round, caveats, contact_floor_m, no_stone_caveats, too_few
+from planner.refine import WEAK_LR, AdaptiveResult, ProbeReach, Round, caveats, no_stone_caveats, probe_reach, too_few
 from planner.tissue_response3d import prior_and_thickness_slope3d
 
 DESIGN_STEP_M = 1e-3
@@ -171,8 +171,8 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
                             len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
         if k == 0:
-            feel = contact_floor_m(plan)      # (the coarse plan's: where a re-run's probes still feel the tissue)
-        say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc, feel))
+            reach = probe_reach(plan)         # (the coarse plan's: what a re-run's depth limit may be)
+        say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc, reach))
         if converged3d(loc, target_m):
             reason = "target uncertainty reached"
             break
@@ -188,12 +188,12 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
     return AdaptiveResult(loc, meas, rounds, used, reason)
 
 
-def describe3d(loc: Localization3D, feel_m: float = math.nan) -> str:
-    """A block's localization in one line; ``feel_m`` as planner.refine.depth_hint takes it."""
+def describe3d(loc: Localization3D, reach: ProbeReach = ProbeReach()) -> str:
+    """A block's localization in one line; ``reach`` as planner.refine.depth_hint takes it."""
     if not loc.detected:
         return (f"no stone (LR {loc.lr:.1f} < {loc.lr_threshold:g}; peak contrast {loc.peak_contrast_n * 1e3:.2f} "
                 f"mN)" + no_stone_caveats(loc, 4))
     return (f"stone at x {loc.x_m * 1e3:.2f} +- {loc.sigma_x_m * 1e3:.2f} mm, y {loc.y_m * 1e3:.2f} +- "
             f"{loc.sigma_y_m * 1e3:.2f} mm, depth {loc.depth_m * 1e3:.2f} +- {loc.sigma_depth_m * 1e3:.2f} mm, "
             f"diameter {loc.diameter_m * 1e3:.2f} +- {loc.sigma_diameter_m * 1e3:.2f} mm (LR {loc.lr:.0f})"
-            + caveats(loc, feel_m))
+            + caveats(loc, reach))

@@ -126,8 +126,8 @@ def test_readings_past_the_linear_range_warn_of_bias_and_suggest_a_depth_limit_t
     top = 0.00694 - 0.004
     assert "biased beyond them" in said and "--depth-limit-m 0.0019" in said, said
     assert float(said.split("--depth-limit-m ")[1].split()[0]) <= STONE_LAYER_MAX * top
-    loc.depth_m, loc.diameter_m = 0.0043, 0.008        # its top 0.3 mm deep: no depth limit suggested
-    assert "--depth-limit-m" not in caveats(loc) and "biased beyond them" in caveats(loc)
+    loc.depth_m, loc.diameter_m = 0.0043, 0.008        # its top 0.3 mm deep: only the shallowest probe comes near
+    assert "--depth-limit-m 0.001 comes nearest" in caveats(loc) and "biased beyond them" in caveats(loc)
 
 
 def test_waiting_for_a_building_table_says_one_status_line_at_a_time(monkeypatch):

@@ -22,14 +22,15 @@ def test_the_suggested_depth_limit_is_the_planned_depth_that_keeps_the_true_one_
     assert linear_range_depth_m(_loc(rise_m=6e-4)) == math.floor((covered - 6e-4) * 1e4) / 1e4 == 0.0014
     assert "--depth-limit-m 0.0014" in caveats(_loc(rise_m=6e-4))
     # lower than registered: deeper
-    assert "--depth-limit-m 0.0025" in caveats(_loc(rise_m=-5e-4))
-    # nothing a probe could keep clear of (the fitted surface reaches the linear model's depth): no suggestion
+    assert "--depth-limit-m 0.0025 (on tissue stiffening at finite strain, x's sigma may" in caveats(_loc(rise_m=-5e-4))
+    # nothing a probe could keep clear of (the fitted surface reaches the linear model's depth): the shallowest
     text = caveats(_loc(rise_m=2.5e-3))
-    assert "readings pressed the tissue over it" in text and "--depth-limit-m" not in text
-    assert "no probe the planner accepts (1 mm deep at least) stays within it" in text
+    assert "readings pressed the tissue over it" in text
+    assert "only for probes no deeper than 0.0 mm, but the planner takes no probe shallower than 1 mm: " \
+        "--depth-limit-m 0.001 comes nearest" in text
     # nor one below the shallowest useful probe, which `palpate run --depth-limit-m` refuses (it suggested 0.0007)
     text = caveats(_loc(rise_m=1.3e-3))
-    assert "--depth-limit-m" not in text and "no probe the planner accepts" in text
+    assert "--depth-limit-m 0.0007" not in text and "--depth-limit-m 0.001 comes nearest" in text
     assert math.isnan(linear_range_depth_m(_loc(depth_m=math.nan)))
 
 
@@ -62,7 +63,7 @@ def test_a_suggested_depth_limit_leaves_the_probes_feeling_the_tissue(paper_prio
     contact threshold and feel nothing. The suggestion is now never shallower than the depth at which every probe of
     the run's plan presses CONTACT_MARGIN x the threshold; checked here against fem's own force at that depth."""
     from planner.plan import default_force_model, plan_raster
-    from planner.refine import CONTACT_MARGIN, contact_floor_m, depth_hint
+    from planner.refine import CONTACT_MARGIN, ProbeReach, contact_floor_m, depth_hint, probe_reach
 
     plan = plan_raster(paper_prior, n_waypoints=15)
     floor = contact_floor_m(plan)
@@ -74,10 +75,14 @@ def test_a_suggested_depth_limit_leaves_the_probes_feeling_the_tissue(paper_prio
     assert min(shallower) < target, (floor, min(shallower))              # and not needlessly deep
     assert 1e-3 < floor < plan.limits.depth_limit_m
     # the linear model over the stone asks for less: the floor is suggested instead, and says why
-    text = depth_hint(_loc(depth_m=0.0055, diameter_m=0.008), floor)
+    reach = probe_reach(plan)
+    assert reach == ProbeReach(floor, max(p.depth_m for p in plan.probes))
+    text = depth_hint(_loc(depth_m=0.0055, diameter_m=0.008), reach)
     assert f"--depth-limit-m {floor:g} comes nearest" in text and "only from" in text
     # it asks for more: its own depth
-    assert "--depth-limit-m 0.002" in depth_hint(_loc(), 1.5e-3)
+    assert "--depth-limit-m 0.002" in depth_hint(_loc(), ProbeReach(1.5e-3, 0.004))
+    # no shallower than the run went (the readings past the range were where the surface is higher): nothing to say
+    assert depth_hint(_loc(rise_m=-2e-3), ProbeReach(1.5e-3, 0.003)) == ""
     # a plan that feels the tissue only at its own limit has no shallower floor
     soft = plan_raster(paper_prior, n_waypoints=5)
     for p in soft.probes:

@@ -85,7 +85,7 @@ from planner.localize import (
 )
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
-from planner.refine import adaptive, contact_floor_m, describe
+from planner.refine import adaptive, describe, probe_reach
 from planner.surrogate import check_table_fits, load_surrogate
 from robot.safety import check_plan
 from robot.truth import DEFAULT_RELAXATION, conditions_of
@@ -450,8 +450,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    feel = contact_floor_m(plan0)       # where a re-run's probes still feel the tissue (a depth hint's floor)
-    head = conclude(result, out, loc, res, describe(loc, feel) if res is not None else "", status, fault, _say,
+    reach = probe_reach(plan0)          # what a depth limit a warning suggests may be
+    head = conclude(result, out, loc, res, describe(loc, reach) if res is not None else "", status, fault, _say,
                     three_d=False, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1))
     write_json(args.json, result)
@@ -459,7 +459,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         from planner.plots_run import run_figure
         fig = run_figure(prior, loc, res.measurements, surrogate=sur,
                          truth_stones=truth.stones if truth is not None else (), rounds=res.rounds,
-                         title=f"palpate run {args.scene}:\n" + describe(loc, feel).replace("; warning: ", "\nwarning: "))
+                         title=f"palpate run {args.scene}:\n" + describe(loc, reach).replace("; warning: ", "\nwarning: "))
         if fig_child is not None:
             fig_child.draw(out / "fig_run.png", fig, _say)
         else:

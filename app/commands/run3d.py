@@ -46,7 +46,7 @@ from planner.draw_run3d import draw_run3d
 from planner.localize import THICKNESS_SIGMA
 from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
-from planner.refine import contact_floor_m
+from planner.refine import probe_reach
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
 from planner.surrogate3d import load_surrogate3d
 from planner.tissue_response3d import prior_and_thickness_slope3d, thickness_models_to_build
@@ -204,8 +204,8 @@ def run_block(args, ctx: RunContext) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    feel = contact_floor_m(plan0)       # where a re-run's probes still feel the tissue (a depth hint's floor)
-    head = conclude(result, out, loc, res, describe3d(loc, feel) if res is not None else "", status, fault, _say,
+    reach = probe_reach(plan0)          # what a depth limit a warning suggests may be
+    head = conclude(result, out, loc, res, describe3d(loc, reach) if res is not None else "", status, fault, _say,
                     three_d=True, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
     write_json(args.json, result)
@@ -213,7 +213,7 @@ def run_block(args, ctx: RunContext) -> int:
         from planner.plots_run3d import run_figure3d
         fig = run_figure3d(prior, loc, res.measurements, surrogate=sur,
                            truth_stones=truth.stones if truth is not None else (), region=probe_bounds(prior),
-                           title=f"palpate run {args.scene}:\n" + describe3d(loc, feel).replace("; warning: ", "\nwarning: "))
+                           title=f"palpate run {args.scene}:\n" + describe3d(loc, reach).replace("; warning: ", "\nwarning: "))
         if ctx.fig_child is not None:
             ctx.fig_child.draw(out / "fig_run.png", fig, _say)
         else:
