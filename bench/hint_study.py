@@ -33,19 +33,16 @@ sys.path.insert(0, str(ROOT))
 
 from core.contracts import Plan  # noqa: E402
 from planner.plan import replan  # noqa: E402
-from planner.refine import MIN_HINT_DEPTH_M, contact_floor_m, linear_range_depth_m  # noqa: E402
+from planner.refine import probe_reach, suggested_limit_m  # noqa: E402
 
 
 def suggested_m(result: dict, plan: Plan, width_m: float) -> float:
-    """The depth limit the warning suggests for this result (NaN: none shallower than the plan's probes)."""
+    """The depth limit the warning suggests for this result today (NaN: none), from its estimate and nuisance."""
     e, nu = result["estimate"], result["nuisance"]
     rise = nu["surface_offset_m"]["value"] + nu["surface_tilt_rad"]["value"] * (e["x_m"]["value"] - 0.5 * width_m)
     loc = SimpleNamespace(depth_m=e["depth_m"]["value"], diameter_m=e["diameter_m"]["value"],
                           surface_rise_at_stone_m=rise)
-    safe, floor = linear_range_depth_m(loc), contact_floor_m(plan)
-    lo = max(MIN_HINT_DEPTH_M, floor) if math.isfinite(floor) else MIN_HINT_DEPTH_M
-    d = safe if safe >= lo else lo
-    return d if d < max(p.depth_m for p in plan.probes) else math.nan
+    return suggested_limit_m(loc, probe_reach(plan))[0]
 
 
 def score(result: dict, stone: dict) -> dict | None:

@@ -253,24 +253,32 @@ def probe_reach(plan) -> ProbeReach:
     return ProbeReach(contact_floor_m(plan), max(depths) if depths else math.nan)
 
 
-def depth_hint(loc, reach: ProbeReach = ProbeReach()) -> str:
-    """The depth limit that keeps a re-run's probes within the linear model over the fitted stone (``; ...`` or "").
-    ``reach``: the run's plan's (``probe_reach``): a limit shallower than its contact floor is not suggested, nor one
-    below the shallowest probe the planner accepts (`palpate run` refuses it), nor one no shallower than its probes
-    went (the readings past the range then came from where the fitted surface is higher than over the stone's
-    centre: nothing a limit would change)."""
+def suggested_limit_m(loc, reach: ProbeReach = ProbeReach()) -> tuple[float, float]:
+    """(the depth limit to suggest, what the linear model over the fitted stone asks for): the second when it is
+    deep enough that the probes still feel the tissue (``reach.floor_m``) and the planner takes it, else the nearest
+    such; NaN (no suggestion) when the estimate is not finite or the model asks for no less than the probes went (the
+    readings past the range then came from where the fitted surface is higher than over the stone's centre: nothing
+    a limit would change). ``reach``: the run's plan's (``probe_reach``)."""
     safe = linear_range_depth_m(loc)
     if not math.isfinite(safe) or safe >= reach.deepest_m:
+        return math.nan, safe
+    lo = max(MIN_HINT_DEPTH_M, reach.floor_m) if math.isfinite(reach.floor_m) else MIN_HINT_DEPTH_M
+    return max(safe, lo), safe
+
+
+def depth_hint(loc, reach: ProbeReach = ProbeReach()) -> str:
+    """The depth limit that keeps a re-run's probes within the linear model over the fitted stone (``; ...`` or ""),
+    as ``suggested_limit_m`` chooses it, and why."""
+    limit, safe = suggested_limit_m(loc, reach)
+    if not math.isfinite(limit):
         return ""
-    feel_m = reach.floor_m
-    lo = max(MIN_HINT_DEPTH_M, feel_m) if math.isfinite(feel_m) else MIN_HINT_DEPTH_M
-    if safe >= lo:
+    if limit == safe:
         return (f"; probes no deeper than {safe * 1e3:.1f} mm over it stay within that model: --depth-limit-m {safe:g}"
                 + HINT_CAUTION)
-    why = (f"they press the tissue {CONTACT_MARGIN:g}x the contact threshold only from {lo * 1e3:.1f} mm"
-           if lo > MIN_HINT_DEPTH_M else f"the planner takes no probe shallower than {lo * 1e3:g} mm")
+    why = (f"they press the tissue {CONTACT_MARGIN:g}x the contact threshold only from {limit * 1e3:.1f} mm"
+           if limit > MIN_HINT_DEPTH_M else f"the planner takes no probe shallower than {limit * 1e3:g} mm")
     return (f"; that model holds over it only for probes no deeper than {max(safe, 0.0) * 1e3:.1f} mm, but {why}: "
-            f"--depth-limit-m {lo:g} comes nearest" + HINT_CAUTION)
+            f"--depth-limit-m {limit:g} comes nearest" + HINT_CAUTION)
 
 
 def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
