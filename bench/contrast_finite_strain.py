@@ -25,7 +25,7 @@ from fem.contact import surface_model  # noqa: E402
 from fem.hypertruth import HyperelasticForce  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
 
-STONES = ("0.035,0.007,0.008", "0.035,0.013,0.010", "0.035,0.020,0.012")
+STONES = ("0.035,0.007,0.008", "0.035,0.013,0.010", "0.035,0.020,0.012", "0.015,0.010,0.008", "0.050,0.016,0.014")
 
 
 def triple(text: str) -> tuple[float, float, float]:
