@@ -236,6 +236,9 @@ SIGMA_BOUND_TOL = 1e-9      # relative slack on both bounds: a bound printed in 
 DRIFT_SIGMA_N_PER_S = 1e-3  # prior on the drift rate (1 sigma): 10x the nano17 datasheet's; with the stiffness scale
 #                             free, a constant offset and a larger scale otherwise mimic a central stone's bump
 ONSET_RATIO_MIN = 0.5       # 1 + C / P at a contact onset at least (a contrast below -P / 2: not a hard stone's)
+FS_CONTRAST_ERR = 0.15      # model error of the stone's contrast per unit finite-strain amplitude (a neo-Hookean tissue's
+#                             contrast differs from the linear one times the prior's correction by 4-14 % over the
+#                             stone and up to 30-70 % on its flanks at 3-4 mm: bench/contrast_finite_strain.py)
 CRUSH_REL_ERR = 0.5         # model error, relative to the stone's contrast, of a reading the linear model does not cover
 #                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (README)
 CRUSH_PASSES = 3            # refits at most while the fitted stone moves to another set of such readings
@@ -875,17 +878,21 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     # error of CRUSH_REL_ERR of the stone's contrast there, and the fit again from here (fixed, as the contrast's
     # allowance is)
     # (again while the refit moves the stone to another set of such readings: CRUSH_PASSES at most)
+    # and where the fit takes the tissue as stiffening at finite strain (amplitude a): an error of FS_CONTRAST_ERR a of
+    # the contrast at every reading (the stone's own finite strain, which the prior's correction does not hold)
     sig_fit = sig
     beyond = np.zeros(len(meas), dtype=bool)
-    for _ in range(CRUSH_PASSES):
+    fs_allow = FS_CONTRAST_ERR * max(float(fw.full(fit.x[3:])[5]), 0.0) if fw.free[5] else 0.0
+    for k in range(CRUSH_PASSES):
         now = _beyond_linear_range(fw, fit.x, prior.indenter.radius_m)
-        if np.array_equal(now, beyond):
+        if np.array_equal(now, beyond) and not (k == 0 and fs_allow > 0.0):
             break
         beyond = now
         nu = fw.full(fit.x[3:])
         d_fit = fw.depth(nu)
         c_fit = math.exp(nu[1]) * fw.contrast(_stone(fit.x[:3]), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
-        sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+        c_pos = np.maximum(c_fit, 0.0)
+        sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * c_pos, 0.0) ** 2 + (fs_allow * c_pos) ** 2)
         fit = least_squares(resid, fit.x, jac=_jac_or_fd(jac), bounds=(np.concatenate([lo, nlo]),
                                                                      np.concatenate([hi, nhi])),
                             x_scale=np.concatenate([[1.0, 0.1, 1.0], NUIS_X_SCALE[fw.free]]), diff_step=1e-4,
