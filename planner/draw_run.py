@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+LEGEND_BELOW_PT = 34.0      # the section panel's legend: its top this far below the axes (past tick labels and x label)
+
 
 @dataclass
 class RunFigure:
@@ -52,6 +54,7 @@ def draw_run(path, f: RunFigure) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Circle, Ellipse, Rectangle
+    from matplotlib.transforms import offset_copy
 
     W, H = f.width_m * 1e3, f.height_m * 1e3
     x, rnd, xx = f.x_m * 1e3, f.round_of, f.curve_x_mm
@@ -111,7 +114,10 @@ def draw_run(path, f: RunFigure) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x along the surface (mm)")
     ax.set_ylabel("depth (mm)")
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.17), ncol=2)
+    # below the x label, a fixed distance in points: a fraction of the axes' height (-0.17 before) lands on the label
+    # when an equal-aspect section is wide or thin (session 51's review: a 100 x 20 mm section)
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=2,
+              bbox_transform=offset_copy(ax.transAxes, fig=fig, y=-LEGEND_BELOW_PT, units="points"))
     fig.tight_layout()
     fig.set_layout_engine(None)   # laid out: else savefig draws the whole figure once more first (the same PNG)
     fig.savefig(path, dpi=110)
