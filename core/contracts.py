@@ -76,6 +76,17 @@ class Limits:
     max_tool_speed_m_s: float = 0.25
 
 
+TIP_DEPTH_FRACTION = 0.8     # a default depth limit never deeper than this fraction of the tip's radius
+
+
+def default_depth_limit_m(tip_radius_m: float) -> float:
+    """The depth limit a plan or a run takes when none is given: Limits().depth_limit_m (4 mm), or on a tip of
+    radius at most 5 mm TIP_DEPTH_FRACTION of its radius (the built-in tips' own ratio, 4 mm on 5 mm). Before
+    session 52 a tip of radius 4 mm or less refused the default and needed --depth-limit-m (a review's 2 mm
+    sphere)."""
+    return min(Limits().depth_limit_m, TIP_DEPTH_FRACTION * tip_radius_m)
+
+
 @dataclass
 class Motion:
     approach_height_m: float = 0.010     # tip above the undeformed surface at the approach pose

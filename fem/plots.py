@@ -222,10 +222,12 @@ def indent_panels(path: str | Path, mesh: Mesh, fields: dict[str, np.ndarray], *
 
 def predict_graph(path: str | Path, x_m: np.ndarray, scene: dict[str, np.ndarray], reference: dict[str, np.ndarray],
                   *, labels: tuple[str, str] = ("stone", "healthy"), stones: Sequence[tuple[float, float]] = (),
-                  title: str = "") -> Path:
+                  title: str = "", peak: tuple[float, float] | None = None) -> Path:
     """Force and maximum von Mises stress against tip position for a scene and its reference (the study's Fig 11),
     and below their ratios. ``scene``/``reference``: {"force_n": ..., "max_von_mises_pa": ...}; ``stones``:
-    (x_m, diameter_m) of the scene's stones, marked as shaded bands."""
+    (x_m, diameter_m) of the scene's stones, marked as shaded bands; ``peak``: (x_m, ratio) of the force ratio's
+    peak as the JSON reports it (a sub-waypoint fit: marked there, the figure and the file then agree; without it,
+    the largest sample)."""
     x = np.asarray(x_m) * MM
     fig, (ax, axr) = plt.subplots(2, 1, figsize=(9.5, 7.0), sharex=True, gridspec_kw={"height_ratios": [3, 2]})
     ax2 = ax.twinx()
@@ -247,7 +249,8 @@ def predict_graph(path: str | Path, x_m: np.ndarray, scene: dict[str, np.ndarray
     axr.plot(x, rf, "-", color=cf, lw=1.6, label="force ratio")
     axr.plot(x, rs, "-", color=cs, lw=1.3, label="max von Mises ratio")
     i = int(np.argmax(rf))
-    axr.plot([x[i]], [rf[i]], "k^", ms=6, label=f"peak force ratio {rf[i]:.3f} at x = {x[i]:.1f} mm")
+    xp, rp = (peak[0] * MM, peak[1]) if peak is not None else (x[i], rf[i])
+    axr.plot([xp], [rp], "k^", ms=6, label=f"peak force ratio {rp:.4f} at x = {xp:.1f} mm")
     axr.axhline(1.0, color="0.6", lw=0.8)
     axr.set_ylabel(f"{labels[0]} / {labels[1]}")
     axr.set_xlabel("tip position x along the top surface (mm)")

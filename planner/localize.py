@@ -745,6 +745,7 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     h0 = _fit_no_stone(fw, sig, h0.x, workers)
     chi2_0 = 2.0 * h0.cost
     nu0 = fw.full(h0.x)
+    free0 = fw.free.copy()           # (the stone fit may fix the finite-strain amplitude later: h0.x is over these)
     b = surrogate.bounds
     lo = np.array([b["xs_m"][0] * 1e3, math.log(b["s_m"][0] * 1e3), b["diam_m"][0] * 1e3])
     hi = np.array([b["xs_m"][1] * 1e3, math.log(b["s_m"][1] * 1e3), b["diam_m"][1] * 1e3])
@@ -914,26 +915,41 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
     if crosses_side(xs, D, prior.tissue.width_m):
         at_bound.append(SIDE)
-    at_bound += nuisance_at_bound(q[3:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES)
-    nu = fw.full(q[3:])
+    detected = bool(lr >= lr_threshold)
+    nu_1 = fw.full(q[3:])
+    d_1 = fw.depth(nu_1)
+    fit_c = math.exp(nu_1[1]) * fw.contrast((xs, dep, D), d_1, nu_1[4]) * fw.stiffening(d_1, nu_1)
+    # the tissue and sensor unknowns as the accepted model fitted them (as in 3D): with the stone when one is
+    # reported, else the no-stone fit (session 51's review: a NO STONE answer reported the rejected stone fit's
+    # tissue, its bounds and a contrast against it)
     sd_nu = np.zeros(len(NUISANCE))
-    sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))
+    if detected:
+        nu, free_nu = nu_1, fw.free
+        at_bound += nuisance_at_bound(q[3:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES)
+        sd_nu[fw.free] = np.sqrt(np.maximum(np.diag(cov_q)[3:], 0.0))
+    else:
+        nu, free_nu = nu0, free0          # (the rejected stone fit's bounds are not the answer's)
+        at_bound = nuisance_at_bound(h0.x, free0, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES)
+        var0 = np.diag(np.linalg.pinv(h0.jac.T @ h0.jac)) * max(1.0, chi2_0 / max(len(h0.fun) - int(free0.sum()), 1))
+        sd_nu[free0] = np.sqrt(np.maximum(var0, 0.0))
+        a_fit = (float(nu0[5]), float(sd_nu[5]))
+        fs_gain = float("nan")
     d_fit = fw.depth(nu)
-    fit_c = math.exp(nu[1]) * fw.contrast((xs, dep, D), d_fit, nu[4]) * fw.stiffening(d_fit, nu)
     profile_args = (resid, jac, q, lo, hi, dep, sd[1], 2.0 * fit.cost, infl, H, nlo, nhi)
     rel, rel_sd, rel_n = dwell_relaxation(meas)
     k = math.exp(nu[1])
-    fixed = [n for n, f in zip(NUISANCE, fw.free) if not f]
+    fixed = [n for n, f in zip(NUISANCE, free_nu) if not f]
     nuis = {"stiffness_scale": (k, k * sd_nu[1]), "thickness_scale": (1.0 + nu[4], sd_nu[4]),
             "surface_offset_m": (nu[2] * 1e-3, sd_nu[2] * 1e-3), "surface_tilt_rad": (nu[3] * 1e-3, sd_nu[3] * 1e-3),
             "sensor_drift_n_per_s": (nu[0] * 1e-3, sd_nu[0] * 1e-3),
             "finite_strain_amplitude": a_fit,
             "finite_strain_gain_chi2": fs_gain if math.isfinite(fs_gain) else None,
-            "finite_strain_in_estimate": bool(fw.free[5]),
+            "finite_strain_in_estimate": bool(free_nu[5]),
             "dwell_relaxation_fraction": (rel, rel_sd), "probes_with_dwell_history": rel_n,
-            "contact_onsets_used": int(len(fw.on)) if fw.free[2] else 0,
+            "contact_onsets_used": int(len(fw.on)) if free_nu[2] else 0,
+            "fit": "stone" if detected else "no stone",
             "fixed": ["stiffness_scale" if f == "log_stiffness_scale" else f for f in fixed]}
-    loc = Localization(depth_interval_m={}, detected=bool(lr >= lr_threshold), lr=float(lr),
+    loc = Localization(depth_interval_m={}, detected=detected, lr=float(lr),
                        lr_threshold=lr_threshold, x_m=xs, depth_m=dep, diameter_m=D, sigma_x_m=float(sd[0]),
                        sigma_depth_m=float(sd[1]), sigma_diameter_m=float(sd[2]), corr_depth_diameter=corr,
                        chi2_0=float(chi2_0), chi2_1=float(chi2_1), dof_1=dof,

@@ -350,8 +350,11 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         return float(cov[i, j] / (sd[i] * sd[j])) if sd[i] > 0 and sd[j] > 0 else float("nan")
     names = ("x", "y", "clearance", "diameter")
     at_bound = [n for n, v, a, z in zip(names, q[:4], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
-    at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
     detected = bool(lr >= lr_threshold)
+    if detected:
+        at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
+    else:                                # the no-stone fit's (the rejected stone fit's bounds are not the answer's)
+        at_bound = nuisance_at_bound(h0.x, fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
     nu_1 = fw.full(q[4:])
     # the tissue and sensor unknowns as the accepted model fitted them: with the stone when one is reported, else
     # the no-stone fit (a stone family forced onto healthy tissue would report a scale bent to absorb its contrast)

@@ -316,14 +316,19 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
 
 
 def no_stone_caveats(loc, n_stone: int = 3) -> str:
-    """What makes a no-stone answer doubtful ("" when nothing): the no-stone fit the data reject, as ``caveats``
-    says of a stone's (its degrees of freedom the stone fit's plus the stone's ``n_stone`` parameters). Session 44's
+    """What makes a no-stone answer doubtful ("" when nothing): the no-stone fit's tissue at its bound, and the
+    no-stone fit the data reject, as ``caveats`` says of a stone's (its degrees of freedom the stone fit's plus the stone's ``n_stone`` parameters). Session 44's
     review: a healthy soft block under a high surface, chi2 66 on 28, answered NO STONE without a word."""
+    out = []
+    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b != SIDE]
+    if tissue:           # (the no-stone fit's own: since session 52 a NO STONE answer reports that fit's tissue)
+        out.append(f"the tissue's {', '.join(tissue)} at the no-stone fit's bound (the tissue or its surface is "
+                   f"unlike the prior beyond what the fit allows: the answer is less sure than its LR says)")
     dof = loc.dof_1 + n_stone if loc.dof_1 else 0
     if dof and math.isfinite(loc.chi2_0) and loc.chi2_0 > dof + 4.0 * math.sqrt(2.0 * dof):
-        return (f"; warning: poor fit without a stone: chi2 {loc.chi2_0:.0f} on {dof} degrees of freedom (tissue "
-                f"unlike the prior, or a stone the fit did not find: the answer is less sure than its LR says)")
-    return ""
+        out.append(f"poor fit without a stone: chi2 {loc.chi2_0:.0f} on {dof} degrees of freedom (tissue "
+                   f"unlike the prior, or a stone the fit did not find: the answer is less sure than its LR says)")
+    return "".join(f"; warning: {c}" for c in out)
 
 
 def describe(loc: Localization, reach: ProbeReach = ProbeReach()) -> str:

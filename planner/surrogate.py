@@ -6,7 +6,7 @@ model per candidate stone costs ~0.7 s, far too slow inside an optimizer, so the
 scene on a grid of candidate stones and interpolated:
 
 * stone grid: top clearance ``s = depth - diameter/2`` (geometric nodes, the contrast falls steeply with s), diameter
-  D, lateral position xs over the left half of the section (the section, its supports and the load are mirror
+  D, lateral position xs over the left half of the section (``_grid_xs``) (the section, its supports and the load are mirror
   symmetric, so a stone at xs > W/2 is the mirror image of one at W - xs);
 * per stone: the contrast at probe depths ``levels_m`` and probe positions x0 on a 0.5 mm grid over the whole surface.
 
@@ -30,7 +30,7 @@ scene's name, the tissue modulus, the stones, a rigid-treated tip's modulus, loa
 The table is cached on disk (``$PALPATE_CACHE_DIR`` or ``~/.cache/palpate``; ``surrogate-<key>.npz``) and carries a
 behavioural fingerprint of the fem that built it (``fingerprint``: fem's forces for the prior and one grid stone at a
 few probes, computed at the prior's own modulus (0.4-0.9 s; once per version of fem and its libraries, then read
-from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (3-7 min on 2 cores; 471 fem models on the paper section, fewer where wide stones leave a narrow or thin one: 355 on 100 x 30 mm, 426 on 55 x 45 mm; on dask.distributed with
+from the disk cache: planner.fingerprint) and compared with the stored one scaled; a mismatch means rebuild). It is built once (3-7 min on 2 cores; 471 fem models on the paper section, fewer where wide stones leave a narrow or thin one (426 on 55 x 45 mm), more on a section wider than 70 mm, which keeps the positions near its sides and adds some towards its middle (``_grid_xs``: 727 on 200 x 50 mm, 8 min); on dask.distributed with
 ``planner.tasks``) and read in milliseconds. A table for the built-in paper tissue is shipped in planner/data/ (same
 file name, same check).
 ``python -m planner.surrogate [SCENE] [--check N]`` builds it and measures the interpolation error against direct fem.
@@ -147,24 +147,33 @@ def _fingerprint_now(own, grid: Grid) -> np.ndarray:
 
 
 REF_WIDTH_M = 0.070        # the section Grid.xs_m is laid out for (its last position is the middle)
-NEAR_SIDE_M = 15e-3        # on a wider section, the positions this close to a side keep their distance from it
+FAR_SPACING_M = 20e-3      # on a wider section, the widest spacing of the positions beyond Grid.xs_m's last
 
 
 def _grid_xs(prior, grid: Grid) -> np.ndarray:
     """The stone positions (left half) of ``grid`` on the prior's section. Up to 70 mm wide: Grid.xs_m scaled with
-    the width. Wider: the positions within NEAR_SIDE_M of the side stay where they are (the coarse raster's first
-    probe is 5 mm from a side on any section, and the side's effect on a stone's contrast changes fastest there;
-    scaled, a 120 mm section's first position was 8.6 mm from the side, and a stone nearer the side than that lay
-    beyond the table), the others spread evenly over the rest of the half-width (the contrast is nearly translation
-    invariant away from a side, and the table shifts it: see the module doc). At 70 mm both rules give Grid.xs_m."""
+    the width. Wider (since session 52): Grid.xs_m's positions stay where they are (their distances from the side:
+    5, 7.5, 10 mm, then every 5 mm to 35 mm), and the rest of the half-width up to the middle is split evenly in
+    steps of at most FAR_SPACING_M; a rest shorter than Grid.xs_m's last step moves the last position to the
+    middle instead (continuous at 70 mm).
+
+    Why: the side changes a stone's contrast most within some 35 mm of it, on sections 25 to 100 mm tall alike, so
+    the table's shift-and-blend in xs (module doc) needs close positions there and only there. Direct fem on
+    200 x 50, 240 x 100 and 200 x 25 mm sections (8 mm stone, top 11 or 6 mm deep, probes 4 mm deep), the blend of
+    two positions' shifted contrasts against the contrast midway, RMS relative to its peak: 15-35 mm 2.1-3.1 %,
+    15-25 mm 1.0-1.6 %, 25-35 mm 0.3-0.5 %; beyond 35 mm, 20 mm apart 0.2-0.4 % and 40 mm apart 0.04-0.35 % (the
+    localizer allows 1 %). Session 50's rule (the positions within 15 mm of the side kept, the other four spread
+    evenly) left 15-36.25 mm between positions on a 200 mm section, and stones there came out 5.5-8.7 sigma off
+    (README, "Wide sections")."""
     g = np.asarray(grid.xs_m, float)
     W = prior.tissue.width_m
     if W <= REF_WIDTH_M:
         return g * W / REF_WIDTH_M
-    far = g > NEAR_SIDE_M
-    out = g.copy()
-    out[far] = NEAR_SIDE_M + (g[far] - NEAR_SIDE_M) * (W / 2 - NEAR_SIDE_M) / (REF_WIDTH_M / 2 - NEAR_SIDE_M)
-    return out
+    rest = W / 2 - g[-1]
+    if rest < g[-1] - g[-2]:
+        return np.r_[g[:-1], W / 2]
+    n = math.ceil(rest / FAR_SPACING_M - 1e-9)
+    return np.r_[g, g[-1] + rest * np.arange(1, n + 1) / n]
 
 
 def stone_model(scene):

@@ -262,11 +262,17 @@ def candidate_ok(scene: Scene, s_m: float, diam_m: float) -> bool:
     return s_m + diam_m <= scene.tissue.height_m - BOTTOM_TISSUE_M
 
 
+# what a build's ``progress(done, total, elapsed_s, what)`` counts (session 51's review: the calibration's stones were
+# counted on as more "candidate stones")
+CANDIDATES = "candidate stones"
+CALIBRATION = "calibration stones (the table's on the scene's own mesh)"
+
+
 def build_table3d(prior: Scene, grid: Grid3D = Grid3D(), runner: Runner | None = None, progress=None,
                   store: Path | None = None) -> dict:
     """Solve every grid candidate on ``table_scene(prior)`` at the prior's own modulus (``youngs_ref_pa``) on
     ``runner`` (planner.tasks; default serial); finished candidates are kept in ``store`` (a re-run resumes).
-    ``progress(done, total, elapsed_s)`` as candidates finish. Returns the arrays ``Surrogate3D`` reads."""
+    ``progress(done, total, elapsed_s, what)`` as candidates finish (``what``: CANDIDATES, CALIBRATION). Returns the arrays ``Surrogate3D`` reads."""
     runner = runner or Runner(workers=1, progress=progress is None)
     scene = table_scene(prior, grid, prior.tissue.youngs_pa)
     logs = np.log(grid.s_m)
@@ -286,14 +292,12 @@ def build_table3d(prior: Scene, grid: Grid3D = Grid3D(), runner: Runner | None =
         table[idx[n]] = prof
         done["n"] += 1
         if progress:
-            progress(done["n"], len(cands), time.perf_counter() - t0)
+            progress(done["n"], len(cands), time.perf_counter() - t0, CANDIDATES)
     shared = {"scene": scene.to_dict(), "grid": grid.to_dict()}
     run_pieces(_one_candidate, shared, cands, [f"cand-{i}-{j}" for i, j in idx], runner=runner, store=store,
                desc="surrogate3d candidates", on_result=arrived)
     _fill_invalid(table, valid, logs)
-    cal_s, factors = calibrate3d(prior, grid, table, valid, runner=runner, store=store,
-                                 progress=None if progress is None else
-                                 (lambda n, k, el: progress(len(cands) + n, len(cands) + k, el)))
+    cal_s, factors = calibrate3d(prior, grid, table, valid, runner=runner, store=store, progress=progress)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "levels_m": lv,
             "dr_m": np.array(grid.dr_m), "table": table, "valid": valid,
             "cal_s_m": cal_s, "cal_factor": factors, "cal_mesh": own_mesh(prior),
@@ -312,7 +316,7 @@ def calibrate3d(prior: Scene, grid: Grid3D, table: np.ndarray, valid: np.ndarray
                 store: Path | None = None, progress=None) -> tuple[np.ndarray, np.ndarray]:
     """(cal_s_m, cal_factor): the grid's calibration candidates solved again on the prior's own mesh, and per
     candidate and level the factor that turns the table's profile into that mesh's (``mesh_factor``). None to do
-    (empty arrays) when the prior's own mesh is the table's. ``progress(done, total, elapsed_s)``."""
+    (empty arrays) when the prior's own mesh is the table's. ``progress(done, total, elapsed_s, CALIBRATION)``."""
     runner = runner or Runner(workers=1, progress=progress is None)
     if np.allclose(own_mesh(prior), [grid.mesh_size_m, grid.grade]):
         return np.zeros(0), np.ones((0, len(grid.levels_m)))
@@ -324,7 +328,7 @@ def calibrate3d(prior: Scene, grid: Grid3D, table: np.ndarray, valid: np.ndarray
     def calibrated(n, res):
         factors[n] = mesh_factor(np.array(res, float), table[cal[n]], grid.dr_m)
         if progress:
-            progress(n + 1, len(cal), time.perf_counter() - t0)
+            progress(n + 1, len(cal), time.perf_counter() - t0, CALIBRATION)
     run_pieces(_one_candidate, {"scene": own.to_dict(), "grid": grid.to_dict()},
                [(float(grid.s_m[i]), float(grid.diam_m[j])) for i, j in cal], [f"cal-{i}-{j}" for i, j in cal],
                runner=runner, store=store, desc="surrogate3d calibration", on_result=calibrated)

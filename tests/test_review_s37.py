@@ -148,7 +148,8 @@ def test_a_run_without_a_fit_says_not_localized_not_no_stone():
 def test_run_refuses_a_tip_thinner_than_its_depth_limit(tmp_path, capsys):
     scene = tmp_path / "tip.toml"
     scene.write_text(SCENE + "[indenter]\nradius_m = 0.003\n")
-    rc, _, err = _run(["run", str(scene), "--sim", "--out", str(tmp_path / "r")], capsys)
+    # (since session 52 a 3 mm tip plans to 2.4 mm by default: refused when a limit at or past its radius is given)
+    rc, _, err = _run(["run", str(scene), "--sim", "--out", str(tmp_path / "r"), "--depth-limit-m", "0.003"], capsys)
     assert rc == 2 and "indenter.radius_m = 0.003" in err and "give --depth-limit-m D" in err
     assert not (tmp_path / "r").exists()
 

@@ -29,11 +29,13 @@ from core.contracts import (
     HARD_TOOL_SPEED_M_S,
     MAX_DWELL_S,
     MIN_PROBE_SPACING_M,
+    TIP_DEPTH_FRACTION,
     Frames,
     Limits,
     Motion,
     PlanError,
     PlanOptions,
+    default_depth_limit_m,
 )
 from planner.area import Region, default_block_pose, default_region, grid_positions
 from planner.plan import DEFAULT_GRID, plan_raster
@@ -102,8 +104,9 @@ def add_parser(subparsers) -> None:
     d = p.add_argument_group("depth and force")
     d.add_argument("--force-limit-n", type=float_range(0, HARD_FORCE_LIMIT_N, unit="N (the hard cap)"), default=LIM.force_limit_n,
                    help=f"never plan above this contact force (default {LIM.force_limit_n})")
-    d.add_argument("--depth-limit-m", type=positive_float, default=LIM.depth_limit_m,
-                   help=f"never deeper than this (default {Limits().depth_limit_m}; keep it below the tip radius)")
+    d.add_argument("--depth-limit-m", type=positive_float,
+                   help=f"never deeper than this (default {Limits().depth_limit_m}, or {TIP_DEPTH_FRACTION:g} of the "
+                        f"tip's radius when that is less; keep it below the tip radius)")
     d.add_argument("--force-fraction", type=float_range(0, 1), default=OPT.force_fraction,
                    help="plan to at most this fraction of the force limit on the prior tissue (default 0.5)")
     d.add_argument("--min-depth-m", type=positive_float, default=OPT.min_depth_m,
@@ -136,6 +139,12 @@ def run(args) -> int:
         raise UsageError(f"--json {args.json}: is the plan's own file (--out); give another path or '-'")
     scene = load_scene(args.scene)
     tip = scene.indenter.radius_m
+    if args.depth_limit_m is None:
+        args.depth_limit_m = default_depth_limit_m(tip)
+        if args.depth_limit_m < Limits().depth_limit_m:
+            print(f"palpate plan: depth limit {args.depth_limit_m * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's "
+                  f"{tip * 1e3:g} mm radius: the default {Limits().depth_limit_m * 1e3:g} mm would wrap it; "
+                  f"--depth-limit-m to choose)", file=sys.stderr)
     if not args.depth_limit_m < tip:
         raise UsageError(f"--depth-limit-m {args.depth_limit_m:g} must be below the tip radius {tip:g} m "
                          f"(scene indenter.radius_m)")

@@ -304,7 +304,18 @@ def _figure(d: Path, sc, ref, out) -> Path:
              f"h = {a.mesh_size_m * 1e3:g} mm")
     return plots.predict_graph(d / FIGURE, np.asarray(w["x_m"]), w, ref_w,
                                labels=(sc.name, ref.name if ref is not None else sc.name),
-                               stones=[(s.x_m, s.diameter_m) for s in sc.stones], title=title)
+                               stones=[(s.x_m, s.diameter_m) for s in sc.stones], title=title,
+                               peak=_peak_xy(out.get("peak_ratio")))
+
+
+def _peak_xy(pr) -> tuple[float, float] | None:
+    """The force ratio's peak as the JSON reports it ((x_m, ratio)), for the figure's marker; None when there is none
+    (no reference, or no finite ratio)."""
+    if not isinstance(pr, dict):
+        return None
+    x, r = pr.get("x_m"), pr.get("ratio")
+    ok = all(isinstance(v, (int, float)) and np.isfinite(v) for v in (x, r))
+    return (float(x), float(r)) if ok else None
 
 
 def _summary(sc, out, stream) -> None:

@@ -69,7 +69,7 @@ from app.runexec import (
     truth_conditions,
     workers_for_fits,
 )
-from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, Limits, Plan, PlanError, PlanOptions
+from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, TIP_DEPTH_FRACTION, Limits, Plan, PlanError, PlanOptions
 from fem.scene import BUILTIN
 from planner.detectability import describe_smallest, detectability, smallest_detectable
 from planner.draw_run import draw_run
@@ -137,7 +137,8 @@ def add_parser(sub) -> None:
                    help=f"2D: coarse raster waypoints, {MIN_MEASUREMENTS}..{MAX_WAYPOINTS} (default 15; a fit needs "
                         f"{MIN_MEASUREMENTS} probes)")
     p.add_argument("--depth-limit-m", type=float_range(0, HARD_DEPTH_LIMIT_M, unit="m (the hard cap)"),
-                   help=f"never plan deeper than this (default {Limits().depth_limit_m}; below the tip radius, at least "
+                   help=f"never plan deeper than this (default {Limits().depth_limit_m}, or {TIP_DEPTH_FRACTION:g} of the "
+                        f"tip's radius when that is less; below the tip radius, at least "
                         f"the shallowest useful probe {PlanOptions().min_depth_m:g} m; with --plan the plan's own)")
     p.add_argument("--grid", type=grid_counts, metavar="NXxNY",
                    help="3D block: the coarse raster, an NX x NY grid over the probed area (default "
@@ -288,14 +289,21 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     three_d = _dimension_defaults(args, scene, prior)
     n_coarse = len(plan0.probes) if plan0 is not None else (
         args.grid[0] * args.grid[1] if three_d else args.waypoints)
-    lim = run_limits(args).depth_limit_m
-    if plan0 is None and not lim < prior.indenter.radius_m:     # the run plans to this depth limit
-        given = "--depth-limit-m" if args.depth_limit_m is not None else "the depth limit a run plans to by default"
-        raise UsageError(f"{where_prior}: indenter.radius_m = {prior.indenter.radius_m:g} m is not above "
-                         f"{given} ({lim:g} m; the tissue would wrap the tip's sides): give --depth-limit-m D with D "
-                         f"below the radius")
+    R = prior.indenter.radius_m
+    lim = run_limits(args, R).depth_limit_m
+    if plan0 is None and not lim < R:     # the run plans to this depth limit
+        raise UsageError(f"{where_prior}: indenter.radius_m = {R:g} m is not above --depth-limit-m ({lim:g} m; the "
+                         f"tissue would wrap the tip's sides): give --depth-limit-m D with D below the radius")
     if plan0 is None and lim < PlanOptions().min_depth_m:
+        if args.depth_limit_m is None:
+            raise UsageError(f"{where_prior}: indenter.radius_m = {R:g} m is too small to probe: a run's default depth "
+                             f"limit, {TIP_DEPTH_FRACTION:g} of it ({lim:g} m), is below the shallowest useful probe, "
+                             f"{PlanOptions().min_depth_m:g} m (a tip of radius at least "
+                             f"{PlanOptions().min_depth_m / TIP_DEPTH_FRACTION:g} m probes)")
         raise UsageError(f"--depth-limit-m {lim:g}: below the shallowest useful probe, {PlanOptions().min_depth_m:g} m")
+    if plan0 is None and args.depth_limit_m is None and lim < Limits().depth_limit_m:
+        _say(f"depth limit {lim * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's {R * 1e3:g} mm radius: the default "
+             f"{Limits().depth_limit_m * 1e3:g} mm would wrap it; --depth-limit-m to choose)")
     need = MIN_MEASUREMENTS3D if three_d else MIN_MEASUREMENTS
     if n_coarse < need:        # a --plan or --grid too small for the first round's fit
         what = f"--plan {args.plan}" if plan0 is not None else f"--grid {args.grid[0]}x{args.grid[1]}"
@@ -331,7 +339,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if plan0 is None:
         _say(f"planning a {args.waypoints}-waypoint raster on {prior.name}")
         try:
-            plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args))
+            plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args, prior.indenter.radius_m))
         except PlanError as e:
             raise PlanError(plan_options_hint(str(e), args)) from None
     if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):

@@ -119,13 +119,13 @@ def run_block(args, ctx: RunContext) -> int:
         nx, ny = args.grid
         _say(f"planning a {nx} x {ny} raster over the probed area of {prior.name}")
         try:
-            full = plan_raster(prior, grid=(nx, ny), limits=run_limits(args))
+            full = plan_raster(prior, grid=(nx, ny), limits=run_limits(args, prior.indenter.radius_m))
             plan0 = replan(full, [(p.x_m, p.y_m) for p in full.probes],
                            depth_m=coarse_depths([p.depth_m for p in full.probes]))
         except PlanError as e:
             raise UsageError(f"--grid {nx}x{ny}: {plan_options_hint(str(e), args)}") from None
         except ValueError as e:          # fem refuses the scene or the planned indentation
-            hint = (f" (the depth limit is {full_limit_m(args):g} m; scene field indenter.radius_m must exceed it)"
+            hint = (f" (the depth limit is {full_limit_m(args, prior):g} m; scene field indenter.radius_m must exceed it)"
                     if "radius" in str(e) and "depth" in str(e) else "")
             raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e}{hint}") from None
     if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):
@@ -224,8 +224,8 @@ def run_block(args, ctx: RunContext) -> int:
     return exit_code(status)
 
 
-def full_limit_m(args) -> float:
-    return run_limits(args).depth_limit_m
+def full_limit_m(args, prior) -> float:
+    return run_limits(args, prior.indenter.radius_m).depth_limit_m
 
 
 def _table(prior, where_prior: str):
@@ -236,8 +236,8 @@ def _table(prior, where_prior: str):
         except FileNotFoundError:
             _say("no 3D surrogate table for this tissue yet (planner/surrogate3d.py says which scene fields select "
                  "one): building it now (one fem model per candidate stone: minutes)")
-            return load_surrogate3d(prior, build=True, progress=lambda n, total, s: _say(
-                f"surrogate table: {n} of {total} candidate stones, {s:.0f} s"))
+            return load_surrogate3d(prior, build=True, progress=lambda n, total, s, what: _say(
+                f"surrogate table: {n} of {total} {what}, {s:.0f} s"))
     except (RuntimeError, ArithmeticError, ValueError) as e:
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                          f"sizes)") from None
