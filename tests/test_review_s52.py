@@ -207,3 +207,15 @@ def test_the_predict_figure_marks_the_peak_the_json_reports(tmp_path, monkeypatc
     assert seen["peak"] == (pr["x_m"], pr["ratio"])
     assert pr["x_m"] != pr["x_max_sample_m"]          # the case: the fit lies between waypoints
     assert (tmp_path / "fig11_predict.png").stat().st_size > 10_000
+
+
+def test_predict_on_a_2_mm_tip_presses_to_its_default_and_says_so(tmp_path, capsys):
+    """`palpate predict` on a 2 mm tip refused its own default depth (4 mm) as if the user had given it ("--depth-m
+    0.004 ... must be below the tip radius"); it now takes the run's rule and says so."""
+    import json
+
+    from app.cli import main
+    out = tmp_path / "p.json"
+    assert main(["predict", _small_tip(tmp_path, 0.002), "--waypoints", "5", "--quiet", "--json", str(out)]) == 0
+    assert "depth 1.6 mm (0.8 of the tip's 2 mm radius" in capsys.readouterr().err
+    assert json.loads(out.read_text())["depth_m"] == pytest.approx(0.0016)

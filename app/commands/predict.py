@@ -29,11 +29,12 @@ from app.options import (
     positive_float,
 )
 from app.resolution import warn_unresolved2d
+from core.contracts import TIP_DEPTH_FRACTION, Limits, default_depth_limit_m
 from core.peak import or_null, parabola_peak, ratio_of, upper_window
 from fem.contact import check_waypoint, surface_model
 from fem.scene import SceneError, tip_taken_as_rigid
 
-DEFAULT_DEPTH_M = 0.004
+DEFAULT_DEPTH_M = Limits().depth_limit_m      # (core.contracts.default_depth_limit_m: less on a small tip)
 DEFAULT_MARGIN_M = 0.005
 BATCH = 100            # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
 FIGURE = "fig11_predict.png"
@@ -77,8 +78,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                                                   "block3d-front, block3d-deep) or a TOML file")
     p.add_argument("--waypoints", type=int_range(2, MAX_WAYPOINTS), metavar="N",
                    help=f"2D scenes: number of waypoints, 2..{MAX_WAYPOINTS} (default 50)")
-    p.add_argument("--depth-m", type=positive_float, default=DEFAULT_DEPTH_M,
-                   help=f"indentation depth at every waypoint (default {DEFAULT_DEPTH_M})")
+    p.add_argument("--depth-m", type=positive_float,
+                   help=f"indentation depth at every waypoint (default {DEFAULT_DEPTH_M}, or {TIP_DEPTH_FRACTION:g} of "
+                        f"the tip's radius when that is less)")
     p.add_argument("--margin-m", type=finite_float,
                    help=f"2D scenes: keep the waypoints this far from the side edges (default {DEFAULT_MARGIN_M})")
     p.add_argument("--compare", metavar="SCENE", default="prior",
@@ -223,8 +225,16 @@ def run(args) -> int:
     check_output_dir(args.plots, "--plots")
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")
-    check_depth_floor(args.depth_m)
+    if args.depth_m is not None:
+        check_depth_floor(args.depth_m)
     sc, ref = _scenes(args)
+    if args.depth_m is None:         # as a run's depth limit: 4 mm, or 0.8 of a smaller tip's radius (session 52)
+        args.depth_m = default_depth_limit_m(sc.indenter.radius_m)
+        if args.depth_m < DEFAULT_DEPTH_M:
+            print(f"palpate predict: depth {args.depth_m * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's "
+                  f"{sc.indenter.radius_m * 1e3:g} mm radius: the default {DEFAULT_DEPTH_M * 1e3:g} mm would wrap it; "
+                  f"--depth-m to choose)", file=sys.stderr)
+        check_depth_floor(args.depth_m)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         for opt, v in (("--waypoints", args.waypoints), ("--margin-m", args.margin_m)):
             if v is not None:
