@@ -197,7 +197,8 @@ def workers_for_fits(args) -> int:
     return 2 if not args.host and usable_cores() >= 2 else 1
 
 
-OPTIONAL_RUN_OPTIONS = ("ft", "depth_limit_m", "thickness_sigma_m")     # in run_options only when given
+OPTIONAL_RUN_OPTIONS = ("ft", "depth_limit_m", "thickness_sigma_m")     # in run_options only when given (the
+#                                                                          depth limit: or planned to by default)
 
 
 def run_options(args, scene, cond: TruthConditions | None = None, belief=None) -> dict:
@@ -214,9 +215,23 @@ def run_options(args, scene, cond: TruthConditions | None = None, belief=None) -
             "target_uncertainty_m": args.target_uncertainty_m, "strategy": args.strategy,
             **({"ft": args.ft.text} if args.ft.kind != "rtde" else {}),     # absent for the wrist sensor: older
             #                                                                 runs resume
-            **({"depth_limit_m": args.depth_limit_m} if getattr(args, "depth_limit_m", None) is not None else {}),
+            **_depth_limit_option(args, scene, belief),
             **({"thickness_sigma_m": args.thickness_sigma_m}
                if getattr(args, "thickness_sigma_m", None) is not None else {})}
+
+
+def _depth_limit_option(args, scene, belief) -> dict:
+    """run_options' depth limit: as given, else (without --plan) the default the run plans to on its prior's tip
+    (``default_depth_limit_m``: 0.8 of a radius below 5 mm, since session 52), so a resume compares what was
+    planned: given at that value or left out, the same run (a review's 3 mm tip: left out, then given at the 2.4 mm
+    it had planned to, was refused as "not given (default 0.004)")."""
+    given = getattr(args, "depth_limit_m", None)
+    if given is not None:
+        return {"depth_limit_m": given}
+    if args.plan:
+        return {}
+    prior = belief if belief is not None else scene.prior()
+    return {"depth_limit_m": default_depth_limit_m(prior.indenter.radius_m)}
 
 
 def run_limits(args, tip_radius_m: float) -> Limits:
@@ -416,22 +431,24 @@ def no_contact(out: Path) -> dict | None:
     if not nc:
         return None
     return {"n": len(nc), "of": len(recs), "x_m": [float(r.x_m) for r in nc], "y_m": [float(r.y_m) for r in nc],
-            "index": [int(r.index) for r in nc], "prior_below_threshold": [_prior_below_threshold(r) for r in nc]}
+            "index": [int(r.index) for r in nc], "expected_by_prior": [_expected_by_prior(r) for r in nc]}
 
 
-def _prior_below_threshold(rec) -> bool:
-    """Does the prior itself predict less than the contact threshold at the probe's planned depth? (A probe near a
-    side, or at a coarse raster's shallower depth, with a small tip on soft tissue: session 52's review of a 40 mm
-    block and a 2 mm tip, 24 of 84 probes, every one of them predicted below it.)"""
+def _expected_by_prior(rec) -> bool:
+    """Does the prior itself predict less than the contact threshold at the probe's planned depth, and is the probe's
+    reading used (not flagged implausible)? (A probe near a side, or at a coarse raster's shallower depth, with a
+    small tip on soft tissue: session 52's review of a 40 mm block and a 2 mm tip, 24 of 84 probes, every one of them
+    predicted below it.)"""
     f, thr = rec.force_predicted_prior_n, rec.contact_threshold_n
-    return f is not None and thr is not None and math.isfinite(f) and math.isfinite(thr) and f < thr
+    return (rec.implausible is None          # (one left out of the fit is not "as the prior predicts": warned)
+            and f is not None and thr is not None and math.isfinite(f) and math.isfinite(thr) and f < thr)
 
 
 def no_contact_warning(nc: dict, three_d: bool = False) -> str:
     """What the probes that felt no contact mean: a warning naming those where the prior predicts contact (the
     tissue there is not as it says); a note only when the prior itself predicts less than the threshold at every one
     of them (their forces are still fitted; the surface is registered from the other probes' onsets)."""
-    expected = nc.get("prior_below_threshold", [False] * nc["n"])
+    expected = nc.get("expected_by_prior", [False] * nc["n"])
     odd = [(x, y) for x, y, e in zip(nc["x_m"], nc["y_m"], expected) if not e]
     n_exp = nc["n"] - len(odd)
     if not odd:

@@ -80,11 +80,22 @@ TIP_DEPTH_FRACTION = 0.8     # a default depth limit never deeper than this frac
 
 
 def default_depth_limit_m(tip_radius_m: float) -> float:
-    """The depth limit a plan or a run takes when none is given: Limits().depth_limit_m (4 mm), or on a tip of
-    radius at most 5 mm TIP_DEPTH_FRACTION of its radius (the built-in tips' own ratio, 4 mm on 5 mm). Before
-    session 52 a tip of radius 4 mm or less refused the default and needed --depth-limit-m (a review's 2 mm
-    sphere)."""
-    return min(Limits().depth_limit_m, TIP_DEPTH_FRACTION * tip_radius_m)
+    """The depth limit a plan or a run takes (and the depth predict presses to) when none is given:
+    Limits().depth_limit_m (4 mm), or on a tip of radius below 5 mm TIP_DEPTH_FRACTION of its radius (the built-in
+    tips' own ratio, 4 mm on 5 mm). Before session 52 a tip of radius 4 mm or less refused the default and needed
+    --depth-limit-m (a review's 2 mm sphere), and one of 4-5 mm was pressed to 4 mm, 0.8-1.0 of its radius (the
+    localizer's tissue response reaches 0.96 of it: planner.tissue_response.MAX_FRAC)."""
+    return min(Limits().depth_limit_m, round(TIP_DEPTH_FRACTION * tip_radius_m, 7))    # (to 0.1 um: 2.4 mm, not
+    #                                                                            0.0024000000000000002 m)
+
+
+def default_depth_said(tip_radius_m: float) -> str:
+    """How a command says it took ``default_depth_limit_m`` on a small tip ("" when it is the 4 mm default)."""
+    d = default_depth_limit_m(tip_radius_m)
+    if d >= Limits().depth_limit_m:
+        return ""
+    return (f"{d * 1e3:g} mm (by default {TIP_DEPTH_FRACTION:g} of the tip's radius, {tip_radius_m * 1e3:g} mm, where "
+            f"that is below {Limits().depth_limit_m * 1e3:g} mm)")
 
 
 @dataclass

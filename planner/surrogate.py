@@ -161,16 +161,17 @@ def _grid_xs(prior, grid: Grid) -> np.ndarray:
     the table's shift-and-blend in xs (module doc) needs close positions there and only there. Direct fem on
     200 x 50, 240 x 100 and 200 x 25 mm sections (8 mm stone, top 11 or 6 mm deep, probes 4 mm deep), the blend of
     two positions' shifted contrasts against the contrast midway, RMS relative to its peak: 15-35 mm 2.1-3.1 %,
-    15-25 mm 1.0-1.6 %, 25-35 mm 0.3-0.5 %; beyond 35 mm, 20 mm apart 0.2-0.4 % and 40 mm apart 0.04-0.35 % (the
-    localizer allows 1 %). Session 50's rule (the positions within 15 mm of the side kept, the other four spread
-    evenly) left 15-36.25 mm between positions on a 200 mm section, and stones there came out 5.5-8.7 sigma off
+    15-25 mm 1.0-1.6 %, 25-35 mm 0.3-0.5 %; beyond 35 mm, 20 mm apart 0.15-0.65 % and 40 mm apart 0.04-0.35 % (the
+    localizer allows 1 %). A big deep stone feels the side further in (17 mm, its top 18.5 mm deep, on 200 x 50 mm:
+    35-55 mm 1.00 %, 35-51.25 mm, the 200 mm section's own step, 0.75 %; a session-52 review). Session 50's rule (the positions within 15 mm of the side kept, the other four spread
+    evenly) left 15-36.25 mm between positions on a 200 mm section, and stones there came out 5.5-7.9 sigma off
     (README, "Wide sections")."""
     g = np.asarray(grid.xs_m, float)
     W = prior.tissue.width_m
     if W <= REF_WIDTH_M:
         return g * W / REF_WIDTH_M
     rest = W / 2 - g[-1]
-    if rest < g[-1] - g[-2]:
+    if len(g) > 1 and rest < g[-1] - g[-2]:
         return np.r_[g[:-1], W / 2]
     n = math.ceil(rest / FAR_SPACING_M - 1e-9)
     return np.r_[g, g[-1] + rest * np.arange(1, n + 1) / n]

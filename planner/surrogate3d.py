@@ -699,7 +699,7 @@ def main(argv=None) -> int:
     prior = load(a.scene).prior()
     t0 = time.perf_counter()
     sur = load_surrogate3d(prior, runner=Runner(workers=a.workers, scheduler=a.scheduler),
-                           progress=lambda i, n, t: print(f"  surrogate3d: {i}/{n} candidates, {t:.0f} s",
+                           progress=lambda i, n, t, what: print(f"  surrogate3d: {i}/{n} {what}, {t:.0f} s",
                                                           file=sys.stderr, flush=True))
     path = cache_path(prior, Grid3D())
     print(f"surrogate3d for {a.scene}: {path} ({time.perf_counter() - t0:.1f} s; built in {sur.build_s:.0f} s)")

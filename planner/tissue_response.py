@@ -33,15 +33,35 @@ def fem_deepest_m(prior, height_factor: float = 1.0) -> float:
     return min(prior.indenter.radius_m, STRAIN_MAX * height_factor * prior.tissue.height_m)
 
 
+def thickness_mesh_m(prior) -> float:
+    """The mesh size of the thickness nodes of ``prior`` (its tissue 1 -+ THICKNESS_STEP times as tall): the prior's
+    own, capped at half the thinnest node's height (fem's rule: at least two elements through the tissue). A 40 x 40
+    x 20 mm block takes the 3D default mesh size of 9.6 mm, its 18 mm node would not: fem refused it only after the
+    run had built its 3D table for 9.7 min (session 51's review)."""
+    return min(prior.analysis.mesh_size_m, (1.0 - THICKNESS_STEP) * prior.tissue.height_m / 2)
+
+
 def scene_with_height(prior, factor: float):
-    """``prior`` with its tissue ``factor`` times as tall. Its mesh size is capped at half the new height (fem's
-    rule: at least two elements through the tissue): a block 20 mm tall takes the 3D default mesh size of 9.6 mm,
-    its 0.9 copy (18 mm) would not, and fem refused it only after the run had built its 3D table for 9.7 min
-    (session 51's review). Only the thinner copies of tissue meshed at its limit change (by at most 1/factor)."""
-    H = prior.tissue.height_m * factor
-    a = prior.analysis
-    return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, height_m=H),
-                               analysis=dataclasses.replace(a, mesh_size_m=min(a.mesh_size_m, H / 2)))
+    """``prior`` with its tissue ``factor`` times as tall, meshed at ``thickness_mesh_m(prior)``: the prior itself at
+    factor 1 unless that caps its mesh."""
+    mesh = thickness_mesh_m(prior)
+    if factor == 1.0 and mesh == prior.analysis.mesh_size_m:
+        return prior
+    return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, height_m=prior.tissue.height_m * factor),
+                               analysis=dataclasses.replace(prior.analysis, mesh_size_m=mesh))
+
+
+def thickness_reference(prior):
+    """None, or where ``thickness_mesh_m`` caps the mesh, the prior at its own height on the capped mesh: the
+    thinner and thicker nodes' forces are then taken relative to it, F_k = F_prior F_k / F_reference (a ratio of two
+    forces on one mesh), so the prior's own force stays the prior's (the truth a simulated run presses is meshed as
+    the scene says) and the thickness slope holds no mesh change. Session 52: capping the thinner node's mesh alone
+    moved its force by as much as the 10 % height change (a review: the thinner block came out softer than the
+    prior, the slope 2.4 times too small); the three nodes on the capped mesh instead put the mesh change into the
+    prior's own force, 1.4 % off the truth's, where a stone's contrast was 1 %: a run's stone came out 2.4-3.2
+    sigma off."""
+    ref = scene_with_height(prior, 1.0)
+    return None if ref is prior else ref
 
 
 class PriorResponse:
@@ -54,9 +74,9 @@ class PriorResponse:
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
         W = prior.tissue.width_m
         x = np.clip(np.asarray(x_m, float), 0.0, W)
-        tabs = []
-        for k in (-1, 0, 1):
-            sc = scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+        ref = thickness_reference(prior)
+
+        def rows_of(sc, k):
             rows = []
             for xi in x:
                 key = (prior.key(), k, round(float(xi), 7))
@@ -65,7 +85,11 @@ class PriorResponse:
                     row = np.log(np.maximum(recall.force_curve_n(sc, float(xi), np.exp(self.logd)), 1e-12))
                     _ROWS[key] = row
                 rows.append(row)
-            tabs.append(np.array(rows).reshape(len(x), N_NODES))
+            return np.array(rows).reshape(len(x), N_NODES)
+        tabs = [rows_of(prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP), k) for k in (-1, 0, 1)]
+        if ref is not None:               # the outer nodes relative to the prior on their own mesh
+            r = rows_of(ref, "reference")
+            tabs[0], tabs[2] = tabs[1] + tabs[0] - r, tabs[1] + tabs[2] - r
         self.T = np.stack(tabs)           # (3, n, nodes)
         self._last: tuple[float, np.ndarray] | None = None
         self._last_slopes: tuple[float, np.ndarray] | None = None
@@ -164,7 +188,11 @@ def prior_and_thickness_slope(prior, x_m, depth_m) -> tuple[np.ndarray, np.ndarr
     x = np.clip(np.asarray(x_m, float), 0.0, W)
     d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
     F = {}
-    for k in (-1, 0, 1):       # (remembered: a run's refinement design asks for the same candidate grid every round)
-        sc = scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+    ref = thickness_reference(prior)
+    for k in (-1, 0, 1, "reference") if ref is not None else (-1, 0, 1):
+        # (remembered: a run's refinement design asks for the same candidate grid every round)
+        sc = ref if k == "reference" else prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
         F[k] = np.array([recall.force_n(sc, float(xi), float(di)) for xi, di in zip(x, d)])
+    if ref is not None:                    # the outer nodes relative to the prior on their own mesh
+        F[-1], F[1] = F[0] * F[-1] / F["reference"], F[0] * F[1] / F["reference"]
     return F[0], (F[1] - F[-1]) / (2 * THICKNESS_STEP)

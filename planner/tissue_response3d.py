@@ -25,7 +25,13 @@ import numpy as np
 from fem import recall3d
 from fem.contact3d import surface3d_cached, surface_model3d
 from fem.scene import STRAIN_MAX
-from planner.tissue_response import THICKNESS_STEP, loglog_depth, loglog_force, scene_with_height
+from planner.tissue_response import (
+    THICKNESS_STEP,
+    loglog_depth,
+    loglog_force,
+    scene_with_height,
+    thickness_reference,
+)
 
 N_NODES = 16
 MIN_FRAC, MAX_FRAC = 0.06, 0.96
@@ -46,9 +52,9 @@ class PriorResponse3D:
         self.logd = np.linspace(np.log(MIN_FRAC * R), np.log(top), N_NODES)
         self.thickness = bool(thickness)
         x, y = np.asarray(x_m, float), np.asarray(y_m, float)
-        tabs = []
-        for k in ((-1, 0, 1) if thickness else (0,)):
-            sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
+        ref = thickness_reference(prior) if thickness else None
+
+        def rows_of(sc):
             rows = []
             for xi, yi in zip(x, y):
                 key = (sc.key(), float(top), round(float(xi), 7), round(float(yi), 7))
@@ -67,7 +73,12 @@ class PriorResponse3D:
                 shift = np.zeros(len(d))
                 shift[ok] = np.log(exact[ok]) - np.log(loglog_force(rows[ok], self.logd, d[ok]))
                 rows = rows + shift[:, None]
-            tabs.append(rows)
+            return rows
+        tabs = [rows_of(prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP))
+                for k in ((-1, 0, 1) if thickness else (0,))]
+        if ref is not None:              # the outer nodes relative to the prior on their own mesh
+            r = rows_of(ref)
+            tabs[0], tabs[2] = tabs[1] + tabs[0] - r, tabs[1] + tabs[2] - r
         self.T = np.stack(tabs)          # (thickness nodes, n, depth nodes)
         self._last: tuple[float, np.ndarray] | None = None
 
@@ -123,10 +134,14 @@ def prior_and_thickness_slope3d(prior, x_m, y_m, depth_m) -> tuple[np.ndarray, n
     x, y = np.asarray(x_m, float), np.asarray(y_m, float)
     d = np.broadcast_to(np.asarray(depth_m, float), x.shape)
     F = {}
+    ref = thickness_reference(prior)
     for k in (-1, 0, 1):
         sc = prior if k == 0 else scene_with_height(prior, 1.0 + k * THICKNESS_STEP)
         F[k] = np.array([_refused_nan(sc, float(xi), float(yi), float(di)) if k < 0 else
                          recall3d.force_n(sc, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
+    if ref is not None:                  # the outer nodes relative to the prior on their own mesh
+        Fr = np.array([recall3d.force_n(ref, float(xi), float(yi), float(di)) for xi, yi, di in zip(x, y, d)])
+        F[-1], F[1] = F[0] * F[-1] / Fr, F[0] * F[1] / Fr
     # (a depth the thinner block refuses, past STRAIN_MAX of its height: the one-sided difference)
     slope = np.where(np.isfinite(F[-1]), (F[1] - F[-1]) / (2 * THICKNESS_STEP), (F[1] - F[0]) / THICKNESS_STEP)
     return F[0], slope
@@ -142,5 +157,7 @@ def _refused_nan(scene, x: float, y: float, d: float) -> float:
 def thickness_models_to_build(prior) -> list[float]:
     """The height factors (of ``1 -+ THICKNESS_STEP``) whose 3D fem model of the prior block is not in the disk
     cache yet: built on first use (38-44 s each for block3d here, measured), then kept."""
-    return [f for f in (1.0 - THICKNESS_STEP, 1.0 + THICKNESS_STEP)
+    capped = thickness_reference(prior) is not None     # (then the prior's height on the capped mesh: a reference)
+    return [f for f in ((1.0 - THICKNESS_STEP, 1.0, 1.0 + THICKNESS_STEP) if capped else
+                        (1.0 - THICKNESS_STEP, 1.0 + THICKNESS_STEP))
             if not surface3d_cached(scene_with_height(prior, f))]

@@ -36,6 +36,7 @@ from core.contracts import (
     PlanError,
     PlanOptions,
     default_depth_limit_m,
+    default_depth_said,
 )
 from planner.area import Region, default_block_pose, default_region, grid_positions
 from planner.plan import DEFAULT_GRID, plan_raster
@@ -139,24 +140,29 @@ def run(args) -> int:
         raise UsageError(f"--json {args.json}: is the plan's own file (--out); give another path or '-'")
     scene = load_scene(args.scene)
     tip = scene.indenter.radius_m
-    if args.depth_limit_m is None:
+    by_default = args.depth_limit_m is None
+    if by_default:                 # (said once the options are checked: bad input gets one line)
         args.depth_limit_m = default_depth_limit_m(tip)
-        if args.depth_limit_m < Limits().depth_limit_m:
-            print(f"palpate plan: depth limit {args.depth_limit_m * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's "
-                  f"{tip * 1e3:g} mm radius: the default {Limits().depth_limit_m * 1e3:g} mm would wrap it; "
-                  f"--depth-limit-m to choose)", file=sys.stderr)
+        if args.depth_limit_m < args.min_depth_m:
+            raise UsageError(f"scene {args.scene}: indenter.radius_m = {tip:g} m: the default depth limit, "
+                             f"{TIP_DEPTH_FRACTION:g} of it ({args.depth_limit_m:g} m), is below --min-depth-m "
+                             f"{args.min_depth_m:g} m (the shallowest useful probe): "
+                             + (f"give --depth-limit-m D with {args.min_depth_m:g} <= D < {tip:g}"
+                                if args.min_depth_m < tip else "no depth below the tip's radius reaches it"))
+    lim_said = (f"--depth-limit-m {args.depth_limit_m:g} m" if not by_default else
+                f"the default depth limit {args.depth_limit_m:g} m ({TIP_DEPTH_FRACTION:g} of the tip's radius; "
+                f"--depth-limit-m to choose one below the radius)")
     if not args.depth_limit_m < tip:
         raise UsageError(f"--depth-limit-m {args.depth_limit_m:g} must be below the tip radius {tip:g} m "
                          f"(scene indenter.radius_m)")
     if args.depth_m is not None and not args.depth_m <= args.depth_limit_m:
-        raise UsageError(f"--depth-m {args.depth_m:g} must be at most --depth-limit-m {args.depth_limit_m:g} m")
+        raise UsageError(f"--depth-m {args.depth_m:g} must be at most {lim_said}")
     if args.depth_m is not None and not args.depth_m >= args.min_depth_m:
         raise UsageError(f"--depth-m {args.depth_m:g} is below --min-depth-m {args.min_depth_m:g} m (the shallowest "
                          f"useful probe{'' if args.min_depth_m != OPT.min_depth_m else ', by default'}): give a depth "
                          f"at least that, or lower --min-depth-m too")
     if not args.min_depth_m <= args.depth_limit_m:
-        raise UsageError(f"--min-depth-m {args.min_depth_m:g} must be at most --depth-limit-m "
-                         f"{args.depth_limit_m:g} m")
+        raise UsageError(f"--min-depth-m {args.min_depth_m:g} must be at most {lim_said}")
     is_3d = scene.is_3d
     if is_3d:
         for opt, v in (("--waypoints", args.waypoints), ("--x-min-m", args.x_min_m), ("--x-max-m", args.x_max_m)):
@@ -219,6 +225,8 @@ def run(args) -> int:
         raise UsageError(f"--branch must be three signs like 1,1,-1, got {args.branch!r}") from None
     options = PlanOptions(branch=list(branch), tilt_tol_rad=math.radians(args.tilt_tol_deg),
                           force_fraction=args.force_fraction, min_depth_m=args.min_depth_m)
+    if by_default and (said := default_depth_said(tip)):
+        print(f"palpate plan: depth limit {said}; --depth-limit-m to choose", file=sys.stderr)
     try:
         if is_3d:
             plan = _plan_area(scene, args, margin_m, limits, motion, frames, options)

@@ -29,7 +29,7 @@ from app.options import (
     positive_float,
 )
 from app.resolution import warn_unresolved2d
-from core.contracts import TIP_DEPTH_FRACTION, Limits, default_depth_limit_m
+from core.contracts import TIP_DEPTH_FRACTION, Limits, default_depth_limit_m, default_depth_said
 from core.peak import or_null, parabola_peak, ratio_of, upper_window
 from fem.contact import check_waypoint, surface_model
 from fem.scene import SceneError, tip_taken_as_rigid
@@ -228,12 +228,11 @@ def run(args) -> int:
     if args.depth_m is not None:
         check_depth_floor(args.depth_m)
     sc, ref = _scenes(args)
+    args.depth_note = None
     if args.depth_m is None:         # as a run's depth limit: 4 mm, or 0.8 of a smaller tip's radius (session 52)
         args.depth_m = default_depth_limit_m(sc.indenter.radius_m)
-        if args.depth_m < DEFAULT_DEPTH_M:
-            print(f"palpate predict: depth {args.depth_m * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's "
-                  f"{sc.indenter.radius_m * 1e3:g} mm radius: the default {DEFAULT_DEPTH_M * 1e3:g} mm would wrap it; "
-                  f"--depth-m to choose)", file=sys.stderr)
+        if said := default_depth_said(sc.indenter.radius_m):   # (said once the options are checked: bad input
+            args.depth_note = f"palpate predict: depth {said}; --depth-m to choose"    # gets one line)
         check_depth_floor(args.depth_m)
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         for opt, v in (("--waypoints", args.waypoints), ("--margin-m", args.margin_m)):
@@ -256,6 +255,8 @@ def run(args) -> int:
         check_waypoint(sc, float(xs[0]), args.depth_m)
     except ValueError as e:
         raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
+    if args.depth_note:
+        print(args.depth_note, file=sys.stderr)
     stresses = not args.force_only
     verbose = not args.quiet and args.waypoints > BATCH
 

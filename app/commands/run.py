@@ -69,7 +69,16 @@ from app.runexec import (
     truth_conditions,
     workers_for_fits,
 )
-from core.contracts import HARD_DEPTH_LIMIT_M, SENSORS, TIP_DEPTH_FRACTION, Limits, Plan, PlanError, PlanOptions
+from core.contracts import (
+    HARD_DEPTH_LIMIT_M,
+    SENSORS,
+    TIP_DEPTH_FRACTION,
+    Limits,
+    Plan,
+    PlanError,
+    PlanOptions,
+    default_depth_said,
+)
 from fem.scene import BUILTIN
 from planner.detectability import describe_smallest, detectability, smallest_detectable
 from planner.draw_run import draw_run
@@ -294,16 +303,17 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if plan0 is None and not lim < R:     # the run plans to this depth limit
         raise UsageError(f"{where_prior}: indenter.radius_m = {R:g} m is not above --depth-limit-m ({lim:g} m; the "
                          f"tissue would wrap the tip's sides): give --depth-limit-m D with D below the radius")
-    if plan0 is None and lim < PlanOptions().min_depth_m:
+    shallowest = PlanOptions().min_depth_m
+    if plan0 is None and lim < shallowest:
         if args.depth_limit_m is None:
-            raise UsageError(f"{where_prior}: indenter.radius_m = {R:g} m is too small to probe: a run's default depth "
-                             f"limit, {TIP_DEPTH_FRACTION:g} of it ({lim:g} m), is below the shallowest useful probe, "
-                             f"{PlanOptions().min_depth_m:g} m (a tip of radius at least "
-                             f"{PlanOptions().min_depth_m / TIP_DEPTH_FRACTION:g} m probes)")
-        raise UsageError(f"--depth-limit-m {lim:g}: below the shallowest useful probe, {PlanOptions().min_depth_m:g} m")
-    if plan0 is None and args.depth_limit_m is None and lim < Limits().depth_limit_m:
-        _say(f"depth limit {lim * 1e3:g} mm ({TIP_DEPTH_FRACTION:g} of the tip's {R * 1e3:g} mm radius: the default "
-             f"{Limits().depth_limit_m * 1e3:g} mm would wrap it; --depth-limit-m to choose)")
+            raise UsageError(f"{where_prior}: indenter.radius_m = {R:g} m: a run's default depth limit, "
+                             f"{TIP_DEPTH_FRACTION:g} of it ({lim:g} m), is below the shallowest useful probe, "
+                             f"{shallowest:g} m: " + (f"give --depth-limit-m D with {shallowest:g} <= D < {R:g}"
+                                                     if shallowest < R else
+                                                     "no depth below the tip's radius reaches it"))
+        raise UsageError(f"--depth-limit-m {lim:g}: below the shallowest useful probe, {shallowest:g} m")
+    if plan0 is None and args.depth_limit_m is None and (said := default_depth_said(R)):
+        _say(f"depth limit {said}; --depth-limit-m to choose")
     need = MIN_MEASUREMENTS3D if three_d else MIN_MEASUREMENTS
     if n_coarse < need:        # a --plan or --grid too small for the first round's fit
         what = f"--plan {args.plan}" if plan0 is not None else f"--grid {args.grid[0]}x{args.grid[1]}"

@@ -89,8 +89,10 @@ def _detectable(prior, plan0, sur, sensor: str, th_sigma: float) -> dict:
         return _said(det, sensor, th_sigma)
     missing = thickness_models_to_build(prior)
     if missing:
-        _say(f"building the prior block's fem model at {' and '.join(f'{f:g}' for f in missing)} of its thickness "
-             f"(the localizer fits the thickness; once, then cached)")
+        names = [f"{f:g}" for f in missing]
+        at = ", ".join(names[:-1]) + " and " + names[-1] if len(names) > 1 else names[0]
+        _say(f"building the prior block's fem model at {at} of its thickness (the localizer fits the thickness; "
+             f"once, then cached)")
     P, dP = prior_and_thickness_slope3d(prior, [p.x_m for p in plan0.probes], [p.y_m for p in plan0.probes],
                                         [p.depth_m for p in plan0.probes])
     det = detectability3d(plan0, sur, P, sensor_spec=sensor_spec(sensor), thickness_slope_n=dP,

@@ -260,6 +260,8 @@ def run_predict(args, sc, ref) -> int:
         named = f"--depth-m {args.depth_m:g} on scene {sc.name}: " if str(e).startswith("depth_m") else ""
         print(f"palpate predict: {named}{e}", file=sys.stderr)
         return 2
+    if getattr(args, "depth_note", None):       # (the default depth on a small tip: app.commands.predict)
+        print(args.depth_note, file=sys.stderr)
     stresses = not args.force_only
     main = _predict(sc, xs, ys, args.depth_m, stresses, args.quiet)
     out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "grid": [nx, ny],
