@@ -298,3 +298,19 @@ def test_predict_on_a_2_mm_tip_presses_to_its_default_and_says_so(tmp_path, caps
     assert main(["predict", _small_tip(tmp_path, 0.002), "--waypoints", "5", "--quiet", "--json", str(out)]) == 0
     assert "depth 1.6 mm (by default 0.8 of the tip's radius, 2 mm" in capsys.readouterr().err
     assert json.loads(out.read_text())["depth_m"] == pytest.approx(0.0016)
+
+
+def test_messages_name_the_default_they_used(tmp_path, capsys):
+    """The second session-52 review: on a 10 mm tip `plan` called the 4 mm default "0.8 of the tip's radius"; a
+    `predict` whose default depth the section refuses named a --depth-m that was not given."""
+    from app.cli import main
+    assert main(["plan", _small_tip(tmp_path, 0.010), "--depth-m", "0.006", "--out", str(tmp_path / "p.json")]) == 2
+    err = capsys.readouterr().err
+    assert "at most the default depth limit 0.004 m (the 4 mm default" in err and "0.8 of" not in err, err
+    f = tmp_path / "thin.toml"
+    f.write_text(SMALL_TIP.format(name="thin", radius=0.0045).replace("height_m = 0.040", "height_m = 0.008")
+                 + "[analysis]\nmesh_size_m = 0.002\n")
+    assert main(["predict", str(f), "--force-only", "--waypoints", "3"]) == 2
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("palpate: the default depth 0.0036 m (0.004 m, or 0.8 of the tip's "
+                                                   "radius where that is less; --depth-m to choose)"), lines

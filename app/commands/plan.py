@@ -143,15 +143,18 @@ def run(args) -> int:
     by_default = args.depth_limit_m is None
     if by_default:                 # (said once the options are checked: bad input gets one line)
         args.depth_limit_m = default_depth_limit_m(tip)
-        if args.depth_limit_m < args.min_depth_m:
-            raise UsageError(f"scene {args.scene}: indenter.radius_m = {tip:g} m: the default depth limit, "
-                             f"{TIP_DEPTH_FRACTION:g} of it ({args.depth_limit_m:g} m), is below --min-depth-m "
+        if args.depth_limit_m < args.min_depth_m and default_depth_said(tip):    # (else: the checks below)
+            of = f"{TIP_DEPTH_FRACTION:g} of it, " if default_depth_said(tip) else ""
+            raise UsageError(f"scene {args.scene}: indenter.radius_m = {tip:g} m: the default depth limit "
+                             f"({of}{args.depth_limit_m:g} m) is below --min-depth-m "
                              f"{args.min_depth_m:g} m (the shallowest useful probe): "
                              + (f"give --depth-limit-m D with {args.min_depth_m:g} <= D < {tip:g}"
-                                if args.min_depth_m < tip else "no depth below the tip's radius reaches it"))
+                                if args.min_depth_m < tip else
+                                "no depth below the tip's radius reaches it (a lower --min-depth-m may)"))
     lim_said = (f"--depth-limit-m {args.depth_limit_m:g} m" if not by_default else
-                f"the default depth limit {args.depth_limit_m:g} m ({TIP_DEPTH_FRACTION:g} of the tip's radius; "
-                f"--depth-limit-m to choose one below the radius)")
+                f"the default depth limit {args.depth_limit_m:g} m ("
+                + (f"{TIP_DEPTH_FRACTION:g} of the tip's radius" if default_depth_said(tip) else "the 4 mm default")
+                + "; --depth-limit-m to choose one below the radius)")
     if not args.depth_limit_m < tip:
         raise UsageError(f"--depth-limit-m {args.depth_limit_m:g} must be below the tip radius {tip:g} m "
                          f"(scene indenter.radius_m)")

@@ -229,11 +229,14 @@ def run(args) -> int:
         check_depth_floor(args.depth_m)
     sc, ref = _scenes(args)
     args.depth_note = None
+    args.depth_name = f"--depth-m {args.depth_m:g}" if args.depth_m is not None else ""
     if args.depth_m is None:         # as a run's depth limit: 4 mm, or 0.8 of a smaller tip's radius (session 52)
         args.depth_m = default_depth_limit_m(sc.indenter.radius_m)
         if said := default_depth_said(sc.indenter.radius_m):   # (said once the options are checked: bad input
             args.depth_note = f"palpate predict: depth {said}; --depth-m to choose"    # gets one line)
         check_depth_floor(args.depth_m)
+        args.depth_name = (f"the default depth {args.depth_m:g} m ({DEFAULT_DEPTH_M:g} m, or {TIP_DEPTH_FRACTION:g} of "
+                           f"the tip's radius where that is less; --depth-m to choose)")
     if sc.is_3d:                     # a block (tissue.length_m): fem's 3D path
         for opt, v in (("--waypoints", args.waypoints), ("--margin-m", args.margin_m)):
             if v is not None:
@@ -254,7 +257,7 @@ def run(args) -> int:
     try:
         check_waypoint(sc, float(xs[0]), args.depth_m)
     except ValueError as e:
-        raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
+        raise UsageError(f"{args.depth_name} on scene {sc.name}: {e}") from None
     if args.depth_note:
         print(args.depth_note, file=sys.stderr)
     stresses = not args.force_only
@@ -269,7 +272,7 @@ def run(args) -> int:
     try:         # fem refuses a waypoint the checks above cannot see (a stone the tip would crush the tissue onto)
         main = predict(sc, xs, args.depth_m, stresses=stresses, progress=progress(sc.name))
     except ValueError as e:
-        raise UsageError(f"--depth-m {args.depth_m:g} on scene {sc.name}: {e}") from None
+        raise UsageError(f"{args.depth_name} on scene {sc.name}: {e}") from None
     warn_unresolved2d(sc, "predict", main["half_width_m"], stresses)
     out = {"scene": sc.name, "load": "indent", "depth_m": args.depth_m, "margin_m": args.margin_m,
            "indenter": dataclasses.asdict(sc.indenter), "analysis": dataclasses.asdict(sc.analysis),
@@ -278,7 +281,7 @@ def run(args) -> int:
         try:
             rd = predict(ref, xs, args.depth_m, stresses=stresses, progress=progress(ref.name))
         except ValueError as e:
-            raise UsageError(f"--depth-m {args.depth_m:g} on the reference (--compare {args.compare}): {e}") from None
+            raise UsageError(f"{args.depth_name} on the reference (--compare {args.compare}): {e}") from None
         out["reference_scene"] = ref.name
         out["reference"] = rd
         ratio = ratio_of(main["force_n"], rd["force_n"])

@@ -257,7 +257,8 @@ def run_predict(args, sc, ref) -> int:
             for y in (ys[0], ys[-1]):
                 check_waypoint3d(sc, float(x), float(y), args.depth_m)
     except ValueError as e:
-        named = f"--depth-m {args.depth_m:g} on scene {sc.name}: " if str(e).startswith("depth_m") else ""
+        name = getattr(args, "depth_name", None) or f"--depth-m {args.depth_m:g}"
+        named = f"{name} on scene {sc.name}: " if str(e).startswith("depth_m") else ""
         print(f"palpate predict: {named}{e}", file=sys.stderr)
         return 2
     if getattr(args, "depth_note", None):       # (the default depth on a small tip: app.commands.predict)
@@ -274,7 +275,8 @@ def run_predict(args, sc, ref) -> int:
         try:
             rd = _predict(ref, xs, ys, args.depth_m, stresses, args.quiet)
         except ValueError as e:          # fem refuses the press on the reference (a shallow stone there)
-            raise UsageError(f"--depth-m {args.depth_m:g} on the reference (--compare {args.compare}): {e}") from None
+            name = getattr(args, "depth_name", None) or f"--depth-m {args.depth_m:g}"
+            raise UsageError(f"{name} on the reference (--compare {args.compare}): {e}") from None
         out["reference_scene"], out["reference"] = ref.name, rd
         ratio = ratio_of(main["force_n"], rd["force_n"])
         out["ratio"] = or_null(ratio)
