@@ -1,13 +1,14 @@
 """How far a neo-Hookean tissue's stone contrast lies from the localizer's model of it (session 51).
 
     python bench/contrast_finite_strain.py --out DIR [--stone X,DEPTH,DIAMETER ...] [--depths-m 0.001,0.002,...]
+                                           [--offsets-m -0.01,0,0.01]
 
 The 2D localizer models a finite-strain tissue's force as (F_lin prior + C_lin) (1 + a g), g = the PRIOR's
 finite-strain correction (planner.finite_strain_response) with a fitted amplitude a (about 1 for a neo-Hookean
 tissue), C_lin the linear model's stone contrast (the table). The truth (fem.hypertruth: the stone scene's own
 neo-Hookean sweep) is F_lin stone x r_stone. With a = 1 the model's error is F_lin stone (r_stone - r_prior), printed
 here relative to the linear contrast C_lin = F_lin stone - F_lin prior at each probe position (the stone's x + 0, 3,
-6, 10 mm) and depth, with eps = depth / (the tissue over the stone's top) and beta = that error / g: the factor by
+6, 10 mm; or --offsets-m, negative towards the section's left side) and depth, with eps = depth / (the tissue over the stone's top) and beta = that error / g: the factor by
 which the contrast stiffens faster than the tissue. Paper prior; the probe depths fem's linear model refuses (a
 layer crushed past fem.contact.STONE_LAYER_MAX) are left out. Writes DIR/contrast_finite_strain.txt and prints it.
 """
@@ -41,8 +42,10 @@ def main() -> int:
     p.add_argument("--out", required=True)
     p.add_argument("--stone", type=triple, action="append", help="x, centre depth, diameter in m (repeatable)")
     p.add_argument("--depths-m", default="0.001,0.002,0.003,0.004")
+    p.add_argument("--offsets-m", default="0,0.003,0.006,0.010", help="probe positions from the stone's x, in m")
     a = p.parse_args()
     depths = [float(v) for v in a.depths_m.split(",")]
+    offsets = [float(v) for v in a.offsets_m.split(",")]
     prior = load("paper").prior()
     hp, lp = HyperelasticForce(prior), surface_model(prior)
     lines = []
@@ -57,7 +60,7 @@ def main() -> int:
         top = dep - D / 2
         say(f"stone at x {xs * 1e3:.1f} mm, {dep * 1e3:.1f} mm deep, {D * 1e3:.1f} mm across (its top {top * 1e3:.1f} "
             f"mm deep): model error / C_lin (beta)")
-        for dx in (0.0, 3e-3, 6e-3, 10e-3):
+        for dx in offsets:
             row = []
             for d in depths:
                 try:
@@ -69,7 +72,7 @@ def main() -> int:
                 rs, rp = Fs / Ls, Fp / Lp
                 e = Ls * (rs - rp) / (Ls - Lp)
                 row.append(f"{d * 1e3:.1f} mm (eps {d / top:.2f}): {e:+.3f} ({e / (rp - 1):.1f})")
-            say(f"  x + {dx * 1e3:4.1f} mm: " + "; ".join(row))
+            say(f"  x {dx * 1e3:+5.1f} mm: " + "; ".join(row))
         say(f"  ({time.perf_counter() - t0:.0f} s)")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

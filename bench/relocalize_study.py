@@ -7,13 +7,15 @@ what the run's final localization saw), localizes them on the paper prior as the
 stones never reach the localizer; the truth scene is read only to score the answer), with the depth's profile, and
 prints the coverage of the depth's 68 % / 95 % profile intervals and of x's 1 / 2 sigma, and the median errors: over
 all detected stones, those whose top lies within the probes' reach (above 4 mm / STONE_LAYER_MAX: the linear model
-does not cover the tissue over them at the plan's depths) and the others. The same probes for a before-and-after of
+does not cover the tissue over them at the plan's depths) and the others, and by the truth's material (linear or
+neo-Hookean, from STUDY_DIR/mismatch.csv). The same probes for a before-and-after of
 a localizer change (``PYTHONPATH=OLD python bench/relocalize_study.py ...``); a study run with the
 new code also re-plans its refinement rounds (run it again for that).
 """
 from __future__ import annotations
 
 import argparse
+import csv
 import glob
 import json
 import os
@@ -60,9 +62,14 @@ def main() -> int:
         Path(a.out).write_text("".join(json.dumps(r) + "\n" for r in rows))
     det = [r for r in rows if r["detected"]]
     top = np.array([r["top_m"] for r in det])
+    # the truth's material, from the study's table (studies since v7 have the column)
+    table = Path(a.study_dir) / "mismatch.csv"
+    hyper = {int(r["trial"]): r.get("hyperelastic") for r in csv.DictReader(table.open())} if table.exists() else {}
+    material = np.array([hyper.get(int(r["trial"].split("-")[1])) for r in det])
     print(f"{len(det)} of {len(rows)} stones detected; coverage and median errors (mm):")
     for name, m in (("all", top > -1.0), (f"top < {REACH_M * 1e3:.2f} mm", top < REACH_M),
-                    (f"top >= {REACH_M * 1e3:.2f} mm", top >= REACH_M)):
+                    (f"top >= {REACH_M * 1e3:.2f} mm", top >= REACH_M), ("linear truths", material == "False"),
+                    ("neo-Hookean truths", material == "True")):
         sel = [r for r, k in zip(det, m) if k]
         if not sel:
             continue
@@ -70,7 +77,7 @@ def main() -> int:
         def col(k):
             return np.array([r[k] for r in sel])
         zx = np.abs(col("err_x_m") / col("sigma_x_m"))
-        print(f"  {name:17s} n={len(sel):3d}  depth in 68 / 95 %: {col('in68').mean():.0%} / {col('in95').mean():.0%}"
+        print(f"  {name:18s} n={len(sel):3d}  depth in 68 / 95 %: {col('in68').mean():.0%} / {col('in95').mean():.0%}"
               f"  x within 1 / 2 sigma: {np.mean(zx < 1):.0%} / {np.mean(zx < 2):.0%}  |depth err| "
               f"{np.median(np.abs(col('err_depth_m'))) * 1e3:.2f}  |x err| {np.median(np.abs(col('err_x_m'))) * 1e3:.2f}")
     return 0

@@ -239,6 +239,17 @@ ONSET_RATIO_MIN = 0.5       # 1 + C / P at a contact onset at least (a contrast 
 FS_CONTRAST_ERR = 0.15      # model error of the stone's contrast per unit finite-strain amplitude (a neo-Hookean tissue's
 #                             contrast differs from the linear one times the prior's correction by 4-14 % over the
 #                             stone and up to 30-70 % on its flanks at 3-4 mm: bench/contrast_finite_strain.py)
+FS_LEAN_PER_M = 300.0       # ... and a correlated part of it, one mode: a neo-Hookean stone's contrast also leans
+#                             towards the section's nearer side, by L a g(d) of the linear contrast per FS_LEAN_SPAN_M
+#                             from the stone (g: the prior's finite-strain shape), L = k (FS_LEAN_REACH_M - the
+#                             stone's distance to that side): 0 at the middle of a 70 mm section, by symmetry. Measured
+#                             with fem on the paper section (bench/contrast_finite_strain.py, ten stones 2.5-25 mm from
+#                             the middle: README): k 0.15-0.8 / mm, 0.15 for deep stones, the most for small shallow
+#                             ones; k = 0.3 / mm is the median. Independent per-reading errors average out over many
+#                             probes; a lean does not, and it moves x: its effect on the fit is added to the covariance
+#                             (_lean_cov)
+FS_LEAN_REACH_M = 0.035     # (the table's side effects reach as far: planner.surrogate._grid_xs)
+FS_LEAN_SPAN_M = 0.010      # (the mode: L a g(d) C clip((x - xs) / FS_LEAN_SPAN_M, -1, 1): measured to 10-15 mm)
 CRUSH_REL_ERR = 0.5         # model error, relative to the stone's contrast, of a reading the linear model does not cover
 #                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (README)
 CRUSH_PASSES = 3            # refits at most while the fitted stone moves to another set of such readings
@@ -255,7 +266,8 @@ class _Forward:
                              f"({unsupported(prior) or 'nuisance=False'})")
         self.meas, self.sur = meas, surrogate
         self.resp = PriorResponse(prior, meas.x_m)
-        self.xc_m = meas.x_m - 0.5 * prior.tissue.width_m
+        self.width_m = prior.tissue.width_m
+        self.xc_m = meas.x_m - 0.5 * self.width_m
         self.on = np.flatnonzero(np.isfinite(meas.onset_m) & np.isfinite(meas.onset_threshold_n)
                                  & (meas.onset_threshold_n > 0))
         self.fs: FiniteStrainRows | None = None if shape is None else shape.at(meas.x_m)
@@ -903,7 +915,9 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     dof = max(n_res - 3 - nf, 1)
     J = fit.jac
     infl = max(1.0, 2.0 * fit.cost / dof)
-    cov_q = np.linalg.pinv(J.T @ J) * infl
+    # (the lean's amplitude: the fit's finite-strain amplitude, or where the estimate keeps the tissue linear, the
+    # fit with it free: a neo-Hookean tissue's stone leans whether or not its estimate models the stiffening)
+    cov_q = np.linalg.pinv(J.T @ J) * infl + _lean_cov(fw, q, J, sig, fw.full(q[3:])[5] if fw.free[5] else a_fit[0])
     xs, dep, D = _stone(q[:3])
     s = math.exp(q[1]) * 1e-3
     G = np.zeros((3, len(q)))
@@ -960,6 +974,33 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
                        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(fit.cost),
                        surface_rise_at_stone_m=1e-3 * float(nu[2] + nu[3] * (xs - 0.5 * prior.tissue.width_m)))
     return loc, profile_args
+
+
+def fs_lean(xs_m: float, width_m: float) -> float:
+    """L: how far a neo-Hookean stone's contrast leans towards the section's nearer side (FS_LEAN_PER_M), in units of
+    the prior's finite-strain correction a g per FS_LEAN_SPAN_M from the stone; 0 at the middle, and 0 from
+    FS_LEAN_REACH_M of both sides."""
+    return FS_LEAN_PER_M * max(FS_LEAN_REACH_M - min(xs_m, width_m - xs_m), 0.0)
+
+
+def _lean_cov(fw: _Forward, q, J: np.ndarray, sig: np.ndarray, amplitude: float) -> np.ndarray:
+    """The covariance of the fit's parameters ``q`` from the finite-strain lean of the stone's contrast
+    (FS_LEAN_PER_M: a systematic model error, one mode of its measured size taken as 1 sigma, its effect on the fit to
+    first order: J+ times the mode's weighted residual), for a tissue stiffening at finite strain with ``amplitude``;
+    0 for a linear one."""
+    nu = fw.full(q[3:])
+    stone = _stone(q[:3])
+    xs, dep, D = stone
+    lean = fs_lean(xs, fw.width_m)
+    if fw.fs is None or not amplitude > 0.0 or lean == 0.0:
+        return np.zeros((len(q), len(q)))
+    d = fw.depth(nu)
+    c_lin = math.exp(nu[1]) * np.maximum(fw.contrast(stone, d, nu[4]), 0.0)
+    mode = lean * amplitude * fw.fs.g(d) * c_lin * np.clip((fw.meas.x_m - xs) / FS_LEAN_SPAN_M, -1.0, 1.0)
+    r = np.zeros(J.shape[0])
+    r[:len(mode)] = mode / sig
+    dq = np.linalg.lstsq(J, r, rcond=None)[0]
+    return np.outer(dq, dq)
 
 
 def _beyond_linear_range(fw: _Forward, q, tip_radius_m: float) -> np.ndarray:
