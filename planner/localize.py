@@ -648,6 +648,14 @@ def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, n
 
 
 SIDE = "side"      # at_bound's entry for a fitted stone that would cross the section's side
+NEAR_SIDE = "near side"     # ... and for a block's stone within SIDE_REACH3D_M of a side face (planner.localize3d)
+SIDE_REACH3D_M = 0.022      # The 3D table (planner.surrogate3d) takes every stone's contrast as a stone's away from the
+#                             block's side faces. On a 50 x 50 x 30 mm block (a 10 mm stone 12 mm deep, y at the
+#                             middle; README "3D: a stone near a side"), against direct fem: RMS 2.5-3.1 % of the peak
+#                             and up to 12-19 % at single probes (between the stone and the side) with its centre 8-13
+#                             mm from a side, 1.5-1.7 % / 6-7 % at 18 mm, 0.9-1.4 % / 3-4 % at 25 mm; and runs with a
+#                             noise-free sensor (the table's bias alone): the worst of x, depth and diameter 14, 9.6,
+#                             4.7 and 3.7 sigma off with the stone 13, 15, 18 and 21 mm from a side, 1.4 sigma at 25
 STONE_PARAMS = ("x", "y", "clearance", "diameter")     # at_bound's entries for the stone's own parameters
 # at_bound's names for the nuisance parameters (NUISANCE's order; None: unbounded)
 NUISANCE_BOUND_NAMES = (None, "stiffness_scale", "surface_offset", "surface_tilt", "thickness_scale",

@@ -42,8 +42,10 @@ from planner.localize import (
     MIN_ONSETS,
     MIN_THICKNESS_SIGMA,
     MODEL_ABS_ERR_N,
+    NEAR_SIDE,
     ONSET_RATIO_MIN,
     ONSET_SIGMA_M,
+    SIDE_REACH3D_M,
     SIGMA_BOUND_TOL,
     THICKNESS_SIGMA,
     Localization,
@@ -353,6 +355,9 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     detected = bool(lr >= lr_threshold)
     if detected:
         at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
+        t = prior.tissue
+        if min(xs, t.width_m - xs, ys, t.length_m - ys) < SIDE_REACH3D_M:     # the table is biased there
+            at_bound.append(NEAR_SIDE)
     else:                                # the no-stone fit's (the rejected stone fit's bounds are not the answer's)
         at_bound = nuisance_at_bound(h0.x, fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
     nu_1 = fw.full(q[4:])

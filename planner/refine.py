@@ -33,7 +33,17 @@ import numpy as np
 
 from core.contracts import MEASURED, PlanOptions
 from fem.contact import STONE_LAYER_MAX
-from planner.localize import CRUSH_REL_ERR, MIN_MEASUREMENTS, SIDE, STONE_PARAMS, Localization, Measurements, localize
+from planner.localize import (
+    CRUSH_REL_ERR,
+    MIN_MEASUREMENTS,
+    NEAR_SIDE,
+    SIDE,
+    SIDE_REACH3D_M,
+    STONE_PARAMS,
+    Localization,
+    Measurements,
+    localize,
+)
 from planner.surrogate import load_surrogate
 from planner.tissue_response import THICKNESS_STEP, fem_deepest_m, prior_and_thickness_slope
 
@@ -291,7 +301,7 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
     if bounds:
         out.append(f"at the fit's bound: {', '.join(bounds)} (the stone may lie beyond the range the table "
                    f"covers, and the rest of the estimate be pulled off with it: its sigmas do not say so)")
-    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b != SIDE]
+    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b not in (SIDE, NEAR_SIDE)]
     if tissue:
         out.append(f"the tissue's {', '.join(tissue)} at the fit's bound (the tissue or its surface is unlike the "
                    f"prior beyond what the fit allows: the stone's estimate may be pulled off with it, and its sigmas "
@@ -299,6 +309,12 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
     if SIDE in loc.at_bound:
         out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")
+    if NEAR_SIDE in loc.at_bound:
+        out.append(f"the fitted stone lies within {SIDE_REACH3D_M * 1e3:.0f} mm of the block's side: the 3D table takes "
+                   f"its contrast as a stone's away from the sides (a 10 mm stone 13 mm from one came out 2 mm too "
+                   f"shallow and 1.6 mm too small, 12 and 14 sigma, with a noise-free sensor; 0.7 mm, 3-4 sigma, 21 mm "
+                   f"from it): its sigmas do not say how far "
+                   f"off it may be")
     n_beyond = getattr(loc, "n_beyond_linear_range", 0)
     if n_beyond:
         # (session 50's review: on a 30 mm section, shallow stones' diameters 3-6 sigma small with only this warning,

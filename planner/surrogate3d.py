@@ -70,6 +70,8 @@ BOTTOM_TISSUE_M = 1e-3      # a candidate keeps this much tissue below it (deepe
 # (RMS 0.041-0.071 mN at 2-4 mm, whatever the stone).
 REL_ERR = 0.05
 ABS_ERR_N = 7.5e-5
+# The table takes every stone's contrast as a stone's away from the block's side faces: biased near them (measured:
+# planner.localize.SIDE_REACH3D_M, where a fitted stone that near is flagged).
 
 
 def _geometric(lo: float, hi: float, n: int) -> tuple:

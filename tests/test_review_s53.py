@@ -51,3 +51,4 @@ def test_a_linear_trials_deep_stone_is_not_touched(paper_prior, paper_surrogate,
     with_lean, _ = _fit("mismatch-trial-0048", paper_prior, paper_surrogate, monkeypatch, 300.0)
     without, _ = _fit("mismatch-trial-0048", paper_prior, paper_surrogate, monkeypatch, 0.0)
     assert (with_lean.sigma_x_m, with_lean.sigma_depth_m) == (without.sigma_x_m, without.sigma_depth_m)
+

@@ -109,16 +109,11 @@ def test_healthy_block_gives_no_stone_and_the_localizer_never_sees_the_truth(tmp
     assert seen and all(p.stones == () for p in seen)
 
 
-def test_an_off_centre_3d_stone_is_found_when_the_no_stone_fits_tilt_takes_its_slope(monkeypatch):
-    """(Here, beside the runs that build block3d's prior.) Session 39's review: a 10 mm stone at (26, 45) mm, 18 mm deep, in a 4000 Pa block; with the nano17's noise of
-    seed 0 the no-stone fit tilted the surface 3 sigma, the contrast's peak moved to the far corner, and every start
-    of the stone fit there ended at the bounds: NO STONE (LR 1.2); seeds 0 and 2 of 3 missed it. The stone fit now
-    also starts from the best candidates over the whole probed area with the surface untilted. The round's
-    measurements are kept in tests/data (the run's own records); the block's forces scale with its modulus, so they
-    are localized on block3d's prior (2500 Pa) scaled by 2500/4000."""
+def _corner_round():
+    """Session 39's review round (tests/data/k3d_corner_seed0_round0.npz: a 10 mm stone at (26, 45) mm, 18 mm deep,
+    in a 4000 Pa block), its forces scaled to block3d's prior (2500 Pa): (prior, measurements, table)."""
     from pathlib import Path
 
-    import planner.localize3d as L
     from fem.scene import load
     from planner.localize import Measurements
     from planner.surrogate3d import load_surrogate3d
@@ -126,14 +121,51 @@ def test_an_off_centre_3d_stone_is_found_when_the_no_stone_fits_tilt_takes_its_s
     f = {n: z[n] for n in z.files}
     for n in ("force_n", "sigma_n", "onset_threshold_n", "dwell_start_n", "dwell_end_n"):
         f[n] = f[n] * (2500.0 / 4000.0)
-    meas = Measurements(**f)
     prior = load("block3d").prior()
-    sur = load_surrogate3d(prior, build=False)
+    return prior, Measurements(**f), load_surrogate3d(prior, build=False)
+
+
+def test_an_off_centre_3d_stone_is_found_when_the_no_stone_fits_tilt_takes_its_slope(monkeypatch):
+    """(Here, beside the runs that build block3d's prior.) Session 39's review: a 10 mm stone at (26, 45) mm, 18 mm deep, in a 4000 Pa block; with the nano17's noise of
+    seed 0 the no-stone fit tilted the surface 3 sigma, the contrast's peak moved to the far corner, and every start
+    of the stone fit there ended at the bounds: NO STONE (LR 1.2); seeds 0 and 2 of 3 missed it. The stone fit now
+    also starts from the best candidates over the whole probed area with the surface untilted. The round's
+    measurements are kept in tests/data (the run's own records); the block's forces scale with its modulus, so they
+    are localized on block3d's prior (2500 Pa) scaled by 2500/4000."""
+    import planner.localize3d as L
+    prior, meas, sur = _corner_round()
     loc = L.localize3d(prior, meas, sur)
     assert loc.detected and loc.lr > 50, loc.lr
     assert math.hypot(loc.x_m - 0.026, loc.y_m - 0.045) < 1.5e-3
     monkeypatch.setattr(L, "N_FLAT_STARTS", 0)              # the starts around the peak only: the miss
     assert not L.localize3d(prior, meas, sur).detected
+
+
+def test_a_3d_stone_near_a_side_is_flagged_and_its_warning_says_why(monkeypatch):
+    """Session 53's review: on a 50 x 50 x 30 mm block a stone 13 mm from a side came out 2 mm too shallow, 12-14
+    sigma, with no warning, and the run stopped as "target uncertainty reached" (the 3D table takes every stone as
+    one away from the sides). A fitted stone within SIDE_REACH3D_M of a side is now in at_bound ("near side"): a
+    warning, and the run does not call its sigmas converged. Here on session 39's records (a stone at (26, 45) mm
+    on block3d's 70 mm square: 25 mm from the nearest side), with the reach moved either side of that. (Here, beside
+    the runs that build block3d's prior.)"""
+    import planner.localize3d as L
+    from planner.localize import NEAR_SIDE, SIDE_REACH3D_M
+    from planner.refine import caveats
+    from planner.refine3d import converged3d
+    prior, meas, sur = _corner_round()
+    assert SIDE_REACH3D_M == 0.022
+    loc = L.localize3d(prior, meas, sur)
+    side = min(loc.x_m, 0.07 - loc.x_m, loc.y_m, 0.07 - loc.y_m)
+    assert loc.detected and 0.023 < side < 0.027 and NEAR_SIDE not in loc.at_bound
+    monkeypatch.setattr(L, "SIDE_REACH3D_M", side + 1e-3)
+    monkeypatch.setattr(L, "_LAST_FIT", {}, raising=False)
+    near = L.localize3d(prior, meas, sur)
+    assert NEAR_SIDE in near.at_bound
+    assert (near.x_m, near.y_m, near.depth_m, near.sigma_depth_m) == (loc.x_m, loc.y_m, loc.depth_m, loc.sigma_depth_m)
+    text = caveats(near)
+    assert "within 22 mm of the block's side" in text and "its sigmas do not say how far off" in text
+    assert "tissue's" not in text                     # not taken for a tissue parameter at its bound
+    assert not converged3d(near, 1.0) and converged3d(loc, 1.0)
 
 
 class _Stop(Exception):
