@@ -925,7 +925,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     infl = max(1.0, 2.0 * fit.cost / dof)
     # (the lean's amplitude: the fit's finite-strain amplitude, or where the estimate keeps the tissue linear, the
     # fit with it free: a neo-Hookean tissue's stone leans whether or not its estimate models the stiffening)
-    cov_q = np.linalg.pinv(J.T @ J) * infl + _lean_cov(fw, q, J, sig, fw.full(q[3:])[5] if fw.free[5] else a_fit[0])
+    cov_fit = np.linalg.pinv(J.T @ J) * infl
+    cov_q = cov_fit + _lean_cov(fw, q, J, sig, fw.full(q[3:])[5] if fw.free[5] else a_fit[0])
     xs, dep, D = _stone(q[:3])
     s = math.exp(q[1]) * 1e-3
     G = np.zeros((3, len(q)))
@@ -957,7 +958,9 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
         a_fit = (float(nu0[5]), float(sd_nu[5]))
         fs_gain = float("nan")
     d_fit = fw.depth(nu)
-    profile_args = (resid, jac, q, lo, hi, dep, sd[1], 2.0 * fit.cost, infl, H, nlo, nhi)
+    # (the profile's search grid is scaled by the depth's sigma from the fit alone: the lean is no likelihood's)
+    sd_fit_depth = float(np.sqrt(max((G @ cov_fit @ G.T)[1, 1], 0.0)))
+    profile_args = (resid, jac, q, lo, hi, dep, sd_fit_depth, 2.0 * fit.cost, infl, H, nlo, nhi)
     rel, rel_sd, rel_n = dwell_relaxation(meas)
     k = math.exp(nu[1])
     fixed = [n for n, f in zip(NUISANCE, free_nu) if not f]
@@ -987,8 +990,10 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
 def fs_lean(xs_m: float, width_m: float) -> float:
     """L: how far a neo-Hookean stone's contrast leans towards the section's nearer side (FS_LEAN_PER_M), in units of
     the prior's finite-strain correction a g per FS_LEAN_SPAN_M from the stone; 0 at the middle, and 0 from
-    FS_LEAN_REACH_M of both sides."""
-    return FS_LEAN_PER_M * max(FS_LEAN_REACH_M - min(xs_m, width_m - xs_m), 0.0)
+    FS_LEAN_REACH_M of both sides; on a section narrower than twice that, no more than the stone's distance from the
+    middle (by symmetry: 0 there, whatever the width)."""
+    reach = max(FS_LEAN_REACH_M - min(xs_m, width_m - xs_m), 0.0)
+    return FS_LEAN_PER_M * min(reach, abs(xs_m - 0.5 * width_m))
 
 
 def _lean_cov(fw: _Forward, q, J: np.ndarray, sig: np.ndarray, amplitude: float) -> np.ndarray:

@@ -17,6 +17,9 @@ def test_the_lean_vanishes_at_the_middle_and_away_from_both_sides():
     assert fs_lean(0.015, 0.070) == pytest.approx(fs_lean(0.055, 0.070)) == pytest.approx(
         FS_LEAN_PER_M * (FS_LEAN_REACH_M - 0.015))
     assert fs_lean(0.005, 0.070) > fs_lean(0.015, 0.070) > fs_lean(0.030, 0.070) > 0.0
+    # narrower sections: 0 at their middle too (the review's 30 and 55 mm sections read 6.0 and 2.25 there)
+    assert fs_lean(0.015, 0.030) == fs_lean(0.0275, 0.055) == 0.0
+    assert fs_lean(0.005, 0.030) == pytest.approx(FS_LEAN_PER_M * 0.010)
 
 
 def _fit(name, prior, surrogate, monkeypatch, lean_per_m):
@@ -26,7 +29,7 @@ def _fit(name, prior, surrogate, monkeypatch, lean_per_m):
     meas = L.Measurements.from_records(read_records(DATA / name), statuses=("ok", "force_limit", "depth_limit"))
     monkeypatch.setattr(L, "_LAST_FIT", {})
     monkeypatch.setattr(L, "FS_LEAN_PER_M", lean_per_m)
-    return L.localize(prior, meas, surrogate), load(DATA / name / "truth.toml").stones[0]
+    return L.localize(prior, meas, surrogate, profile=True), load(DATA / name / "truth.toml").stones[0]
 
 
 @pytest.mark.parametrize("name", ["mismatch-hyper-trial-0052", "mismatch-hyper-trial-0012"])
@@ -34,11 +37,12 @@ def test_a_neo_hookean_stones_lean_is_in_its_x_sigma(name, paper_prior, paper_su
     """Two of the mismatch study v7's neo-Hookean trials (stones 18 and 14 mm from a side; the second's fit keeps the
     finite-strain term, the first's keeps the tissue linear but its fit with the term free finds the stiffening): the
     estimate leaned 2.6 and 1.3 mm towards the nearer side, 21.6 and 3.7 sigma. With the lean's allowance within 2.5
-    sigma; the estimate, its depth and the evidence are the same numbers."""
+    sigma; the estimate, its depth, its depth's profile interval and the evidence are the same numbers."""
     with_lean, stone = _fit(name, paper_prior, paper_surrogate, monkeypatch, 300.0)
     without, _ = _fit(name, paper_prior, paper_surrogate, monkeypatch, 0.0)
     assert with_lean.nuisance["finite_strain_amplitude"][0] > 0.5          # the data say the tissue stiffens
     assert (with_lean.x_m, with_lean.depth_m, with_lean.lr) == (without.x_m, without.depth_m, without.lr)
+    assert with_lean.depth_interval_m == without.depth_interval_m       # the profile's is no sigma's (its grid neither)
     err = with_lean.x_m - stone.x_m
     side = -1.0 if stone.x_m < 0.035 else 1.0
     assert err * side > 0.001                                   # it leans towards the nearer side, by over 1 mm
