@@ -4,7 +4,9 @@ too, without Python's source path and code line (``--debug`` keeps Python's form
 from __future__ import annotations
 
 import atexit
+import contextlib
 import logging
+import os
 import sys
 import traceback
 import warnings
@@ -15,6 +17,7 @@ from fem.scene import SceneError
 from robot.truth import TruthError
 
 EXIT_USAGE = 2
+EXIT_BROKEN_PIPE = 141     # 128 + SIGPIPE: what a shell reports for a process the closed pipe ended
 
 
 class UsageError(ValueError):
@@ -43,6 +46,14 @@ def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
         warnings.showwarning = one_line
     try:
         return int(run() or 0)
+    except BrokenPipeError:
+        # the reader of the standard output closed it early (`palpate ... | head`): not the user's input, so not exit
+        # 2; what the command writes to files is written before its summary. Exit as a shell reports a process ended
+        # by SIGPIPE, and point the standard output at /dev/null so the interpreter's own flush at exit stays quiet
+        with contextlib.suppress(OSError, ValueError, AttributeError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _quiet_exit(debug)
+        return EXIT_BROKEN_PIPE
     except USER_ERRORS as e:
         if debug:
             traceback.print_exc()

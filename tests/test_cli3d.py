@@ -77,7 +77,11 @@ def test_predict_grid_3d(small, tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err        # the disk cache is off here: each model is built, and says so first
     assert "palpate predict: small3d: building its 3D model (about" in err and "block3d's" in err
     # forces only: the unresolved contact is still said, for the force's sake (no stress peak to speak of)
-    assert "under 3: the force may be stiff (measured" in err and "von Mises" not in err
+    # (within one element at some waypoint, session 53: the force is not resolved either, said as such)
+    assert ("under 3: the force may be stiff (measured" in err or "under 3: the force is not resolved either" in err) \
+        and "(measured" in err and "von Mises" not in err
+    spans = float(err.split("the contact radius spans ")[1].split(" ")[0])
+    assert ("not resolved either" in err) == (spans < 1.0)
     monkeypatch.setenv("PALPATE_CACHE", "1")
     main(["predict", small, "--grid", "2x2", "--depth-m", "0.001", "--json", str(tmp_path / "q.json"), "--quiet"])
     err = capsys.readouterr().err.splitlines()          # --quiet: no progress lines; warnings stay (2 mm elements)

@@ -56,3 +56,58 @@ def test_a_linear_trials_deep_stone_is_not_touched(paper_prior, paper_surrogate,
     without, _ = _fit("mismatch-trial-0048", paper_prior, paper_surrogate, monkeypatch, 0.0)
     assert (with_lean.sigma_x_m, with_lean.sigma_depth_m) == (without.sigma_x_m, without.sigma_depth_m)
 
+
+
+SECTION = """name = "pipe2d"
+[tissue]
+width_m = 0.060
+height_m = 0.030
+youngs_pa = 3000.0
+poisson = 0.4
+[indenter]
+shape = "cylinder"
+radius_m = 0.012
+youngs_pa = 60.0e6
+thickness_m = 0.020
+[analysis]
+plane = "strain"
+order = 2
+mesh_size_m = 0.003
+surface_refine = 4.0
+"""
+
+
+def test_an_indentation_beyond_a_tenth_of_the_height_is_warned(tmp_path, capsys):
+    """Session 53's physics review: fem states its linear model for strains up to 10 % and refuses above 30 %; load A
+    warned in between, an indentation ran silently (a 30 mm section indented 8.9 mm)."""
+    from app.cli import main
+    scene = tmp_path / "s.toml"
+    scene.write_text(SECTION)
+    assert main(["simulate", str(scene), "--load", "indent", "--x-m", "0.03", "--depth-m", "0.0089"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: --depth-m 0.0089 is 30% of the tissue height (0.03 m)" in err and "up to 10%" in err
+    assert main(["predict", str(scene), "--waypoints", "5", "--depth-m", "0.005", "--quiet"]) == 0
+    assert "--depth-m 0.005 is 17% of the tissue height" in capsys.readouterr().err
+    assert main(["simulate", str(scene), "--load", "indent", "--x-m", "0.03", "--depth-m", "0.003"]) == 0
+    assert "tissue height" not in capsys.readouterr().err            # 10 %: as stated
+
+
+def test_a_closed_pipe_is_not_bad_input_and_the_json_file_is_kept(tmp_path, monkeypatch, capsys):
+    """The review's `palpate simulate ... --json F | true`: exit 2 (the bad-input code) and no F. The files come
+    before the summary, and a reader that closed the standard output ends the command as SIGPIPE would (141)."""
+    from app.cli import main
+    from app.errors import EXIT_BROKEN_PIPE
+
+    class Closed:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            raise BrokenPipeError(32, "Broken pipe")
+    scene, out = tmp_path / "s.toml", tmp_path / "out.json"
+    scene.write_text(SECTION)
+    monkeypatch.setattr("sys.stdout", Closed())
+    rc = main(["simulate", str(scene), "--load", "indent", "--x-m", "0.03", "--depth-m", "0.003", "--json", str(out)])
+    assert rc == EXIT_BROKEN_PIPE == 141
+    assert out.exists() and '"force_n_per_m"' in out.read_text()
+    assert "Broken pipe" not in capsys.readouterr().err

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.commands.output import write_json
+from app.commands.output import warn_strain, write_json
 from app.errors import UsageError
 from app.options import (
     MAX_WAYPOINTS,
@@ -303,8 +303,9 @@ def run(args) -> int:
         out["files"]["predict"] = str(_figure(Path(args.plots), sc, ref, out))
     t["total_s"] = time.perf_counter() - t0
     out["timings_s"] = t
+    write_json(args.json, out)        # (first: a reader that closes the pipe early does not lose the file)
     _summary(sc, out, sys.stderr if args.json == "-" else sys.stdout)
-    write_json(args.json, out)
+    warn_strain("predict", sc, args.depth_m)
     return 0
 
 

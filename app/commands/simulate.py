@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.commands.output import write_json
+from app.commands.output import warn_strain, write_json
 from app.errors import UsageError
 from app.options import (
     analysis_changes,
@@ -188,9 +188,10 @@ def _run_indent(args) -> int:
     if args.plots:
         out["files"].update(_indent_figures(Path(args.plots), sc, m, r, u, nodal))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
+    write_json(args.json, out)        # (first: a reader that closes the pipe early does not lose the file)
     _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
     warn_unresolved2d(sc, "simulate", [r.half_width_m])
-    write_json(args.json, out)
+    warn_strain("simulate", sc, args.depth_m)
     return 0
 
 
@@ -310,8 +311,8 @@ def _run_uniform(args) -> int:
         out["files"].update(_figures(Path(args.plots), sc, res, compare))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
 
-    _summary(sc, res, out, sys.stderr if args.json == "-" else sys.stdout)
     write_json(args.json, out)
+    _summary(sc, res, out, sys.stderr if args.json == "-" else sys.stdout)
     return 0
 
 
