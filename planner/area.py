@@ -25,6 +25,16 @@ from core.contracts import MIN_PROBE_SPACING_M, PlanError
 EDGE_TOL_M = 1e-9       # points on a region's edge count as inside (to this tolerance)
 
 
+def near_side_fraction(scene, reach_m: float) -> float:
+    """The share of the probed area (``probe_bounds``) within ``reach_m`` of the block's side faces."""
+    x0, x1, y0, y1 = probe_bounds(scene)
+    t = scene.tissue
+    inner = (max(min(x1, t.width_m - reach_m) - max(x0, reach_m), 0.0)
+             * max(min(y1, t.length_m - reach_m) - max(y0, reach_m), 0.0))
+    area = (x1 - x0) * (y1 - y0)
+    return 1.0 - inner / area if area > 0 else 0.0
+
+
 def probe_bounds(scene) -> tuple[float, float, float, float]:
     """(x0, x1, y0, y1): where a probe's centre may go on ``scene``'s top face: the probed patch
     (``analysis.patch_m``, the whole face when absent) shrunk by the tip radius on every side."""

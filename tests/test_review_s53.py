@@ -111,3 +111,21 @@ def test_a_closed_pipe_is_not_bad_input_and_the_json_file_is_kept(tmp_path, monk
     assert rc == EXIT_BROKEN_PIPE == 141
     assert out.exists() and '"force_n_per_m"' in out.read_text()
     assert "Broken pipe" not in capsys.readouterr().err
+
+
+def test_the_share_of_the_probed_area_near_a_side_is_said_before_probing():
+    """`palpate run` on a block says before probing how much of its probed area lies within SIDE_REACH3D_M of a side
+    (planner.area.near_side_fraction): block3d's stone centres may lie within 15-55 mm of its 70 mm square."""
+    import dataclasses
+
+    from fem.scene import load
+    from planner.area import near_side_fraction, probe_bounds
+    from planner.localize import SIDE_REACH3D_M
+    b = load("block3d").prior()
+    assert probe_bounds(b) == pytest.approx((0.015, 0.055, 0.015, 0.055))
+    assert near_side_fraction(b, SIDE_REACH3D_M) == pytest.approx(1.0 - (0.026 / 0.040) ** 2)
+    assert near_side_fraction(b, 0.015) == 0.0 and near_side_fraction(b, 0.036) == 1.0
+    big = dataclasses.replace(b, tissue=dataclasses.replace(b.tissue, width_m=0.2, length_m=0.2))
+    assert near_side_fraction(big, SIDE_REACH3D_M) == 0.0           # its 50 mm patch probed in the middle
+    whole = dataclasses.replace(big, analysis=dataclasses.replace(big.analysis, patch_m=None))     # the whole face
+    assert near_side_fraction(whole, SIDE_REACH3D_M) == pytest.approx(1.0 - (0.156 / 0.190) ** 2)
