@@ -242,7 +242,8 @@ FS_CONTRAST_ERR = 0.15      # model error of the stone's contrast per unit finit
 FS_LEAN_PER_M = 300.0       # ... and a correlated part of it, one mode: a neo-Hookean stone's contrast also leans
 #                             towards the section's nearer side, by L a g(d) of the linear contrast per FS_LEAN_SPAN_M
 #                             from the stone (g: the prior's finite-strain shape), L = k (FS_LEAN_REACH_M - the
-#                             stone's distance to that side): 0 at the middle of a 70 mm section, by symmetry. Measured
+#                             stone's distance to that side, and at most k times its distance from the middle): 0 at
+#                             the middle, by symmetry (fs_lean). Measured
 #                             with fem on the paper section (bench/contrast_finite_strain.py, ten stones 2.5-25 mm from
 #                             the middle: README): k 0.15-0.8 / mm, 0.15 for deep stones, the most for small shallow
 #                             ones; k = 0.3 / mm is the median. Independent per-reading errors average out over many
@@ -1003,7 +1004,7 @@ def _lean_cov(fw: _Forward, q, J: np.ndarray, sig: np.ndarray, amplitude: float)
     0 for a linear one."""
     nu = fw.full(q[3:])
     stone = _stone(q[:3])
-    xs, dep, D = stone
+    xs = stone[0]
     lean = fs_lean(xs, fw.width_m)
     if fw.fs is None or not amplitude > 0.0 or lean == 0.0:
         return np.zeros((len(q), len(q)))
