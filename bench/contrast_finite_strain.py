@@ -22,6 +22,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from app.options import float_list  # noqa: E402
 from fem.contact import surface_model  # noqa: E402
 from fem.hypertruth import HyperelasticForce  # noqa: E402
 from fem.scene import Stone, load  # noqa: E402
@@ -42,10 +43,11 @@ def main() -> int:
     p.add_argument("--out", required=True)
     p.add_argument("--stone", type=triple, action="append", help="x, centre depth, diameter in m (repeatable)")
     p.add_argument("--depths-m", default="0.001,0.002,0.003,0.004")
-    p.add_argument("--offsets-m", default="0,0.003,0.006,0.010", help="probe positions from the stone's x, in m")
+    p.add_argument("--offsets-m", type=float_list(what="probe offsets in m"), default="0,0.003,0.006,0.010",
+                   help="probe positions from the stone's x, in m")
     a = p.parse_args()
     depths = [float(v) for v in a.depths_m.split(",")]
-    offsets = [float(v) for v in a.offsets_m.split(",")]
+    offsets = a.offsets_m
     prior = load("paper").prior()
     hp, lp = HyperelasticForce(prior), surface_model(prior)
     lines = []

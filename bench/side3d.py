@@ -1,6 +1,6 @@
 """The 3D table against direct fem for one stone at several distances from a block's side (session 53).
 
-    python bench/side3d.py SCENE.toml --diameter-m D --depth-m DEPTH --xs-m X1,X2,... [--out DIR]
+    python bench/side3d.py SCENE.toml --diameter-m D --depth-m DEPTH --xs-m X1,X2,... --out DIR
 
 The table (planner.surrogate3d) takes every stone's contrast as a stone's away from the block's side faces. For a
 stone of the given diameter and centre depth at each x (y at the block's middle) it solves the stone scene with 3D fem
@@ -19,6 +19,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from app.options import float_list  # noqa: E402
 from fem.scene import load  # noqa: E402
 from planner.surrogate3d import check_error, direct_contrasts, load_surrogate3d  # noqa: E402
 
@@ -28,13 +29,15 @@ def main() -> int:
     p.add_argument("scene")
     p.add_argument("--diameter-m", type=float, required=True)
     p.add_argument("--depth-m", type=float, required=True, help="the stone's centre depth")
-    p.add_argument("--xs-m", required=True, help="the stone's x positions, comma-separated (m)")
-    p.add_argument("--out", default="bench-out/side3d")
+    p.add_argument("--xs-m", type=float_list(what="x positions in m"), required=True, help="the stone's x positions, comma-separated (m)")
+    p.add_argument("--out", required=True, help="a directory; an existing side3d.txt there is not overwritten")
     a = p.parse_args()
+    if (Path(a.out) / "side3d.txt").exists():
+        p.error(f"--out {a.out}: holds a side3d.txt already (measured: not overwritten); give another directory")
     prior = load(a.scene).prior()
     sur = load_surrogate3d(prior, build=False)
     W, L = prior.tissue.width_m, prior.tissue.length_m
-    stones = [(float(x), L / 2, a.depth_m, a.diameter_m) for x in a.xs_m.split(",")]
+    stones = [(x, L / 2, a.depth_m, a.diameter_m) for x in a.xs_m]
     t0 = time.perf_counter()
     direct = direct_contrasts(prior, stones, levels=(2e-3, 4e-3), n_grid=9, same_mesh=False,
                               progress=lambda k, n, r: print(f"  fem {k}/{n}: {r['solve_s']:.0f} s", flush=True))

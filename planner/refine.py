@@ -313,8 +313,7 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
         out.append(f"the fitted stone lies within {SIDE_REACH3D_M * 1e3:.0f} mm of the block's side: the 3D table takes "
                    f"its contrast as a stone's away from the sides (a 10 mm stone 13 mm from one came out 2 mm too "
                    f"shallow and 1.6 mm too small, 12 and 14 sigma, with a noise-free sensor; 0.7 mm, 3-4 sigma, 21 mm "
-                   f"from it): its sigmas do not say how far "
-                   f"off it may be")
+                   f"from it): its sigmas do not say how far off it may be")
     n_beyond = getattr(loc, "n_beyond_linear_range", 0)
     if n_beyond:
         # (session 50's review: on a 30 mm section, shallow stones' diameters 3-6 sigma small with only this warning,
