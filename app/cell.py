@@ -26,9 +26,9 @@ import sys
 from pathlib import Path
 
 from app.commands.output import json_alone, write_json
-from app.errors import UsageError, guarded
+from app.errors import RunFailed, UsageError, guarded
 from app.ftoptions import add_ft_options, check_ft, controller_pose, inmemory_source, linked_source
-from app.isolate import ChildDied, ChildTimeout, run_in_child
+from app.isolate import ChildDied, ChildError, ChildTimeout, run_in_child
 from app.options import (
     check_output_dir,
     check_output_file,
@@ -366,6 +366,14 @@ def _run_host(plan: Plan, args, out: Path, cfg: DriverConfig, host: str) -> RunR
         # watchdog): stop it through the dashboard (always safe)
         stopped = dashboard_stop(host)
         return _crash_report(out, e, program_stopped=stopped)
+    except ChildError as e:
+        # the driver raised what is not a probe fault (a full disk, a bug) after stopping the arm (robot.driver's
+        # run: stop, retract, then raise): one line, exit 1 (a safety review of session 54: a traceback)
+        disk = "No space left" in str(e) or "Disk quota" in str(e) or "Read-only file system" in str(e)
+        raise RunFailed(f"the driver stopped the arm, then failed: {e.type_name}: {e}"
+                        + ("; what was written before is kept (free space, then run again: it resumes)" if disk else
+                           f"; the records written before are kept in {out}")) \
+            from None
     if tag == "not_connected":
         raise NotConnected(value)
     return value

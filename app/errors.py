@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import errno
 import logging
 import os
 import sys
@@ -18,6 +19,14 @@ from robot.truth import TruthError
 
 EXIT_USAGE = 2
 EXIT_BROKEN_PIPE = 141     # 128 + SIGPIPE: what a shell reports for a process the closed pipe ended
+EXIT_FAILED = 1            # the work failed (not the user's input): a full disk, a driver's error after its stop
+# a write the machine refused: not the user's input (exit 2 says "nothing was done, fix the command"), and what was
+# written before it stays (a safety review of session 54 filled the disk mid-run: exit 2, or a traceback on --host)
+DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS)
+
+
+class RunFailed(RuntimeError):
+    """Work that started failed for a reason not in the user's input (the message says what, and what was kept)."""
 
 
 class UsageError(ValueError):
@@ -54,9 +63,20 @@ def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         _quiet_exit(debug)
         return EXIT_BROKEN_PIPE
+    except RunFailed as e:
+        if debug:
+            traceback.print_exc()
+        print(f"{prog}: {' '.join(str(e).split())}", file=sys.stderr)
+        _quiet_exit(debug)
+        return EXIT_FAILED
     except USER_ERRORS as e:
         if debug:
             traceback.print_exc()
+        if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
+            print(f"{prog}: {e.filename or 'a file'}: {os.strerror(e.errno)}: the disk refused a write; what was "
+                  f"written before is kept (free space, then run the command again: a run resumes)", file=sys.stderr)
+            _quiet_exit(debug)
+            return EXIT_FAILED
         msg = " ".join(str(e).split()) or type(e).__name__
         if isinstance(e, OSError) and e.filename is not None and str(e.filename) not in msg:
             msg = f"{e.filename}: {msg}"

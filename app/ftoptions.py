@@ -59,6 +59,12 @@ def pose6(s: str) -> tuple:
     if len(v) != 6 or not all(math.isfinite(a) for a in v) or math.dist(v[:3], (0, 0, 0)) > 0.3:
         raise argparse.ArgumentTypeError(f"must be x,y,z,rx,ry,rz: six finite numbers (m, rad), within 0.3 m of the "
                                          f"flange, got {s!r}")
+    turn = math.dist(v[3:], (0, 0, 0))
+    if turn > math.pi + 1e-9:       # (a rotation vector's length is its angle: every rotation has one of at most pi;
+        #                             degrees typed -- 90, 180 -- misread the force: 180 read 0.6 N per newton)
+        raise argparse.ArgumentTypeError(f"rx,ry,rz is a rotation vector in radians, at most pi ({math.pi:.4f}) long; "
+                                         f"got {turn:g} ({s!r}): degrees? ({turn:g} degrees is "
+                                         f"{math.radians(turn):.4f} rad)")
     return v
 
 

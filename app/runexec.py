@@ -150,8 +150,8 @@ def controller_executor(scene_spec: str, *, sensor: str, seed: int, out: Path, s
     return _runner(interfaces, out, stats)
 
 
-RUN_FILES = ("probes.jsonl", "raw", "run.json", "result.json", "run_options.json", "fig_run.png",
-             "simcontroller.log")
+RUN_FILES = ("probes.jsonl", "raw", "run.json", "run_history.jsonl", "result.json", "run_options.json",
+             "fig_run.png", "simcontroller.log")
 
 
 def holds_run(out: Path) -> bool:
@@ -444,6 +444,29 @@ def _expected_by_prior(rec) -> bool:
             and f is not None and thr is not None and math.isfinite(f) and math.isfinite(thr) and f < thr)
 
 
+def left_out(out: Path) -> dict | None:
+    """The probes whose force was measured (their latest record) but left out of the fit as no tissue's force
+    (``implausible``, robot.records.implausibility), or None. Those that also felt no contact are the no-contact
+    warning's already (``no_contact``); these are the rest."""
+    recs = [r for r in latest_by_index(out).values() if r.status in MEASURED]
+    odd = sorted((r for r in recs if r.implausible is not None and r.contact_depth_m is not None), key=lambda r: r.index)
+    if not odd:
+        return None
+    return {"n": len(odd), "of": len(recs), "index": [int(r.index) for r in odd],
+            "statuses": sorted({str(r.status) for r in odd}), "first_reason": odd[0].implausible}
+
+
+def left_out_warning(odd: dict) -> str:
+    """One line: how many probes the fit left out as reading no tissue's force, and the first one's reason (a
+    session-54 review: a sensor drifting 3 mN/s left 9 of 15 probes out, the rest said NO STONE, and nothing said
+    why)."""
+    most = 2 * odd["n"] >= odd["of"]
+    return (f"warning: {odd['n']} of {odd['of']} probes read forces no tissue gives and are left out of the fit "
+            f"(probes.jsonl's implausible; probe {odd['index'][0]}: {odd['first_reason']})"
+            + ("; with most of them out, the answer rests on the rest: a drifting or spiking sensor, or a collision? "
+               "(`palpate ft` shows the sensor's drift in free air)" if most else ""))
+
+
 def no_contact_warning(nc: dict, three_d: bool = False) -> str:
     """What the probes that felt no contact mean: a warning naming those where the prior predicts contact (the
     tissue there is not as it says); a note only when the prior itself predicts less than the threshold at every one
@@ -554,7 +577,15 @@ def conclude(result: dict, out: Path, loc, res, described: str, status: str, fau
     if nc is not None:
         result["no_contact_probes"] = nc
         say(no_contact_warning(nc, three_d=three_d))
+    odd = left_out(out) if res is not None else None
+    if odd is not None:
+        result["implausible_probes"] = odd
+        say(left_out_warning(odd))
     head = verdict(loc, res, described, status, fault, nc, tissue)
+    if odd is not None and 2 * odd["n"] >= odd["of"] and head.startswith("NO STONE"):
+        # most readings out: "no stone" is the rest's answer, not the run's (a session-54 review: a drifting sensor)
+        head = (f"NOT LOCALIZED: {odd['n']} of {odd['of']} probes read forces no tissue gives and were left out, so "
+                f"the rest cannot rule a stone out (a drifting or spiking sensor, or a collision?); " + described)
     result["verdict"] = verdict_kind(head)
     return head
 

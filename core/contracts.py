@@ -40,7 +40,10 @@ from pathlib import Path
 from core.textfile import NESTED_TOO_DEEP, InputFileError, read_user_text
 
 PLAN_VERSION = 2
-MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT = 0.5, 4.0   # a probe's force_exponent (null: unknown)
+# a probe's force_exponent (null: unknown): an indentation's force grows at least as fast as its depth (a flat punch:
+# p = 1; a sphere 1.5, a cone 2); below 1 the surface's fit found no line and the depth limit went unguarded (0.5 let
+# the tip 5.35 mm into tissue 2 mm higher than registered against a 4 mm limit: session 54's safety review)
+MIN_FORCE_EXPONENT, MAX_FORCE_EXPONENT = 1.0, 4.0
 # the driver's depth limit fits the descent's force curve from where it last rose past this fraction of the contact
 # threshold (robot.driver._ForceWatch, robot.tissue_depth); the planner's force_exponent is the prior's over the
 # same chord: from this fraction of the threshold to the planned depth
@@ -433,6 +436,8 @@ class FaultKind(StrEnum):
     FREE_AIR_FORCE = "free_air_force"    # a force at an approach pose before zeroing: the tip touches something
     #                                      there (the surface higher than registered) or the sensor drifts
     SURFACE_HIGH = "surface_high"        # contact within the first mm of a descent: the surface at the approach pose
+    CONTACT_UNFELT = "contact_unfelt"    # a probe's predicted force at its depth not above the contact threshold:
+    #                                      no contact felt, no depth limit from the true surface (checked before it)
 
 
 @dataclass

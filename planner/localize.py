@@ -650,6 +650,7 @@ def _depth_profile(resid, jac, q, lo, hi, dep, sd, chi2_min, scale, H_mm, nlo, n
 
 SIDE = "side"      # at_bound's entry for a fitted stone that would cross the section's side
 NEAR_SIDE = "near side"     # ... and for a block's stone within SIDE_REACH3D_M of a side face (planner.localize3d)
+BELOW_BOTTOM = "below the bottom"   # ... and for a stone reaching below the tissue's bottom (as its thickness is fitted)
 SIDE_REACH3D_M = 0.022      # The 3D table (planner.surrogate3d) takes every stone's contrast as a stone's away from the
 #                             block's side faces. On a 50 x 50 x 30 mm block (a 10 mm stone 12 mm deep, y at the
 #                             middle; README "3D: a stone near a side"), against direct fem: RMS 2.5-3.1 % of the peak
@@ -683,6 +684,13 @@ def crosses_side(x_m: float, diameter_m: float, width_m: float) -> bool:
     tissue holds it there, and a section under 60 mm has its table's entries there extrapolated, not fem's
     (planner.surrogate._fill_sideways)."""
     return x_m - diameter_m / 2 <= 0.0 or x_m + diameter_m / 2 >= width_m
+
+
+def below_bottom(depth_m: float, diameter_m: float, height_m: float, thickness_change: float) -> bool:
+    """Whether a stone reaches below the tissue's bottom, the tissue ``height_m`` thick times 1 + the fitted
+    ``thickness_change``: no tissue holds it there, and the table's entries there are extrapolated (a session-54
+    review: a 4 mm stone fitted 36.7 mm deep in 35 mm tissue, unflagged)."""
+    return depth_m + 0.5 * diameter_m > height_m * (1.0 + thickness_change)
 
 
 def dwell_relaxation(meas: Measurements) -> tuple[float, float, int]:
@@ -939,6 +947,8 @@ def _fit_stone(prior, meas: Measurements, surrogate, lr_threshold: float, model_
     at_bound = [n for n, v, a, z in zip(names, q[:3], lo, hi) if min(v - a, z - v) < 1e-3 * (z - a)]
     if crosses_side(xs, D, prior.tissue.width_m):
         at_bound.append(SIDE)
+    if below_bottom(dep, D, prior.tissue.height_m, fw.full(q[3:])[4]):
+        at_bound.append(BELOW_BOTTOM)
     detected = bool(lr >= lr_threshold)
     nu_1 = fw.full(q[3:])
     d_1 = fw.depth(nu_1)

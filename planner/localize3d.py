@@ -31,8 +31,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from fem.contact import STONE_LAYER_MAX
+from planner.correct3d import table_error_n
 from planner.forkmap import fork_map
 from planner.localize import (
+    BELOW_BOTTOM,
     CRUSH_PASSES,
     CRUSH_REL_ERR,
     DRIFT_SIGMA_N_PER_S,
@@ -51,6 +53,7 @@ from planner.localize import (
     Localization,
     Measurements,
     _Forward,
+    below_bottom,
     dwell_relaxation,
     nuisance_at_bound,
 )
@@ -59,6 +62,7 @@ from planner.tissue_response3d import PriorResponse3D
 LR_THRESHOLD3D = 25.0
 PEAK_RADIUS_M = 5e-3
 N_AREA_STARTS = 5           # the stone fit's extra candidates: a 5 x 5 grid over the probed area, the surface untilted
+SIDE_PASSES = 4             # fem corrections of a stone near a side at most (planner.correct3d; each about a minute)
 N_FLAT_STARTS = 2           # (the best two of them start fits, beside the best n_starts around the contrast's peak)
 # nuisance parameters, after the stone's (xs [mm], ys [mm], log clearance [log mm], diameter [mm]):
 NUISANCE3D = ("drift_mn_per_s", "log_stiffness_scale", "surface_offset_mm", "surface_tilt_x_mrad",
@@ -80,12 +84,14 @@ class Localization3D(Localization):
     sigma_y_m: float = float("inf")
     corr_xy: float = float("nan")            # correlation of the x and y estimates (the ellipse's tilt)
     peak_y_m: float = float("nan")
+    fem_correction: dict | None = None       # the table corrected by fem at the fitted stone (planner.correct3d)
 
     def to_dict(self) -> dict:
         d = super().to_dict()
         d["estimate"]["y_m"] = {"value": _f(self.y_m), "sigma": _f(self.sigma_y_m)}
         d["estimate"]["corr_xy"] = _f(self.corr_xy)
         d["evidence"]["peak_y_m"] = _f(self.peak_y_m)
+        d["evidence"]["fem_correction"] = self.fem_correction
         return d
 
     @property
@@ -122,6 +128,7 @@ class _Forward3D:
                               enough and np.ptp(meas.y_m[self.on]) > 0.01, thick])
         self.levels = np.asarray(surrogate.levels, float)
         self._memo_tables: dict[str, dict] = {}
+        self.table_err_n = None     # the table's error per probe, held fixed (planner.correct3d; None: not used)
         # the stone's share of the force at each contact onset, as in 2D (planner.localize._Forward): its contrast
         # ratio C / P at the prior's onset depth (the table's first level at least)
         self.d_onset = np.full(len(meas), self.levels[0])
@@ -144,6 +151,8 @@ class _Forward3D:
         xs, ys, dep, D = stone
         dc = np.clip(d, self.levels[0], self.levels[-1])
         C = np.asarray(self.sur.contrast(self.meas.x_m, self.meas.y_m, dc, xs, ys, dep, D), float)
+        if self.table_err_n is not None:
+            C = C + self.table_err_n
         out = dc != d
         if out.any():
             C = C.copy()
@@ -158,6 +167,11 @@ class _Forward3D:
         if stone is not None:
             F = F + self._memo("contrast", (*map(float, stone), *surf, eta), lambda: self.contrast(stone, d, eta))
         return math.exp(nu[1]) * F + nu[0] * 1e-3 * self.meas.tau_s
+
+    def correct(self, error_n) -> None:
+        """Add the table's error ``error_n`` (per probe) to every contrast from now on; the remembered parts go."""
+        self.table_err_n = np.asarray(error_n, float)
+        self._memo_tables.clear()
 
     def onset_ratio(self, stone) -> np.ndarray:
         """1 + C / P at each contact onset for ``stone`` (1 without one), floored as in 2D."""
@@ -232,12 +246,14 @@ def _fit_no_stone(fw: _Forward3D, sig, v0=None, workers: int = 1):
 
 def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR_THRESHOLD3D,
                nuisance: bool = True, n_starts: int = 4, workers: int = 1,
-               thickness_sigma: float = THICKNESS_SIGMA) -> Localization3D:
+               thickness_sigma: float = THICKNESS_SIGMA, sides: bool = False) -> Localization3D:
     """Detect and locate a spherical stone from ``meas`` given only the ``prior`` (stone-free) block and the
     ``surrogate`` (planner.surrogate3d). ``nuisance``: fit the stiffness scale, the true surface (offset and
     tilts, from the contact onsets) and the block's thickness jointly with the stone (default); False: only the
     drift. ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (1 sigma; 0: known, not
-    fitted). ``workers``: the fits' starts on that many processes (planner.forkmap: the same estimate)."""
+    fitted). ``workers``: the fits' starts on that many processes (planner.forkmap: the same estimate). ``sides``: a
+    stone fitted within SIDE_REACH3D_M of a side face is fitted again with the table's error at the fitted stone from
+    fem (planner.correct3d: a minute or more per pass); False: it is flagged NEAR_SIDE in ``at_bound`` instead."""
     if prior.stones:
         raise ValueError("localize3d() takes the prior scene (no stones): the localizer must not see the truth")
     if not prior.is_3d:
@@ -337,15 +353,31 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         c_fit = math.exp(nu_b[1]) * fw.contrast(_stone(best.x[:4]), fw.depth(nu_b), nu_b[5])
         sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
         best = fit(best.x)
+    # a stone near a side face: the table's error there from fem at the fitted stone, held fixed, and the fit again
+    # from there (planner.correct3d); again while the stone moves by more than half its sigma
+    corrected = None
+    if sides and lr >= lr_threshold and near_side(prior, *_stone(best.x[:4])[:2]):
+        passes, q_table = [], best.x.copy()
+        while len(passes) < SIDE_PASSES:
+            st = _stone(best.x[:4])
+            err = table_error_n(prior, surrogate, st, meas.x_m, meas.y_m, fw.depth(fw.full(best.x[4:])))
+            fw.correct(err.error_n)
+            best = fit(best.x)
+            passes.append(err)
+            moved = np.abs(np.subtract(_stone(best.x[:4]), st))
+            if np.all(moved <= 0.5 * _stone_sigmas(best, nf)):   # (each pass moved it 0.2-0.6 of the one before)
+                break
+        chi2_1 = 2.0 * best.cost
+        lr = max(chi2_0 - chi2_1, 0.0)
+        shift = np.subtract(_stone(best.x[:4]), _stone(q_table[:4]))
+        corrected = {"passes": len(passes), "solve_s": float(sum(e.solve_s for e in passes)),
+                     "largest_error_n": float(np.max(np.abs(passes[-1].error_n))),
+                     "last_move_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"), moved)},
+                     "shift_from_table_fit_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"), shift)}}
     q = best.x
     dof = max(len(best.fun) - 4 - nf, 1)
-    infl = max(1.0, 2.0 * best.cost / dof)
-    cov_q = np.linalg.pinv(best.jac.T @ best.jac) * infl
+    cov_q, cov = _covariances(best, nf)
     xs, ys, dep, D = _stone(q[:4])
-    s = math.exp(q[2]) * 1e-3
-    G = np.zeros((4, len(q)))
-    G[0, 0], G[1, 1], G[2, 2], G[2, 3], G[3, 3] = 1e-3, 1e-3, s, 0.5e-3, 1e-3     # d(x, y, depth, D) / d q
-    cov = G @ cov_q @ G.T
     sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
 
     def corr(i, j):
@@ -355,9 +387,10 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     detected = bool(lr >= lr_threshold)
     if detected:
         at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
-        t = prior.tissue
-        if min(xs, t.width_m - xs, ys, t.length_m - ys) < SIDE_REACH3D_M:     # the table is biased there
+        if corrected is None and near_side(prior, xs, ys):     # the table alone is biased there
             at_bound.append(NEAR_SIDE)
+        if below_bottom(dep, D, prior.tissue.height_m, fw.full(q[4:])[5]):
+            at_bound.append(BELOW_BOTTOM)
     else:                                # the no-stone fit's (the rejected stone fit's bounds are not the answer's)
         at_bound = nuisance_at_bound(h0.x, fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
     nu_1 = fw.full(q[4:])
@@ -392,9 +425,29 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         peak_contrast_n=pc, at_bound=at_bound, n_probes=len(meas), nuisance=nuis,
         contrast_n=meas.force_n - nu[0] * 1e-3 * meas.tau_s - prior_n, prior_n=prior_n,
         fit_contrast_n=math.exp(nu_1[1]) * fw.contrast((xs, ys, dep, D), fw.depth(nu_1), nu_1[5]),
-        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(best.cost),
+        n_beyond_linear_range=int(beyond.sum()), chi2_fit=2.0 * float(best.cost), fem_correction=corrected,
         surface_rise_at_stone_m=1e-3 * float(nu[2] + nu[3] * (xs - 0.5 * prior.tissue.width_m)
                                              + nu[4] * (ys - 0.5 * prior.tissue.length_m)))
+
+
+def _covariances(sol, nf: int) -> tuple[np.ndarray, np.ndarray]:
+    """(of the fit's parameters, of (x, y, depth, diameter) in m): the Jacobian's, inflated by chi2/dof when above 1."""
+    q = sol.x
+    dof = max(len(sol.fun) - 4 - nf, 1)
+    cov_q = np.linalg.pinv(sol.jac.T @ sol.jac) * max(1.0, 2.0 * sol.cost / dof)
+    G = np.zeros((4, len(q)))
+    G[0, 0], G[1, 1], G[2, 2], G[2, 3], G[3, 3] = 1e-3, 1e-3, math.exp(q[2]) * 1e-3, 0.5e-3, 1e-3   # d(x, y, depth, D)/dq
+    return cov_q, G @ cov_q @ G.T
+
+
+def _stone_sigmas(sol, nf: int) -> np.ndarray:
+    return np.sqrt(np.maximum(np.diag(_covariances(sol, nf)[1]), 0.0))
+
+
+def near_side(prior, xs_m: float, ys_m: float) -> bool:
+    """Whether a stone centred at (xs_m, ys_m) lies within SIDE_REACH3D_M of a side face of the block."""
+    t = prior.tissue
+    return min(xs_m, t.width_m - xs_m, ys_m, t.length_m - ys_m) < SIDE_REACH3D_M
 
 
 def _beyond_linear_range3d(fw: _Forward3D, meas: Measurements, q, tip_radius_m: float) -> np.ndarray:

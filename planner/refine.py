@@ -34,6 +34,7 @@ import numpy as np
 from core.contracts import MEASURED, PlanOptions
 from fem.contact import STONE_LAYER_MAX
 from planner.localize import (
+    BELOW_BOTTOM,
     CRUSH_REL_ERR,
     MIN_MEASUREMENTS,
     NEAR_SIDE,
@@ -301,7 +302,7 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
     if bounds:
         out.append(f"at the fit's bound: {', '.join(bounds)} (the stone may lie beyond the range the table "
                    f"covers, and the rest of the estimate be pulled off with it: its sigmas do not say so)")
-    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b not in (SIDE, NEAR_SIDE)]
+    tissue = [b for b in loc.at_bound if b not in STONE_PARAMS and b not in (SIDE, NEAR_SIDE, BELOW_BOTTOM)]
     if tissue:
         out.append(f"the tissue's {', '.join(tissue)} at the fit's bound (the tissue or its surface is unlike the "
                    f"prior beyond what the fit allows: the stone's estimate may be pulled off with it, and its sigmas "
@@ -309,6 +310,10 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
     if SIDE in loc.at_bound:
         out.append("the fitted stone would cross the section's side (no tissue holds it there, and the table's "
                    "forces there are extrapolated, not fem's): its sigma does not say how far off it may be")
+    if BELOW_BOTTOM in loc.at_bound:
+        out.append("the fitted stone reaches below the tissue's bottom (as its thickness is fitted): no tissue holds it "
+                   "there, and the table's forces there are extrapolated, not fem's; its depth and diameter are not "
+                   "measured, and their sigmas do not say how far off they may be")
     if NEAR_SIDE in loc.at_bound:
         out.append(f"the fitted stone lies within {SIDE_REACH3D_M * 1e3:.0f} mm of the block's side: the 3D table takes "
                    f"its contrast as a stone's away from the sides (a 10 mm stone 13 mm from one came out 2 mm too "

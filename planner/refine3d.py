@@ -24,7 +24,7 @@ import time
 import numpy as np
 
 from core.contracts import MEASURED
-from planner.localize import MIN_MEASUREMENTS3D, THICKNESS_SIGMA, Measurements
+from planner.localize import MIN_MEASUREMENTS3D, NEAR_SIDE, SIDE_REACH3D_M, THICKNESS_SIGMA, Measurements
 from planner.localize3d import Localization3D, localize3d
 from planner.refine import WEAK_LR, AdaptiveResult, ProbeReach, Round, caveats, no_stone_caveats, probe_reach, too_few
 from planner.tissue_response3d import prior_and_thickness_slope3d
@@ -137,18 +137,23 @@ def design_positions3d(loc: Localization3D, meas: Measurements, n: int, surrogat
     return np.array(out)
 
 
-def converged3d(loc: Localization3D, target_m: float) -> bool:
+def converged3d(loc: Localization3D, target_m: float, but_side: bool = False) -> bool:
+    """Whether the loop may stop at ``loc``; ``but_side``: were it not for its stone's lying near a side."""
     return bool(loc.detected and max(loc.sigma_x_m, loc.sigma_y_m, loc.sigma_depth_m) <= target_m
-                and not loc.at_bound)
+                and not [b for b in loc.at_bound if not (but_side and b == NEAR_SIDE)])
 
 
 def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, budget_probes: int = 100,
                n_refine: int = 16, target_m: float = 5e-4, progress=None, weak_lr: float = WEAK_LR,
-               workers: int = 1, thickness_sigma: float = THICKNESS_SIGMA) -> AdaptiveResult:
+               workers: int = 1, thickness_sigma: float = THICKNESS_SIGMA,
+               fem_correction: bool = True) -> AdaptiveResult:
     """Run the loop over a block. ``plan_round(xy (n x 2)) -> plan``; ``execute(plan, round_index) -> records``;
     ``region`` (x0, x1, y0, y1): where refinement probes may go (the planner's probed area). ``prior`` has no
     stones. ``workers``: each localization's fits on that many processes (planner.forkmap: the same estimates).
-    ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (0: known)."""
+    ``thickness_sigma``: the prior's relative uncertainty of the block's thickness (0: known). ``fem_correction``:
+    a round whose stone lies near a side and whose loop would stop there (converged but for that, or the budget
+    spent) is localized again with the table corrected by fem at the fitted stone (planner.correct3d); False: the
+    stone stays flagged NEAR_SIDE."""
     if prior.stones:
         raise ValueError("adaptive3d() takes the prior scene (no stones)")
     say = progress or (lambda msg: None)
@@ -168,6 +173,12 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
             say(f"round {k}: {len(xy)} probes ({used} in all): {reason}")
             break
         loc = localize3d(prior, meas, surrogate, workers=workers, thickness_sigma=thickness_sigma)
+        n = min(n_refine, budget_probes - used)
+        if fem_correction and NEAR_SIDE in loc.at_bound and (n < 4 or converged3d(loc, target_m, but_side=True)):
+            # the answer may be this round's: the stone near a side fitted again with the side's effect (fem)
+            say(f"round {k}: the stone lies within {SIDE_REACH3D_M * 1e3:g} mm of a side: fitting it again with the "
+                f"side's effect on its contrast (fem at the fitted stone)")
+            loc = localize3d(prior, meas, surrogate, workers=workers, thickness_sigma=thickness_sigma, sides=True)
         rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
                             len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
         if k == 0:
@@ -179,7 +190,6 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         if not loc.detected and loc.lr < weak_lr:
             reason = "no stone (no candidate worth refining)"
             break
-        n = min(n_refine, budget_probes - used)
         if n < 4:
             reason = "probe budget spent"
             break

@@ -184,23 +184,28 @@ def ring_points(scene: Scene, grid: Grid3D, xc: float, yc: float) -> tuple[np.nd
 MESH_RETRY_SHIFTS_M = ((0.0, 0.0), (1.0e-4, 0.6e-4), (-0.7e-4, 1.1e-4), (0.4e-4, -1.3e-4))
 
 
+def placed_stone_model(scene: Scene, xs_m: float, ys_m: float, depth_m: float, diam_m: float):
+    """(the stone scene, its ``stone_model3d``): a stone the mesher cannot place is moved by a fraction of a
+    millimetre (MESH_RETRY_SHIFTS_M; the scene says where it went)."""
+    for k, (dx, dy) in enumerate(MESH_RETRY_SHIFTS_M):
+        st = stone_scene(scene, xs_m + dx, ys_m + dy, depth_m, diam_m)
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*straightened.*")
+                return st, stone_model3d(st)
+        except SceneError:
+            if k == len(MESH_RETRY_SHIFTS_M) - 1:
+                raise
+
+
 def _one_candidate(shared: dict, cand: tuple[float, float]) -> np.ndarray:
     """The contrast profile (levels x offsets; NaN beyond the sampled offsets) of one grid candidate (s_m, diam_m),
     centred on the patch. Runs on a worker (planner.tasks)."""
     scene = from_dict(shared["scene"])
     grid = Grid3D(**{k: tuple(v) if isinstance(v, list) else v for k, v in shared["grid"].items()})
     s, D = cand
-    for k, (dx, dy) in enumerate(MESH_RETRY_SHIFTS_M):
-        xc, yc = np.add(patch_centre(scene), (dx, dy))
-        st = stone_scene(scene, xc, yc, s + D / 2, D)
-        try:
-            with warnings.catch_warnings():
-                warnings.filterwarnings("ignore", message=".*straightened.*")
-                model = stone_model3d(st)
-            break
-        except SceneError:
-            if k == len(MESH_RETRY_SHIFTS_M) - 1:
-                raise
+    st, model = placed_stone_model(scene, *patch_centre(scene), s + D / 2, D)
+    xc, yc = st.stones[0].x_m, st.stones[0].y_m
     L, J, X, Y, d = ring_points(scene, grid, xc, yc)
     f_stone = forces_at(model, X, Y, d)
     prior = same_mesh_prior(st, model)

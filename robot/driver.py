@@ -219,6 +219,13 @@ FIT_FROM_SIGMAS = 3.0
 # readings kept before the contact (the last ones: 2 s of a descent; the rise from 30 % of the threshold to it takes
 # about 0.5 s at 2 mm/s in 1000 Pa tissue); they go into the fit at the contact's period at once (1 ms for 1000)
 FIT_FROM_MAX = 1024
+# a probe whose plan gives no force_exponent (a version-1 plan, or the planner found none): the depth limit still
+# counts from the surface fitted to the force curve, with this exponent -- steeper than a tissue's under a sphere
+# (1.5) or a cylinder (1.1-1.2), and the fit tries exponents down to 0.6 of it (robot.tissue_depth): a truth flatter
+# than the one assumed puts the fitted surface high and stops the probe early, the safe side. Before session 54 the
+# limit then counted from the contact felt, and a surface 2 mm high let the tip 5.35 mm into the tissue against a
+# 4 mm limit (a safety review)
+UNKNOWN_FORCE_EXPONENT = 2.0
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -864,6 +871,28 @@ class Driver(Recovery):
         self.zeroed_ts = self.ts
         self.zeroed_rotvec = None if rotvec is None else list(rotvec)
 
+    def _check_feelable(self, p) -> None:
+        """Before a descent: a probe that feels no contact on the prior tissue (the force the plan predicts at its
+        depth not above the contact threshold: the plan's, or 5 sigmas of this sensor's filtered noise at the zeroing
+        if more) has no depth limit from the true surface (it counts from the surface the force curve gives once
+        contact is felt). Nothing checked before the descent rules out a surface up to the approach height above the
+        registered one, so such a probe may go only where its depth plus the approach height stays within the limit;
+        else a fault, before the tip enters the tissue (a safety review: 6 mm into tissue 2 mm high against a 4 mm
+        limit, a plan's threshold raised to 0.2 N, or the UR wrist sensor's noise raising it to 4.2 N)."""
+        thr, plan_thr, mo = self.contact_thr, self.plan.motion.contact_threshold_n, self.plan.motion
+        if p.predicted_force_n > thr or p.depth_m + mo.approach_height_m <= self.lim.depth_limit_m:
+            return
+        why = (f"5 sigmas of the {self.fs.name} sensor's filtered free-air noise ({self.noise_filt_n:.4f} N), above "
+               f"the plan's {plan_thr:g} N: use a less noisy sensor, e.g. an external F/T sensor (--ft)"
+               if thr > plan_thr else "motion.contact_threshold_n: lower it to what the sensor's noise allows")
+        raise ProbeFault(FaultKind.CONTACT_UNFELT,
+                         f"probe {p.index} would feel no contact: its predicted force ({p.predicted_force_n:.4f} N) does "
+                         f"not exceed the contact threshold ({thr:.4f} N, {why}), and the depth limit counts from the "
+                         f"surface felt, so a surface up to the approach height ({mo.approach_height_m * 1e3:g} mm) "
+                         f"higher than registered would take the tip {(p.depth_m + mo.approach_height_m) * 1e3:.1f} mm "
+                         f"deep against the {self.lim.depth_limit_m * 1e3:g} mm limit; or plan deeper probes or a "
+                         f"smaller approach height (palpate plan --depth-limit-m, --approach-height-m)")
+
     def _check_free_air(self, vals: list, probe) -> None:
         """At a probe's approach pose, before zeroing there: the force against the previous zero (the set-up's or
         the last probe's, in this run) must be below the contact threshold -- else the tip touches something (the
@@ -907,7 +936,8 @@ class Driver(Recovery):
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
                    _Collision(self), what=f"approach to probe {p.index}")
         self._zero(p)
-        watch = _ForceWatch(self, p.force_exponent)
+        self._check_feelable(p)
+        watch = _ForceWatch(self, UNKNOWN_FORCE_EXPONENT if p.force_exponent is None else p.force_exponent)
         self.phase = DESCENT
         try:
             outcome = self._move(p.indent_pose, min(mo.probe_speed_m_s, lim.probe_speed_m_s),

@@ -42,6 +42,9 @@ from core.contracts import (
 DONE = (ProbeStatus.OK,)   # a force_limit stop may be a sensor spike: a resumed run probes it again
 
 
+HISTORY = "run_history.jsonl"     # every run.json a later report replaced, one per line
+
+
 def _fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
@@ -107,6 +110,20 @@ class RunLog:
         return record
 
     def write_run(self, summary: dict) -> None:
+        """run.json: this run's report (atomically); the report it replaces is appended to run_history.jsonl first,
+        so a resumed run keeps every earlier fault's report (a session-54 safety review: after four interrupts and a
+        resume, run.json said "ok" and the stops' reports were gone)."""
+        old = self.out / "run.json"
+        if old.exists():
+            text = old.read_text(encoding="utf-8", errors="replace")
+            try:
+                line = json.dumps(json.loads(text), allow_nan=False)
+            except ValueError:          # (damaged or edited: kept as it is, as a string)
+                line = json.dumps({"unparsed_run_json": text})
+            with open(self.out / HISTORY, "a", encoding="utf-8") as f:
+                f.write(line + "\n")
+                f.flush()
+                os.fsync(f.fileno())
         tmp = self.out / "run.json.tmp"
         with open(tmp, "w", encoding="utf-8") as f:
             json.dump(summary, f, indent=1, default=_jsonable)

@@ -88,6 +88,7 @@ from planner.localize import (
     MIN_MEASUREMENTS,
     MIN_MEASUREMENTS3D,
     MIN_THICKNESS_SIGMA,
+    SIDE_REACH3D_M,
     SIGMA_BOUND_TOL,
     Localization,
     localize,
@@ -158,6 +159,12 @@ def add_parser(sub) -> None:
                         "not fitted; else between 0.1 and 10 %% of the height). The localizer fits the thickness with "
                         "this prior: a broad, deep stone and a thinner block look alike, so a looser prior costs "
                         "precision and a tighter one than the truth can raise a false stone (README)")
+    p.add_argument("--no-fem-correction", action="store_true",
+                   help=f"3D block: a stone found within {SIDE_REACH3D_M * 1e3:g} mm of a side is not fitted again with "
+                        "fem's contrast at the fitted stone (the 3D table takes every stone as one away from the sides "
+                        "and is biased there by several sigma; the correction costs a stone model on the prior's mesh "
+                        "per pass, about a minute on a 50 mm block, and runs when the loop would stop): it is flagged "
+                        "instead, and its sigmas are not called converged")
     p.add_argument("--refine-waypoints", type=int_range(3, MAX_WAYPOINTS),
                    help=f"waypoints per refinement round, at least 3 (a 3D block: 4; default 2D 10, 3D "
                         f"{DEFAULT_REFINE3D})")
@@ -197,6 +204,9 @@ def _dimension_defaults(args, scene, prior) -> bool:
     if not three_d and args.grid is not None:
         raise UsageError(f"--grid {args.grid[0]}x{args.grid[1]}: a grid is for a 3D block; {args.scene} is a 2D "
                          f"section: give --waypoints N")
+    if not three_d and getattr(args, "no_fem_correction", False):
+        raise UsageError("--no-fem-correction: an option of a 3D block (a stone near its side is corrected with fem); "
+                         "the 2D section's table holds the stone's place near the sides")
     if not three_d and getattr(args, "thickness_sigma_m", None) is not None:
         raise UsageError(f"--thickness-sigma-m {args.thickness_sigma_m:g}: an option of a 3D block; the 2D section's "
                          f"localizer takes the tissue's thickness as known to 6 %")

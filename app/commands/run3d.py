@@ -142,7 +142,9 @@ def run_block(args, ctx: RunContext) -> int:
     if near > 0.0:                  # (session 53's review: a stone there came out 6-8 sigma off, unwarned)
         _say(f"note: {near:.0%} of the probed area lies within {SIDE_REACH3D_M * 1e3:g} mm of the block's sides, where "
              f"the 3D table's stones are biased (its stone is taken as one away from the sides): a stone found there "
-             f"is warned about")
+             + ("is warned about (--no-fem-correction)" if getattr(args, "no_fem_correction", False) else
+                "is fitted again with fem's contrast at the fitted stone before the run stops (a stone model on the "
+                "prior's mesh per pass, a minute or more each)"))
     stats = new_stats()
     sim_arm: dict = {}
     cleanup = contextlib.ExitStack()
@@ -167,7 +169,8 @@ def run_block(args, ctx: RunContext) -> int:
                          plan_round=plan_round, surrogate=sur, region=probe_bounds(prior),
                          budget_probes=args.budget_probes, n_refine=args.refine_waypoints,
                          target_m=args.target_uncertainty_m, progress=_say,
-                         workers=workers_for_fits(args), thickness_sigma=th_sigma)
+                         workers=workers_for_fits(args), thickness_sigma=th_sigma,
+                         fem_correction=not getattr(args, "no_fem_correction", False))
         stats["clean_end"] = True
     except RunAborted as e:
         status = "interrupted" if e.report.status == "interrupted" else "fault"
