@@ -367,13 +367,17 @@ def _run_host(plan: Plan, args, out: Path, cfg: DriverConfig, host: str) -> RunR
         stopped = dashboard_stop(host)
         return _crash_report(out, e, program_stopped=stopped)
     except ChildError as e:
-        # the driver raised what is not a probe fault (a full disk, a bug) after stopping the arm (robot.driver's
-        # run: stop, retract, then raise): one line, exit 1 (a safety review of session 54: a traceback)
-        disk = "No space left" in str(e) or "Disk quota" in str(e) or "Read-only file system" in str(e)
-        raise RunFailed(f"the driver stopped the arm, then failed: {e.type_name}: {e}"
-                        + ("; what was written before is kept (free space, then run again: it resumes)" if disk else
-                           f"; the records written before are kept in {out}")) \
-            from None
+        # the link's process raised what is not a probe fault (a full disk, a bug): the driver's run stops the arm
+        # before it re-raises, but it may not have managed, and the error may come from before or after the run; the
+        # program is stopped through the dashboard too (always safe), as after a crash (session 54's reviews: a
+        # traceback, then a line that said the arm stopped whether or not it had)
+        stopped = dashboard_stop(host)
+        disk = any(m in str(e) for m in ("No space left", "Disk quota", "Read-only file system"))
+        raise RunFailed(f"the process holding the arm's link failed: {e.type_name}: {e}; the control program "
+                        + ("was stopped through the dashboard" if stopped else
+                           "could not be stopped through the dashboard: check the arm on the pendant")
+                        + f"; the records written before are kept in {out} (run.json says whether the driver stopped "
+                          f"and retracted)" + ("; free space, then run again: it resumes" if disk else "")) from None
     if tag == "not_connected":
         raise NotConnected(value)
     return value

@@ -73,8 +73,9 @@ def guarded(prog: str, run: Callable[[], int], debug: bool = False) -> int:
         if debug:
             traceback.print_exc()
         if isinstance(e, OSError) and e.errno in DISK_ERRNOS:
-            print(f"{prog}: {e.filename or 'a file'}: {os.strerror(e.errno)}: the disk refused a write; what was "
-                  f"written before is kept (free space, then run the command again: a run resumes)", file=sys.stderr)
+            print(f"{prog}: {e.filename or 'a file'}: {os.strerror(e.errno)}: the disk failed a read or a write (not "
+                  f"the command's input); what was written before is kept (free space or fix the disk, then run the "
+                  f"command again: a run resumes)", file=sys.stderr)
             _quiet_exit(debug)
             return EXIT_FAILED
         msg = " ".join(str(e).split()) or type(e).__name__

@@ -446,14 +446,14 @@ def _expected_by_prior(rec) -> bool:
 
 def left_out(out: Path) -> dict | None:
     """The probes whose force was measured (their latest record) but left out of the fit as no tissue's force
-    (``implausible``, robot.records.implausibility), or None. Those that also felt no contact are the no-contact
-    warning's already (``no_contact``); these are the rest."""
+    (``implausible``, robot.records.implausibility), or None; ``no_contact`` of them felt no contact either (the
+    no-contact warning names those too)."""
     recs = [r for r in latest_by_index(out).values() if r.status in MEASURED]
-    odd = sorted((r for r in recs if r.implausible is not None and r.contact_depth_m is not None), key=lambda r: r.index)
+    odd = sorted((r for r in recs if r.implausible is not None), key=lambda r: r.index)
     if not odd:
         return None
     return {"n": len(odd), "of": len(recs), "index": [int(r.index) for r in odd],
-            "statuses": sorted({str(r.status) for r in odd}), "first_reason": odd[0].implausible}
+            "no_contact": sum(r.contact_depth_m is None for r in odd), "first_reason": odd[0].implausible}
 
 
 def left_out_warning(odd: dict) -> str:

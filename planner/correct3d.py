@@ -33,23 +33,25 @@ from planner.surrogate3d import Grid3D, forces_at, placed_stone_model, same_mesh
 @dataclass(frozen=True)
 class TableError:
     """The table's error at one stone: per probe (N, 0 where fem refuses the waypoint) and what it cost."""
-    stone: tuple[float, float, float, float]      # (xs_m, ys_m, depth_m, diameter_m) it was computed at
+    stone: tuple[float, float, float, float]      # (xs_m, ys_m, depth_m, diameter_m) it was computed at (as meshed)
     error_n: np.ndarray
     solve_s: float
 
 
-def _same_mesh_contrast(scene, xs: float, ys: float, depth: float, diam: float, x, y, d) -> np.ndarray:
-    """fem's contrast of a rigid stone at (xs, ys) on ``scene``'s mesh, the prior on the stone's mesh; NaN where fem
-    refuses a waypoint (a stone the mesher cannot place moved as the table's candidates are)."""
+def _same_mesh_contrast(scene, xs: float, ys: float, depth: float, diam: float, x, y, d):
+    """(fem's contrast of a rigid stone at (xs, ys) on ``scene``'s mesh, the prior on the stone's mesh, NaN where fem
+    refuses a waypoint; (x, y) of the stone as meshed: one the mesher cannot place is moved by a fraction of a
+    millimetre, as the table's candidates are). SceneError for a stone no tissue holds (across a side or the
+    bottom)."""
     st, model = placed_stone_model(scene, xs, ys, depth, diam)
     f = forces_at(model, x, y, d)
-    return f - forces_at(same_mesh_prior(st, model), x, y, d)
+    return f - forces_at(same_mesh_prior(st, model), x, y, d), (st.stones[0].x_m, st.stones[0].y_m)
 
 
 def table_error_n(prior, sur, stone, x, y, d, grid: Grid3D = Grid3D()) -> TableError:
     """The table ``sur``'s error (fem's contrast less the table's) for ``stone`` (xs_m, ys_m, depth_m, diameter_m) in
     the ``prior`` block at probes (x, y) pressed ``d`` deep (levels outside the table's taken at its nearest level;
-    0 where fem refuses a waypoint; module doc). ``prior`` has no stones: the stone is the fit's, never the truth's.
+    0 where fem refuses a waypoint; module doc; SceneError for a stone no tissue holds). ``prior`` has no stones: the stone is the fit's, never the truth's.
     (In this process: planner.forkmap's forked copy of a process that has meshed gave no answer within its
     time-out here.)"""
     if prior.stones:
@@ -58,7 +60,7 @@ def table_error_n(prior, sur, stone, x, y, d, grid: Grid3D = Grid3D()) -> TableE
     x, y = np.asarray(x, float), np.asarray(y, float)
     dc = np.clip(np.asarray(d, float), sur.levels[0], sur.levels[-1])
     xs, ys, depth, diam = (float(v) for v in stone)
-    fem_c = _same_mesh_contrast(table_scene(prior, grid, prior.tissue.youngs_pa, own_mesh=True), xs, ys, depth, diam,
-                                x, y, dc)
-    err = fem_c - np.asarray(sur.contrast(x, y, dc, xs, ys, depth, diam), float)
+    fem_c, (xs, ys) = _same_mesh_contrast(table_scene(prior, grid, prior.tissue.youngs_pa, own_mesh=True), xs, ys,
+                                          depth, diam, x, y, dc)
+    err = fem_c - np.asarray(sur.contrast(x, y, dc, xs, ys, depth, diam), float)    # (both at the stone as meshed)
     return TableError((xs, ys, depth, diam), np.where(np.isfinite(err), err, 0.0), time.perf_counter() - t0)

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from fem.contact import STONE_LAYER_MAX
+from fem.scene import SceneError
 from planner.correct3d import table_error_n
 from planner.forkmap import fork_map
 from planner.localize import (
@@ -354,26 +355,42 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
         sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
         best = fit(best.x)
     # a stone near a side face: the table's error there from fem at the fitted stone, held fixed, and the fit again
-    # from there (planner.correct3d); again while the stone moves by more than half its sigma
+    # from there (planner.correct3d); again while the stone moves by more than half its sigma. The detection (LR,
+    # chi2 with and without a stone) stays the table's; a stone no tissue holds is not solved (its flags say so)
     corrected = None
     if sides and lr >= lr_threshold and near_side(prior, *_stone(best.x[:4])[:2]):
-        passes, q_table = [], best.x.copy()
+        passes, q_table, settled, why = [], best.x.copy(), False, ""
         while len(passes) < SIDE_PASSES:
             st = _stone(best.x[:4])
-            err = table_error_n(prior, surrogate, st, meas.x_m, meas.y_m, fw.depth(fw.full(best.x[4:])))
+            try:
+                err = table_error_n(prior, surrogate, st, meas.x_m, meas.y_m, fw.depth(fw.full(best.x[4:])))
+            except SceneError as e:
+                why = " ".join(str(e).split())
+                break
             fw.correct(err.error_n)
             best = fit(best.x)
             passes.append(err)
             moved = np.abs(np.subtract(_stone(best.x[:4]), st))
             if np.all(moved <= 0.5 * _stone_sigmas(best, nf)):   # (each pass moved it 0.2-0.6 of the one before)
+                settled = True
                 break
-        chi2_1 = 2.0 * best.cost
-        lr = max(chi2_0 - chi2_1, 0.0)
-        shift = np.subtract(_stone(best.x[:4]), _stone(q_table[:4]))
-        corrected = {"passes": len(passes), "solve_s": float(sum(e.solve_s for e in passes)),
-                     "largest_error_n": float(np.max(np.abs(passes[-1].error_n))),
-                     "last_move_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"), moved)},
-                     "shift_from_table_fit_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"), shift)}}
+        if passes:
+            # the readings beyond the linear range under the corrected stone, and the fit again if they changed
+            now = _beyond_linear_range3d(fw, meas, best.x, prior.indenter.radius_m)
+            if not np.array_equal(now, beyond):
+                beyond = now
+                nu_b = fw.full(best.x[4:])
+                c_fit = math.exp(nu_b[1]) * fw.contrast(_stone(best.x[:4]), fw.depth(nu_b), nu_b[5])
+                sig = np.sqrt(sig_fit ** 2 + np.where(beyond, CRUSH_REL_ERR * np.maximum(c_fit, 0.0), 0.0) ** 2)
+                best = fit(best.x)
+            shift = np.subtract(_stone(best.x[:4]), _stone(q_table[:4]))
+            corrected = {"passes": len(passes), "settled": settled, "solve_s": float(sum(e.solve_s for e in passes)),
+                         "largest_error_n": float(np.max(np.abs(passes[-1].error_n))),
+                         "last_move_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"), moved)},
+                         "shift_from_table_fit_m": {k: float(v) for k, v in zip(("x", "y", "depth", "diameter"),
+                                                                                 shift)}}
+            if why:
+                corrected["stopped"] = why
     q = best.x
     dof = max(len(best.fun) - 4 - nf, 1)
     cov_q, cov = _covariances(best, nf)
@@ -387,8 +404,8 @@ def localize3d(prior, meas: Measurements, surrogate, *, lr_threshold: float = LR
     detected = bool(lr >= lr_threshold)
     if detected:
         at_bound += nuisance_at_bound(q[4:], fw.free, NUIS_LO, NUIS_HI, NUISANCE_BOUND_NAMES3D)
-        if corrected is None and near_side(prior, xs, ys):     # the table alone is biased there
-            at_bound.append(NEAR_SIDE)
+        if near_side(prior, xs, ys) and not (corrected and corrected["settled"]):   # the table alone is biased
+            at_bound.append(NEAR_SIDE)                         # there (or its correction did not settle)
         if below_bottom(dep, D, prior.tissue.height_m, fw.full(q[4:])[5]):
             at_bound.append(BELOW_BOTTOM)
     else:                                # the no-stone fit's (the rejected stone fit's bounds are not the answer's)

@@ -204,5 +204,7 @@ def force_exponents(force_n: Callable[..., float], positions: Sequence, depth_m:
             f_half = float(force_n(*at, 0.5 * d))
             if f_half > 0:
                 p = math.log(f / f_half) / math.log(2.0)
+        if p is not None and MIN_FORCE_EXPONENT - 1e-3 <= p < MIN_FORCE_EXPONENT:
+            p = MIN_FORCE_EXPONENT      # a flat punch's exact 1 read 0.9999999999999998 by rounding (session 54)
         out.append(p if p is not None and MIN_FORCE_EXPONENT <= p <= MAX_FORCE_EXPONENT else None)
     return out

@@ -314,7 +314,13 @@ def caveats(loc, reach: ProbeReach = ProbeReach()) -> str:
         out.append("the fitted stone reaches below the tissue's bottom (as its thickness is fitted): no tissue holds it "
                    "there, and the table's forces there are extrapolated, not fem's; its depth and diameter are not "
                    "measured, and their sigmas do not say how far off they may be")
-    if NEAR_SIDE in loc.at_bound:
+    fc = getattr(loc, "fem_correction", None)
+    if NEAR_SIDE in loc.at_bound and fc:
+        out.append(f"the fitted stone lies within {SIDE_REACH3D_M * 1e3:.0f} mm of the block's side, and fem's "
+                   f"correction of the table there did not settle ({fc['passes']} passes"
+                   + (f"; stopped: {fc['stopped']}" if fc.get("stopped") else "") + "): its sigmas do not say how "
+                   "far off it may be")
+    elif NEAR_SIDE in loc.at_bound:
         out.append(f"the fitted stone lies within {SIDE_REACH3D_M * 1e3:.0f} mm of the block's side: the 3D table takes "
                    f"its contrast as a stone's away from the sides (a 10 mm stone 13 mm from one came out 2 mm too "
                    f"shallow and 1.6 mm too small, 12 and 14 sigma, with a noise-free sensor; 0.7 mm, 3-4 sigma, 21 mm "

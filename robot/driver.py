@@ -46,6 +46,7 @@ from core.contracts import (
     DWELL,
     FILTER_WINDOW,
     FREE,
+    MIN_FORCE_EXPONENT,
     NOISE_SAMPLE_S,
     NOISE_SIGMA_FACTOR,
     PERIOD_S,
@@ -220,12 +221,16 @@ FIT_FROM_SIGMAS = 3.0
 # about 0.5 s at 2 mm/s in 1000 Pa tissue); they go into the fit at the contact's period at once (1 ms for 1000)
 FIT_FROM_MAX = 1024
 # a probe whose plan gives no force_exponent (a version-1 plan, or the planner found none): the depth limit still
-# counts from the surface fitted to the force curve, with this exponent -- steeper than a tissue's under a sphere
-# (1.5) or a cylinder (1.1-1.2), and the fit tries exponents down to 0.6 of it (robot.tissue_depth): a truth flatter
-# than the one assumed puts the fitted surface high and stops the probe early, the safe side. Before session 54 the
-# limit then counted from the contact felt, and a surface 2 mm high let the tip 5.35 mm into the tissue against a
-# 4 mm limit (a safety review)
-UNKNOWN_FORCE_EXPONENT = 2.0
+# counts from the surface fitted to the force curve, with this exponent -- a sphere's; the fit tries exponents down to
+# 0.6 of it (robot.tissue_depth), so a flatter truth (a cylinder's 1.1-1.2) puts the fitted surface high and stops the
+# probe early, the safe side, and a steeper one goes up to 0.35 mm past the limit, as with a plan's own exponent.
+# Before session 54 the limit then counted from the contact felt, and a surface 2 mm high let the tip 5.35 mm into
+# the tissue against a 4 mm limit (a safety review)
+UNKNOWN_FORCE_EXPONENT = 1.5
+# a probe must be predicted to press this many contact thresholds at the depth limit's indentation (Driver.
+# _check_feelable): the planner's margin for a suggested depth limit (planner.refine.CONTACT_MARGIN), so tissue a
+# third softer than the prior still passes the threshold before the limit
+FEEL_MARGIN = 1.5
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -872,26 +877,32 @@ class Driver(Recovery):
         self.zeroed_rotvec = None if rotvec is None else list(rotvec)
 
     def _check_feelable(self, p) -> None:
-        """Before a descent: a probe that feels no contact on the prior tissue (the force the plan predicts at its
-        depth not above the contact threshold: the plan's, or 5 sigmas of this sensor's filtered noise at the zeroing
-        if more) has no depth limit from the true surface (it counts from the surface the force curve gives once
-        contact is felt). Nothing checked before the descent rules out a surface up to the approach height above the
-        registered one, so such a probe may go only where its depth plus the approach height stays within the limit;
-        else a fault, before the tip enters the tissue (a safety review: 6 mm into tissue 2 mm high against a 4 mm
-        limit, a plan's threshold raised to 0.2 N, or the UR wrist sensor's noise raising it to 4.2 N)."""
+        """Before a descent: the depth limit counts from the surface the force curve gives once contact is felt, so
+        a probe must feel contact before the limit even where the surface is higher than registered. Nothing checked
+        before the descent rules out a surface up to the approach height above the registered one; with it that high
+        the tip would reach the limit's indentation, where the prior predicts the probe's predicted force continued
+        as depth^p (p its plan's exponent, or 1, the flattest a plan may give: the least force). Where that is not
+        FEEL_MARGIN x the contact threshold (the plan's, or 5 sigmas of this sensor's filtered noise at the zeroing
+        if more) and the probe's depth plus the approach height passes the limit, a fault before the tip enters the
+        tissue (a safety review: 6 mm into tissue 2 mm high against a 4 mm limit, a plan's threshold raised to
+        0.2 N, or the UR wrist sensor's noise raising it to 4.2 N)."""
         thr, plan_thr, mo = self.contact_thr, self.plan.motion.contact_threshold_n, self.plan.motion
-        if p.predicted_force_n > thr or p.depth_m + mo.approach_height_m <= self.lim.depth_limit_m:
+        limit = self.lim.depth_limit_m
+        if p.depth_m + mo.approach_height_m <= limit:
+            return
+        f_limit = p.predicted_force_n * (limit / p.depth_m) ** (p.force_exponent or MIN_FORCE_EXPONENT)
+        if f_limit > FEEL_MARGIN * thr:
             return
         why = (f"5 sigmas of the {self.fs.name} sensor's filtered free-air noise ({self.noise_filt_n:.4f} N), above "
                f"the plan's {plan_thr:g} N: use a less noisy sensor, e.g. an external F/T sensor (--ft)"
                if thr > plan_thr else "motion.contact_threshold_n: lower it to what the sensor's noise allows")
         raise ProbeFault(FaultKind.CONTACT_UNFELT,
-                         f"probe {p.index} would feel no contact: its predicted force ({p.predicted_force_n:.4f} N) does "
-                         f"not exceed the contact threshold ({thr:.4f} N, {why}), and the depth limit counts from the "
-                         f"surface felt, so a surface up to the approach height ({mo.approach_height_m * 1e3:g} mm) "
-                         f"higher than registered would take the tip {(p.depth_m + mo.approach_height_m) * 1e3:.1f} mm "
-                         f"deep against the {self.lim.depth_limit_m * 1e3:g} mm limit; or plan deeper probes or a "
-                         f"smaller approach height (palpate plan --depth-limit-m, --approach-height-m)")
+                         f"probe {p.index} might feel no contact before the depth limit: the prior's force there "
+                         f"({f_limit:.4f} N, from its predicted {p.predicted_force_n:.4f} N at {p.depth_m * 1e3:.2f} "
+                         f"mm) is not {FEEL_MARGIN:g} x the contact threshold ({thr:.4f} N, {why}), and the limit "
+                         f"counts from the surface felt, so a surface up to the approach height "
+                         f"({mo.approach_height_m * 1e3:g} mm) higher than registered could take the tip past it; or "
+                         f"plan a smaller approach height (palpate plan --approach-height-m)")
 
     def _check_free_air(self, vals: list, probe) -> None:
         """At a probe's approach pose, before zeroing there: the force against the previous zero (the set-up's or

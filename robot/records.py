@@ -16,6 +16,7 @@ line of its own.
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -114,16 +115,8 @@ class RunLog:
         so a resumed run keeps every earlier fault's report (a session-54 safety review: after four interrupts and a
         resume, run.json said "ok" and the stops' reports were gone)."""
         old = self.out / "run.json"
-        if old.exists():
-            text = old.read_text(encoding="utf-8", errors="replace")
-            try:
-                line = json.dumps(json.loads(text), allow_nan=False)
-            except ValueError:          # (damaged or edited: kept as it is, as a string)
-                line = json.dumps({"unparsed_run_json": text})
-            with open(self.out / HISTORY, "a", encoding="utf-8") as f:
-                f.write(line + "\n")
-                f.flush()
-                os.fsync(f.fileno())
+        with contextlib.suppress(OSError):      # (the history must not keep the report itself from the disk)
+            self._keep(old)
         tmp = self.out / "run.json.tmp"
         with open(tmp, "w", encoding="utf-8") as f:
             json.dump(summary, f, indent=1, default=_jsonable)
@@ -131,6 +124,20 @@ class RunLog:
             os.fsync(f.fileno())
         os.replace(tmp, self.out / "run.json")
         _fsync_dir(self.out)
+
+    def _keep(self, old: Path) -> None:
+        """The report in ``old`` (if any) appended to run_history.jsonl, as JSON (a damaged one as its text)."""
+        if not old.exists():
+            return
+        text = old.read_text(encoding="utf-8", errors="replace")
+        try:
+            line = json.dumps(json.loads(text), allow_nan=False)
+        except ValueError:              # (damaged or edited: kept as it is, as a string)
+            line = json.dumps({"unparsed_run_json": text})
+        with open(self.out / HISTORY, "a", encoding="utf-8") as f:
+            f.write(line + "\n")
+            f.flush()
+            os.fsync(f.fileno())
 
     def close(self) -> None:
         self._f.close()

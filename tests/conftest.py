@@ -51,3 +51,14 @@ def paper_surrogate(paper_prior):
     """Its contrast table (shipped in planner/data, checked against today's fem by its fingerprint)."""
     from planner.surrogate import load_surrogate
     return load_surrogate(paper_prior)
+
+
+@pytest.fixture
+def exponentless_rule_before_s54(monkeypatch):
+    """The depth limit of a plan without force exponents counted from the contact felt, as before session 54. Tests
+    whose plans (robot_fixtures.make_plan) carry none and whose expectations (statuses, where drift is caught, the
+    fast-forward's records) were set with that rule, and whose subjects are elsewhere, keep it; since session 54 the
+    driver fits the surface with robot.driver.UNKNOWN_FORCE_EXPONENT (tests/test_depth_limit_s43.py,
+    tests/test_review_s54.py)."""
+    import robot.driver
+    monkeypatch.setattr(robot.driver, "UNKNOWN_FORCE_EXPONENT", None)

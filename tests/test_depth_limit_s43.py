@@ -65,7 +65,7 @@ def test_a_high_surface_stops_the_depth_limit_below_the_true_surface(tmp_path, m
     # the same plan without the exponent: before session 54 the limit counted from the contact felt, the lag deeper
     # (k = 300: 5.35 mm); now from the surface fitted with UNKNOWN_FORCE_EXPONENT (steeper than the truth's 1.5: the
     # safe side, a little shallower)
-    assert driver_mod.UNKNOWN_FORCE_EXPONENT > 1.5
+    assert driver_mod.UNKNOWN_FORCE_EXPONENT >= 1.5
     arm, c, r = make_sim(force, surface_height_m=lambda x: HIGH)
     rep = run_plan(_plan(None), c, r, tmp_path / "none")
     assert [x.status for x in read_records(tmp_path / "none")] == ["depth_limit"] * len(XS)
@@ -191,7 +191,9 @@ def test_the_planner_gives_a_power_laws_exponent():
     # a prior that never reaches the threshold by the planned depth: the chord over the depth's second half
     assert force_exponents(lambda x, d: 3.0 * d ** 1.4, [0.02], [0.004], [3.0 * 0.004 ** 1.4], 0.5) == \
         pytest.approx([1.4], rel=1e-9)
-    # outside the allowed range: none (the driver counts from the contact felt)
+    # a flat punch's 1, whatever the rounding (session 54: 0.9999999999999998 fell below the minimum and went None)
+    assert force_exponents(lambda x, d: 7.0 * d ** (1 - 1e-9), [0.02], [0.004], [7.0 * 0.004 ** (1 - 1e-9)], 1e-4) == [1.0]
+    # outside the allowed range: none (the driver then fits the surface with robot.driver.UNKNOWN_FORCE_EXPONENT)
     assert force_exponents(lambda x, d: 1e9 * d ** 5, [0.02], [0.004], [1e9 * 0.004 ** 5], 1e-4) == [None]
 
 

@@ -476,3 +476,23 @@ def test_the_tables_error_from_fem_is_small_where_the_table_was_built_and_never_
     assert peak > 0 and rms < 0.015 * peak and np.max(np.abs(err.error_n)) < 0.06 * peak, (rms, peak)
     with pytest.raises(ValueError, match="prior"):
         table_error_n(BLOCK.with_stones([STONE]), sur, stone, xy[:, 0], xy[:, 1], d, grid=GRID)
+
+
+def test_a_correction_that_fem_cannot_solve_keeps_the_flag_and_the_run(sur, monkeypatch):
+    """Session 54's review of the change: a fitted stone no tissue holds (across a side or the bottom) made fem's
+    correction raise SceneError through the run. Now the correction stops there: the table's fit is kept, flagged
+    "near side", and said why."""
+    import planner.localize3d as L
+    from fem.scene import SceneError
+    from planner.correct3d import table_error_n
+    prior = BLOCK.prior()
+    with pytest.raises(SceneError):         # (the test block is 20 mm thick: this stone's bottom at 22 mm)
+        table_error_n(prior, sur, (0.012, 0.015, 0.018, 0.008), np.array([0.012]), np.array([0.015]),
+                      np.array([2e-3]))
+    meas = _measure(s3.stone_model3d(BLOCK.with_stones([STONE])), _grid(5), DEPTH_M, seed=2)
+
+    def refuse(*a, **k):
+        raise SceneError("stone 0 touches or leaves the tissue")
+    monkeypatch.setattr(L, "table_error_n", refuse)
+    loc = L.localize3d(prior, meas, sur, sides=True)
+    assert loc.detected and NEAR_SIDE in loc.at_bound and loc.fem_correction is None

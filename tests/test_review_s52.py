@@ -198,13 +198,9 @@ def test_probes_the_prior_predicts_below_the_contact_threshold_are_a_note_not_a_
     from robot_fixtures import make_plan, make_sim
 
     from app.runexec import no_contact, no_contact_warning
-    from core.contracts import Motion
     from robot.driver import run_plan
     from robot.records import read_records
-    # the prior: below the 0.02 N threshold; the approach height within what such a probe may take (session 54:
-    # depth + approach height within the depth limit, robot.driver.Driver._check_feelable)
-    mo = Motion(approach_height_m=0.0035, dwell_s=0.2)
-    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.0004, predicted=0.01, motion=mo)
+    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.0004, predicted=0.01)    # the prior: below the 0.02 N threshold
     arm, c, r = make_sim()
     assert run_plan(plan, c, r, tmp_path / "a").status == "ok"
     assert all(x.implausible is None for x in read_records(tmp_path / "a"))
@@ -212,7 +208,7 @@ def test_probes_the_prior_predicts_below_the_contact_threshold_are_a_note_not_a_
     assert nc["n"] == 3 and nc["expected_by_prior"] == [True] * 3, nc
     assert no_contact_warning(nc).startswith("warning: no probe felt contact down to its planned depth, as the "
                                              "prior predicts")
-    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.0004, predicted=0.01, motion=mo)
+    plan = make_plan((0.02, 0.035, 0.05), depth_m=0.0004, predicted=0.01)
     plan.probes[2].predicted_force_n = 0.03                                  # here the prior predicts contact
     arm, c, r = make_sim()
     assert run_plan(plan, c, r, tmp_path / "b").status == "ok"

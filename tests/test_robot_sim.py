@@ -60,11 +60,22 @@ def test_full_plan_on_inmemory_arm_agrees_with_fem(tmp_path, fem_truth):
 
 
 def test_builtin_sensor_cannot_resolve_tissue_forces(tmp_path):
-    """With the UR5e's own sensor (noise ~1.75 N) the 0.1-0.3 N of soft tissue is lost in noise and drift."""
-    from core.contracts import Limits
+    """With the UR5e's own sensor (noise ~1.75 N) the 0.1-0.3 N of soft tissue is lost in noise and drift. Since
+    session 54 such a probe faults before its descent (contact_unfelt: it could not feel the tissue before the depth
+    limit, which counts from the surface felt); with the limit's check off, what it measures is noise."""
+    import robot.driver
+    from core.contracts import FaultKind, Limits
     plan = make_plan([0.03], depth_m=0.003, limits=Limits(force_limit_n=10.0))
     arm, c, r = make_sim(sensor="ur5e-builtin", seed=1)
-    rep = run_plan(plan, c, r, tmp_path)
+    rep = run_plan(plan, c, r, tmp_path / "a")
+    assert rep.status == "fault" and rep.fault["kind"] == FaultKind.CONTACT_UNFELT, rep.fault
+    assert "ur5e-builtin" in rep.fault["message"] or "rtde" in rep.fault["message"], rep.fault["message"]
+    arm, c, r = make_sim(sensor="ur5e-builtin", seed=1)
+    robot.driver.Driver._check_feelable, saved = (lambda self, p: None), robot.driver.Driver._check_feelable
+    try:
+        rep = run_plan(plan, c, r, tmp_path / "b")
+    finally:
+        robot.driver.Driver._check_feelable = saved
     assert rep.status == "ok"
     rec = rep.records[0]
     assert rec.contact_depth_m is None                      # contact never detected above the noise

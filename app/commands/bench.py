@@ -36,7 +36,12 @@ parts (--only NAME ...; default all that exist):
 figures: pareto.png (error against wall time for mesh sizes, element orders and each skip, the default marked),
 scaling.png (cost against waypoints and DOFs). Tables: runtime_error.md, sweep.md (README-ready).
 Runs from a source checkout: the scripts are in the repository's bench/ directory, not in the installed package
-(give --bench-dir or $PALPATE_BENCH_DIR otherwise). Full run: ~10 minutes on 2 cores; --quick: ~2 minutes."""
+(give --bench-dir or $PALPATE_BENCH_DIR otherwise). Full run: ~10 minutes on 2 cores; --quick: ~2 minutes.
+
+examples:
+  palpate bench --out bench-out/today --quick          every part, small: about 2 minutes
+  palpate bench --out bench-out/contact --only contact the contact fast path against the plain full solve
+  python bench/bench_process.py --out DIR --repeats 3  whole commands against one naive re-solve (not a part here)"""
 
 
 def add_parser(sub) -> argparse.ArgumentParser:

@@ -20,6 +20,7 @@ moves the old files into OUT/previous-<UTC time>/ first. ``--json`` may not poin
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import json
 import sys
@@ -105,9 +106,30 @@ DEFAULT_REFINE3D = 12
 DEFAULT_BUDGET3D = 84
 
 
+EPILOG = """examples:
+  palpate run paper --sim --out runs/paper                  the paper's section, simulated arm and sensor
+  palpate run block3d --sim --out runs/block                a 3D block: a 6 x 6 grid, then refinement rounds
+  palpate run mine.toml --prior belief.toml --sim --out R   the truth is mine.toml, the planner believes belief.toml
+  palpate run paper --sim --truth-surface-offset-m 0.002 --out R   a surface 2 mm higher than registered
+  palpate run paper --host 192.168.1.10 --out R             a real UR arm (asks to confirm; --yes does not)
+
+the last line says:
+  STONE ...           a stone found: x (and y in 3D), depth, diameter with 1-sigma uncertainties, warnings after
+  NO STONE ...        the likelihood ratio stays below its threshold (the detectability line before probing says
+                      which stones the run could have found)
+  NOT LOCALIZED ...   too few usable probes, or most read forces no tissue gives, or a fit that cannot place it
+  NOT DETECTABLE ...  no probe felt the tissue
+  NO RESULT ...       the arm run ended with a fault or was interrupted: its probes are kept, the command resumes
+
+OUT holds probes.jsonl and raw/ (every reading, never overwritten), result.json (SI units), fig_run.png, run.json.
+exit status: 0 the arm run ended well (whatever the verdict), 1 a fault or a failure (a full disk), 2 bad input
+(nothing moved), 130 interrupted."""
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser("run", help="plan, probe (simulated arm by default), locate the stone, refine",
-                       description=__doc__.splitlines()[0])
+                       description=__doc__.splitlines()[0], epilog=EPILOG,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("scene", nargs="?", default="paper",
                    help="scene: built-in name or TOML (the TRUTH for --sim; only its prior is used for planning)")
     p.add_argument("--plan", help="use this plan.json as the coarse raster (default: plan one)")
