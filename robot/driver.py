@@ -888,8 +888,9 @@ class Driver(Recovery):
         0.2 N, or the UR wrist sensor's noise raising it to 4.2 N)."""
         thr, plan_thr, mo = self.contact_thr, self.plan.motion.contact_threshold_n, self.plan.motion
         limit = self.lim.depth_limit_m
-        if p.depth_m + mo.approach_height_m <= limit:
-            return
+        if p.depth_m + mo.approach_height_m <= limit or not p.predicted_force_n > 0:
+            return              # (a plan made in code with no prediction, 0: nothing to judge by, as for
+            #                     robot.records.implausibility; the planner's plans always predict)
         f_limit = p.predicted_force_n * (limit / p.depth_m) ** (p.force_exponent or MIN_FORCE_EXPONENT)
         if f_limit > FEEL_MARGIN * thr:
             return

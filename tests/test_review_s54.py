@@ -60,7 +60,8 @@ def test_a_shallow_probe_runs_where_the_prior_feels_contact_before_the_limit(tmp
     depth (0.4 mm, 10 mN against 20 mN) still feels contact before the limit where the surface is high (its force
     continued to 4 mm: 0.1 N at least), so it runs (session 52's no-contact note). One predicted at 1 mN (10 mN at the
     limit: under 1.5 thresholds) faults, unless depth plus approach height stays within the limit."""
-    for predicted, approach, status in ((0.01, 0.010, "ok"), (0.001, 0.010, "fault"), (0.001, 0.0035, "ok")):
+    for predicted, approach, status in ((0.01, 0.010, "ok"), (0.001, 0.010, "fault"), (0.001, 0.0035, "ok"),
+                                        (0.0, 0.010, "ok")):     # (0: no prediction, nothing to judge by)
         plan = make_plan((0.02,), depth_m=0.0004, predicted=predicted, motion=Motion(approach_height_m=approach,
                                                                                         dwell_s=0.2))
         arm, c, r = make_sim()
