@@ -469,13 +469,13 @@ def test_the_tables_error_from_fem_is_small_where_the_table_was_built_and_never_
     stone = (xc, yc, GRID.s_m[1] + 0.5 * GRID.diam_m[1], GRID.diam_m[1])
     xy = _grid(5)
     d = np.full(len(xy), 2e-3)
-    err = table_error_n(prior, sur, stone, xy[:, 0], xy[:, 1], d, grid=GRID)
+    err = table_error_n(prior, sur, stone, xy[:, 0], xy[:, 1], d)   # (the prior's own mesh: any grid's)
     peak = float(np.max(sur.contrast(xy[:, 0], xy[:, 1], d, *stone)))
     assert err.stone == pytest.approx(stone) and err.solve_s > 0
     rms = float(np.sqrt(np.mean(err.error_n ** 2)))
     assert peak > 0 and rms < 0.015 * peak and np.max(np.abs(err.error_n)) < 0.06 * peak, (rms, peak)
     with pytest.raises(ValueError, match="prior"):
-        table_error_n(BLOCK.with_stones([STONE]), sur, stone, xy[:, 0], xy[:, 1], d, grid=GRID)
+        table_error_n(BLOCK.with_stones([STONE]), sur, stone, xy[:, 0], xy[:, 1], d)
 
 
 def test_a_correction_that_fem_cannot_solve_keeps_the_flag_and_the_run(sur, monkeypatch):
