@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "s), KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface) or "
                         "KIND-after-probes=N[:X] (at rest after N probes); the short KIND:T[:X] means KIND-at-s=T[:X]. "
                         "KIND: protective-stop | disconnect (link lost for good) | drop (link lost, reconnecting "
-                        "allowed) | force-spike (X N for 10 ms) | nan (readings NaN for X s, default 0.01) | stall "
+                        "allowed) | force-spike (X N for 10 ms) | side-push (X N across the normal for 0.2 s) | nan (readings NaN for X s, default 0.01) | stall "
                         "(the motion freezes); with --sim controller also partition (no traffic for X s; none: for "
                         "good) | freeze (controller process stopped) | program-stop | remote-off (local control; X=1 "
                         "also stops the program); '_' may replace '-' in KIND. Examples: protective_stop:12.5, "

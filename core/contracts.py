@@ -438,6 +438,8 @@ class FaultKind(StrEnum):
     SURFACE_HIGH = "surface_high"        # contact within the first mm of a descent: the surface at the approach pose
     CONTACT_UNFELT = "contact_unfelt"    # a probe's predicted force at its depth not above the contact threshold:
     #                                      no contact felt, no depth limit from the true surface (checked before it)
+    LATERAL_FORCE = "lateral_force"      # the force across the tissue normal above its limit (the tip caught or
+    #                                      pushed from the side, a surface far steeper than registered, a turned sensor)
 
 
 @dataclass

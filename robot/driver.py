@@ -126,6 +126,10 @@ class DriverConfig:
                                        # the external one, which should have stopped the probe, is stuck, misread
                                        # or wrongly mounted. 5 N is 6.4 sigma of the filtered UR5e wrist noise
                                        # (1.75 N / sqrt(5)). 0: off
+    lateral_force_limit_n: float | None = None  # the filtered force across the tissue normal (the wrench's force
+                                       # less its part along the normal) above this in a descent or a dwell, or
+                                       # above this plus the tool's weight turned since the zero while moving to an
+                                       # approach pose: a fault (lateral_force). None: the plan's force limit; inf: off
 
 
 NEEDS_PROGRAM = frozenset({"moveL", "zeroFtSensor", "setTcp", "setPayload", "setWatchdog"})
@@ -231,12 +235,25 @@ UNKNOWN_FORCE_EXPONENT = 1.5
 # _check_feelable): the planner's margin for a suggested depth limit (planner.refine.CONTACT_MARGIN), so tissue a
 # third softer than the prior still passes the threshold before the limit
 FEEL_MARGIN = 1.5
+# the lateral watch (DriverConfig.lateral_force_limit_n) needs its limit this many sigmas of the filtered free-air
+# noise across the normal (per axis) clear: the filtered lateral force's length is then past it on noise alone with
+# a probability exp(-8^2 / 2) = 1e-14 a period (a 2D Gaussian's length); with the force limit as its limit, a
+# sensor that passes the noise check along the normal (5 sigmas within half the limit) passes this one when its
+# noise is about the same on every axis
+LATERAL_NOISE_SIGMAS = 8.0
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
     """The moving average the driver's filter gives after each value of ``f`` (``prev``: the values in the filter
-    before), each window summed in order as ``_read`` sums it (the same float operations: the same values)."""
-    seq = np.concatenate([np.asarray(list(prev), dtype=float), f])
+    before), each window summed in order as ``_read`` sums it (the same float operations: the same values). ``f``
+    may hold rows (vectors, each component filtered alike; ``prev`` then holds such rows)."""
+    seq = np.concatenate([np.asarray(list(prev), dtype=float).reshape(-1, *f.shape[1:]), f])
+    first = len(seq) - len(f) - window + 1          # the first window's start, when every window is full
+    if first >= 0:                  # (the filter full before: the usual case) sliced, not indexed
+        acc = seq[first:first + len(f)].copy()
+        for o in range(1, window):
+            acc += seq[first + o:first + o + len(f)]
+        return acc / window
     end = np.arange(len(seq) - len(f), len(seq))
     start = np.maximum(0, end - window + 1)
     acc = seq[start].copy()
@@ -244,7 +261,20 @@ def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
         idx = start + o
         ok = idx <= end
         acc[ok] += seq[idx[ok]]
-    return acc / (end - start + 1)
+    return acc / (end - start + 1).reshape(-1, *([1] * (f.ndim - 1)))
+
+
+def across_normal(w: np.ndarray, normal) -> np.ndarray:
+    """The force of each wrench (rows) across the unit ``normal``: the force less its part along it (as
+    ``Driver._across_normal`` computes one: the same float operations)."""
+    n0, n1, n2 = normal
+    d = w[:, 0] * n0 + w[:, 1] * n1 + w[:, 2] * n2
+    return np.column_stack([w[:, 0] - d * n0, w[:, 1] - d * n1, w[:, 2] - d * n2])
+
+
+def lateral_magnitudes(means: np.ndarray) -> np.ndarray:
+    """The length of each filtered lateral force (rows: its three components), as ``_read`` computes it."""
+    return np.sqrt(means[:, 0] * means[:, 0] + means[:, 1] * means[:, 1] + means[:, 2] * means[:, 2])
 
 
 @dataclass
@@ -256,6 +286,7 @@ class _Block:
     wrench: np.ndarray
     f: np.ndarray
     filt: np.ndarray
+    lat: np.ndarray              # the filtered lateral force's magnitude (Driver._read's "lat")
     depth: np.ndarray
     x: np.ndarray
     y: np.ndarray
@@ -310,16 +341,20 @@ def forces_when_stopped(hist, filt: np.ndarray, lead: int) -> np.ndarray:
 
 
 class _Collision:
-    """Moving to a probe's approach pose: a force above the limit there is a collision (a fault)."""
+    """Moving to a probe's approach pose: a force above the limit there, along the normal, or across it above the
+    lateral limit plus the tool's weight turned by up to ``turn_rad`` since the zero, is a collision (a fault)."""
 
-    def __init__(self, driver: "Driver"):
+    def __init__(self, driver: "Driver", turn_rad: float = 0.0):
         self.d = driver
+        self.lat_limit_n = driver.lat_limit_n + driver.cfg.payload_kg * GRAVITY_M_S2 * turn_rad
 
     def __call__(self, s):
+        if s["lat"] > self.lat_limit_n:
+            self.d._lateral(s["lat"], self.lat_limit_n, s["filt"], "moving to an approach pose")
         return self.d._halt(FaultKind.COLLISION) if s["filt"] > self.d.lim.force_limit_n else None
 
     def quiet(self, b: _Block, limit: int) -> int:
-        return first_true(b.filt[:limit] > self.d.lim.force_limit_n, limit)
+        return first_true((b.filt[:limit] > self.d.lim.force_limit_n) | (b.lat[:limit] > self.lat_limit_n), limit)
 
 
 class _ForceWatch:
@@ -433,6 +468,8 @@ class _ForceWatch:
     def __call__(self, s):
         if self.start_depth_m is None:
             self.start_depth_m = s["depth"]
+        if s["lat"] > self.d.lat_limit_n:
+            self.d._lateral(s["lat"], self.d.lat_limit_n, s["filt"], "dwell" if self.lag_m is not None else "descent")
         if s["filt"] < -self.d.free_air_band_n(s["t"] - self.d.zeroed_ts):
             self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
@@ -475,7 +512,7 @@ class _ForceWatch:
         filt = b.filt[:limit]
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
         k = first_true(filt[:k] < -self.d.free_air_band_n(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
-        #                                                                                    __call__ raises)
+        k = first_true(b.lat[:k] > self.d.lat_limit_n, k)                                    # __call__ raises)
         if self.start_depth_m is None and b.n:
             self.start_depth_m = float(b.depth[0])
         if self.early is not None:      # an early contact being confirmed: one period at a time
@@ -512,6 +549,11 @@ class Driver(Recovery):
         self.backstop = self.fs.name != "rtde" and self.cfg.wrist_backstop_margin_n > 0
         self.wrist_filt = deque(maxlen=self.cfg.filter_window)
         self.filt = deque(maxlen=self.cfg.filter_window)
+        self.lat = deque(maxlen=self.cfg.filter_window)     # the force across the normal: (x, y, z) per period
+        lat = self.cfg.lateral_force_limit_n
+        self.lat_limit_n = self.lim.force_limit_n if lat is None else float(lat)
+        self.noise_lat_n = float("nan")     # the filtered lateral force's free-air noise at the last zeroing (N, 1
+        #                                     sigma per axis across the normal)
         self.last_ts, self.stale, self.ts = None, 0, 0.0
         self.samples = _Samples()
         self.phase = FREE
@@ -632,15 +674,41 @@ class Driver(Recovery):
         f = self._along_normal(w) if ok_w else float("nan")
         if ok_w:
             self.filt.append(f)
+            self.lat.append(self._across_normal(w))
         filt = reduce(add, self.filt) / len(self.filt) if self.filt else float("nan")
+        lat = float("nan")
+        if self.lat:
+            lx, ly, lz = self.lat[0]
+            for a, b, c in list(self.lat)[1:]:
+                lx, ly, lz = lx + a, ly + b, lz + c
+            n = len(self.lat)
+            lx, ly, lz = lx / n, ly / n, lz / n
+            lat = math.sqrt(lx * lx + ly * ly + lz * lz)
         self.samples.add(ts, list(pose), list(w) if ok_w else [math.nan] * 6, f, depth, x, self.phase, y)
-        return {"t": ts, "pose": pose, "f": f, "filt": filt, "depth": depth, "x": x}
+        return {"t": ts, "pose": pose, "f": f, "filt": filt, "lat": lat, "depth": depth, "x": x}
 
     def _along_normal(self, w) -> float:
         """The contact force: the wrench's force along the tissue normal (written out as ``_fast_forward`` does it
         on many periods at once: the same values)."""
         n0, n1, n2 = self.normal
         return self.cfg.force_sign * (float(w[0]) * n0 + float(w[1]) * n1 + float(w[2]) * n2)
+
+    def _across_normal(self, w) -> tuple:
+        """The wrench's force across the tissue normal (the force less its part along it; ``across_normal`` on
+        many periods at once: the same values)."""
+        n0, n1, n2 = self.normal
+        w0, w1, w2 = float(w[0]), float(w[1]), float(w[2])
+        d = w0 * n0 + w1 * n1 + w2 * n2
+        return w0 - d * n0, w1 - d * n1, w2 - d * n2
+
+    def _lateral(self, lat: float, limit: float, filt: float, where: str) -> None:
+        """The filtered force across the tissue normal above its limit: a fault (the arm stopped first)."""
+        self._stop()
+        raise ProbeFault(FaultKind.LATERAL_FORCE,
+                         f"{lat:.3f} N across the tissue normal in the {where} (filtered; {filt:+.3f} N along it), "
+                         f"above the lateral limit {limit:.3f} N: the tip is caught or pushed from the side, the "
+                         f"tissue's surface is far steeper than registered, or the sensor's orientation is wrong "
+                         f"(--ft-sensor-pose)")
 
     def _check_wrist(self, w) -> None:
         """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
@@ -704,8 +772,10 @@ class Driver(Recovery):
             return 0, False             # a stale or invalid reading: one period at a time says what it is
         n0, n1, n2 = self.normal
         f = self.cfg.force_sign * (w[:, 0] * n0 + w[:, 1] * n1 + w[:, 2] * n2)
+        lat = across_normal(w, self.normal)
         x, y, depth = self.tf.xy_depth_many(pose)
-        b = _Block(ts, pose, w, f, window_means(self.filt, f, self.cfg.filter_window), depth, x, y, la.prog)
+        b = _Block(ts, pose, w, f, window_means(self.filt, f, self.cfg.filter_window),
+                   lateral_magnitudes(window_means(self.lat, lat, self.cfg.filter_window)), depth, x, y, la.prog)
         k = quiet(b)
         if k < 1:
             return 0, False
@@ -713,6 +783,7 @@ class Driver(Recovery):
         if kicks:                       # each period's kick went out before its read: the last one after ts[k - 2]
             self.last_kick_ts = self.ts if k == 1 else float(ts[k - 2])
         self.filt.extend(f[:k].tolist())
+        self.lat.extend(map(tuple, lat[max(0, k - self.cfg.filter_window):k].tolist()))
         self.last_ts = self.ts = float(ts[k - 1])
         self.stale = 0
         self.samples.add_block(b, k, self.phase)
@@ -724,14 +795,14 @@ class Driver(Recovery):
 
         def body(s):
             if collect is not None:
-                collect.append((s["f"], s["filt"]))
+                collect.append((s["f"], s["filt"], s["lat"]))
             n[0] += 1
             return True if n[0] * self.cfg.period_s >= seconds else None
 
         def quiet(b: _Block) -> int:
             k = first_true(((n[0] + np.arange(1, b.n + 1)) * self.cfg.period_s) >= seconds, b.n)
             if collect is not None:
-                collect.extend(zip(b.f[:k].tolist(), b.filt[:k].tolist()))
+                collect.extend(zip(b.f[:k].tolist(), b.filt[:k].tolist(), b.lat[:k].tolist()))
             n[0] += k
             return k
         self._loop(seconds + 1.0, body, quiet=quiet)
@@ -860,18 +931,27 @@ class Driver(Recovery):
                           program=True)
             self.wrist_filt.clear()
         self.filt.clear()
+        self.lat.clear()
         self._wait(self.cfg.settle_s)
         self.filt.clear()
+        self.lat.clear()
         vals: list = []
         self._wait(self.cfg.noise_sample_s, vals)
-        vals = np.array(vals[self.cfg.filter_window:]).reshape(-1, 2)
+        vals = np.array(vals[self.cfg.filter_window:]).reshape(-1, 3)
         self.noise_std = float(np.std(vals[:, 0])) if len(vals) > 1 else 0.0
         noise_f = self.noise_filt_n = float(np.std(vals[:, 1])) if len(vals) > 1 else 0.0
+        # per axis across the normal: a 2D Gaussian's mean squared length is 2 sigma^2
+        noise_lat = self.noise_lat_n = float(np.sqrt(np.mean(vals[:, 2] ** 2) / 2)) if len(vals) > 1 else 0.0
         noise_thr = self.cfg.noise_sigma_factor * noise_f
         if noise_thr >= 0.5 * self.lim.force_limit_n:
             raise ProbeFault(FaultKind.SENSOR_NOISE, f"free-air force noise {noise_f:.3f} N (filtered) is too large "
                                              f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
                                              f"enforced with this sensor")
+        if LATERAL_NOISE_SIGMAS * noise_lat >= self.lat_limit_n:
+            raise ProbeFault(FaultKind.SENSOR_NOISE, f"free-air force noise across the normal {noise_lat:.3f} N "
+                                             f"(filtered, per axis) is too large for the lateral limit "
+                                             f"{self.lat_limit_n:g} N ({LATERAL_NOISE_SIGMAS:g} sigmas must fit "
+                                             f"below it): the lateral watch would stop the arm on noise")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
         self.zeroed_ts = self.ts
         self.zeroed_rotvec = None if rotvec is None else list(rotvec)
@@ -945,8 +1025,10 @@ class Driver(Recovery):
         mo, lim = self.plan.motion, self.lim
         self.samples, self.phase = _Samples(), FREE
         t0 = self.ts
+        turn = 0.0 if self.zeroed_rotvec is None else ur5e.rotation_angle(
+            ur5e.rotvec_to_matrix(self.zeroed_rotvec), ur5e.rotvec_to_matrix(p.approach_pose[3:]))
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
-                   _Collision(self), what=f"approach to probe {p.index}")
+                   _Collision(self, turn), what=f"approach to probe {p.index}")
         self._zero(p)
         self._check_feelable(p)
         watch = _ForceWatch(self, UNKNOWN_FORCE_EXPONENT if p.force_exponent is None else p.force_exponent)
@@ -1008,6 +1090,7 @@ class Driver(Recovery):
             rep.program_restarts = self.program_restarts
             rep.early_contacts_dismissed = self.early_dismissed
             log.write_run({**rep.to_dict(), "preflight": pre, "force_stop_threshold_n": self.lim.force_limit_n,
+                           "lateral_force_limit_n": self.lat_limit_n if math.isfinite(self.lat_limit_n) else None,
                            "commands_sent": len(self.c.sent), "force_source": self.fs.report(),
                            "periods_fast_forwarded": self.n_fast})
         gate = SignalGate()     # Ctrl-C and SIGTERM raise until the first does or a fault begins; then only noted

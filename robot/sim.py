@@ -177,6 +177,7 @@ class ArmModel:
         self.payload = (0.0, [0.0, 0.0, 0.0])
         self.faults: list[dict] = []
         self._spike_until, self._spike_n, self._nan_until = -1.0, 0.0, -1.0
+        self._side_until, self._side = -1.0, np.zeros(3)     # a side push: its end (s) and force (N, base frame)
         self.max_contact_force_n = 0.0
         self.control = None               # a weak reference to the control facade over this arm, if any
         self.on_step: list = []           # called after every step (a simulated external sensor samples there)
@@ -361,9 +362,10 @@ class ArmModel:
     # ---- faults ------------------------------------------------------------------------------------------
     def inject(self, kind, at_s=None, when=None, duration_s=0.0, magnitude_n=0.0, reconnectable=False):
         """Schedule a fault: at simulated time ``at_s`` or when ``when(arm)`` first holds. Kinds:
-        protective_stop, disconnect, force_spike (magnitude_n along the normal for duration_s), nan (readings
-        NaN for duration_s), stall (the current motion freezes until stopped or replaced)."""
-        if kind not in ("protective_stop", "disconnect", "force_spike", "nan", "stall"):
+        protective_stop, disconnect, force_spike (magnitude_n along the normal for duration_s), side_push
+        (magnitude_n across the normal, along the tissue frame's x as far as it is across, for duration_s), nan
+        (readings NaN for duration_s), stall (the current motion freezes until stopped or replaced)."""
+        if kind not in ("protective_stop", "disconnect", "force_spike", "side_push", "nan", "stall"):
             raise ValueError(f"unknown fault {kind!r}")
         self.faults.append(dict(kind=kind, at_s=at_s, when=when, duration_s=duration_s, magnitude_n=magnitude_n,
                                 reconnectable=reconnectable, fired_s=None))
@@ -377,6 +379,10 @@ class ArmModel:
             self.connected, self.reconnectable = False, f["reconnectable"]
         elif k == "force_spike":
             self._spike_until, self._spike_n = self.t_s + max(f["duration_s"], self.period_s), f["magnitude_n"]
+        elif k == "side_push":
+            across = self.T_tissue[:3, 0] - float(self.T_tissue[:3, 0] @ self.n_base) * self.n_base
+            self._side_until = self.t_s + max(f["duration_s"], self.period_s)
+            self._side = f["magnitude_n"] * across / np.linalg.norm(across)
         elif k == "nan":
             self._nan_until = self.t_s + max(f["duration_s"], self.period_s)
         elif k == "stall" and self.motion is not None:
@@ -438,6 +444,8 @@ class ArmModel:
         w = self.sensor.read(self.true_wrench(fc), self.t_s)
         if self.t_s < self._spike_until:
             w[:3] += self._spike_n * self.n_base
+        if self.t_s < self._side_until:
+            w[:3] += self._side
         if self.t_s < self._nan_until:
             w[:] = np.nan
         self.samples.append((self.t_s, self._pose(), w))
@@ -458,7 +466,7 @@ class ArmModel:
         m = self.motion
         if (n < 1 or not self.connected or not self.program_running or self.start_program_at_s is not None
                 or self.protective_stopped or self.on_step or any(f["fired_s"] is None for f in self.faults)
-                or self.t_s < self._spike_until or self.t_s < self._nan_until
+                or self.t_s < self._spike_until or self.t_s < self._nan_until or self.t_s < self._side_until
                 or len(self.samples) != self.samples.maxlen
                 or (self.watchdog_hz > 0 and not (kicks and 1.0 / self.watchdog_hz > 1.5 * self.period_s))
                 or (m is not None and (m.plan is None or m.stalled or m.a_stop is not None or m.k >= len(m.plan[0])))):

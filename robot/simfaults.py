@@ -10,6 +10,7 @@ Arm faults (both simulators; robot.sim.ArmModel fires them):
   disconnect        every socket closed, new connections refused (a controller gone from the network)
   drop              every socket closed, reconnecting allowed (a pulled cable put back; ur_rtde reconnects by itself)
   force-spike       X newtons along the normal for 10 ms
+  side-push         X newtons across the normal (along the tissue's x) for SIDE_PUSH_S (0.2 s): the tip caught
   nan               readings NaN for X seconds (default 0.01)
   stall             the current motion freezes until stopped or replaced
 Controller faults (the simulated controller only, robot.simcontroller fires them):
@@ -31,12 +32,14 @@ import math
 from dataclasses import dataclass
 
 ARM_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", "drop": "disconnect",
-              "force-spike": "force_spike", "nan": "nan", "stall": "stall"}
+              "force-spike": "force_spike", "side-push": "side_push",
+              "nan": "nan", "stall": "stall"}
 CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
 FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike", "ft-freeze")
 TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
+SIDE_PUSH_S = 0.2              # a side push lasts this long
 AT_REST_S = 0.05               # into a rest (the driver zeroes the sensor at rest above a probe for ~0.2 s)
 
 
@@ -139,7 +142,8 @@ def inject_arm(arm, f: FaultSpec) -> None:
         raise ValueError(f"fault {f.text()!r} is the simulated Net F/T box's (--ft netft; robot.simnetft)")
     kind = ARM_FAULTS[f.kind]
     x = f.x
-    kw = {"magnitude_n": float(x or 0.0), "duration_s": float(x or 0.01) if kind == "nan" else 0.01,
+    kw = {"magnitude_n": float(x or 0.0),
+          "duration_s": float(x or 0.01) if kind == "nan" else SIDE_PUSH_S if kind == "side_push" else 0.01,
           "reconnectable": f.kind == "drop"}
     if f.trigger == "s":
         arm.inject(kind, at_s=f.value, **kw)

@@ -204,6 +204,9 @@ def _injected(kind: str, **kw):
     ("nan", dict(at_s=2.5, duration_s=0.01), "fault"),
     ("stall", dict(when=lambda arm: arm.tip_xyz()[2] > 0.001), "fault"),
     ("disconnect", dict(at_s=3.0, reconnectable=True), "fault"),
+    # across the normal in the tissue: below the lateral limit (the default, the force limit 2 N), then above it
+    ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.001, duration_s=0.2, magnitude_n=1.5), "ok"),
+    ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.001, duration_s=0.2, magnitude_n=2.5), "fault"),
 ])
 def test_injected_faults(tmp_path, kind, kw, status):
     """A fault scheduled or acting is stepped one period at a time (the look-ahead refuses it); before and after it

@@ -1,0 +1,121 @@
+"""The lateral watch (session 55): the force across the tissue normal is watched in a descent, a dwell and a move to
+an approach pose. Before it, only the force along the normal was (an independent safety review, session 54: a
+lateral force of 20 times the limit injected in a descent went unflagged). Each test fails on the code before."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+from robot_fixtures import make_plan, make_sim  # noqa: E402
+
+from core.contracts import Limits  # noqa: E402
+from robot.driver import DriverConfig, across_normal, lateral_magnitudes, run_plan, window_means  # noqa: E402
+from robot.records import load_raw, read_records  # noqa: E402
+
+XS = (0.02, 0.035, 0.05)
+
+
+def in_probe(i: int, depth_m: float):
+    """Trigger: the tip over probe i, at least ``depth_m`` below the surface."""
+    return lambda a: abs(a.tip_in_tissue()[0] - XS[i]) < 1e-4 and a.tip_in_tissue()[1] >= depth_m
+
+
+def _pushed(tmp_path, magnitude_n, when, config=None, name="run"):
+    arm, c, r = make_sim(seed=3)
+    arm.inject("side_push", when=when, duration_s=0.2, magnitude_n=magnitude_n)
+    out = tmp_path / name
+    rep = run_plan(make_plan(XS, depth_m=0.003), c, r, out, config=config)
+    return rep, arm, out
+
+
+def test_a_side_push_in_a_descent_stops_the_run_safely(tmp_path):
+    """20 times the force limit across the normal in probe 1's descent (the review's case, along the tissue's x):
+    the fault lateral_force, the arm stopped and retracted, probe 0 and the interrupted probe's samples on disk.
+    With the watch off (its limit infinite: the code before) the same push goes unflagged and the run ends ok."""
+    rep, arm, out = _pushed(tmp_path, 40.0, in_probe(1, 0.0015))
+    assert rep.status == "fault" and rep.fault["kind"] == "lateral_force", rep.fault
+    assert "across the tissue normal in the descent" in rep.fault["message"]
+    assert rep.fault["stopped"] and rep.fault["retracted"] and not arm.is_moving
+    assert arm.tip_in_tissue()[1] <= -0.003                 # back above the tissue
+    recs = read_records(out)
+    assert [x.status for x in recs] == ["ok", "fault"] and recs[1].index == 1
+    raw = load_raw(out, recs[1])
+    # the samples show the push across the normal, and the watch stopped within a filter window of its start
+    lat = np.linalg.norm(across_normal(raw["wrench"], (0.0, 0.0, 1.0)), axis=1)
+    pushed = np.flatnonzero(lat > 20.0)
+    assert pushed.size and pushed.size <= DriverConfig().filter_window + 2
+    run = json.loads((out / "run.json").read_text())
+    assert run["lateral_force_limit_n"] == Limits().force_limit_n
+
+    rep_off, _, _ = _pushed(tmp_path, 40.0, in_probe(1, 0.0015), DriverConfig(lateral_force_limit_n=math.inf),
+                            name="off")
+    assert rep_off.status == "ok" and rep_off.n_ok == len(XS)
+
+
+def test_a_side_push_below_the_limit_is_not_a_fault(tmp_path):
+    """Three quarters of the limit across the normal in a dwell: no fault (the watch is a limit, not a detector of
+    every sideways touch); 1.2 times it in the same dwell: the fault, named as the dwell's."""
+    def dwelling(a):
+        return in_probe(2, 0.0029)(a) and not a.is_moving
+    rep, _, _ = _pushed(tmp_path, 1.5, dwelling)
+    assert rep.status == "ok" and rep.n_ok == len(XS)
+    rep, _, _ = _pushed(tmp_path, 2.4, dwelling, name="over")
+    assert rep.fault["kind"] == "lateral_force" and "in the dwell" in rep.fault["message"]
+
+
+def test_a_side_push_on_the_way_to_a_probe(tmp_path):
+    """Moving between probes above the tissue (after probe 0, the tip out of it): a push across the normal above the
+    limit is the same fault, named as the move's."""
+    state = {"probed": False, "left": False}
+
+    def when(a):
+        x, depth = a.tip_in_tissue()
+        state["probed"] |= depth > 0.001                            # probe 0 done ...
+        state["left"] |= state["probed"] and depth < -0.002 and x > XS[0] + 0.005   # ... well on the way to probe 1
+        return state["left"] and a.is_moving
+    rep, arm, out = _pushed(tmp_path, 5.0, when)
+    assert rep.fault["kind"] == "lateral_force" and "moving to an approach pose" in rep.fault["message"], rep.fault
+    assert [x.status for x in read_records(out)] == ["ok", "fault"]
+    assert not arm.is_moving
+
+
+def test_a_lateral_limit_below_the_noise_is_refused_at_the_start(tmp_path):
+    """A lateral limit within 8 sigmas of the filtered free-air noise across the normal would stop the arm on noise:
+    the run ends before any probe with sensor_noise, naming the lateral limit (a Nano17's filtered noise is about
+    1.4 mN per axis)."""
+    arm, c, r = make_sim(seed=3)
+    rep = run_plan(make_plan(XS), c, r, tmp_path, config=DriverConfig(lateral_force_limit_n=0.005))
+    assert rep.fault["kind"] == "sensor_noise" and "lateral limit" in rep.fault["message"], rep.fault
+    assert rep.n_ok == 0
+    rep = run_plan(make_plan(XS), *make_sim(seed=3)[1:], tmp_path / "ok", config=DriverConfig(lateral_force_limit_n=0.05))
+    assert rep.status == "ok"
+
+
+@pytest.mark.parametrize("n_prev", [0, 2, 4, 5])
+def test_the_block_path_computes_the_periods_values(n_prev):
+    """The fast-forward's filtered lateral force (arrays) equals the period-by-period one (floats) bit for bit."""
+    rng = np.random.default_rng(n_prev)
+    normal = tuple(v / np.linalg.norm(v) for v in [rng.normal(size=3)])[0]
+    normal = tuple(float(v) for v in normal)
+    w = rng.normal(size=(40, 6))
+    lat = across_normal(w, normal)
+    prev = [tuple(v) for v in rng.normal(size=(n_prev, 3))]
+    got = lateral_magnitudes(window_means(prev, lat, 5))
+    d = deque(prev, maxlen=5)
+    for k in range(len(w)):
+        w0, w1, w2 = (float(v) for v in w[k, :3])
+        dd = w0 * normal[0] + w1 * normal[1] + w2 * normal[2]
+        d.append((w0 - dd * normal[0], w1 - dd * normal[1], w2 - dd * normal[2]))
+        sx, sy, sz = d[0]
+        for a, b, c in list(d)[1:]:
+            sx, sy, sz = sx + a, sy + b, sz + c
+        n = len(d)
+        sx, sy, sz = sx / n, sy / n, sz / n
+        assert got[k] == math.sqrt(sx * sx + sy * sy + sz * sz)
