@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import make_plan, make_sim  # noqa: E402
@@ -119,3 +121,31 @@ def test_the_block_path_computes_the_periods_values(n_prev):
         n = len(d)
         sx, sy, sz = sx / n, sy / n, sz / n
         assert got[k] == math.sqrt(sx * sx + sy * sy + sz * sz)
+
+
+def _window_means_indexed(prev, f, window):
+    """The moving average by explicit windows, each summed in order (the reference the sliced path must equal)."""
+    seq = [tuple(np.atleast_1d(v)) for v in prev] + [tuple(np.atleast_1d(v)) for v in f]
+    out = []
+    for e in range(len(seq) - len(f), len(seq)):
+        win = seq[max(0, e - window + 1):e + 1]
+        acc = list(win[0])
+        for row in win[1:]:
+            acc = [a + b for a, b in zip(acc, row)]
+        out.append([a / len(win) for a in acc])
+    return np.array(out).reshape((len(f),) + np.shape(f)[1:])
+
+
+@settings(max_examples=60, deadline=None)
+@given(n_prev=st.integers(0, 8), n=st.integers(1, 30), window=st.integers(1, 7), cols=st.sampled_from([0, 3]),
+       seed=st.integers(0, 2 ** 31 - 1))
+def test_window_means_equals_the_windows_summed_in_order(n_prev, n, window, cols, seed):
+    """``window_means`` (sliced where every window is full, indexed otherwise) gives each period's filtered value as
+    the period-by-period filter sums it, bit for bit, for scalars and vectors, whatever the filter held before."""
+    rng = np.random.default_rng(seed)
+    shape = (n,) if cols == 0 else (n, cols)
+    f = rng.normal(size=shape) * 10.0 ** rng.integers(-3, 3)
+    prev = deque((rng.normal(size=shape[1:]) if cols else float(rng.normal()) for _ in range(n_prev)),
+                 maxlen=max(window, 1))
+    got = window_means(prev, f, window)
+    assert np.array_equal(got, _window_means_indexed(list(prev), f, window))
