@@ -350,7 +350,7 @@ class _Collision:
 
     def __call__(self, s):
         if s["lat"] > self.lat_limit_n:
-            self.d._lateral(s["lat"], self.lat_limit_n, s["filt"], "moving to an approach pose")
+            self.d._lateral(s["lat"], self.lat_limit_n, s["filt"], "move to an approach pose")
         return self.d._halt(FaultKind.COLLISION) if s["filt"] > self.d.lim.force_limit_n else None
 
     def quiet(self, b: _Block, limit: int) -> int:
@@ -551,6 +551,9 @@ class Driver(Recovery):
         self.filt = deque(maxlen=self.cfg.filter_window)
         self.lat = deque(maxlen=self.cfg.filter_window)     # the force across the normal: (x, y, z) per period
         lat = self.cfg.lateral_force_limit_n
+        if lat is not None and not (isinstance(lat, (int, float)) and float(lat) > 0):     # (NaN fails too)
+            raise ValueError(f"DriverConfig.lateral_force_limit_n = {lat!r}: a positive number of newtons, inf (the "
+                             f"watch off) or None (the plan's force limit)")
         self.lat_limit_n = self.lim.force_limit_n if lat is None else float(lat)
         self.noise_lat_n = float("nan")     # the filtered lateral force's free-air noise at the last zeroing (N, 1
         #                                     sigma per axis across the normal)
@@ -948,10 +951,12 @@ class Driver(Recovery):
                                              f"for the force limit {self.lim.force_limit_n} N: the limit cannot be "
                                              f"enforced with this sensor")
         if LATERAL_NOISE_SIGMAS * noise_lat >= self.lat_limit_n:
-            raise ProbeFault(FaultKind.SENSOR_NOISE, f"free-air force noise across the normal {noise_lat:.3f} N "
-                                             f"(filtered, per axis) is too large for the lateral limit "
-                                             f"{self.lat_limit_n:g} N ({LATERAL_NOISE_SIGMAS:g} sigmas must fit "
-                                             f"below it): the lateral watch would stop the arm on noise")
+            raise ProbeFault(FaultKind.SENSOR_NOISE, f"the force across the normal after zeroing in free air, "
+                                             f"{noise_lat:.4g} N RMS per axis (filtered: noise, or a steady load), "
+                                             f"is too large for the lateral limit {self.lat_limit_n:g} N: "
+                                             f"{LATERAL_NOISE_SIGMAS:g} times it, {LATERAL_NOISE_SIGMAS * noise_lat:.4g}"
+                                             f" N, must fit below the limit, or the lateral watch would stop the arm "
+                                             f"on noise")
         self.contact_thr = max(self.plan.motion.contact_threshold_n, noise_thr)
         self.zeroed_ts = self.ts
         self.zeroed_rotvec = None if rotvec is None else list(rotvec)
@@ -989,12 +994,15 @@ class Driver(Recovery):
         """At a probe's approach pose, before zeroing there: the force against the previous zero (the set-up's or
         the last probe's, in this run) must be below the contact threshold -- else the tip touches something (the
         tissue's surface higher than registered, the probe about to be zeroed in it: its descent would then count
-        its depth limit from a force no reading sees) or the sensor drifts; either way no probe can be trusted."""
+        its depth limit from a force no reading sees) or the sensor drifts; either way no probe can be trusted. The
+        force across the normal too (session 55's review: a sideways load there, zeroed, is hidden from the lateral
+        watch)."""
         if self.zeroed_ts is None or not vals or self.zeroed_rotvec is None:
             return
         turn = ur5e.rotation_angle(ur5e.rotvec_to_matrix(self.zeroed_rotvec),
                                    ur5e.rotvec_to_matrix(probe.approach_pose[3:]))
         f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
+        lat = float(np.mean([v[2] for v in vals[len(vals) // 2:]]))   # (the filtered lateral force's length)
         dt = self.ts - self.zeroed_ts
         if abs(f) > self.free_air_band_n(dt, turn):
             h = self.plan.motion.approach_height_m
@@ -1006,6 +1014,13 @@ class Driver(Recovery):
                              f"height, {h * 1e3:g} mm: re-register it, or plan a larger approach height: palpate plan "
                              f"--approach-height-m) or the sensor drifts ({f / max(dt, 1e-9):+.4f} N/s: let it warm "
                              f"up, check its cable and mounting)")
+        if lat > self.free_air_band_n(dt, turn):
+            raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{lat:.3f} N across the tissue normal at probe {probe.index}'s "
+                             f"approach pose, {dt:.1f} s after the sensor was zeroed in free air (more than the "
+                             f"contact threshold {self.contact_thr:.3f} N, {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift "
+                             f"and the tool's weight turned {math.degrees(turn):.2f} degrees since): something "
+                             f"pushes the tip from the side there (zeroed, that load would be hidden from the lateral "
+                             f"watch), or the sensor drifts; check the tool and the cell")
 
     def free_air_band_n(self, dt_s, turn_rad: float = 0.0):
         """The largest force magnitude a reading ``dt_s`` after a free-air zero may show with nothing touching: the

@@ -281,6 +281,8 @@ class ArmModel:
         """The wrench on the tip now (``fc``: the contact force, when already computed)."""
         w = np.zeros(6)
         w[:3] = (self.contact_force_n() if fc is None else fc) * self.n_base
+        if self.t_s < self._side_until:     # a side push: on the tool, so every sensor on it feels it
+            w[:3] += self._side
         return w
 
     @property
@@ -444,8 +446,6 @@ class ArmModel:
         w = self.sensor.read(self.true_wrench(fc), self.t_s)
         if self.t_s < self._spike_until:
             w[:3] += self._spike_n * self.n_base
-        if self.t_s < self._side_until:
-            w[:3] += self._side
         if self.t_s < self._nan_until:
             w[:] = np.nan
         self.samples.append((self.t_s, self._pose(), w))

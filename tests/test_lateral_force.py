@@ -83,7 +83,7 @@ def test_a_side_push_on_the_way_to_a_probe(tmp_path):
         state["left"] |= state["probed"] and depth < -0.002 and x > XS[0] + 0.005   # ... well on the way to probe 1
         return state["left"] and a.is_moving
     rep, arm, out = _pushed(tmp_path, 5.0, when)
-    assert rep.fault["kind"] == "lateral_force" and "moving to an approach pose" in rep.fault["message"], rep.fault
+    assert rep.fault["kind"] == "lateral_force" and "in the move to an approach pose" in rep.fault["message"], rep.fault
     assert [x.status for x in read_records(out)] == ["ok", "fault"]
     assert not arm.is_moving
 
@@ -149,3 +149,27 @@ def test_window_means_equals_the_windows_summed_in_order(n_prev, n, window, cols
                  maxlen=max(window, 1))
     got = window_means(prev, f, window)
     assert np.array_equal(got, _window_means_indexed(list(prev), f, window))
+
+
+def test_a_sideways_load_at_an_approach_pose_is_not_zeroed_away(tmp_path):
+    """A push across the normal arriving as the arm comes to rest at probe 1's approach pose, before the sensor is
+    zeroed there: the fault free_air_force, before the descent (zeroed, the load would have been hidden from the
+    lateral watch; session 55's review: 0.5 and 5 N ended ok). The same check along the normal was there before."""
+    state = {"probed": False}
+
+    def at_rest_over_probe_1(a):
+        x, depth = a.tip_in_tissue()
+        state["probed"] |= depth > 0.001
+        return state["probed"] and depth < -0.002 and abs(x - XS[1]) < 1e-4 and not a.is_moving
+    arm, c, r = make_sim(seed=3)
+    arm.inject("side_push", when=at_rest_over_probe_1, duration_s=1.0, magnitude_n=0.5)
+    rep = run_plan(make_plan(XS, depth_m=0.003), c, r, tmp_path)
+    assert rep.fault["kind"] == "free_air_force" and "across the tissue normal" in rep.fault["message"], rep.fault
+    assert [x.status for x in read_records(tmp_path)] == ["ok", "fault"]
+    assert arm.tip_in_tissue()[1] < -0.002          # it never descended
+
+
+@pytest.mark.parametrize("bad", [float("nan"), 0.0, -1.0, "2"])
+def test_a_bad_lateral_limit_is_refused(bad):
+    with pytest.raises(ValueError, match="lateral_force_limit_n"):
+        run_plan(make_plan(XS), *make_sim(seed=3)[1:], "/nonexistent", config=DriverConfig(lateral_force_limit_n=bad))

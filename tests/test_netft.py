@@ -302,3 +302,16 @@ def test_the_wrist_sensor_backs_up_a_stuck_box(tmp_path):
     assert rep.records[-1].status == "fault" and rep.records[-1].force_peak_n < 1.0    # what the stuck box said
     fs.close()
     box.close()
+
+
+def test_a_side_push_through_the_box_is_a_lateral_fault(tmp_path):
+    """A push across the normal in the second probe's descent, through the external sensor: the box feels it (the
+    simulator puts it on the tool since session 55's review: before, only the wrist sensor's reading had it, and
+    with --ft netft it did nothing), the driver turns it into the base frame and stops with lateral_force."""
+    arm, c, r, fs, box = netft_sim()
+    arm.inject("side_push", when=at_probe(1, 0.0015), duration_s=0.2, magnitude_n=3.0)
+    rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs)
+    check_safe_end(rep, arm, tmp_path, "lateral_force")
+    assert "across the tissue normal in the descent" in rep.fault["message"]
+    fs.close()
+    box.close()
