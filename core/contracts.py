@@ -439,7 +439,9 @@ class FaultKind(StrEnum):
     CONTACT_UNFELT = "contact_unfelt"    # a probe's predicted force at its depth not above the contact threshold:
     #                                      no contact felt, no depth limit from the true surface (checked before it)
     LATERAL_FORCE = "lateral_force"      # the force across the tissue normal above its limit (the tip caught or
-    #                                      pushed from the side, a surface far steeper than registered, a turned sensor)
+    #                                      pushed from the side)
+    FORCE_DIRECTION = "force_direction"  # the force on the tip far from the normal the tool is held along (a sensor
+    #                                      or TCP orientation stated wrong, a surface far steeper than registered)
 
 
 @dataclass

@@ -241,6 +241,16 @@ FEEL_MARGIN = 1.5
 # sensor that passes the noise check along the normal (5 sigmas within half the limit) passes this one when its
 # noise is about the same on every axis
 LATERAL_NOISE_SIGMAS = 8.0
+# once the force along the normal passes FORCE_ANGLE_FROM contact thresholds in a descent or dwell, the force on the
+# tip may point at most FORCE_ANGLE_MAX_RAD from the normal the tool is held along (its force across the normal at most
+# tan of that times its force along it), else the fault force_direction: a sensor (or TCP) whose stated orientation is
+# turned by e from the truth reads the force along the normal cos(e) short, and the force limit with it (a review of
+# session 55: turned 60 degrees, 0.13 N read for 0.29 N, every probe ok). 35 degrees bounds that to 18 % (1 / cos);
+# a surface tilted theta from the registered one with friction mu leans the force by theta + atan(mu), 27 degrees for
+# 10 and 0.3. From 2 thresholds (at least 10 sigmas of the filtered noise along the normal): the noise across it then
+# needs 7 sigmas to trip it, exp(-24.5) = 2e-11 a period
+FORCE_ANGLE_MAX_RAD = math.radians(35.0)
+FORCE_ANGLE_FROM = 2.0
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -470,6 +480,8 @@ class _ForceWatch:
             self.start_depth_m = s["depth"]
         if s["lat"] > self.d.lat_limit_n:
             self.d._lateral(s["lat"], self.d.lat_limit_n, s["filt"], "dwell" if self.lag_m is not None else "descent")
+        if s["filt"] > self.d.askew_from_n and s["lat"] > self.d.askew_tan * s["filt"]:
+            self.d._askew(s["lat"], s["filt"])
         if s["filt"] < -self.d.free_air_band_n(s["t"] - self.d.zeroed_ts):
             self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
@@ -513,6 +525,7 @@ class _ForceWatch:
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
         k = first_true(filt[:k] < -self.d.free_air_band_n(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
         k = first_true(b.lat[:k] > self.d.lat_limit_n, k)                                    # __call__ raises)
+        k = first_true((filt[:k] > self.d.askew_from_n) & (b.lat[:k] > self.d.askew_tan * filt[:k]), k)
         if self.start_depth_m is None and b.n:
             self.start_depth_m = float(b.depth[0])
         if self.early is not None:      # an early contact being confirmed: one period at a time
@@ -703,6 +716,25 @@ class Driver(Recovery):
         w0, w1, w2 = float(w[0]), float(w[1]), float(w[2])
         d = w0 * n0 + w1 * n1 + w2 * n2
         return w0 - d * n0, w1 - d * n1, w2 - d * n2
+
+    @property
+    def askew_from_n(self) -> float:
+        """The force along the normal from which its direction is judged (FORCE_ANGLE_FROM thresholds)."""
+        return FORCE_ANGLE_FROM * self.contact_thr
+
+    askew_tan = math.tan(FORCE_ANGLE_MAX_RAD)
+
+    def _askew(self, lat: float, filt: float) -> None:
+        """The force on the tip points more than FORCE_ANGLE_MAX_RAD from the tissue normal: a fault (stopped first)."""
+        self._stop()
+        src = "the wrist sensor's (the TCP's, plan.frames.tcp_offset)" if self.fs.name == "rtde" else \
+            f"the {self.fs.name} sensor's (--ft-sensor-pose)"
+        raise ProbeFault(FaultKind.FORCE_DIRECTION,
+                         f"the force on the tip points {math.degrees(math.atan2(lat, filt)):.0f} degrees from the "
+                         f"tissue normal the tool is held along ({lat:.3f} N across it, {filt:.3f} N along it, "
+                         f"filtered), more than {math.degrees(FORCE_ANGLE_MAX_RAD):g}: {src} stated orientation is "
+                         f"turned from the truth (the force along the normal is then read short, and the force limit "
+                         f"with it), or the surface is far steeper than registered")
 
     def _lateral(self, lat: float, limit: float, filt: float, where: str) -> None:
         """The filtered force across the tissue normal above its limit: a fault (the arm stopped first)."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 import sys
 from pathlib import Path
 
@@ -204,8 +205,9 @@ def _injected(kind: str, **kw):
     ("nan", dict(at_s=2.5, duration_s=0.01), "fault"),
     ("stall", dict(when=lambda arm: arm.tip_xyz()[2] > 0.001), "fault"),
     ("disconnect", dict(at_s=3.0, reconnectable=True), "fault"),
-    # across the normal in the tissue: below the lateral limit (the default, the force limit 2 N), then above it
-    ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.001, duration_s=0.2, magnitude_n=1.5), "ok"),
+    # across the normal in the tissue: small; the force far off the normal; above the lateral limit (2 N)
+    ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.001, duration_s=0.2, magnitude_n=0.02), "ok"),
+    ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.002, duration_s=0.2, magnitude_n=1.0), "fault"),
     ("side_push", dict(when=lambda arm: arm.tip_in_tissue()[1] > 0.001, duration_s=0.2, magnitude_n=2.5), "fault"),
 ])
 def test_injected_faults(tmp_path, kind, kw, status):
@@ -411,3 +413,22 @@ def test_the_records_do_not_depend_on_the_looks_length(tmp_path, monkeypatch, pe
     a, b = _twin_runs(tmp_path, plan, arm)
     assert all(r["status"] == "ok" for r in b["recs"])
     _assert_same(a, b)
+
+
+def test_a_force_far_off_the_normal(tmp_path):
+    """The simulated tissue turned 40 degrees about its y axis through the probe (the plan's normal is not the
+    tissue's): the force on the tip points 40 degrees off the normal the tool is held along, past
+    FORCE_ANGLE_MAX_RAD once it is two thresholds along it: the fault force_direction, at the same period with the
+    look-ahead's blocks (session 55: the side push steps one period at a time; this force comes in blocks)."""
+    from robot_fixtures import TISSUE_POSE
+    plan = make_plan(xs=(0.035,), depth_m=0.003)
+    T0 = ur5e.pose_to_T(TISSUE_POSE)
+    pivot = T0[:3, :3] @ [0.035, 0.0, 0.0] + T0[:3, 3]
+    T = np.eye(4)
+    T[:3, :3] = T0[:3, :3] @ ur5e.rotvec_to_matrix([0.0, math.radians(40.0), 0.0])
+    T[:3, 3] = pivot - T[:3, :3] @ [0.035, 0.0, 0.0]
+    a, b = _twin_runs(tmp_path, plan, lambda: make_sim(seed=12, tissue_pose=ur5e.T_to_pose(T)))
+    assert b["rep"].fault["kind"] == "force_direction", b["rep"].fault
+    deg = int(re.search(r"points (\d+) degrees from the tissue normal", b["rep"].fault["message"]).group(1))
+    assert 36 <= deg <= 44          # (the filtered force's direction when it is first judged: noise moves it)
+    _assert_same(a, b, min_fast=0.5)

@@ -18,10 +18,10 @@ sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import TCP, make_plan, make_sim  # noqa: E402
 from test_driver_faults import DEPTH, XS, at_probe, check_safe_end  # noqa: E402
 
-from app.ftoptions import inmemory_source  # noqa: E402
+from app.ftoptions import inmemory_source, sim_config  # noqa: E402
 from core import ur5e  # noqa: E402
 from robot.driver import run_plan  # noqa: E402
-from robot.forcesource import Mount, sensor_to_base  # noqa: E402
+from robot.forcesource import Mount, NetFtForce, sensor_to_base  # noqa: E402
 from robot.netft import NetFtCalibration, NetFtConfig, NetFtReader, SensorFault, fetch_calibration  # noqa: E402
 from robot.rdt import (  # noqa: E402
     CMD_START_REALTIME,
@@ -304,14 +304,42 @@ def test_the_wrist_sensor_backs_up_a_stuck_box(tmp_path):
     box.close()
 
 
-def test_a_side_push_through_the_box_is_a_lateral_fault(tmp_path):
+def test_a_side_push_through_the_box_is_caught(tmp_path):
     """A push across the normal in the second probe's descent, through the external sensor: the box feels it (the
     simulator puts it on the tool since session 55's review: before, only the wrist sensor's reading had it, and
-    with --ft netft it did nothing), the driver turns it into the base frame and stops with lateral_force."""
+    with --ft netft it did nothing), the driver turns it into the base frame and stops: 3 N growing over the filter
+    points the force far off the normal first (force_direction)."""
     arm, c, r, fs, box = netft_sim()
     arm.inject("side_push", when=at_probe(1, 0.0015), duration_s=0.2, magnitude_n=3.0)
     rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs)
-    check_safe_end(rep, arm, tmp_path, "lateral_force")
-    assert "across the tissue normal in the descent" in rep.fault["message"]
+    check_safe_end(rep, arm, tmp_path, "force_direction")
+    assert "degrees from the tissue normal" in rep.fault["message"] and "--ft-sensor-pose" in rep.fault["message"]
     fs.close()
     box.close()
+
+
+@pytest.mark.parametrize("turn_deg, kind", [(20.0, None), (60.0, "force_direction")])
+def test_a_sensor_pose_stated_turned_from_its_mounting(tmp_path, turn_deg, kind):
+    """The Net F/T's stated pose turned from its true mounting about the sensor's x: the force along the normal is
+    read cos(turn) short and the rest across it. 60 degrees (read half: the force limit doubled; session 55's review:
+    every probe ok) is the fault force_direction in probe 0's descent; 20 degrees (read 6 % short) runs, its
+    forces that much short."""
+    arm, c, r = make_sim()
+    box = attach_box(arm, faults=(), host="127.0.0.1", port=0, sensor="nano17", seed=0,
+                     sensor_pose_flange=SIM_SENSOR_POSE_FLANGE)
+    T = ur5e.pose_to_T(list(SIM_SENSOR_POSE_FLANGE))
+    T[:3, :3] = T[:3, :3] @ ur5e.rotvec_to_matrix([math.radians(turn_deg), 0.0, 0.0])
+    fs = NetFtForce(sim_config("127.0.0.1", box.address[1], "nano17"), Mount(tuple(ur5e.T_to_pose(T)), tuple(TCP)),
+                    clock=lambda: c.initPeriod().total_seconds(), wait=lambda: c.waitPeriod(c.initPeriod()))
+    try:
+        rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs)
+    finally:
+        fs.close()
+        box.close()
+    if kind is None:
+        assert rep.status == "ok" and rep.n_ok == len(XS)
+        true = arm.max_contact_force_n
+        assert 0.9 * true < max(x.force_mean_n for x in rep.records) < true
+    else:
+        assert rep.fault["kind"] == kind and rep.n_ok == 0 and rep.fault["stopped"], rep.fault
+        assert arm.max_contact_force_n < 0.2            # stopped early in the descent
