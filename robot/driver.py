@@ -241,16 +241,24 @@ FEEL_MARGIN = 1.5
 # sensor that passes the noise check along the normal (5 sigmas within half the limit) passes this one when its
 # noise is about the same on every axis
 LATERAL_NOISE_SIGMAS = 8.0
-# once the force along the normal passes FORCE_ANGLE_FROM contact thresholds in a descent or dwell, the force on the
-# tip may point at most FORCE_ANGLE_MAX_RAD from the normal the tool is held along (its force across the normal at most
-# tan of that times its force along it), else the fault force_direction: a sensor (or TCP) whose stated orientation is
-# turned by e from the truth reads the force along the normal cos(e) short, and the force limit with it (a review of
-# session 55: turned 60 degrees, 0.13 N read for 0.29 N, every probe ok). 35 degrees bounds that to 18 % (1 / cos);
-# a surface tilted theta from the registered one with friction mu leans the force by theta + atan(mu), 27 degrees for
-# 10 and 0.3. From 2 thresholds (at least 10 sigmas of the filtered noise along the normal): the noise across it then
-# needs 7 sigmas to trip it, exp(-24.5) = 2e-11 a period
+# once the filtered force's length passes FORCE_ANGLE_FROM contact thresholds in a descent or dwell (and
+# ASKEW_NOISE_SIGMAS of the filtered free-air noise across the normal), the force on the tip may point at most
+# FORCE_ANGLE_MAX_RAD from the normal the tool is held along (its force across the normal, less the drift allowed
+# since the zero, at most tan of that times its force along it), else the fault force_direction: an external sensor
+# whose stated orientation is turned by e from its mounting reads the force along the normal cos(e) short, and the
+# force limit with it (a review of session 55: turned 60 degrees, 0.13 N read for 0.29 N, every probe ok); read short
+# by at most 18 %, it lets at most 1 / cos(35) = 1.22 times the limit pass. Judged on the force's length, not its part
+# along the normal, so that a sensor turned 90 degrees (axes swapped: nothing along) is judged too (the review of the
+# check). A surface tilted theta from the registered one leans a frictionless contact's force by theta; friction mu
+# moves that by up to atan(mu) either way. From 2 thresholds (at least 10 sigmas of the filtered noise along the
+# normal, and 10 across): the noise across it then needs 7 sigmas to trip it, exp(-24.5) = 2e-11 a period
 FORCE_ANGLE_MAX_RAD = math.radians(35.0)
 FORCE_ANGLE_FROM = 2.0
+ASKEW_NOISE_SIGMAS = 10.0
+# the free-air check before a zero allows the filtered force across the normal this many of its noise sigmas (per
+# axis, measured at the last zero) beyond the free-air band: the length of a 2D noise averaged over the settle's
+# second half is about 1.25 sigmas, its spread about 0.5 (a sensor noisier across than along: the review of the check)
+FREE_AIR_LATERAL_SIGMAS = 4.0
 
 
 def window_means(prev, f: np.ndarray, window: int) -> np.ndarray:
@@ -480,8 +488,10 @@ class _ForceWatch:
             self.start_depth_m = s["depth"]
         if s["lat"] > self.d.lat_limit_n:
             self.d._lateral(s["lat"], self.d.lat_limit_n, s["filt"], "dwell" if self.lag_m is not None else "descent")
-        if s["filt"] > self.d.askew_from_n and s["lat"] > self.d.askew_tan * s["filt"]:
-            self.d._askew(s["lat"], s["filt"])
+        f, lat = s["filt"], s["lat"]
+        if f * f + lat * lat > self.d.askew_from2 and \
+                lat - DRIFT_ALLOWANCE_N_PER_S * (s["t"] - self.d.zeroed_ts) > self.d.askew_tan * f:
+            self.d._askew(lat, f)
         if s["filt"] < -self.d.free_air_band_n(s["t"] - self.d.zeroed_ts):
             self._pulled(s["filt"])
         if "depth" not in self.contact and s["filt"] > self.d.contact_thr:
@@ -525,7 +535,9 @@ class _ForceWatch:
         k = first_true(forces_when_stopped(self.hist, filt, self.lead) > self.d.lim.force_limit_n, limit)
         k = first_true(filt[:k] < -self.d.free_air_band_n(b.ts[:k] - self.d.zeroed_ts), k)   # (one at a time:
         k = first_true(b.lat[:k] > self.d.lat_limit_n, k)                                    # __call__ raises)
-        k = first_true((filt[:k] > self.d.askew_from_n) & (b.lat[:k] > self.d.askew_tan * filt[:k]), k)
+        lat, f = b.lat[:k], filt[:k]
+        k = first_true((f * f + lat * lat > self.d.askew_from2)
+                       & (lat - DRIFT_ALLOWANCE_N_PER_S * (b.ts[:k] - self.d.zeroed_ts) > self.d.askew_tan * f), k)
         if self.start_depth_m is None and b.n:
             self.start_depth_m = float(b.depth[0])
         if self.early is not None:      # an early contact being confirmed: one period at a time
@@ -718,23 +730,28 @@ class Driver(Recovery):
         return w0 - d * n0, w1 - d * n1, w2 - d * n2
 
     @property
-    def askew_from_n(self) -> float:
-        """The force along the normal from which its direction is judged (FORCE_ANGLE_FROM thresholds)."""
-        return FORCE_ANGLE_FROM * self.contact_thr
+    def askew_from2(self) -> float:
+        """The squared length of the filtered force from which its direction is judged: FORCE_ANGLE_FROM contact
+        thresholds, or ASKEW_NOISE_SIGMAS of the noise across the normal at the last zero if more."""
+        noise = self.noise_lat_n if math.isfinite(self.noise_lat_n) else 0.0
+        v = max(FORCE_ANGLE_FROM * self.contact_thr, ASKEW_NOISE_SIGMAS * noise)
+        return v * v
 
     askew_tan = math.tan(FORCE_ANGLE_MAX_RAD)
 
     def _askew(self, lat: float, filt: float) -> None:
         """The force on the tip points more than FORCE_ANGLE_MAX_RAD from the tissue normal: a fault (stopped first)."""
         self._stop()
-        src = "the wrist sensor's (the TCP's, plan.frames.tcp_offset)" if self.fs.name == "rtde" else \
-            f"the {self.fs.name} sensor's (--ft-sensor-pose)"
+        turned = "" if self.fs.name == "rtde" else (
+            f"the {self.fs.name} sensor's stated orientation (--ft-sensor-pose) is turned from its mounting (the "
+            f"force along the normal then reads short, and the force limit with it), ")
         raise ProbeFault(FaultKind.FORCE_DIRECTION,
                          f"the force on the tip points {math.degrees(math.atan2(lat, filt)):.0f} degrees from the "
-                         f"tissue normal the tool is held along ({lat:.3f} N across it, {filt:.3f} N along it, "
-                         f"filtered), more than {math.degrees(FORCE_ANGLE_MAX_RAD):g}: {src} stated orientation is "
-                         f"turned from the truth (the force along the normal is then read short, and the force limit "
-                         f"with it), or the surface is far steeper than registered")
+                         f"tissue normal the tool is held along ({lat:.3f} N across it, {filt:+.3f} N along it, "
+                         f"filtered), more than {math.degrees(FORCE_ANGLE_MAX_RAD):g}: {turned}the tissue's surface "
+                         f"is far steeper than registered (plan.frames.tissue_pose_base), something pushes the tip "
+                         f"sideways, or the sensor drifts across the normal (more than {DRIFT_ALLOWANCE_N_PER_S:g} N/s "
+                         f"since its zero)")
 
     def _lateral(self, lat: float, limit: float, filt: float, where: str) -> None:
         """The filtered force across the tissue normal above its limit: a fault (the arm stopped first)."""
@@ -1046,7 +1063,8 @@ class Driver(Recovery):
                              f"height, {h * 1e3:g} mm: re-register it, or plan a larger approach height: palpate plan "
                              f"--approach-height-m) or the sensor drifts ({f / max(dt, 1e-9):+.4f} N/s: let it warm "
                              f"up, check its cable and mounting)")
-        if lat > self.free_air_band_n(dt, turn):
+        noise_lat = self.noise_lat_n if math.isfinite(self.noise_lat_n) else 0.0
+        if lat > self.free_air_band_n(dt, turn) + FREE_AIR_LATERAL_SIGMAS * noise_lat:
             raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{lat:.3f} N across the tissue normal at probe {probe.index}'s "
                              f"approach pose, {dt:.1f} s after the sensor was zeroed in free air (more than the "
                              f"contact threshold {self.contact_thr:.3f} N, {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift "

@@ -20,7 +20,7 @@ from test_driver_faults import DEPTH, XS, at_probe, check_safe_end  # noqa: E402
 
 from app.ftoptions import inmemory_source, sim_config  # noqa: E402
 from core import ur5e  # noqa: E402
-from robot.driver import run_plan  # noqa: E402
+from robot.driver import DriverConfig, run_plan  # noqa: E402
 from robot.forcesource import Mount, NetFtForce, sensor_to_base  # noqa: E402
 from robot.netft import NetFtCalibration, NetFtConfig, NetFtReader, SensorFault, fetch_calibration  # noqa: E402
 from robot.rdt import (  # noqa: E402
@@ -318,12 +318,14 @@ def test_a_side_push_through_the_box_is_caught(tmp_path):
     box.close()
 
 
-@pytest.mark.parametrize("turn_deg, kind", [(20.0, None), (60.0, "force_direction")])
-def test_a_sensor_pose_stated_turned_from_its_mounting(tmp_path, turn_deg, kind):
+@pytest.mark.parametrize("turn_deg, lateral_limit_n, kind", [(20.0, None, None), (60.0, None, "force_direction"),
+                                                             (90.0, math.inf, "force_direction")])
+def test_a_sensor_pose_stated_turned_from_its_mounting(tmp_path, turn_deg, lateral_limit_n, kind):
     """The Net F/T's stated pose turned from its true mounting about the sensor's x: the force along the normal is
     read cos(turn) short and the rest across it. 60 degrees (read half: the force limit doubled; session 55's review:
-    every probe ok) is the fault force_direction in probe 0's descent; 20 degrees (read 6 % short) runs, its
-    forces that much short."""
+    every probe ok) is the fault force_direction in probe 0's descent; so is 90 degrees (the axes swapped: nothing
+    along the normal; the direction judged on the force's length, since the check's review), even with the lateral
+    watch off; 20 degrees (read 6 % short) runs, its forces that much short."""
     arm, c, r = make_sim()
     box = attach_box(arm, faults=(), host="127.0.0.1", port=0, sensor="nano17", seed=0,
                      sensor_pose_flange=SIM_SENSOR_POSE_FLANGE)
@@ -332,7 +334,8 @@ def test_a_sensor_pose_stated_turned_from_its_mounting(tmp_path, turn_deg, kind)
     fs = NetFtForce(sim_config("127.0.0.1", box.address[1], "nano17"), Mount(tuple(ur5e.T_to_pose(T)), tuple(TCP)),
                     clock=lambda: c.initPeriod().total_seconds(), wait=lambda: c.waitPeriod(c.initPeriod()))
     try:
-        rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs)
+        rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path, force_source=fs,
+                       config=DriverConfig(lateral_force_limit_n=lateral_limit_n))
     finally:
         fs.close()
         box.close()
