@@ -758,9 +758,7 @@ class Driver(Recovery):
         self._stop()
         raise ProbeFault(FaultKind.LATERAL_FORCE,
                          f"{lat:.3f} N across the tissue normal in the {where} (filtered; {filt:+.3f} N along it), "
-                         f"above the lateral limit {limit:.3f} N: the tip is caught or pushed from the side, the "
-                         f"tissue's surface is far steeper than registered, or the sensor's orientation is wrong "
-                         f"(--ft-sensor-pose)")
+                         f"above the lateral limit {limit:.3f} N: the tip is caught or pushed from the side")
 
     def _check_wrist(self, w) -> None:
         """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
@@ -1048,8 +1046,7 @@ class Driver(Recovery):
         watch)."""
         if self.zeroed_ts is None or not vals or self.zeroed_rotvec is None:
             return
-        turn = ur5e.rotation_angle(ur5e.rotvec_to_matrix(self.zeroed_rotvec),
-                                   ur5e.rotvec_to_matrix(probe.approach_pose[3:]))
+        turn = self._turn_since_zero(probe.approach_pose)
         f = float(np.mean([v[0] for v in vals[len(vals) // 2:]]))
         lat = float(np.mean([v[2] for v in vals[len(vals) // 2:]]))   # (the filtered lateral force's length)
         dt = self.ts - self.zeroed_ts
@@ -1067,10 +1064,15 @@ class Driver(Recovery):
         if lat > self.free_air_band_n(dt, turn) + FREE_AIR_LATERAL_SIGMAS * noise_lat:
             raise ProbeFault(FaultKind.FREE_AIR_FORCE, f"{lat:.3f} N across the tissue normal at probe {probe.index}'s "
                              f"approach pose, {dt:.1f} s after the sensor was zeroed in free air (more than the "
-                             f"contact threshold {self.contact_thr:.3f} N, {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift "
-                             f"and the tool's weight turned {math.degrees(turn):.2f} degrees since): something "
+                             f"contact threshold {self.contact_thr:.3f} N, {DRIFT_ALLOWANCE_N_PER_S:g} N/s of drift, "
+                             f"the tool's weight turned {math.degrees(turn):.2f} degrees since and "
+                             f"{FREE_AIR_LATERAL_SIGMAS:g} sigmas of the noise across the normal): something "
                              f"pushes the tip from the side there (zeroed, that load would be hidden from the lateral "
                              f"watch), or the sensor drifts; check the tool and the cell")
+
+    def _turn_since_zero(self, pose) -> float:
+        """The angle (rad) between the tool's orientation at the last zero and ``pose``'s."""
+        return ur5e.rotation_angle(ur5e.rotvec_to_matrix(self.zeroed_rotvec), ur5e.rotvec_to_matrix(pose[3:]))
 
     def free_air_band_n(self, dt_s, turn_rad: float = 0.0):
         """The largest force magnitude a reading ``dt_s`` after a free-air zero may show with nothing touching: the
@@ -1090,8 +1092,7 @@ class Driver(Recovery):
         mo, lim = self.plan.motion, self.lim
         self.samples, self.phase = _Samples(), FREE
         t0 = self.ts
-        turn = 0.0 if self.zeroed_rotvec is None else ur5e.rotation_angle(
-            ur5e.rotvec_to_matrix(self.zeroed_rotvec), ur5e.rotvec_to_matrix(p.approach_pose[3:]))
+        turn = 0.0 if self.zeroed_rotvec is None else self._turn_since_zero(p.approach_pose)
         self._move(p.approach_pose, mo.approach_speed_m_s, min(mo.approach_accel_m_s2, lim.accel_m_s2),
                    _Collision(self, turn), what=f"approach to probe {p.index}")
         self._zero(p)
