@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robot_fixtures import SCENE, TCP, make_plan, make_sim, solve_joints  # noqa: E402
+from robot_fixtures import SCENE, TCP, TISSUE_POSE, make_plan, make_sim, solve_joints  # noqa: E402
 
 from core import ur5e  # noqa: E402
 from core.contracts import Frames, Limits, Motion, Plan, Probe  # noqa: E402
@@ -420,7 +420,6 @@ def test_a_force_far_off_the_normal(tmp_path):
     tissue's): the force on the tip points 40 degrees off the normal the tool is held along, past
     FORCE_ANGLE_MAX_RAD once it is two thresholds along it: the fault force_direction, at the same period with the
     look-ahead's blocks (session 55: the side push steps one period at a time; this force comes in blocks)."""
-    from robot_fixtures import TISSUE_POSE
     plan = make_plan(xs=(0.035,), depth_m=0.003)
     T0 = ur5e.pose_to_T(TISSUE_POSE)
     pivot = T0[:3, :3] @ [0.035, 0.0, 0.0] + T0[:3, 3]
