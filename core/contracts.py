@@ -440,8 +440,8 @@ class FaultKind(StrEnum):
     #                                      no contact felt, no depth limit from the true surface (checked before it)
     LATERAL_FORCE = "lateral_force"      # the force across the tissue normal above its limit (the tip caught or
     #                                      pushed from the side)
-    FORCE_DIRECTION = "force_direction"  # the force on the tip far from the normal the tool is held along (a sensor
-    #                                      or TCP orientation stated wrong, a surface far steeper than registered)
+    FORCE_DIRECTION = "force_direction"  # the force on the tip far from the normal the tool is held along (an external
+    #                                      sensor's orientation stated wrong, a surface far steeper than registered)
 
 
 @dataclass

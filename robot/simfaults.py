@@ -86,11 +86,13 @@ def parse(spec: str) -> FaultSpec:
             (xv is None or math.isfinite(xv))
         if ok and TRIGGERS[trig] == "probes":
             ok = value >= 1 and value == int(value)
+        if ok and kind == "side-push":      # (without a force it would push nothing, silently)
+            ok = xv is not None and xv > 0
     except ValueError:
         ok = False
     if not ok:
         raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X] or KIND-after-probes=N[:X] "
-                         f"(N >= 1; or KIND:T[:X]), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
+                         f"(N >= 1; or KIND:T[:X]; side-push needs X > 0, its newtons), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
                          f"see robot.simfaults")
     return FaultSpec(kind, TRIGGERS[trig], value, xv)
 

@@ -20,6 +20,7 @@ from robot_fixtures import make_plan, make_sim  # noqa: E402
 from core.contracts import Limits  # noqa: E402
 from robot.driver import DriverConfig, across_normal, lateral_magnitudes, run_plan, window_means  # noqa: E402
 from robot.records import load_raw, read_records  # noqa: E402
+from robot.simfaults import parse  # noqa: E402
 
 XS = (0.02, 0.035, 0.05)
 
@@ -205,3 +206,14 @@ def test_a_sensor_drifting_across_the_normal(tmp_path, rate_n_per_s, kind):
         assert rep.status == "ok" and rep.n_ok == len(XS), rep.fault
     else:
         assert rep.fault["kind"] == kind and "drifts across the normal" in rep.fault["message"], rep.fault
+
+
+@pytest.mark.parametrize("spec, ok", [("side-push-at-depth-m=0.002:40", True), ("side-push-at-s=1", False),
+                                      ("side-push-at-s=1:0", False), ("side-push-at-s=1:-3", False)])
+def test_a_side_push_needs_its_force(spec, ok):
+    """A side push without a positive force would push nothing, silently: refused, naming what it needs."""
+    if ok:
+        assert parse(spec).x == 40.0
+    else:
+        with pytest.raises(ValueError, match="side-push needs X > 0"):
+            parse(spec)
