@@ -102,14 +102,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="coarser fem mesh (element size, m) for a faster simulator")
     g.add_argument("--inject", action="append", default=[], metavar="SPEC",
                    help="fault (repeatable), same syntax for both simulators: KIND-at-s=T[:X] (at simulated time T "
-                        "s), KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface) or "
+                        "s), KIND-at-depth-m=D[:X] (when the tip first reaches D m below the surface), "
+                        "KIND-leaving-depth-m=D[:X] (when the tip, on its way out, is back at D m: in a retract) or "
                         "KIND-after-probes=N[:X] (at rest after N probes); the short KIND:T[:X] means KIND-at-s=T[:X]. "
                         "KIND: protective-stop | disconnect (link lost for good) | drop (link lost, reconnecting "
                         "allowed) | force-spike (X N for 10 ms) | side-push (X N across the normal for 0.2 s) | nan (readings NaN for X s, default 0.01) | stall "
                         "(the motion freezes); with --sim controller also partition (no traffic for X s; none: for "
                         "good) | freeze (controller process stopped) | program-stop | remote-off (local control; X=1 "
                         "also stops the program); '_' may replace '-' in KIND. Examples: protective_stop:12.5, "
-                        "force-spike-at-depth-m=0.002:5, partition-at-depth-m=0.0015, remote-off-after-probes=1:1")
+                        "force-spike-at-depth-m=0.002:5, force-spike-leaving-depth-m=0.0015:-10, partition-at-depth-m=0.0015, "
+                        "remote-off-after-probes=1:1")
     return p
 
 

@@ -440,6 +440,8 @@ class FaultKind(StrEnum):
     #                                      no contact felt, no depth limit from the true surface (checked before it)
     LATERAL_FORCE = "lateral_force"      # the force across the tissue normal above its limit (the tip caught or
     #                                      pushed from the side)
+    RETRACT_FORCE = "retract_force"      # leaving the tissue, the force along its normal rose past the limit or
+    #                                      pulled towards the tissue (the tissue holding the tip): stopped, not retracted
     FORCE_DIRECTION = "force_direction"  # the force on the tip far from the normal the tool is held along (an external
     #                                      sensor's orientation stated wrong, a surface far steeper than registered)
 

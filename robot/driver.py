@@ -375,6 +375,89 @@ class _Collision:
         return first_true((b.filt[:limit] > self.d.lim.force_limit_n) | (b.lat[:limit] > self.lat_limit_n), limit)
 
 
+class _RetractWatch:
+    """Leaving the tissue along its normal: moving away only lowers the force the tissue pushes back with. The arm
+    stops where it is (a fault, ``retract_force`` or ``lateral_force``) if the filtered force along the normal
+    rises above the force limit (or above where the retract began, if higher) by a contact threshold -- the tissue
+    rising with the tip, a force the sensor should not see -- or pulls towards the tissue more than the force limit
+    (or more than where it began) -- the tissue holding the tip, something above pressing on the tool -- or the
+    force across the normal rises above its limit (or above where it began) by a contact threshold. The safe state
+    after such a fault does not retract again: the retract is what met the force (``Driver.retract_blocked``).
+
+    Where the retract began: the extremes of its first filter window (``filter_window`` periods: 10 ms, 0.2 mm at
+    the retract's speed), nothing stopped meanwhile. A retract may begin with forces still entering the filter: a
+    probe stopped at the force limit retracts at once, and the safe state's retract follows a fault (a push across
+    the normal that ended a descent is still acting).
+
+    ``zeroed``: the sensor was zeroed in free air in this run (the forces are the tissue's). Else (a resumed run's
+    first move, the tip perhaps in tissue, the sensor not yet zeroed) only changes from where the retract began
+    count: up by more than the force limit, down by more than twice it (the probe's push released, then the limit
+    pulling), across by more than the lateral limit."""
+
+    def __init__(self, driver: "Driver", zeroed: bool):
+        self.d = driver
+        self.zeroed = zeroed
+        self.left = driver.cfg.filter_window        # readings that set where the retract began
+        self.f_max, self.f_min, self.lat_max = -math.inf, math.inf, 0.0
+        self.hi = self.lo = self.lat_hi = None      # set once they are in
+
+    def _begin(self, s) -> bool:
+        """One of the readings where the retract began; True once the bounds are set."""
+        if math.isfinite(s["filt"]):
+            self.f_max, self.f_min = max(self.f_max, s["filt"]), min(self.f_min, s["filt"])
+        if math.isfinite(s["lat"]):
+            self.lat_max = max(self.lat_max, s["lat"])
+        self.left -= 1
+        if self.left > 0:
+            return False
+        d = self.d
+        lim, lat_lim, thr = d.lim.force_limit_n, d.lat_limit_n, d.contact_thr
+        f_max = self.f_max if math.isfinite(self.f_max) else 0.0
+        f_min = self.f_min if math.isfinite(self.f_min) else 0.0
+        if self.zeroed:
+            self.hi, self.lo = max(lim, f_max) + thr, min(-lim, f_min - thr)
+            self.lat_hi = max(lat_lim, self.lat_max) + thr
+        else:
+            self.hi, self.lo, self.lat_hi = f_max + lim, f_min - 2.0 * lim, self.lat_max + lat_lim
+        return True
+
+    def __call__(self, s):
+        if self.hi is None and not self._begin(s):
+            return None
+        f, lat = s["filt"], s["lat"]
+        if lat > self.lat_hi:
+            self.d.retract_blocked = "the retract met a force across the tissue normal"
+            self.d._lateral(lat, self.lat_hi, f, "retract")
+        if f > self.hi or f < self.lo:
+            self._fault(f, lat)
+        return None
+
+    def _fault(self, f: float, lat: float) -> None:
+        d = self.d
+        d.retract_blocked = "the retract met a force along the tissue normal"
+        d._stop()
+        if not self.zeroed:         # (a resumed run's first move: the sensor not zeroed, its offset unknown)
+            why = (f"changed from {self.f_min if f > self.hi else self.f_max:+.3f} N to {f:+.3f} N (the sensor not "
+                   f"zeroed yet: only a change of more than the force limit up, or twice it down, counts): the tissue "
+                   f"holds the tip, or lets it go after holding it, or something presses on the tool")
+        elif f > self.hi:
+            why = (f"rose to {f:+.3f} N, above {self.hi:.3f} N: the tissue rises with the tip (or the registered "
+                   f"normal is wrong)")
+        else:
+            why = (f"pulls towards the tissue with {-f:.3f} N, beyond {-self.lo:.3f} N: the tissue holds the tip, or "
+                   f"something above presses on the tool")
+        raise ProbeFault(FaultKind.RETRACT_FORCE,
+                         f"leaving the tissue, the force along its normal (filtered; {lat:.3f} N across it) {why}; "
+                         f"the arm stopped where it was and is not moved again: free the tip (freedrive on the "
+                         f"pendant), then resume (the driver retracts first, watched)")
+
+    def quiet(self, b: _Block, limit: int) -> int:
+        if self.hi is None:
+            return 0                # (where the retract began sets the bounds: read one period at a time)
+        f = b.filt[:limit]
+        return first_true((f > self.hi) | (f < self.lo) | (b.lat[:limit] > self.lat_hi), limit)
+
+
 class _ForceWatch:
     """The descent's and the dwell's force monitor: notes the first contact (the filtered force above the contact
     threshold) and stops the arm when the force where it will have stopped (``force_when_stopped``) exceeds the
@@ -608,6 +691,7 @@ class Driver(Recovery):
         self.look = (lambda n, kicks: look(n, kicks, rtde_c)) \
             if own and self.cfg.fast_forward and self.fs.name == "rtde" and not self.backstop else None
         self.n_fast = 0                 # periods stepped through the look-ahead
+        self.retract_blocked: str = ""  # why the safe state must not retract (a retract met a force: _RetractWatch)
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -1124,13 +1208,18 @@ class Driver(Recovery):
             outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell", quiet=quiet)
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
-                   min(mo.probe_accel_m_s2, lim.accel_m_s2), what=f"retract of probe {p.index}")
+                   min(mo.probe_accel_m_s2, lim.accel_m_s2), self._retract_watch(),
+                   what=f"retract of probe {p.index}")
         if limited and outcome == "reached":
             outcome = ProbeStatus.DEPTH_LIMIT       # (its dwell done at the limit, not at the planned depth)
         status = ProbeStatus.OK if outcome == "reached" else ProbeStatus(outcome)
         raw = self.samples.arrays()
         return summarise(p, raw, status, watch.contact, t0, self.ts, self.contact_thr, self.noise_std,
                          lim.depth_limit_m), raw
+
+    def _retract_watch(self) -> _RetractWatch:
+        """The watch on a move out of the tissue: a probe's retract, the safe state's, a resumed run's first."""
+        return _RetractWatch(self, zeroed=self.zeroed_ts is not None)
 
     def _halt(self, kind):
         self._stop()

@@ -121,6 +121,10 @@ class Recovery:
                                 f"pose is not the tip's: check on the pendant whether the tip is still in the tissue "
                                 f"before moving the arm")
             return out
+        if self.retract_blocked:
+            out["notes"].append(f"not retracted: {self.retract_blocked}; the arm holds where it stopped (free the "
+                                f"tip with freedrive on the pendant, then resume: the driver retracts first, watched)")
+            return out
         try:
             s = self._read(strict=False)
             if not self._needs_retract(s["depth"], s["x"]):
@@ -149,6 +153,6 @@ class Recovery:
             return True
         target = list(np.asarray(pose[:3]) + self.tf.normal * (depth + h)) + list(pose[3:])
         self._move(target, min(self.cfg.retract_speed_m_s, self.lim.tool_speed_m_s), min(0.5, self.lim.accel_m_s2),
-                   strict=False, what="retract")
+                   self._retract_watch(), strict=False, what="retract")
         return True
 

@@ -1,7 +1,8 @@
 """Fault injection for the simulated arms: one syntax for the in-memory arm and the simulated UR controller.
 
 A fault is ``KIND-at-s=T[:X]`` (at simulated time T), ``KIND-at-depth-m=D[:X]`` (the first time the tip is D below
-the tissue surface, over the tissue) or ``KIND-after-probes=N[:X]`` (between probes: AT_REST_S after the arm, having
+the tissue surface, over the tissue), ``KIND-leaving-depth-m=D[:X]`` (the first time the tip, on its way out of the
+tissue after being deeper than D, is back at D: in a retract) or ``KIND-after-probes=N[:X]`` (between probes: AT_REST_S after the arm, having
 left the tissue N times, came to rest above the next probe, where the driver zeroes the sensor). The older
 ``KIND:T[:X]`` means ``KIND-at-s=T[:X]``; ``_`` may replace ``-`` in KIND.
 
@@ -36,10 +37,12 @@ ARM_FAULTS = {"protective-stop": "protective_stop", "disconnect": "disconnect", 
               "nan": "nan", "stall": "stall"}
 CONTROLLER_FAULTS = ("partition", "freeze", "program-stop", "remote-off")
 FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike", "ft-freeze")
-TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "after-probes": "probes"}
+TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "leaving-depth-m": "leaving-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
 SIDE_PUSH_S = 0.2              # a side push lasts this long
+LEAVING_HYSTERESIS_M = 5e-5   # leaving-depth-m=D: deeper than D by this first (a dwell's sub-micron jitter is not a
+#                               way out)
 AT_REST_S = 0.05               # into a rest (the driver zeroes the sensor at rest above a probe for ~0.2 s)
 
 
@@ -91,7 +94,8 @@ def parse(spec: str) -> FaultSpec:
     except ValueError:
         ok = False
     if not ok:
-        raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X] or KIND-after-probes=N[:X] "
+        raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X], KIND-leaving-depth-m=D[:X] or "
+                         f"KIND-after-probes=N[:X] "
                          f"(N >= 1; or KIND:T[:X]; side-push needs X > 0, its newtons), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
                          f"see robot.simfaults")
     return FaultSpec(kind, TRIGGERS[trig], value, xv)
@@ -108,6 +112,15 @@ def trigger(f: FaultSpec):
         def when(arm) -> bool:
             x, depth = arm.tip_in_tissue()
             return depth >= f.value and 0.0 <= x <= arm.width_m
+        return when
+    if f.trigger == "leaving-m":
+        deeper = [False]        # the tip has been deeper than D over the tissue since it last was out of it
+
+        def when(arm) -> bool:
+            x, depth = arm.tip_in_tissue()
+            over = 0.0 <= x <= arm.width_m
+            deeper[0] = (deeper[0] or (over and depth > f.value + LEAVING_HYSTERESIS_M)) and depth >= OUT_OF_TISSUE_M
+            return deeper[0] and over and depth <= f.value
         return when
     if f.trigger == "probes":
         # at rest above the next probe: after the N-th exit the arm stops (end of the retract), moves (the approach

@@ -24,6 +24,7 @@ from robot.driver import Driver, DriverConfig, window_means  # noqa: E402
 from robot.records import load_raw, read_records  # noqa: E402
 from robot.recovery import ProbeFault  # noqa: E402
 from robot.sim import ArmModel, SimRTDEControl, SimRTDEReceive  # noqa: E402
+from robot.simfaults import parse, trigger  # noqa: E402
 from robot.simforce import standin_force_model  # noqa: E402
 from robot.truth import Relaxation  # noqa: E402
 
@@ -431,3 +432,22 @@ def test_a_force_far_off_the_normal(tmp_path):
     deg = int(re.search(r"points (\d+) degrees from the tissue normal", b["rep"].fault["message"]).group(1))
     assert 36 <= deg <= 44          # (the filtered force's direction when it is first judged: noise moves it)
     _assert_same(a, b, min_fast=0.5)
+
+
+@pytest.mark.parametrize("kind, magnitude_n, status", [("force_spike", -10.0, "fault"), ("side_push", 1.0, "ok")])
+def test_a_retract_watched(tmp_path, kind, magnitude_n, status):
+    """The retract's watch (session 56), in probe 1's retract: a pull towards the tissue that stops it, a push across
+    it within the limits; the quiet retract periods at once (probe 0's, and probe 1's after the push), the same run
+    as period by period."""
+    def make():
+        made = make_sim(seed=9)
+        leaving = trigger(parse("nan-leaving-depth-m=0.0015"))    # (a fresh trigger per arm: it remembers the way)
+        made[0].inject(kind, when=lambda a: abs(a.tip_in_tissue()[0] - 0.05) < 1e-4 and leaving(a),
+                       duration_s=0.2, magnitude_n=magnitude_n)
+        return made
+    a, b = _twin_runs(tmp_path, make_plan(xs=(0.02, 0.05), depth_m=0.003), make)
+    assert b["rep"].status == status, b["rep"].fault
+    assert b["rep"].status == "ok" or b["rep"].fault["kind"] == "retract_force"
+    _assert_same(a, b, min_fast=0.0)
+    # (a fault scheduled or acting refuses the look-ahead: the pull's run ends before any period goes at once)
+    assert b["n_fast"] > 0 if status == "ok" else b["n_fast"] == 0

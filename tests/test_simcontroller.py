@@ -300,6 +300,25 @@ def test_protective_stop_mid_probe(scene_file, tmp_path):
     _check_kept(out, min_depth_m=0.0015 - 2e-4)
 
 
+def test_a_pull_in_a_retract_through_the_real_client(scene_file, tmp_path):
+    """The retract's watch (session 56) through ur_rtde: 5 N towards the tissue (5 times the 1 N limit) as probe 0's
+    tip leaves it, on the simulated controller: retract_force, the arm stopped by the host's stopL and held in the
+    tissue (not retracted), probe 0's samples kept."""
+    from robot.driver import run_plan
+    plan, out = make_plan(), tmp_path / "run"
+    with controller(scene_file, tmp_path, inject=["force-spike-leaving-depth-m=0.0015:-5"]) as ctl:
+        with clients(ctl.host) as (c, r):
+            rep = run_plan(plan, c, r, out)
+            held = r.getActualTCPPose()
+            time.sleep(0.1)
+            assert np.allclose(r.getActualTCPPose(), held, atol=1e-9)      # at rest where it stopped
+            depth = float(-(np.asarray(held[:3]) - np.asarray(TISSUE[:3])) @ NORMAL)
+    assert rep.status == "fault" and rep.fault["kind"] == "retract_force", rep.fault
+    assert rep.fault["stopped"] and not rep.fault["retracted"], rep.fault
+    assert 0.0 < depth < 0.0016, depth                 # in the tissue, a little above where the pull began
+    _check_kept(out, min_depth_m=0.0029)
+
+
 _DROP_CLIENT = r"""
 import json, os, socket, sys, time
 import rtde_control, rtde_receive
