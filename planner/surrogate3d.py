@@ -75,7 +75,10 @@ ABS_ERR_N = 7.5e-5
 
 
 def _geometric(lo: float, hi: float, n: int) -> tuple:
-    return tuple(float(v) for v in np.geomspace(lo, hi, n))
+    """``n`` values from ``lo`` to ``hi`` in geometric progression, rounded to 12 significant digits: they key the
+    table (``cache_path``), and numpy's own geomspace differs between versions in the last bit (2.4.6 against the
+    shipped table's: two of its ten clearances), which renamed the table and left a fresh install without it."""
+    return tuple(float(f"{v:.12g}") for v in np.geomspace(lo, hi, n))
 
 
 @dataclass(frozen=True)
