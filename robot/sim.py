@@ -124,7 +124,10 @@ class ArmModel:
     the tissue; ``sensor`` a preset name or Sensor; ``q0`` start joints; ``latency_s`` delay of readings;
     ``safety_force_n`` contact force that triggers a protective stop (the controller's own limit);
     ``surface_height_m(x_m)`` how far the TRUE surface lies above the nominal one (robot.truth: registration error;
-    None: on it); ``relaxation`` a robot.truth.Relaxation (None: elastic tissue). ``length_m``: a 3D block's extent
+    None: on it); ``surface_tilt_rad`` the TRUE surface's tilt from the nominal one, rising along the tissue frame's
+    x (robot.truth passes the same plane's): the tissue pushes the tip along its own outward normal (frictionless
+    contact: no traction along the surface), so the wrench has F sin(tilt) across the nominal normal and F cos(tilt)
+    along it; ``relaxation`` a robot.truth.Relaxation (None: elastic tissue). ``length_m``: a 3D block's extent
     along the tissue frame's y (``force_model(x_m, y_m, depth_m)``, contact over 0 <= y <= length); None: a 2D
     section (``force_model(x_m, depth_m)``, the same force at every y).
     """
@@ -132,7 +135,7 @@ class ArmModel:
     def __init__(self, force_model=None, tissue_pose_base=(0.35, -0.035, 0.05, 0, 0, 0), width_m=0.07,
                  sensor="nano17", seed=0, q0=None, tcp_offset=(0, 0, 0, 0, 0, 0), period_s=0.002,
                  latency_s=0.002, safety_force_n=30.0, cache=True, tool_offset=None, surface_height_m=None,
-                 relaxation=None, length_m: float | None = None, tape: bool = True):
+                 relaxation=None, length_m: float | None = None, tape: bool = True, surface_tilt_rad: float = 0.0):
         self.length_m = length_m
         self.tape = tape                  # linear moves precompute their poses (vectorised; the same to round-off)
         self._tape_pose = None            # (T_tcp, pose) of the tape's current step
@@ -145,6 +148,9 @@ class ArmModel:
             self.force_model = (lambda x, d, y=0.0: f(x, y, d)) if length_m is not None else f
         self.T_tissue = ur5e.pose_to_T(tissue_pose_base)
         self.n_base = self.T_tissue[:3, 2].copy()
+        # the direction of the tissue's force on the tip: the TRUE surface's outward normal, in the base frame
+        self.push_base = (math.cos(surface_tilt_rad) * self.n_base - math.sin(surface_tilt_rad) * self.T_tissue[:3, 0]
+                          if surface_tilt_rad else self.n_base)
         self.width_m = width_m
         self.sensor = sensor if isinstance(sensor, Sensor) else Sensor(sensor, seed=seed)
         # a truth condition's bias and drift along the tissue normal, in any sensor on the arm (robot.simarm adds them
@@ -280,7 +286,7 @@ class ArmModel:
     def true_wrench(self, fc: float | None = None) -> np.ndarray:
         """The wrench on the tip now (``fc``: the contact force, when already computed)."""
         w = np.zeros(6)
-        w[:3] = (self.contact_force_n() if fc is None else fc) * self.n_base
+        w[:3] = (self.contact_force_n() if fc is None else fc) * self.push_base
         if self.t_s < self._side_until:     # a side push: on the tool, so every sensor on it feels it
             w[:3] += self._side
         return w
@@ -503,7 +509,7 @@ class ArmModel:
             return None
         n = stop
         tw = np.zeros((n, 6))
-        tw[:, :3] = fc[:n, None] * self.n_base
+        tw[:, :3] = fc[:n, None] * self.push_base
         w = self.sensor.read_many(tw, t[:n], self.sensor.normals_ahead(n) if self.sensor._noisy else None)
         old = list(self.samples)                                    # the readings in flight: states 0, 1, ...
         seen_t = np.concatenate([[o[0] for o in old], t[:n]])[:n]

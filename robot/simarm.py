@@ -113,6 +113,7 @@ def build_truth_arm(truth: Scene | str = "paper", *, force: str = "fem", sensor:
         kw["tool_offset"] = list(tool_offset)
     if cond.surface_offset_m or cond.surface_tilt_rad:
         kw["surface_height_m"] = lambda x_m: cond.surface_height_m(x_m, width)
+        kw["surface_tilt_rad"] = cond.surface_tilt_rad          # (the same plane: the force along its normal)
     if cond.relaxation_fraction > 0:
         kw["relaxation"] = Relaxation(cond.relaxation_fraction, cond.relaxation_tau_s)
     arm = ArmModel(f, tissue_pose_base=tissue_pose, width_m=width, sensor=sensor, seed=seed,

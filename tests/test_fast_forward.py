@@ -114,7 +114,7 @@ def test_relaxing_tissue_on_a_tilted_offset_surface_with_a_drifting_sensor(tmp_p
 
     def arm():
         made = make_sim(seed=11, surface_height_m=lambda x: 8e-4 + (x - 0.035) * math.tan(0.05),
-                        relaxation=Relaxation(0.25, 0.5))
+                        surface_tilt_rad=0.05, relaxation=Relaxation(0.25, 0.5))    # (pushing along its normal)
         made[0].sensor.bias[:3] += 0.3 * made[0].n_base
         made[0].sensor.drift[:3] += 0.004 * made[0].n_base
         return made

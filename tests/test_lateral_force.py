@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 sys.path.insert(0, str(Path(__file__).parent))
 from robot_fixtures import make_plan, make_sim  # noqa: E402
 
-from core.contracts import Limits  # noqa: E402
+from core.contracts import DWELL, Limits  # noqa: E402
 from robot.driver import DriverConfig, across_normal, lateral_magnitudes, run_plan, window_means  # noqa: E402
 from robot.records import load_raw, read_records  # noqa: E402
 from robot.simfaults import parse  # noqa: E402
@@ -217,3 +217,27 @@ def test_a_side_push_needs_its_force(spec, ok):
     else:
         with pytest.raises(ValueError, match="side-push needs X > 0"):
             parse(spec)
+
+
+@pytest.mark.parametrize("tilt_rad", [0.05, -0.175])
+def test_a_tilted_true_surface_pushes_along_its_own_normal(tmp_path, tilt_rad):
+    """The simulated tissue tilted from the registered surface (robot.truth's plane; -0.175 rad is the largest tilt
+    a truth may have) pushes the tip along its own normal (session 56; before, along the registered one): the
+    wrench in the dwells has tan(tilt) of its force along the normal across it, along the tissue's x, and the run
+    is ok (10 degrees is far inside the direction check's 35)."""
+    W = 0.07
+    arm, c, r = make_sim(seed=4, surface_height_m=lambda x: (x - 0.5 * W) * math.tan(tilt_rad),
+                         surface_tilt_rad=tilt_rad)
+    out = tmp_path / "run"
+    rep = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
+    assert rep.status == "ok" and rep.n_ok + rep.n_depth_limit == len(XS), rep.fault   # (2.6 mm high at 20 mm)
+    judged = 0
+    for rec in read_records(out):
+        raw = load_raw(out, rec)
+        dwell = np.asarray(raw["phase"]) == DWELL
+        w = raw["wrench"][dwell, :3].mean(axis=0)          # the base frame: the tissue's x is the base's x here
+        along, across_x = w[2], w[0]
+        if along > 0.05:               # (the surface 2.6 mm low at 50 mm: 0.4 mm deep there, 10 mN, all noise)
+            judged += 1
+            assert abs(across_x / along + math.tan(tilt_rad)) < 0.02 * abs(math.tan(tilt_rad)) + 0.01
+    assert judged >= 2
