@@ -49,7 +49,7 @@ from fem.scene_mesh import check_mesh_budget, check_surface_budget
 from planner.plan import plan_prior
 from robot.driver import DriverConfig, RunReport, preflight, run_plan
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
-from robot.records import done_indices, foreign_record, move_aside
+from robot.records import damaged_note, done_indices, foreign_record, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
@@ -206,6 +206,45 @@ def _progress(rec, i, n):
     print(f"  probe {rec.index:3d} ({i}/{n}) x={rec.x_m * 1e3:6.1f} mm  depth {ds}  F {fs}  {rec.status}", flush=True)
 
 
+CELL_WORLD = "cell_world.json"     # what a cell run in OUT probed: a real arm, or a simulated one's world
+
+
+def cell_world(args, truth) -> dict:
+    """What the records in OUT come from: a real arm, or a simulated arm's truth (its content's key), force model,
+    sensor preset, seed, mesh and force source. A resume must probe the same (session 56's review: a run resumed with
+    another --truth or --sensor put 57 and 243 records of two worlds in one probes.jsonl, exit 0)."""
+    if not args.sim:
+        return {"arm": "real"}
+    return {"arm": f"simulated ({args.sim})", "truth": truth.key() if truth is not None else None,
+            "force_model": args.force_model, "sensor": args.sensor, "seed": args.seed,
+            "sim_mesh_m": args.sim_mesh_m, "force_source": args.ft.kind}
+
+
+def check_same_world(out: Path, world: dict) -> None:
+    """UsageError when OUT's earlier cell run probed another world (``cell_world``); nothing when there is none."""
+    try:
+        prev = json.loads((out / CELL_WORLD).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return
+    except (OSError, ValueError) as e:
+        raise UsageError(f"--out {out}: cannot read {CELL_WORLD} of the run there ({e}); use --fresh (moves the old "
+                         f"files aside) or another --out") from None
+    diff = [f"{k} was {prev.get(k)!r}, now {v!r}" for k, v in world.items() if prev.get(k) != v]
+    if diff:
+        raise UsageError(f"--out {out}: holds a run of another arm or simulated world ({'; '.join(diff)}): its "
+                         f"records and this run's would mix; resume with the same options, or --fresh (moves them "
+                         f"aside) or another --out")
+
+
+def write_world(out: Path, world: dict) -> None:
+    """OUT's ``cell_world`` (written once: a resume found it equal)."""
+    path = out / CELL_WORLD
+    if not path.exists():
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(world, indent=1, allow_nan=False))
+        tmp.replace(path)
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
@@ -220,7 +259,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(args, held: contextlib.ExitStack) -> int:
     # ---- everything checked before the output directory is touched or anything moves
     check_output_dir(args.out, "--out")
-    check_output_file(args.json, "--json")
+    check_output_file(args.json, "--json", inputs={"--plan": args.plan, "--truth": getattr(args, "truth", None)})
     out = Path(args.out)
     if args.json and Path(args.json).absolute().parent == out.absolute() and Path(args.json).name in (
             "probes.jsonl", "run.json"):
@@ -262,7 +301,13 @@ def _main(args, held: contextlib.ExitStack) -> int:
             except SceneError as e:             # said as the option the user gave, not as the scene's field
                 raise UsageError(f"--sim-mesh-m {args.sim_mesh_m:g}: not a mesh for {truth.name} "
                                  f"(the simulator's analysis.mesh_size_m): {e}") from None
+    world = cell_world(args, truth if args.sim and args.force_model == "fem" else None)
+    if not args.fresh:
+        check_same_world(out, world)
     done = set() if args.fresh else done_indices(out)
+    damaged = None if args.fresh else damaged_note(out)
+    if damaged:                             # (said by palpate run's resume too; the cell dropped them silently)
+        print(f"palpate-cell: {damaged}", file=sys.stderr)
     other = None if args.fresh else foreign_record(out, plan)
     if other is not None:
         raise UsageError(f"--out {out}: holds records of another plan ({other}; --plan {args.plan}): a resumed run "
@@ -281,6 +326,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
         moved = move_aside(out, keep=[args.plan, args.truth])    # (the command's input files kept in OUT stay)
         if moved is not None:
             print(f"--fresh: the previous run's files are in {moved}")
+    write_world(out, world)
     arm = None
     try:
         if args.sim == "controller":
@@ -317,7 +363,9 @@ def _main(args, held: contextlib.ExitStack) -> int:
         print(f"FAULT {rep.fault['kind']}: {rep.fault['message']}")
         print(f"  stopped={rep.fault['stopped']} retracted={rep.fault['retracted']}; "
               + "; ".join(rep.fault.get("notes", [])))
-        print(f"  completed probes are in {out / 'probes.jsonl'}; run again with the same --out to resume")
+        first = ("free the tip first (freedrive on the pendant, out of the tissue: a resume does not pull it out "
+                 "through the force that stopped the retract), then " if rep.fault.get("retract_blocked") else "")
+        print(f"  completed probes are in {out / 'probes.jsonl'}; {first}run again with the same --out to resume")
     report = rep.to_dict()
     rr = sim_range_report(arm) if arm is not None else None
     if rr is not None:         # the simulated force left the model's range: recorded in run.json, never silent

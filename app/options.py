@@ -235,7 +235,25 @@ def _writable_parent(path: Path, option: str, shown=None) -> None:
             raise UsageError(f"{option} {path}: {e.strerror}") from None
 
 
-def check_output_file(path: str | None, option: str, replaced: bool = False) -> None:
+def refuse_inputs(path: str | None, option: str, inputs: dict | None) -> None:
+    """UsageError when the output ``path`` is one of the command's ``inputs`` ({what: path}: the scene file, the
+    plan, the prior) -- the same file, whatever the spelling or a link (session 56's review: ``--json`` on the scene
+    or the plan replaced it, exit 0)."""
+    if not path or path == "-" or not inputs:
+        return
+    for what, given in inputs.items():
+        if not given or given == "-":
+            continue
+        try:
+            same = os.path.samefile(path, given)
+        except OSError:             # one of them is no file (a built-in scene's name, a path to be made)
+            same = False
+        if same:
+            raise UsageError(f"{option} {path}: is {what} ({given}), which the command reads; writing there would "
+                             f"replace it: choose another path")
+
+
+def check_output_file(path: str | None, option: str, replaced: bool = False, inputs: dict | None = None) -> None:
     """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data (nor a
     symlink to it), its directory creatable/writable. ``replaced``: the file is written beside and renamed over the
     path, so an existing path must be a regular file (a device such as /dev/null would be replaced by one; a pipe
@@ -245,6 +263,7 @@ def check_output_file(path: str | None, option: str, replaced: bool = False) -> 
         return
     _not_blank(path, option, "a file path")
     refuse_measured(path, option)
+    refuse_inputs(path, option, inputs)
     p = Path(path)
     try:
         os.stat(p)

@@ -6,7 +6,13 @@ import argparse
 
 class Parser(argparse.ArgumentParser):
     """argparse's parser with a usage error on one line, ``prog: error: message (see prog --help)``, and exit 2 (no
-    usage block first); subcommands' parsers are of the same class (argparse's default for ``add_subparsers``)."""
+    usage block first); subcommands' parsers are of the same class (argparse's default for ``add_subparsers``). No
+    abbreviations: argparse would take ``--depth 0.003`` for ``--depth-limit-m 0.003`` (session 56's review) -- a
+    silent change of meaning, so an option is spelt in full or refused."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         message = message.replace("\r", "\\r").replace("\n", "\\n")      # a value with a newline stays one line

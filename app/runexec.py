@@ -24,7 +24,7 @@ from planner.plan import replan
 from planner.refine import renumber
 from robot.driver import preflight, run_plan
 from robot.link import connect, end_session, receive_once
-from robot.records import DONE, done_indices, latest_by_index, move_aside, read_records
+from robot.records import DONE, damaged_note, done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -408,12 +408,9 @@ def resuming_note(out: Path) -> str:
     done, measured = len(done_indices(out)), measured_on_disk(out)
     again = f" ({measured - done} stopped at the force or depth limit are pressed again)" if measured > done else ""
     note = f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
-    damaged: list = []
-    read_records(out, damaged)
+    damaged = damaged_note(out)
     if damaged:
-        where = "; ".join(f"line {k}: {why}" for k, why in damaged[:3]) + ("; ..." if len(damaged) > 3 else "")
-        note += (f"\nwarning: {len(damaged)} line(s) of {out / 'probes.jsonl'} are not probe records (edited or "
-                 f"damaged; {where}): they are left as they are and not used, and their probes are pressed again")
+        note += "\n" + damaged
     if not (out / "probes.jsonl").exists() and any((out / "raw").glob("probe_*.npz")):
         note += (f"\nwarning: {out / 'probes.jsonl'} is missing but {out / 'raw'} holds probes' samples: they are "
                  f"kept, and every probe is pressed again (new samples get new file names)")
@@ -494,6 +491,9 @@ def no_contact_warning(nc: dict, three_d: bool = False) -> str:
 # faults that a resumed run meets again until the cell is changed: what to change first
 _REPLAN = ("if the tissue's surface is higher than registered, re-register it or plan a larger approach height "
            "(palpate plan --approach-height-m, given with --plan), then run with --fresh or another --out")
+RETRACT_BLOCKED_FIX = ("the arm is held where a retract met a force, the tip perhaps in the tissue: free it first "
+                       "(freedrive on the pendant, out of the tissue), then the same command resumes (with the tip "
+                       "still in the tissue it refuses to pull it out)")
 FIRST_FIX = {"free_air_force": "the same command resumes once the sensor reads steady in free air with its force "
                                "sign right (until then it ends the same way); " + _REPLAN,
              "surface_high": _REPLAN[len("if the tissue's surface is higher than registered, "):],
@@ -536,8 +536,9 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
         if kind == "interrupted":       # the user's Ctrl-C (or a supervisor's SIGTERM): no fault of the cell
             return ("NO RESULT: interrupted (Ctrl-C or a stop signal): the arm was stopped and its probes are kept; "
                     "the same command resumes")
+        blocked = bool(fault and fault.get("fault") and fault["fault"].get("retract_blocked"))
         return (f"NO RESULT: the arm run ended with a fault ({kind}): its probes are kept; "
-                + FIRST_FIX.get(kind, "the same command resumes"))
+                + (RETRACT_BLOCKED_FIX if blocked else FIRST_FIX.get(kind, "the same command resumes")))
     if not localized(loc):
         return f"NOT LOCALIZED: {res.stop_reason}"
     why = unplaced(loc, tissue)

@@ -149,6 +149,7 @@ class PlanOptions:
 # a probe's fields an older plan may lack: y_m (2D plans before the 3D work: 0, the section's plane; a 3D plan must
 # have it) and force_exponent (before session 43: None, the depth limit counts from the contact felt)
 OPTIONAL_PROBE_FIELDS = ("y_m", "force_exponent")
+PLAN_SCENE_TABLES = ("tissue", "indenter", "analysis")    # a plan's scene holds each (Scene.to_dict writes them)
 
 
 def _table(cls, d, where: str, optional: tuple = ()):
@@ -208,6 +209,15 @@ class Plan:
                             f"{', '.join(f.name for f in dataclasses.fields(Plan))}")
         if not isinstance(d.get("scene"), dict):
             raise PlanError(f"plan field 'scene' must be a table of the prior scene, got {type(d.get('scene')).__name__}")
+        for part in PLAN_SCENE_TABLES:      # (fem's scene defaults, a 5 mm cylinder among them, are no plan's)
+            if not isinstance(d["scene"].get(part), dict):
+                raise PlanError(f"plan field scene.{part} is missing or not a table: no default is taken for it (the "
+                                f"tip's radius bounds the depth limit); re-plan with palpate plan or restore it")
+        try:
+            json.dumps(d.get("notes", {}), allow_nan=False)
+        except ValueError:
+            raise PlanError("plan field 'notes' holds a number that is not finite (NaN or inf): palpate writes none "
+                            "there, and the run's copy of the plan could not be written; restore or remove it") from None
         try:
             notes = d.get("notes", {})
             notes = dict(notes) if isinstance(notes, dict) else {"ignored": notes}

@@ -193,4 +193,14 @@ def forget() -> None:
     _OPEN.clear()
 
 
-atexit.register(save_all)
+def _save_at_exit() -> None:
+    """``save_all`` at the process's end; a Ctrl-C there (a second one: the first ended the command) leaves what is
+    not yet written unwritten -- a cache, remade on demand, each file written whole or not at all (diskcache) --
+    instead of a traceback after the command's one line (session 56's review)."""
+    try:
+        save_all()
+    except KeyboardInterrupt:
+        pass
+
+
+atexit.register(_save_at_exit)

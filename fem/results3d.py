@@ -10,7 +10,9 @@ from .guards import check_finite
 
 def quadratic_peak(x: np.ndarray, y: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
     """(x, y, value) of the maximum of scattered values: the largest node, refined by a least-squares quadratic
-    through its nearest neighbours (at least 12 of them) when that quadratic has a maximum within their reach."""
+    through its nearest neighbours (at least 12 of them) when that quadratic has a maximum within half their reach
+    and inside their bounding box (as ``core.peak.parabola_peak`` keeps its vertex within its samples: at a grid's
+    edge a noisy quadratic could put it beyond the grid, where nothing was sampled)."""
     i = int(np.argmax(v))
     d = np.hypot(x - x[i], y - y[i])
     near = np.argsort(d)[:13]
@@ -22,9 +24,11 @@ def quadratic_peak(x: np.ndarray, y: np.ndarray, v: np.ndarray) -> tuple[float, 
         H = np.array([[2 * c[3], c[4]], [c[4], 2 * c[5]]])
         if np.all(np.linalg.eigvalsh(H) < 0):
             s = np.linalg.solve(H, -c[1:3])
-            if np.hypot(*s) <= 0.5 * reach:
+            xv, yv = x[i] + s[0], y[i] + s[1]
+            inside = x[near].min() <= xv <= x[near].max() and y[near].min() <= yv <= y[near].max()
+            if np.hypot(*s) <= 0.5 * reach and inside:
                 val = c[0] + c[1] * s[0] + c[2] * s[1] + 0.5 * s @ H @ s
-                return float(x[i] + s[0]), float(y[i] + s[1]), float(max(val, v[i]))
+                return float(xv), float(yv), float(max(val, v[i]))
     return float(x[i]), float(y[i]), float(v[i])
 
 

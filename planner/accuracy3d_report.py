@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.jsonsafe import csv_row, nulled
+
 from .accuracy3d import FAILED
 
 P_ENVELOPE = 0.9
@@ -91,10 +93,10 @@ def write_report(out: Path, rows: list[dict], command: str, elapsed_s: float, wh
     with open(out / "accuracy3d.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
-        w.writerows(rows)
+        w.writerows([csv_row(r) for r in rows])
     s = summarise(rows)
     s.update({"command": command, "elapsed_s": elapsed_s, "where": where})
-    (out / "accuracy3d.json").write_text(json.dumps(s, indent=1, default=lambda v: None))
+    (out / "accuracy3d.json").write_text(json.dumps(nulled(s), indent=1, default=lambda v: None, allow_nan=False))
     lines = [f"3D accuracy study: `{command}` ({elapsed_s:.0f} s, {where})", "",
              "| method | probes (median) | detected | lateral error (mm, median) | depth error (mm, median) | "
              "diameter error (mm) | x in 1/2 sigma | y in 1/2 sigma | depth in 1/2 sigma | detected in envelope | "

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.jsonsafe import csv_row, nulled
 from planner.accuracy import BOOT, DENSE, PEAK_ONLY, STRATEGIES, errors_by_seed
 
 
@@ -151,9 +152,9 @@ def write_report(out: Path, rows: list[dict], sensor: str, budget: int, target_m
         with open(out / "accuracy.csv", "w", newline="") as f:
             w = csv.DictWriter(f, fieldnames=keys)
             w.writeheader()
-            w.writerows(rows)
+            w.writerows([csv_row(r) for r in rows])
     summ = summarize(rows, sensor)
-    (out / "accuracy.json").write_text(json.dumps(summ, indent=1))
+    (out / "accuracy.json").write_text(json.dumps(nulled(summ), indent=1, allow_nan=False))
     lines = [f"Accuracy study: {trials} random stones + {healthy} healthy scenes, sensor {sensor}, "
              f"budget {budget} probes, target 1-sigma {target_m * 1e3:g} mm ({elapsed_s:.0f} s{where})",
              "", "| method | probes (mean) | detection rate (predicted) | false alarms | lateral err median / p90 "
@@ -183,7 +184,7 @@ def write_report(out: Path, rows: list[dict], sensor: str, budget: int, target_m
                and summ[f"dense-{n}"]["median_err_depth_mm"] < 1.0]
     lines += ["Smallest even raster (same fit) meeting the targets (median lateral < 0.5 mm, depth < 1 mm): "
               + (f"{targets[0]} probes" if targets else "none"), ""]
-    (out / "accuracy_ratio.json").write_text(json.dumps(ratios, indent=1))
+    (out / "accuracy_ratio.json").write_text(json.dumps(nulled(ratios), indent=1, allow_nan=False))
     # accuracy against probes: the adaptive estimate after each round, and dense rasters
     lines += ["", "Median error against probes used (detected stones with centre <= 30 mm deep; all rounds of the "
               "adaptive runs):", "", "| probes | adaptive-design x / depth (mm) | adaptive-raster x / depth (mm) | "

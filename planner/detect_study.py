@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from core.contracts import Motion, sensor_spec
+from core.jsonsafe import nulled
 from fem.scene import Stone
 from planner.accuracy import DEPTH_M, FastArm, continued_force
 from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
@@ -81,7 +82,7 @@ def run_detect(sur, cases: list[Case], runner: Runner = Runner(), store: Path | 
 def write_report(out: Path, rows: list[dict], elapsed_s: float, where: str = "") -> list[str]:
     """detect.json, detect.csv, detect.md (returned as lines) and detect.png in ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "detect.json").write_text(json.dumps(rows, indent=1))
+    (out / "detect.json").write_text(json.dumps(nulled(rows), indent=1, allow_nan=False))
     with open(out / "detect.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

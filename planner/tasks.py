@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.textfile import InputFileError
+
 
 @dataclass(frozen=True)
 class Runner:
@@ -83,12 +85,20 @@ def save_piece(store: Path, name: str, result) -> None:
 
 
 def load_piece(store: Path, name: str):
-    """A finished piece from ``store``, or None."""
+    """A finished piece from ``store``, or None. A piece that cannot be read back (emptied, cut short, edited) is an
+    InputFileError naming it: it is not computed again over it (nothing on disk is overwritten), the user moves it
+    aside."""
     npy, js = store / f"{name}.npy", store / f"{name}.json"
-    if npy.exists():
-        return np.load(npy, allow_pickle=False)
-    if js.exists():
-        return json.loads(js.read_text())
+    try:
+        if npy.exists():
+            return np.load(npy, allow_pickle=False)
+        if js.exists():
+            return json.loads(js.read_text())
+    except (ValueError, EOFError) as e:         # (json's JSONDecodeError and numpy's bad files are ValueErrors)
+        bad = npy if npy.exists() else js
+        raise InputFileError("a finished piece of this work", bad,
+                             f"cannot be read back ({e}): move it aside, and the same command computes it again "
+                             f"(nothing on disk is overwritten)") from None
     return None
 
 

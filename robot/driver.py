@@ -62,7 +62,7 @@ from core.contracts import (
 from robot.forcesource import ForceSource, RtdeForce
 from robot.link import BLOCKING_CALLS, UR_READY_TIMEOUT_S, CallTimeout, CallWorker, deadline_for
 from robot.netft import SensorFault
-from robot.records import RunLog, done_indices, summarise
+from robot.records import RunLog, done_indices, last_retract_blocked, summarise
 from robot.recovery import ProbeFault, Recovery
 from robot.safety import (
     GuardedControl,
@@ -384,8 +384,9 @@ class _RetractWatch:
     force across the normal rises above its limit (or above where it began) by a contact threshold. The safe state
     after such a fault does not retract again: the retract is what met the force (``Driver.retract_blocked``).
 
-    Where the retract began: the extremes of its first filter window (``filter_window`` periods: 10 ms, 0.2 mm at
-    the retract's speed), nothing stopped meanwhile. A retract may begin with forces still entering the filter: a
+    Where the retract began: the extremes of its first filter window (``filter_window`` periods: 10 ms, under
+    0.03 mm from rest at the retract's acceleration), nothing stopped meanwhile but, in a probe's own retract, what
+    its descent and dwell would have stopped (``watched``). A retract may begin with forces still entering the filter: a
     probe stopped at the force limit retracts at once, and the safe state's retract follows a fault (a push across
     the normal that ended a descent is still acting).
 
@@ -394,9 +395,14 @@ class _RetractWatch:
     count: up by more than the force limit, down by more than twice it (the probe's push released, then the limit
     pulling), across by more than the lateral limit."""
 
-    def __init__(self, driver: "Driver", zeroed: bool):
+    def __init__(self, driver: "Driver", zeroed: bool, watched: bool = False):
         self.d = driver
         self.zeroed = zeroed
+        # ``watched``: a probe's retract, its descent and dwell watched to their last period (the force across the
+        # normal within its limit, no pull): its first filter window is judged against those limits too, or a push
+        # arriving with the retract's first readings would set where it began (session 56's review: 40 N across,
+        # the run ok)
+        self.watched = watched and zeroed
         self.left = driver.cfg.filter_window        # readings that set where the retract began
         self.f_max, self.f_min, self.lat_max = -math.inf, math.inf, 0.0
         self.hi = self.lo = self.lat_hi = None      # set once they are in
@@ -422,34 +428,50 @@ class _RetractWatch:
         return True
 
     def __call__(self, s):
-        if self.hi is None and not self._begin(s):
-            return None
-        f, lat = s["filt"], s["lat"]
-        if lat > self.lat_hi:
-            self.d.retract_blocked = "the retract met a force across the tissue normal"
-            self.d._lateral(lat, self.lat_hi, f, "retract")
-        if f > self.hi or f < self.lo:
-            self._fault(f, lat)
+        if self.hi is None:
+            if self.watched:
+                self._judge(s, math.inf, -self.d.lim.force_limit_n - self.d.contact_thr,
+                            self.d.lat_limit_n + self.d.contact_thr)
+            if not self._begin(s):
+                return None
+        self._judge(s, self.hi, self.lo, self.lat_hi)
         return None
 
-    def _fault(self, f: float, lat: float) -> None:
+    def _judge(self, s, hi: float, lo: float, lat_hi: float) -> None:
+        f, lat = s["filt"], s["lat"]
+        if lat > lat_hi:
+            self.d.retract_blocked = "the retract met a force across the tissue normal"
+            self.d._lateral(lat, lat_hi, f, "retract", self._lateral_bound(lat_hi), held=True)
+        if f > hi or f < lo:
+            self._fault(f, lat, hi, lo)
+
+    def _lateral_bound(self, lat_hi: float) -> str:
+        lim = self.d.lat_limit_n
+        if not self.zeroed:
+            return f"{lat_hi:.3f} N (where the retract began plus the lateral limit {lim:g} N; the sensor not zeroed yet)"
+        return f"{lat_hi:.3f} N (the lateral limit {lim:g} N, or the force across where the retract began, plus a " \
+               f"contact threshold)"
+
+    def _fault(self, f: float, lat: float, hi: float, lo: float) -> None:
         d = self.d
         d.retract_blocked = "the retract met a force along the tissue normal"
         d._stop()
         if not self.zeroed:         # (a resumed run's first move: the sensor not zeroed, its offset unknown)
-            why = (f"changed from {self.f_min if f > self.hi else self.f_max:+.3f} N to {f:+.3f} N (the sensor not "
-                   f"zeroed yet: only a change of more than the force limit up, or twice it down, counts): the tissue "
-                   f"holds the tip, or lets it go after holding it, or something presses on the tool")
-        elif f > self.hi:
-            why = (f"rose to {f:+.3f} N, above {self.hi:.3f} N: the tissue rises with the tip (or the registered "
+            up = f > hi
+            why = (f"changed from {self.f_max if up else self.f_min:+.3f} N to {f:+.3f} N, "
+                   f"{'above' if up else 'below'} {hi if up else lo:+.3f} N (the sensor not zeroed yet: only a change "
+                   f"of more than the force limit up, or twice it down, counts): the tissue holds the tip, or lets "
+                   f"it go after holding it, or something presses on the tool")
+        elif f > hi:
+            why = (f"rose to {f:+.3f} N, above {hi:.3f} N: the tissue rises with the tip (or the registered "
                    f"normal is wrong)")
         else:
-            why = (f"pulls towards the tissue with {-f:.3f} N, beyond {-self.lo:.3f} N: the tissue holds the tip, or "
+            why = (f"pulls towards the tissue with {-f:.3f} N, beyond {-lo:.3f} N: the tissue holds the tip, or "
                    f"something above presses on the tool")
         raise ProbeFault(FaultKind.RETRACT_FORCE,
                          f"leaving the tissue, the force along its normal (filtered; {lat:.3f} N across it) {why}; "
                          f"the arm stopped where it was and is not moved again: free the tip (freedrive on the "
-                         f"pendant), then resume (the driver retracts first, watched)")
+                         f"pendant, out of the tissue), then resume")
 
     def quiet(self, b: _Block, limit: int) -> int:
         if self.hi is None:
@@ -692,6 +714,7 @@ class Driver(Recovery):
             if own and self.cfg.fast_forward and self.fs.name == "rtde" and not self.backstop else None
         self.n_fast = 0                 # periods stepped through the look-ahead
         self.retract_blocked: str = ""  # why the safe state must not retract (a retract met a force: _RetractWatch)
+        self.last_blocked = False       # the last run in the output directory ended so (run.json): run() reads it
 
     # ---- primitives --------------------------------------------------------------------------------------
     def _call(self, fn, *args):
@@ -837,12 +860,16 @@ class Driver(Recovery):
                          f"sideways, or the sensor drifts across the normal (more than {DRIFT_ALLOWANCE_N_PER_S:g} N/s "
                          f"since its zero)")
 
-    def _lateral(self, lat: float, limit: float, filt: float, where: str) -> None:
-        """The filtered force across the tissue normal above its limit: a fault (the arm stopped first)."""
+    def _lateral(self, lat: float, limit: float, filt: float, where: str, bound: str | None = None,
+                 held: bool = False) -> None:
+        """The filtered force across the tissue normal above its limit (``bound``: what the limit is, said): a fault
+        (the arm stopped first; ``held``: and not retracted)."""
         self._stop()
         raise ProbeFault(FaultKind.LATERAL_FORCE,
                          f"{lat:.3f} N across the tissue normal in the {where} (filtered; {filt:+.3f} N along it), "
-                         f"above the lateral limit {limit:.3f} N: the tip is caught or pushed from the side")
+                         f"above {bound or f'the lateral limit {limit:.3f} N'}: the tip is caught or pushed from the "
+                         f"side" + ("; the arm stopped where it was and is not moved again: free the tip (freedrive "
+                                    "on the pendant), then resume" if held else ""))
 
     def _check_wrist(self, w) -> None:
         """The backstop behind an external sensor: the wrist sensor's filtered force along the normal."""
@@ -1208,7 +1235,7 @@ class Driver(Recovery):
             outcome = self._loop(mo.dwell_s + 1.0, dwell, what="dwell", quiet=quiet)
         self.phase = RETRACT
         self._move(p.approach_pose, min(self.cfg.retract_speed_m_s, lim.tool_speed_m_s),
-                   min(mo.probe_accel_m_s2, lim.accel_m_s2), self._retract_watch(),
+                   min(mo.probe_accel_m_s2, lim.accel_m_s2), self._retract_watch(watched=True),
                    what=f"retract of probe {p.index}")
         if limited and outcome == "reached":
             outcome = ProbeStatus.DEPTH_LIMIT       # (its dwell done at the limit, not at the planned depth)
@@ -1217,9 +1244,10 @@ class Driver(Recovery):
         return summarise(p, raw, status, watch.contact, t0, self.ts, self.contact_thr, self.noise_std,
                          lim.depth_limit_m), raw
 
-    def _retract_watch(self) -> _RetractWatch:
-        """The watch on a move out of the tissue: a probe's retract, the safe state's, a resumed run's first."""
-        return _RetractWatch(self, zeroed=self.zeroed_ts is not None)
+    def _retract_watch(self, watched: bool = False) -> _RetractWatch:
+        """The watch on a move out of the tissue: a probe's retract (``watched``: after its watched descent and
+        dwell), the safe state's, a resumed run's first."""
+        return _RetractWatch(self, zeroed=self.zeroed_ts is not None, watched=watched)
 
     def _halt(self, kind):
         self._stop()
@@ -1230,6 +1258,7 @@ class Driver(Recovery):
         wall0 = time.monotonic()
         plan, cfg = self.plan, self.cfg
         done = done_indices(out_dir) if resume else set()
+        self.last_blocked = resume and last_retract_blocked(out_dir)
         pre = preflight(plan, done)
         problems, bad = check_plan(plan)
         rep = RunReport(RunStatus.OK, str(out_dir), n_planned=len(plan.probes), problems=problems,
@@ -1334,6 +1363,8 @@ class Driver(Recovery):
             message = type(e).__name__
         rep.fault = {"kind": kind, "message": message, "probe_index": getattr(current, "index", None),
                      "controller_time_s": self.ts, "detected_unix_s": time.time(), "notes": []}
+        if self.retract_blocked:            # a resume must not pull the tip out through that force (_setup)
+            rep.fault["retract_blocked"] = True
         lost = []
         if current is not None:             # on disk first: a hang in safe_state() must not lose them
             try:
@@ -1370,6 +1401,13 @@ class Driver(Recovery):
         p = s["pose"]
         if not all(self.lim.box_min[k] <= p[k] <= self.lim.box_max[k] for k in range(3)):
             raise SafetyViolation(f"the arm starts at {[round(v, 3) for v in p[:3]]}, outside the workspace box")
+        if self.last_blocked and self._needs_retract(s["depth"], s["x"]):
+            self.retract_blocked = "the last run stopped in a retract that met a force"
+            raise ProbeFault(FaultKind.RETRACT_FORCE,
+                             f"the last run in this directory stopped in a retract that met a force (run.json), and "
+                             f"the tip is still {(s['depth'] + self.plan.motion.approach_height_m) * 1e3:.1f} mm below "
+                             f"its approach height: the driver does not pull it out through that force; free the tip "
+                             f"(freedrive on the pendant, out of the tissue), then resume")
         self._retract_from(p, s["depth"], s["x"])   # a resumed run may start with the tip in tissue
         self._zero(rotvec=p[3:])                     # free air: zero and check the sensor before moving on
 

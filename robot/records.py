@@ -175,6 +175,29 @@ def read_records(out_dir: str | Path, damaged: list | None = None) -> list[Probe
     return out
 
 
+def last_retract_blocked(out_dir: str | Path) -> bool:
+    """Did the last run in ``out_dir`` (its run.json) end held in a retract that met a force (``retract_blocked``)?
+    A run.json that cannot be read says no (its report is kept in run_history.jsonl as it is)."""
+    try:
+        rep = json.loads((Path(out_dir) / "run.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    fault = rep.get("fault") if isinstance(rep, dict) else None
+    return isinstance(fault, dict) and fault.get("retract_blocked") is True
+
+
+def damaged_note(out_dir: str | Path) -> str | None:
+    """A warning line when probes.jsonl in ``out_dir`` holds lines that are not probe records (edited or damaged),
+    which a resumed run leaves as they are, does not use, and whose probes it presses again; else None."""
+    damaged: list = []
+    read_records(out_dir, damaged)
+    if not damaged:
+        return None
+    where = "; ".join(f"line {k}: {why}" for k, why in damaged[:3]) + ("; ..." if len(damaged) > 3 else "")
+    return (f"warning: {len(damaged)} line(s) of {Path(out_dir) / 'probes.jsonl'} are not probe records (edited or "
+            f"damaged; {where}): they are left as they are and not used, and their probes are pressed again")
+
+
 def latest_by_index(out_dir: str | Path) -> dict[int, ProbeRecord]:
     return {int(r.index): r for r in read_records(out_dir)}
 

@@ -40,6 +40,8 @@ FT_FAULTS = ("ft-silent", "ft-status", "ft-loss", "ft-spike", "ft-freeze")
 TRIGGERS = {"at-s": "s", "at-depth-m": "depth-m", "leaving-depth-m": "leaving-m", "after-probes": "probes"}
 OUT_OF_TISSUE_M = 0.0          # tip above the surface: out of the tissue
 IN_TISSUE_M = 5e-4             # tip this far below the surface: in it
+FORCE_KINDS = ("force-spike", "side-push", "ft-spike")     # X is a force (N)
+MAX_INJECTED_FORCE_N = 1000.0  # |X| of a force fault at most this (beyond what a UR5e or an F/T sensor meets)
 SIDE_PUSH_S = 0.2              # a side push lasts this long
 LEAVING_HYSTERESIS_M = 5e-5   # leaving-depth-m=D: deeper than D by this first (a dwell's sub-micron jitter is not a
 #                               way out)
@@ -91,12 +93,14 @@ def parse(spec: str) -> FaultSpec:
             ok = value >= 1 and value == int(value)
         if ok and kind == "side-push":      # (without a force it would push nothing, silently)
             ok = xv is not None and xv > 0
+        if ok and kind in FORCE_KINDS and xv is not None:   # (1e300 N wrote records the readers refuse)
+            ok = abs(xv) <= MAX_INJECTED_FORCE_N
     except ValueError:
         ok = False
     if not ok:
         raise ValueError(f"bad fault {given!r}: KIND-at-s=T[:X], KIND-at-depth-m=D[:X], KIND-leaving-depth-m=D[:X] or "
                          f"KIND-after-probes=N[:X] "
-                         f"(N >= 1; or KIND:T[:X]; side-push needs X > 0, its newtons), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
+                         f"(N >= 1; or KIND:T[:X]; side-push needs X > 0, its newtons; a force X at most {MAX_INJECTED_FORCE_N:g} N), KIND one of {', '.join([*ARM_FAULTS, *CONTROLLER_FAULTS, *FT_FAULTS])}; "
                          f"see robot.simfaults")
     return FaultSpec(kind, TRIGGERS[trig], value, xv)
 

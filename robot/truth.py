@@ -112,6 +112,10 @@ class TruthConditions:
         unknown = sorted(set(d) - set(known))
         if unknown:
             raise TruthError(f"unknown key(s) in {where}: {', '.join(map(str, unknown))} (known: {', '.join(known)})")
+        if "relaxation_tau_s" in d and not d.get("relaxation_fraction"):
+            raise TruthError(f"{where} relaxation_tau_s = {d['relaxation_tau_s']!r} without a relaxation_fraction "
+                             f"above 0: the truth does not relax, so the time constant would do nothing; give "
+                             f"relaxation_fraction (0 < f <= {RANGES['relaxation_fraction'][1]:g}) or drop it")
         return TruthConditions(**d)
 
 

@@ -13,7 +13,11 @@ from robot.simforce import standin_force_model
 TCP = [0.0, 0.0, 0.10, 0.0, 0.0, 0.0]
 TISSUE_POSE = [0.35, -0.035, 0.05, 0.0, 0.0, 0.0]
 SCENE = {"name": "paper-prior", "tissue": {"width_m": 0.07, "height_m": 0.05, "youngs_pa": 2500.0, "poisson": 0.4},
-         "stone": []}
+         "stone": [],
+         # (a plan file's scene holds its tip and analysis: core.contracts.PLAN_SCENE_TABLES; the paper's)
+         "indenter": {"shape": "cylinder", "radius_m": 0.005, "youngs_pa": 60e6, "poisson": 0.3, "thickness_m": 0.02},
+         "analysis": {"plane": "strain", "order": 2, "mesh_size_m": 0.002, "surface_refine": 4.0,
+                      "top_displacement_m": 0.005, "formulation": "displacement"}}
 
 
 def tissue_point_pose(tissue_pose, x_m, z_m) -> list[float]:

@@ -102,30 +102,70 @@ def _operator_time(arm, seconds: float = 2.0) -> None:
         arm.step()
 
 
-def test_a_resumed_run_retracts_watched_and_finishes(tmp_path):
-    """After a retract held in the tissue by a pull: the operator resumes (the pull gone). The resumed run's first
-    move retracts the tip, watched with the forces counted from where it began (the sensor not zeroed yet), and
-    the run finishes, probe 0 probed again."""
-    rep, arm, c, r, out = _run(tmp_path, f"force-spike-leaving-depth-m={LEAVING}:-10")
-    assert rep.fault["kind"] == "retract_force" and arm.tip_in_tissue()[1] > 0.0
-    _operator_time(arm)
-    rep2 = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
-    assert rep2.status == "ok" and rep2.n_ok == len(XS), rep2.fault
-    assert [x.status for x in read_records(out)] == ["fault", "ok", "ok", "ok"]
+def _freedrive_out(arm, plan) -> None:
+    """What the operator does with freedrive on the pendant: the tip moved out of the tissue, above probe 0."""
+    arm.move_linear(plan.probes[0].approach_pose, 0.01, 0.5)
+    while arm.is_moving:
+        arm.step()
 
 
-def test_a_resumed_run_whose_first_retract_meets_a_pull(tmp_path):
-    """The resumed run's first retract (the sensor not zeroed: changes from where it began count) meets a pull of
-    20 N towards the tissue (more than twice the limit below where it began): stopped, not retracted, no probe run."""
-    rep, arm, c, r, out = _run(tmp_path, f"force-spike-leaving-depth-m={LEAVING}:-10")
-    assert rep.fault["kind"] == "retract_force"
-    _operator_time(arm)
-    depth0 = arm.tip_in_tissue()[1]
-    inject_arm(arm, parse(f"force-spike-leaving-depth-m={depth0 - 2e-4}:-20"))
-    rep2 = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
-    assert rep2.fault["kind"] == "retract_force" and not rep2.fault["retracted"], rep2.fault
-    assert "the sensor not zeroed yet" in rep2.fault["message"]
-    assert rep2.n_ok == 0 and arm.tip_in_tissue()[1] > 0.0 and not arm.is_moving
+def test_a_resume_does_not_pull_the_tip_out_through_the_force(tmp_path):
+    """After a retract held in the tissue by a pull still acting (30 s), an immediate resume refuses to retract (the
+    review: it pulled the tip out through the 10 N pull, 5 times the limit): retract_force again, saying to free
+    the tip, nothing moved. Freed by hand (freedrive), the same command resumes and finishes, probe 0 probed
+    again."""
+    arm, c, r = make_sim(seed=3)
+    leaving = trigger(parse(f"nan-leaving-depth-m={LEAVING}"))
+    arm.inject("force_spike", when=leaving, duration_s=30.0, magnitude_n=-10.0)
+    out = tmp_path / "run"
+    plan = make_plan(XS, depth_m=0.003)
+    rep = run_plan(plan, c, r, out)
+    assert rep.fault["kind"] == "retract_force" and rep.fault["retract_blocked"]
+    held = arm.tip_in_tissue()[1]
+    rep2 = run_plan(plan, c, r, out)
+    assert rep2.fault["kind"] == "retract_force" and "free the tip" in rep2.fault["message"], rep2.fault
+    assert not rep2.fault["retracted"] and rep2.n_ok == 0 and arm.tip_in_tissue()[1] == held
+    _operator_time(arm, 30.0)
+    _freedrive_out(arm, plan)
+    rep3 = run_plan(plan, c, r, out)
+    assert rep3.status == "ok" and rep3.n_ok == len(XS), rep3.fault
+    assert [x.status for x in read_records(out)] == ["fault", "ok", "ok", "ok"]     # (the refusal pressed none)
+
+
+def test_a_resumed_runs_first_retract_is_watched(tmp_path):
+    """A run stopped in a descent by a protective stop (the tip left in the tissue, not retracted); the stop cleared,
+    the resumed run's first move retracts the tip, watched with the sensor not yet zeroed (changes from where it
+    began count), and finishes; and the same with a pull of 20 N towards the tissue as it leaves (more than twice the
+    limit below where it began): stopped, held, no probe run."""
+    for pull, name in ((None, "clean"), (-20.0, "pulled")):
+        arm, c, r = make_sim(seed=3)
+        arm.inject("protective_stop", when=lambda a: a.tip_in_tissue()[1] >= 0.002)
+        out = tmp_path / name
+        rep = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
+        assert rep.fault["kind"] == "protective_stop" and arm.tip_in_tissue()[1] > 0.0019
+        arm.clear_protective_stop()
+        if pull is not None:
+            inject_arm(arm, parse(f"force-spike-leaving-depth-m={arm.tip_in_tissue()[1] - 2e-4}:{pull}"))
+        rep2 = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
+        if pull is None:
+            assert rep2.status == "ok" and rep2.n_ok == len(XS), rep2.fault
+            continue
+        assert rep2.fault["kind"] == "retract_force" and not rep2.fault["retracted"], rep2.fault
+        assert "the sensor not zeroed yet" in rep2.fault["message"]
+        assert rep2.n_ok == 0 and arm.tip_in_tissue()[1] > 0.0 and not arm.is_moving
+
+
+def test_a_push_arriving_with_the_retracts_first_readings(tmp_path):
+    """40 N across the normal starting 2 ms before probe 0's retract begins (the review: the retract's first filter
+    window set where it began, with the push in it, and the run ended ok): lateral_force, held, the message saying
+    what the bound is."""
+    arm, c, r = make_sim(seed=3)
+    inject_arm(arm, parse("side-push-at-s=4.477:40"))   # (the review's: 2 ms before probe 0's retract's moveL)
+    out = tmp_path / "run"
+    rep = run_plan(make_plan(XS, depth_m=0.003), c, r, out)
+    assert rep.fault["kind"] == "lateral_force" and "in the retract" in rep.fault["message"], rep.fault
+    assert "the lateral limit 2 N, or the force across where the retract began" in rep.fault["message"]
+    assert rep.fault["retract_blocked"] and not rep.fault["retracted"]
 
 
 def test_the_leaving_trigger_fires_on_the_way_out_only():
@@ -173,19 +213,20 @@ class _Driver:
     def _stop(self):
         self.stopped += 1
 
-    def _lateral(self, lat, limit, filt, where):
+    def _lateral(self, lat, limit, filt, where, *args, **kwargs):
         self._stop()
         raise ProbeFault("lateral_force", where)
 
 
 @settings(max_examples=200, deadline=None)
-@given(zeroed=st.booleans(), n=st.integers(1, 40), seed=st.integers(0, 2 ** 31 - 1), scale=st.sampled_from([0.5, 3.0]))
-def test_the_block_path_stops_where_the_period_path_does(zeroed, n, seed, scale):
+@given(zeroed=st.booleans(), watched=st.booleans(), n=st.integers(1, 40), seed=st.integers(0, 2 ** 31 - 1),
+       scale=st.sampled_from([0.5, 3.0]))
+def test_the_block_path_stops_where_the_period_path_does(zeroed, watched, n, seed, scale):
     """``quiet`` on a block of periods (the fast-forward) finds the first period whose reading ``__call__`` stops on
     (a fault), the same for any forces."""
     rng = np.random.default_rng(seed)
     filt, lat = rng.normal(0.0, scale, n) + rng.normal(0.0, 1.0), np.abs(rng.normal(0.0, scale, n))
-    one, block = _RetractWatch(_Driver(zeroed), zeroed), _RetractWatch(_Driver(zeroed), zeroed)
+    one, block = (_RetractWatch(_Driver(zeroed), zeroed, watched) for _ in range(2))
     first = None
     for k in range(n):
         try:
@@ -199,8 +240,8 @@ def test_the_block_path_stops_where_the_period_path_does(zeroed, n, seed, scale)
         assert block.quiet(b, 1) == 0
         try:
             block({"filt": float(filt[k]), "lat": float(lat[k])})
-        except ProbeFault:             # (the last of them is judged: the bounds are set)
-            assert first == k == w - 1
+        except ProbeFault:             # (judged against the limits (watched), or the last of them: bounds set)
+            assert first == k and (watched or k == w - 1)
             return
     if n <= w:
         assert first is None

@@ -133,9 +133,9 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    check_output_file(args.out, "--out", replaced=True)
+    check_output_file(args.out, "--out", replaced=True, inputs={"SCENE": args.scene})
     check_output_dir(args.plots, "--plots")
-    check_output_file(args.json, "--json")
+    check_output_file(args.json, "--json", inputs={"SCENE": args.scene})
     if args.json and args.out and args.json != "-" and Path(args.json).absolute() == Path(args.out).absolute():
         raise UsageError(f"--json {args.json}: is the plan's own file (--out); give another path or '-'")
     scene = load_scene(args.scene)

@@ -221,7 +221,7 @@ def _peak(xs, ratio) -> dict | None:
 
 def run(args) -> int:
     t0 = time.perf_counter()
-    check_output_file(args.json, "--json")
+    check_output_file(args.json, "--json", inputs={"SCENE": args.scene, "--compare": args.compare})
     check_output_dir(args.plots, "--plots")
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")

@@ -286,7 +286,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     # ---- everything checked before OUT is touched
     out = Path(args.out)
     check_output_dir(args.out, "--out")
-    check_output_file(args.json, "--json")
+    check_output_file(args.json, "--json", inputs={"SCENE": args.scene, "--plan": args.plan,
+                                                        "--prior": args.prior})
     if args.json and args.json != "-":
         j = Path(args.json).absolute()
         if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):

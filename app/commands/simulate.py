@@ -111,10 +111,15 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
+def _inputs(args) -> dict:
+    """The files the command reads (an output must not be one of them)."""
+    return {"SCENE": args.scene, **{f"--compare {c}": c for c in (args.compare or [])}}
+
+
 def run(args) -> int:
-    check_output_file(args.json, "--json")
+    check_output_file(args.json, "--json", inputs=_inputs(args))
     check_output_dir(args.plots, "--plots")
-    check_output_file(args.vtu, "--vtu")
+    check_output_file(args.vtu, "--vtu", inputs=_inputs(args))
     if args.vtu and not args.vtu.lower().endswith(".vtu"):
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     if args.load == "uniform":       # the indentation's options have no meaning for load A: refused, not ignored
