@@ -123,7 +123,8 @@ class Recovery:
             return out
         if self.retract_blocked:
             out["notes"].append(f"not retracted: {self.retract_blocked}; the arm holds where it stopped (free the "
-                                f"tip with freedrive on the pendant, then resume: the driver retracts first, watched)")
+                                f"tip with freedrive on the pendant, out of the tissue, then resume: a resume does not "
+                                f"pull it out through that force)")
             return out
         try:
             s = self._read(strict=False)
