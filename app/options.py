@@ -327,14 +327,14 @@ def is_measured(path: str | Path) -> bool:
     return run_dir and (p.name in RUN_OWN_NAMES or p.name.startswith("plan_round"))
 
 
-RUN_OWN_NAMES = ("run_options.json", "result.json")
+RUN_OWN_NAMES = ("run_options.json", "result.json", "cell_world.json")
 
 
 def refuse_measured(path: str | None, option: str) -> None:
     """UsageError when ``path``, or what it links to, is a run's measured data or a file the run resumes from."""
     if path and path != "-" and (is_measured(path) or is_measured(os.path.realpath(path))):   # realpath: no raise
         raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl, raw/, run.json, "
-                         f"run_options.json, plan_round*.json, result.json); choose another path")
+                         f"run_options.json, plan_round*.json, result.json, cell_world.json); choose another path")
 
 
 def check_simulated_sensor(name: str, force_limit_n: float) -> None:

@@ -14,7 +14,7 @@ from fem.assembly import Material
 from fem.assembly3d import body_force3d, elasticity_matrix3d, element_dofs3d, gradients3d, strain_matrices3d
 from fem.contact3d import STRESS_RESOLVED, SurfaceModel3D, check_waypoint3d, patch_nodes, surface_model3d, tip_profile3d
 from fem.elements3d import EDGES, quadrature, shape
-from fem.mesh3d import Mesh3D, _orient, mesh_block
+from fem.mesh3d import Mesh3D, _orient, mesh_block, mesh_scene3d
 from fem.model3d import Model3D, build_model3d, fixed_bottom
 from fem.scene_mesh3d import mesh_for3d
 from fem.stress3d import point_operator3d, recover3d, recovery_operator3d
@@ -567,7 +567,6 @@ def test_the_mesh_does_not_depend_on_the_order_stones_are_listed_in():
     """Two stones listed both ways: the same nodes and elements, each stone's region labelled in its list's order
     (session 56's review: gmsh meshed each order differently, the force over a stone moved by 1.4 % and the load A
     peak by 4 %, to the other stone)."""
-    from fem.mesh3d import mesh_scene3d
     s1 = S.Stone(x_m=0.015, y_m=0.022, depth_m=0.008, diameter_m=0.006)
     s2 = S.Stone(x_m=0.026, y_m=0.018, depth_m=0.007, diameter_m=0.005)
 
