@@ -47,7 +47,7 @@ from core.contracts import SENSORS, FaultKind, Plan, RunStatus
 from fem.scene import BUILTIN, SceneError, load
 from fem.scene_mesh import check_mesh_budget, check_surface_budget
 from planner.plan import plan_prior
-from robot.driver import DriverConfig, RunReport, preflight, run_plan
+from robot.driver import DriverConfig, RunReport, preflight, run_plan, unfelt_probes
 from robot.link import LOCAL_CONTROL, connect, dashboard_stop, end_session, remote_control
 from robot.records import damaged_note, done_indices, foreign_record, move_aside
 from robot.safety import MAX_PAYLOAD_KG
@@ -301,6 +301,11 @@ def _main(args, held: contextlib.ExitStack) -> int:
             except SceneError as e:             # said as the option the user gave, not as the scene's field
                 raise UsageError(f"--sim-mesh-m {args.sim_mesh_m:g}: not a mesh for {truth.name} "
                                  f"(the simulator's analysis.mesh_size_m): {e}") from None
+    unfelt = unfelt_probes(plan)            # the driver would stop at the first of them (contact_unfelt), at once
+    if unfelt:
+        k = min(unfelt)
+        more = f" (and {len(unfelt) - 1} more)" if len(unfelt) > 1 else ""
+        raise UsageError(f"--plan {args.plan}: refused before any motion: probe {k}: {unfelt[k]}{more}")
     world = cell_world(args, truth if args.sim and args.force_model == "fem" else None)
     if not args.fresh:
         check_same_world(out, world)

@@ -157,6 +157,35 @@ def stop_lead_periods(filter_window: int) -> int:
     return filter_window // 2 + 2
 
 
+def unfelt_force_n(p, motion, depth_limit_m: float, threshold_n: float) -> float | None:
+    """The prior's force at the depth limit's indentation for probe ``p`` (its predicted force continued as depth^p,
+    p its exponent or the flattest a plan may give) when it is not FEEL_MARGIN x ``threshold_n`` and the probe's depth
+    plus the approach height passes the limit -- a probe that might feel no contact before the limit
+    (``Driver._check_feelable``) -- else None. A plan made in code with no prediction (0) is not judged (as for
+    robot.records.implausibility; the planner's plans always predict)."""
+    if p.depth_m + motion.approach_height_m <= depth_limit_m or not p.predicted_force_n > 0:
+        return None
+    f_limit = p.predicted_force_n * (depth_limit_m / p.depth_m) ** (p.force_exponent or MIN_FORCE_EXPONENT)
+    return None if f_limit > FEEL_MARGIN * threshold_n else float(f_limit)
+
+
+def unfelt_probes(plan) -> dict[int, str]:
+    """{probe index: why} for the probes the driver would certainly stop with ``contact_unfelt`` before their descent,
+    judged on the plan's own contact threshold (a sensor's noise can only raise it): a plan whose threshold no probe
+    can pass is refused before anything starts, not at its first probe (session 56's review: exit 1, "the same
+    command resumes", which could never succeed)."""
+    mo, limit = plan.motion, plan.limits.depth_limit_m
+    out = {}
+    for p in plan.probes:
+        f = unfelt_force_n(p, mo, limit, mo.contact_threshold_n)
+        if f is not None:
+            out[p.index] = (f"the prior's force at the depth limit ({f:.4f} N) is not {FEEL_MARGIN:g} x "
+                            f"motion.contact_threshold_n ({mo.contact_threshold_n:g} N): it might feel no contact "
+                            f"before the limit (a surface up to the approach height higher than registered); lower "
+                            f"the threshold or plan a smaller approach height")
+    return out
+
+
 def force_when_stopped(hist, lead: int) -> float:
     """Where the filtered force will be when the arm has stopped: the newest of ``hist`` (filtered forces, one per
     period) plus its rising slope over ``lead`` periods. The force monitor stops when this exceeds the limit."""
@@ -1130,12 +1159,8 @@ class Driver(Recovery):
         tissue (a safety review: 6 mm into tissue 2 mm high against a 4 mm limit, a plan's threshold raised to
         0.2 N, or the UR wrist sensor's noise raising it to 4.2 N)."""
         thr, plan_thr, mo = self.contact_thr, self.plan.motion.contact_threshold_n, self.plan.motion
-        limit = self.lim.depth_limit_m
-        if p.depth_m + mo.approach_height_m <= limit or not p.predicted_force_n > 0:
-            return              # (a plan made in code with no prediction, 0: nothing to judge by, as for
-            #                     robot.records.implausibility; the planner's plans always predict)
-        f_limit = p.predicted_force_n * (limit / p.depth_m) ** (p.force_exponent or MIN_FORCE_EXPONENT)
-        if f_limit > FEEL_MARGIN * thr:
+        f_limit = unfelt_force_n(p, mo, self.lim.depth_limit_m, thr)
+        if f_limit is None:
             return
         why = (f"5 sigmas of the {self.fs.name} sensor's filtered free-air noise ({self.noise_filt_n:.4f} N), above "
                f"the plan's {plan_thr:g} N: use a less noisy sensor, e.g. an external F/T sensor (--ft)"

@@ -26,11 +26,12 @@ from robot_fixtures import make_plan  # noqa: E402
 
 from app import cell, cli  # noqa: E402
 from app.faultdrill import coarse_paper_scene  # noqa: E402
-from core.contracts import Plan, PlanError  # noqa: E402
+from core.contracts import Motion, Plan, PlanError  # noqa: E402
 from core.jsonsafe import csv_row, nulled  # noqa: E402
 from core.textfile import InputFileError  # noqa: E402
 from fem import memo  # noqa: E402
 from planner.tasks import load_piece  # noqa: E402
+from robot.driver import unfelt_probes  # noqa: E402
 from robot.simfaults import parse  # noqa: E402
 from robot.truth import TruthConditions, TruthError  # noqa: E402
 
@@ -158,3 +159,20 @@ def test_the_cells_resume_in_another_world_is_refused(tmp_path, capsys):
     assert (tmp_path / "R" / "probes.jsonl").read_bytes() == before
     assert cell.main(base) == 0
     assert cell.main(base + ["--sensor", "ideal", "--fresh"]) == 0        # (--fresh: the old run set aside)
+
+
+def test_a_plan_whose_threshold_no_probe_can_pass_is_refused_before_anything(tmp_path, capsys):
+    """The plan's contact threshold raised to 1.9 N (under the 2 N limit, so the plan checks pass) over probes
+    predicted to press 0.1 N: `run --plan` and the cell refuse it in one line, exit 2, before anything moves (the
+    review: exit 1 with contact_unfelt at the first probe, and "the same command resumes", which never could)."""
+    plan = make_plan(motion=Motion(approach_height_m=0.004, dwell_s=0.2, contact_threshold_n=1.9))
+    path = tmp_path / "plan.json"
+    plan.save(path)
+    assert cli.main(["run", "paper", "--sim", "--plan", str(path), "--out", str(tmp_path / "R")]) == 2
+    assert cell.main(["--sim", "--plan", str(path), "--out", str(tmp_path / "C"), "--force-model", "standin"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("refused before any motion: probe 0: the prior's force at the depth limit" in e
+                                 and "motion.contact_threshold_n (1.9 N)" in e for e in err), err
+    assert not (tmp_path / "R" / "probes.jsonl").exists() and not (tmp_path / "C" / "probes.jsonl").exists()
+    ok = make_plan(motion=Motion(approach_height_m=0.004, dwell_s=0.2, contact_threshold_n=0.02))
+    assert unfelt_probes(ok) == {}

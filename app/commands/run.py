@@ -98,6 +98,7 @@ from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
 from planner.refine import adaptive, describe, probe_reach
 from planner.surrogate import check_table_fits, load_surrogate
+from robot.driver import unfelt_probes
 from robot.safety import check_plan
 from robot.truth import DEFAULT_RELAXATION, conditions_of
 
@@ -309,7 +310,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     if args.plan:
         plan0 = load_plan_option(args.plan)
         problems, bad = check_plan(plan0)       # what the driver would refuse: before anything starts
-        refused = problems + [f"probe {k}: {v}" for k, v in bad.items()]
+        bad = {**unfelt_probes(plan0), **bad}   # (and the probes it would stop at once: contact_unfelt)
+        refused = problems + [f"probe {k}: {v}" for k, v in sorted(bad.items())]
         if refused:
             more = f" (and {len(refused) - 1} more)" if len(refused) > 1 else ""
             raise UsageError(f"--plan {args.plan}: refused before any motion: {refused[0]}{more}")
