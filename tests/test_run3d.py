@@ -174,8 +174,10 @@ class _Stop(Exception):
     """Raised where the 3D run would load its surrogate table: after the plan's checks, before any probing."""
 
 
-def test_a_3d_run_whose_plan_never_reaches_the_contact_threshold_is_warned(tmp_path, monkeypatch, capsys):
-    """Said for 2D runs and `palpate plan` only until session 46 (the 3D run took such a plan without a word). In this
+def test_a_3d_run_whose_plan_never_reaches_the_contact_threshold_is_refused(tmp_path, monkeypatch, capsys):
+    """Said for 2D runs and `palpate plan` only until session 46 (the 3D run took such a plan without a word); warned
+    from session 46 on, the run then going on to the driver's contact_unfelt fault at its first probe (exit 1); since
+    session 56 refused before anything starts (exit 2: robot.driver.unfelt_probes), the table never built. In this
     module: block3d's prior model is built once for its runs."""
     plan = tmp_path / "plan.json"
     assert main(["plan", "block3d", "--grid", "3x3", "--out", str(plan)]) == 0
@@ -189,10 +191,9 @@ def test_a_3d_run_whose_plan_never_reaches_the_contact_threshold_is_warned(tmp_p
         seen.append(capsys.readouterr().err)
         raise _Stop
     monkeypatch.setattr(run3d, "_table", stop)
-    try:
-        main(["run", "block3d", "--sim", "--plan", str(plan), "--no-figure", "--out", str(tmp_path / "run")])
-    except _Stop:
-        pass
-    assert seen, "the run did not reach its table"
-    assert "warning: every probe's predicted force" in seen[0] and "below the contact threshold" in seen[0]
-    assert "--plan" in seen[0]
+    capsys.readouterr()
+    assert main(["run", "block3d", "--sim", "--plan", str(plan), "--no-figure", "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert not seen, "the run reached its table"
+    assert f"--plan {plan}: refused before any motion: probe 0" in err and "motion.contact_threshold_n" in err, err
+    assert not (tmp_path / "run" / "probes.jsonl").exists()
