@@ -53,6 +53,7 @@ from robot.records import damaged_note, done_indices, foreign_record, move_aside
 from robot.safety import MAX_PAYLOAD_KG
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
+from robot.simfaults import never_fires, past_the_limit
 from robot.simfaults import parse as parse_fault
 from robot.simlaunch import PortsUnavailable, start_controller
 
@@ -94,9 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show a traceback on errors")
     g = p.add_argument_group("simulation (--sim)")
     g.add_argument("--truth", help="TRUE scene for the simulator: built-in name or TOML")
-    g.add_argument("--sensor", default="nano17", choices=list(SENSORS), help="sensor preset (default nano17)")
-    g.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0)
-    g.add_argument("--force-model", choices=["fem", "standin"], default="fem",
+    g.add_argument("--sensor", choices=list(SENSORS), help="sensor preset (default nano17)")
+    g.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), help="the sensor's noise seed (default 0)")
+    g.add_argument("--force-model", choices=["fem", "standin"],
                    help="tissue force: fem for the true scene (default) or a Hertz-like stand-in")
     g.add_argument("--sim-mesh-m", type=positive_float, default=None,
                    help="coarser fem mesh (element size, m) for a faster simulator")
@@ -209,6 +210,23 @@ def _progress(rec, i, n):
 CELL_WORLD = "cell_world.json"     # what a cell run in OUT probed: a real arm, or a simulated one's world
 
 
+SIM_DEFAULTS = {"sensor": "nano17", "seed": 0, "force_model": "fem"}     # the simulation group's (--sim-mesh-m: None)
+
+
+def sim_only(args) -> None:
+    """Refuse an option of the simulated arm without --sim (it did nothing next to a real arm, silently: session 56's
+    review), then put in the simulation group's defaults."""
+    if not args.sim:
+        given = [k for k in (*SIM_DEFAULTS, "sim_mesh_m") if getattr(args, k) is not None]
+        if given:
+            opt = "--" + given[0].replace("_", "-")
+            raise UsageError(f"{opt} {getattr(args, given[0])}: an option of the simulated arm (--sim); a real arm "
+                             f"(--host) has its own sensor and tissue: drop it")
+    for k, v in SIM_DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+
+
 def cell_world(args, truth) -> dict:
     """What the records in OUT come from: a real arm, or a simulated arm's truth (its content's key), force model,
     sensor preset, seed, mesh and force source. A resume must probe the same (session 56's review: a run resumed with
@@ -265,6 +283,7 @@ def _main(args, held: contextlib.ExitStack) -> int:
             "probes.jsonl", "run.json"):
         raise UsageError(f"--json {args.json}: would overwrite the run's own {Path(args.json).name}")
     plan = load_plan_option(args.plan)
+    sim_only(args)
     if args.sim:               # the simulated sensor is this preset: a run the driver would stop is refused first
         check_simulated_sensor(args.sensor, plan.limits.force_limit_n)
     if args.inject and not args.sim:
@@ -310,6 +329,13 @@ def _main(args, held: contextlib.ExitStack) -> int:
     if not args.fresh:
         check_same_world(out, world)
     done = set() if args.fresh else done_indices(out)
+    for f in faults:            # (a fault that cannot fire passed silently: the drill it was for never ran)
+        why = never_fires(f, len({p.index for p in plan.probes} - done))
+        if why:
+            raise UsageError(f"--inject {f.text()}: {why}")
+        note = past_the_limit(f, plan.limits.depth_limit_m)
+        if note:
+            print(f"palpate-cell: --inject {f.text()}: {note}", file=sys.stderr)
     damaged = None if args.fresh else damaged_note(out)
     if damaged:                             # (said by palpate run's resume too; the cell dropped them silently)
         print(f"palpate-cell: {damaged}", file=sys.stderr)

@@ -253,6 +253,20 @@ def refuse_inputs(path: str | None, option: str, inputs: dict | None) -> None:
                              f"replace it: choose another path")
 
 
+def refuse_figures(plots: str | None, names, outputs: dict) -> None:
+    """UsageError when an output file ({option: path}) is one of the figures (``names``) the command draws into the
+    ``--plots`` directory: the figure would replace it, or it the figure (session 56's review: ``plan --out
+    X/plan_joints.png --plots X`` left a PNG named as the plan, exit 0). Compared by resolved path, without needing
+    either to exist."""
+    if not plots:
+        return
+    figures = {(Path(plots) / n).resolve(): n for n in names}
+    for option, path in outputs.items():
+        if path and path != "-" and Path(path).resolve() in figures:
+            raise UsageError(f"{option} {path}: is the figure {figures[Path(path).resolve()]} that --plots {plots} "
+                             f"draws; give another path")
+
+
 def check_output_file(path: str | None, option: str, replaced: bool = False, inputs: dict | None = None) -> None:
     """A file option (``--json``, ``--vtu``, ``--out plan.json``): not a directory, not a run's measured data (nor a
     symlink to it), its directory creatable/writable. ``replaced``: the file is written beside and renamed over the

@@ -596,6 +596,16 @@ def cases() -> list[Case]:
     add("opt-cell-inject-host", "option", "--inject with --host",
         ["palpate-cell", "--host", "192.0.2.1", "--plan", "{plan}", "--out", "{d}/R", "--inject", "stall:1"],
         mentions=("inject",), fast=True)
+    add("opt-cell-host-sensor", "option", "palpate-cell --host with --sensor (a simulation option; did nothing)",
+        ["palpate-cell", "--host", "192.0.2.1", "--plan", "{plan}", "--out", "{d}/R", "--yes", "--sensor", "ideal"],
+        mentions=("sensor",), fast=True)
+    add("opt-cell-inject-never", "option", "--inject disconnect-after-probes=99 on a plan of fewer probes",
+        CE + ["--inject", "disconnect-after-probes=99"], mentions=("inject",), timeout=30)
+    add("opt-run-host-seed", "option", "palpate run --host with --seed (a simulation option; did nothing)",
+        ["palpate", "run", "paper", "--host", "192.0.2.1", "--seed", "3", "--out", "{d}/R"], mentions=("seed",),
+        fast=True)
+    add("opt-ft-duration-tiny", "option", "palpate ft --duration-s 1e-6 (reported 0 Hz)",
+        ["palpate", "ft", "--ft", "netft", "--duration-s", "1e-6"], mentions=("duration",), fast=True)
     add("opt-cell-host-noconfirm", "option", "palpate-cell --host with stdin closed (prompt hits EOF)",
         ["palpate-cell", "--host", "192.0.2.1", "--plan", "{plan}", "--out", "{d}/R"], mentions=("confirm", "yes"))
 
@@ -619,6 +629,8 @@ def cases() -> list[Case]:
         ("plan-plots-file", PL + ["--plots", "{d}/f.txt"], {"f.txt": "x"}, "plan --plots an existing file", "plots"),
         ("plan-plots-proc", PL + ["--plots", "/proc/x/y"], {}, "plan --plots /proc/x/y", "plots"),
         ("plan-json-dir", PL + ["--json", "{d}/dir"], {"dir": DIR}, "plan --json an existing directory", "json"),
+        ("plan-out-figure", ["palpate", "plan", "paper", "--waypoints", "5", "--out", "{d}/P/plan_joints.png",
+                             "--plots", "{d}/P"], {}, "plan --out a figure that --plots draws", "out"),
         ("plan-json-proc", PL + ["--json", "/proc/x/y"], {}, "plan --json /proc/x/y", "json"),
         ("run-out-file", R + ["--out", "{d}/f.txt"], {"f.txt": "x"}, "run --out an existing file", "out"),
         ("run-out-proc", R + ["--out", "/proc/x/y"], {}, "run --out /proc/x/y", "out"),

@@ -41,7 +41,7 @@ from planner.localize import Measurements, localize, prior_force
 from planner.raster import raster_positions
 from planner.refine import adaptive
 from planner.surrogate import _forces, stone_model
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, rows_with, run_pieces
 
 DENSE = (15, 21, 29, 41, 57, 81, 113)   # even rasters localized with the same fem fit (and the model-free peak fit)
 PEAK_ONLY = (161, 241)                  # larger even rasters for the model-free maximum finder only
@@ -239,5 +239,5 @@ def run_accuracy(sur, trials: list[Trial], runner: Runner = Runner(), store: Pat
     """Every trial's rows, in trial order, on ``runner`` (planner.tasks: serial, LocalCluster or a scheduler);
     finished trials are kept in ``store`` and read back by a re-run."""
     per = run_pieces(run_trial, sur, trials, [t.name for t in trials], runner=runner, store=store,
-                     desc="accuracy trials")
+                     desc="accuracy trials", shape=rows_with("seed", "method"))
     return [r for rows in per for r in rows]

@@ -42,7 +42,7 @@ from planner.localize import DRIFT_SIGMA_N_PER_S, Measurements
 from planner.localize3d import localize3d
 from planner.refine3d import SHALLOW_FRACTION, adaptive3d, coarse_depths
 from planner.surrogate3d import stone_model3d
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, rows_with, run_pieces
 from planner.tissue_response3d import prior_and_thickness_slope3d
 
 COARSE = (6, 6)
@@ -250,5 +250,5 @@ def run_trial3d(shared: dict, t: Trial3D) -> list[dict]:
 
 def run_accuracy3d(sur, prior, trials: list[Trial3D], runner: Runner = Runner(), store: Path | None = None) -> list[dict]:
     per = run_pieces(run_trial3d, {"sur": sur, "prior": prior}, trials, [t.name for t in trials], runner=runner,
-                     store=store, desc="3D accuracy trials")
+                     store=store, desc="3D accuracy trials", shape=rows_with("seed", "method"))
     return [r for rows in per for r in rows]

@@ -24,7 +24,7 @@ from planner.detectability import p_detect, probe_sigma_n, probe_tau_s
 from planner.localize import Measurements, localize
 from planner.raster import raster_positions
 from planner.surrogate import stone_model
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, record_with, run_pieces
 
 DIAMETERS_M = (0.004, 0.006, 0.008)
 DEPTHS_M = (0.020, 0.030, 0.040)
@@ -76,7 +76,9 @@ def run_case(sur, c: Case) -> dict:
 
 def run_detect(sur, cases: list[Case], runner: Runner = Runner(), store: Path | None = None) -> list[dict]:
     return run_pieces(run_case, sur, cases, [c.name for c in cases], runner=runner, store=store,
-                      desc="detectability cases")
+                      desc="detectability cases",
+                      shape=record_with("index", "x_m", "depth_m", "diameter_m", "runs", "sensor", "n_probes",
+                                        "predicted", "detected", "rate", "se"))
 
 
 def write_report(out: Path, rows: list[dict], elapsed_s: float, where: str = "") -> list[str]:

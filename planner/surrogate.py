@@ -60,7 +60,7 @@ from fem.scene import STRAIN_MAX, Analysis, SceneError, Stone, from_dict, load
 from fem.scene_mesh import mesh_for
 from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, array_of, run_pieces
 
 FORMAT = 3           # 2: keyed by table_scene (unit modulus), youngs_ref_pa stored; 3: forces past the crush limit
 
@@ -313,7 +313,8 @@ def build_table(prior, grid: Grid = Grid(), workers: int = 2, progress=None, run
             progress(done["n"], len(stones), time.perf_counter() - t0)
     shared = {"prior": prior.to_dict(), "levels_m": list(grid.levels_m), "x0_m": x0}
     run_pieces(_one_stone, shared, stones, [f"stone-{i}-{j}-{k}" for i, j, k in idx], runner=runner, store=store,
-               desc="surrogate stones", on_result=arrived)
+               desc="surrogate stones", on_result=arrived,
+               shape=array_of((len(grid.levels_m), len(x0))))
     _fill_sideways(table, inside, xs, grid, H)
     _fill_invalid(table, grid, H)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "xs_m": xs,

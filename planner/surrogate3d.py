@@ -57,7 +57,7 @@ from fem.scene import Analysis, Indenter, Scene, SceneError, Stone, Tissue, from
 from fem.scene_mesh3d import mesh_for3d
 from fem.tip import contact_scene
 from planner.fingerprint import cached_fingerprint
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, array_of, run_pieces
 
 FORMAT = 1
 BOTTOM_TISSUE_M = 1e-3      # a candidate keeps this much tissue below it (deeper grid nodes are extrapolated)
@@ -305,7 +305,8 @@ def build_table3d(prior: Scene, grid: Grid3D = Grid3D(), runner: Runner | None =
             progress(done["n"], len(cands), time.perf_counter() - t0, CANDIDATES)
     shared = {"scene": scene.to_dict(), "grid": grid.to_dict()}
     run_pieces(_one_candidate, shared, cands, [f"cand-{i}-{j}" for i, j in idx], runner=runner, store=store,
-               desc="surrogate3d candidates", on_result=arrived)
+               desc="surrogate3d candidates", on_result=arrived,
+               shape=array_of((len(grid.levels_m), nr)))
     _fill_invalid(table, valid, logs)
     cal_s, factors = calibrate3d(prior, grid, table, valid, runner=runner, store=store, progress=progress)
     return {"s_m": np.array(grid.s_m), "diam_m": np.array(grid.diam_m), "levels_m": lv,
@@ -341,7 +342,8 @@ def calibrate3d(prior: Scene, grid: Grid3D, table: np.ndarray, valid: np.ndarray
             progress(n + 1, len(cal), time.perf_counter() - t0, CALIBRATION)
     run_pieces(_one_candidate, {"scene": own.to_dict(), "grid": grid.to_dict()},
                [(float(grid.s_m[i]), float(grid.diam_m[j])) for i, j in cal], [f"cal-{i}-{j}" for i, j in cal],
-               runner=runner, store=store, desc="surrogate3d calibration", on_result=calibrated)
+               runner=runner, store=store, desc="surrogate3d calibration", on_result=calibrated,
+               shape=array_of((len(grid.levels_m), int(round(grid.r_max_m / grid.dr_m)) + 1)))
     return np.array([grid.s_m[i] for i, _ in cal]).reshape(-1), factors
 
 

@@ -84,22 +84,53 @@ def save_piece(store: Path, name: str, result) -> None:
         _write_once(store / f"{name}.json", lambda f: f.write(text))
 
 
-def load_piece(store: Path, name: str):
-    """A finished piece from ``store``, or None. A piece that cannot be read back (emptied, cut short, edited) is an
-    InputFileError naming it: it is not computed again over it (nothing on disk is overwritten), the user moves it
-    aside."""
+def rows_with(*keys: str) -> Callable[[object], None]:
+    """A piece's shape: a list of rows (JSON objects), each holding ``keys`` (what every row its work writes has)."""
+    def check(piece) -> None:
+        if not isinstance(piece, list) or not all(isinstance(r, dict) and all(k in r for k in keys) for r in piece):
+            raise ValueError(f"not a list of rows each with {', '.join(repr(k) for k in keys)}")
+    return check
+
+
+def record_with(*keys: str) -> Callable[[object], None]:
+    """A piece's shape: one JSON object holding ``keys``."""
+    def check(piece) -> None:
+        missing = [k for k in keys if not isinstance(piece, dict) or k not in piece]
+        if missing:
+            raise ValueError(f"not a record with {', '.join(repr(k) for k in missing)}")
+    return check
+
+
+def array_of(shape: tuple[int, ...]) -> Callable[[object], None]:
+    """A piece's shape: an array of real numbers of ``shape`` (NaN allowed: a table marks what it did not sample)."""
+    def check(piece) -> None:
+        a = np.asarray(piece)
+        if a.shape != tuple(shape) or a.dtype.kind not in "fiu":
+            raise ValueError(f"not an array of numbers of shape {tuple(shape)} (it is {a.dtype} {a.shape})")
+    return check
+
+
+def load_piece(store: Path, name: str, shape: Callable[[object], None] | None = None):
+    """A finished piece from ``store``, or None. A piece that cannot be read back (emptied, cut short, edited), or is
+    not of the ``shape`` its work writes (``rows_with``, ``record_with``, ``array_of``: a check that raises
+    ValueError), is an InputFileError naming it: it is not computed again over it (nothing on disk is overwritten),
+    the user moves it aside."""
     npy, js = store / f"{name}.npy", store / f"{name}.json"
     try:
         if npy.exists():
-            return np.load(npy, allow_pickle=False)
-        if js.exists():
-            return json.loads(js.read_text())
+            piece = np.load(npy, allow_pickle=False)
+        elif js.exists():
+            piece = json.loads(js.read_text())
+        else:
+            return None
+        if shape is not None:
+            shape(piece)
+        return piece
     except (ValueError, EOFError) as e:         # (json's JSONDecodeError and numpy's bad files are ValueErrors)
         bad = npy if npy.exists() else js
         raise InputFileError("a finished piece of this work", bad,
                              f"cannot be read back ({e}): move it aside, and the same command computes it again "
                              f"(nothing on disk is overwritten)") from None
-    return None
 
 
 @contextmanager
@@ -139,16 +170,18 @@ def _bar(runner: Runner, total: int, done: int, desc: str):
 
 
 def run_pieces(fn: Callable, shared, pieces: Sequence, names: Sequence[str], runner: Runner = Runner(),
-               store: Path | None = None, desc: str = "pieces", on_result: Callable | None = None) -> list:
+               store: Path | None = None, desc: str = "pieces", on_result: Callable | None = None,
+               shape: Callable[[object], None] | None = None) -> list:
     """``[fn(shared, p) for p in pieces]`` on ``runner`` (module doc); ``names`` (unique, file-name safe) name the
     pieces in ``store``. ``on_result(i, result)`` is called in this process as each piece finishes (or is read
-    back). ``fn`` must be importable by its module path on the workers (a module-level function)."""
+    back). ``fn`` must be importable by its module path on the workers (a module-level function). ``shape`` checks
+    a piece read back from ``store`` (``load_piece``)."""
     if len(names) != len(pieces) or len(set(names)) != len(names):
         raise ValueError("run_pieces: one unique name per piece")
     results: list = [None] * len(pieces)
     todo = []
     for i, name in enumerate(names):
-        r = load_piece(store, name) if store is not None else None
+        r = load_piece(store, name, shape) if store is not None else None
         if r is None:
             todo.append(i)
         else:
@@ -159,7 +192,7 @@ def run_pieces(fn: Callable, shared, pieces: Sequence, names: Sequence[str], run
     def finish(i, r):
         if store is not None:
             save_piece(store, names[i], r)
-            r = load_piece(store, names[i])     # what a resumed run would read: the same values either way
+            r = load_piece(store, names[i], shape)     # what a resumed run would read: the same values either way
         results[i] = r
         if on_result:
             on_result(i, r)

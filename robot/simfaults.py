@@ -105,6 +105,23 @@ def parse(spec: str) -> FaultSpec:
     return FaultSpec(kind, TRIGGERS[trig], value, xv)
 
 
+def never_fires(f: FaultSpec, probes: int) -> str | None:
+    """Why ``f`` cannot fire in a run that probes ``probes`` times, or None: after-probes=N needs N exits from the
+    tissue (``disconnect-after-probes=99`` on 5 probes passed silently, the fault never tried)."""
+    if f.trigger == "probes" and f.value > probes:
+        return f"never fires: this run probes {probes} time{'s' * (probes != 1)} (N at most that)"
+    return None
+
+
+def past_the_limit(f: FaultSpec, depth_limit_m: float) -> str | None:
+    """A note when a depth trigger lies deeper than the driver lets the tip go (it fires only if that limit
+    fails), else None."""
+    if f.trigger in ("depth-m", "leaving-m") and f.value > depth_limit_m:
+        return (f"fires only if the tip goes past the plan's depth limit ({depth_limit_m:g} m), which the driver "
+                f"does not allow")
+    return None
+
+
 def normalize(spec: str) -> str:
     """The canonical text of a fault specification (ValueError if it is not one)."""
     return parse(spec).text()

@@ -12,11 +12,18 @@ import pytest
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MPLBACKEND", "Agg")
-_CACHE_DIR = tempfile.mkdtemp(prefix="palpate-test-cache-")
+# One cache for the whole session, shared by pytest-xdist's workers: the process that makes it (the controller, which
+# loads this file before it starts the workers, or a run without xdist) hands it on through the environment, and
+# only it removes it, as it ends (with the 3D operators a session leaves about 1.5 GB, and sessions left behind filled
+# this machine's disk: 72 GB in /tmp). Until session 57 each worker made its own, and both built the same fem models
+# (block3d's take 35-60 s each); the cache is safe for concurrent writers (fem.memo, tests/test_memo.py), and a test
+# about a cold cache sets its own PALPATE_CACHE_DIR.
+_CACHE_DIR = os.environ.get("PALPATE_TEST_SESSION_CACHE")
+if _CACHE_DIR is None or not os.path.isdir(_CACHE_DIR):
+    _CACHE_DIR = tempfile.mkdtemp(prefix="palpate-test-cache-")
+    os.environ["PALPATE_TEST_SESSION_CACHE"] = _CACHE_DIR
+    atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
 os.environ["PALPATE_CACHE_DIR"] = _CACHE_DIR
-# removed when the session's process ends (each xdist worker has its own): with the 3D operators a session leaves
-# about 1.5 GB, and sessions left behind filled this machine's disk (72 GB in /tmp)
-atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
 # a suite started as a background job of a non-interactive shell (`nohup bash .ci/run &`) inherits SIGINT ignored,
 # and Python then installs no KeyboardInterrupt handler: the Ctrl-C tests (which send it to themselves and their
 # children) failed there, three of them in session 46's first rehearsal, while passing from a terminal
@@ -32,10 +39,20 @@ REALTIME_FILES = {"test_fault_drills.py", "test_simcontroller.py", "test_netft_c
                   "test_run_sim.py", "test_run_data_safety.py"}
 
 
+# The longest files (measured in session 57: test_run3d.py about 370 s of a 726 s run on two workers), started
+# first: with --dist loadfile a file runs on one worker, and the longest, started last, ran alone for minutes while
+# the other worker had finished. The README's command gives --no-loadscope-reorder, so xdist keeps this order (by
+# default it starts the files with the most tests first).
+LONG_FILES = ("test_run3d.py", "test_study.py", "test_review_s47.py", "test_review_s49.py", "test_run_pending.py",
+              "test_mismatch_sim.py", "test_review_s40.py", "test_review_s39.py", "test_detect_rate.py")
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         if item.path.name in REALTIME_FILES:
             item.add_marker(pytest.mark.realtime)
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(LONG_FILES)))     # (stable: the rest keep their order)
 
 
 # (the fixtures import palpate when first used: at the top, numpy would load before the BLAS settings above)

@@ -218,6 +218,8 @@ def test_cli_plans_an_area_and_refuses_bad_values_in_one_line(toml, tmp_path, ca
     s = json.loads(js.read_text())
     assert s["y_m"] == [p.y_m for p in plan.probes] and s["raster"]["order"].startswith("serpentine")
     assert (figs / "plan_area.png").stat().st_size > 10_000 and (figs / "plan_joints.png").stat().st_size > 0
+    from app.figure_names import PLAN_FIGURES      # (what plan refuses as an output path beside --plots)
+    assert {f.name for f in figs.iterdir()} <= set(PLAN_FIGURES)
     capsys.readouterr()
     for argv, want in ((["--grid", "0x3"], "--grid: must be NXxNY"),
                        (["--region", "0.02,0.03,0.04"], "--region: must be x0,y0,x1,y1"),

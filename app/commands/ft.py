@@ -36,8 +36,8 @@ def add_parser(sub) -> None:
     p.add_argument("--netft", metavar="HOST", help="the box at HOST: the same as --ft netft:HOST")
     p.add_argument("--port", dest="ft_port", type=int_range(1, 65535), metavar="PORT",
                    help="the same as --ft-port (default 49152)")
-    p.add_argument("--duration-s", "--seconds", type=float_range(0.0, 600.0, unit="s"), default=2.0,
-                   help="how long to read (default 2 s)")
+    p.add_argument("--duration-s", "--seconds", type=float_range(0.1, 600.0, lo_open=False, unit="s"),
+                   default=2.0, help="how long to read, 0.1-600 s (default 2 s; long enough to count the rate)")
     p.add_argument("--sensor", choices=list(SENSORS), help="the simulated box's sensor preset (default nano17)")
     p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), help="the simulated box's noise seed (default 0)")
     p.add_argument("--json", metavar="PATH", help="also write the report here ('-': standard output)")

@@ -10,6 +10,7 @@ import numpy as np
 
 from app.commands.output import write_json
 from app.errors import UsageError
+from app.figure_names import PLAN_FIGURES
 from app.options import (
     MAX_WAYPOINTS,
     check_output_dir,
@@ -22,6 +23,7 @@ from app.options import (
     load_scene,
     polygon_vertices,
     positive_float,
+    refuse_figures,
 )
 from core.contracts import (
     HARD_FORCE_LIMIT_N,
@@ -136,6 +138,7 @@ def run(args) -> int:
     check_output_file(args.out, "--out", replaced=True, inputs={"SCENE": args.scene})
     check_output_dir(args.plots, "--plots")
     check_output_file(args.json, "--json", inputs={"SCENE": args.scene})
+    refuse_figures(args.plots, PLAN_FIGURES, {"--out": args.out, "--json": args.json})
     if args.json and args.out and args.json != "-" and Path(args.json).absolute() == Path(args.out).absolute():
         raise UsageError(f"--json {args.json}: is the plan's own file (--out); give another path or '-'")
     scene = load_scene(args.scene)

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.commands.output import warn_strain, write_json
 from app.errors import UsageError
+from app.figure_names import FIG_PREDICT_2D, FIG_PREDICT_3D
 from app.options import (
     MAX_WAYPOINTS,
     analysis_changes,
@@ -27,6 +28,7 @@ from app.options import (
     int_range,
     load_scene,
     positive_float,
+    refuse_figures,
 )
 from app.resolution import warn_unresolved2d
 from core.contracts import TIP_DEPTH_FRACTION, Limits, default_depth_limit_m, default_depth_said
@@ -37,7 +39,7 @@ from fem.scene import SceneError, tip_taken_as_rigid
 DEFAULT_DEPTH_M = Limits().depth_limit_m      # (core.contracts.default_depth_limit_m: less on a small tip)
 DEFAULT_MARGIN_M = 0.005
 BATCH = 100            # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
-FIGURE = "fig11_predict.png"
+FIGURE = FIG_PREDICT_2D
 
 DESCRIPTION = """Predict the probe's tip force and the maximum von Mises stress under the tip at N waypoints across
 the top surface (load B: a tip pressed --depth-m into the surface at each waypoint, frictionless contact), for
@@ -223,6 +225,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     check_output_file(args.json, "--json", inputs={"SCENE": args.scene, "--compare": args.compare})
     check_output_dir(args.plots, "--plots")
+    refuse_figures(args.plots, (FIG_PREDICT_2D, FIG_PREDICT_3D), {"--json": args.json})
     if args.plots and args.force_only:
         raise UsageError("--plots needs the stresses (drop --force-only)")
     if args.depth_m is not None:

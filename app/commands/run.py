@@ -162,10 +162,11 @@ def add_parser(sub) -> None:
     src.add_argument("--host", type=host_name, help="a real UR controller's IP (ur_rtde)")
     p.add_argument("--yes", action="store_true", help="do not ask before moving a real arm")
     p.add_argument("--sensor", default="nano17", choices=list(SENSORS),
-                   help="simulated sensor preset (default nano17; ideal: noise-free; ur5e-builtin: the UR's wrist "
-                        "sensor, refused: its noise is too large for any force limit up to the 10 N cap)")
-    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1), default=0,
-                   help="simulated sensor noise seed, 0..4294967295 (default 0)")
+                   help="sensor preset: the simulated sensor, and the noise the detectability forecast assumes (with "
+                        "--host too) (default nano17; ideal: noise-free; ur5e-builtin: the UR's wrist sensor, refused "
+                        "on a simulated arm: its noise is too large for any force limit up to the 10 N cap)")
+    p.add_argument("--seed", type=int_range(0, 2 ** 32 - 1),
+                   help="simulated sensor noise seed, 0..4294967295 (default 0; not with --host)")
     p.add_argument("--waypoints", type=int_range(MIN_MEASUREMENTS, MAX_WAYPOINTS),
                    help=f"2D: coarse raster waypoints, {MIN_MEASUREMENTS}..{MAX_WAYPOINTS} (default 15; a fit needs "
                         f"{MIN_MEASUREMENTS} probes)")
@@ -289,6 +290,10 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     check_output_dir(args.out, "--out")
     check_output_file(args.json, "--json", inputs={"SCENE": args.scene, "--plan": args.plan,
                                                         "--prior": args.prior})
+    if args.host and args.seed is not None:     # (it did nothing next to a real arm, silently)
+        raise UsageError(f"--seed {args.seed}: the simulated sensor's noise seed; a real arm (--host) has real noise: "
+                         f"drop it")
+    args.seed = 0 if args.seed is None else args.seed
     if args.json and args.json != "-":
         j = Path(args.json).absolute()
         if j.parent == out.absolute() and (j.name in RUN_FILES or j.name.startswith(("plan_round", "previous-"))):

@@ -17,6 +17,7 @@ import numpy as np
 
 from app.commands.output import warn_strain, write_json
 from app.errors import UsageError
+from app.figure_names import FIG_INDENT_3D, FIG_PREDICT_3D, FIG_UNIFORM_3D
 from core.peak import or_null, ratio_of
 from fem.contact3d import (
     STRESS_RESOLVED,
@@ -31,9 +32,7 @@ from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recover3d
 from fem.uniform3d import nodal_fields3d, solve_uniform3d
 
-FIG_UNIFORM = ("fig3d_surface.png", "fig3d_section.png")
-FIG_INDENT = ("fig3d_indent_surface.png", "fig3d_indent_section.png")
-FIG_PREDICT = "fig3d_predict.png"
+FIG_UNIFORM, FIG_INDENT, FIG_PREDICT = FIG_UNIFORM_3D, FIG_INDENT_3D, FIG_PREDICT_3D
 BATCH = 100            # waypoints per batched sweep (memory: a few n_dofs x BATCH doubles; one read of the factor each)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from app.commands.output import warn_strain, write_json
 from app.errors import UsageError
+from app.figure_names import FIG_INDENT_2D, FIG_INDENT_3D, FIG_UNIFORM_3D
 from app.options import (
     analysis_changes,
     check_depth_floor,
@@ -24,6 +25,7 @@ from app.options import (
     finite_float,
     load_scene,
     positive_float,
+    refuse_figures,
 )
 from app.resolution import warn_unresolved2d
 from fem.contact import surface_model
@@ -41,6 +43,7 @@ FIGURES = {
     "surface": "fig5_surface.png",        # stresses along the top surface (study Fig 5)
     "compare": "fig6_7_9_compare.png",    # von Mises along the top for several scenes (study Figs 6, 7, 9)
 }
+SIMULATE_FIGURES = (*FIGURES.values(), FIG_INDENT_2D, *FIG_UNIFORM_3D, *FIG_INDENT_3D)
 
 HELP = """Solve one scene under a load and report the top-surface stress.
 
@@ -120,6 +123,7 @@ def run(args) -> int:
     check_output_file(args.json, "--json", inputs=_inputs(args))
     check_output_dir(args.plots, "--plots")
     check_output_file(args.vtu, "--vtu", inputs=_inputs(args))
+    refuse_figures(args.plots, SIMULATE_FIGURES, {"--json": args.json, "--vtu": args.vtu})
     if args.vtu and not args.vtu.lower().endswith(".vtu"):
         raise UsageError(f"--vtu {args.vtu}: give a file path ending in .vtu")
     if args.load == "uniform":       # the indentation's options have no meaning for load A: refused, not ignored
@@ -221,7 +225,7 @@ def _indent_figures(d: Path, sc, m, r, u, nodal) -> dict[str, str]:
     tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at x = {r.x_m * 1e3:g} mm, depth "
            f"{r.depth_m * 1e3:g} mm, F = {r.force_n:.4g} N; plane {a.plane}, P{a.order}, h = {a.mesh_size_m * 1e3:g} mm"
            " (deformed, true scale)")
-    f = plots.indent_panels(d / "fig10_indent.png", dm, {k: nodal[k] for k in ("von_mises_pa", "sxx_pa", "syy_pa")},
+    f = plots.indent_panels(d / FIG_INDENT_2D, dm, {k: nodal[k] for k in ("von_mises_pa", "sxx_pa", "syy_pa")},
                             indenter=sc.indenter, x_m=r.x_m, tip_bottom_y_m=H - r.depth_m, outlines=outl,
                             zoom_m=zoom, mark_m=mark, suptitle=tag)
     return {"indent": str(f)}

@@ -35,7 +35,7 @@ from planner.detect_study import write_report as write_detect
 from planner.finite_strain_response import prior_finite_strain
 from planner.surrogate import load_surrogate
 from planner.surrogate3d import load_surrogate3d
-from planner.tasks import Runner, run_pieces
+from planner.tasks import Runner, record_with, run_pieces
 
 STUDIES = {
     "accuracy": "localization and adaptive refinement over random stones against even rasters (planner.accuracy)",
@@ -211,7 +211,8 @@ def run_sweep_study(args, scene, runner: Runner, out: Path) -> dict:
     _say(f"sweep: {n} random scenes on {runner.describe()}; pieces in {store}")
     t0 = time.perf_counter()
     rows = _run(runner, lambda: run_pieces(sweep_piece, args.seed, list(range(n)), [f"scene-{i:04d}" for i in range(n)],
-                                           runner=runner, store=store, desc="sweep scenes"))
+                                           runner=runner, store=store, desc="sweep scenes",
+                                           shape=record_with("name", "status", "detail", "warnings")))
     elapsed = time.perf_counter() - t0
     md = write_sweep(rows, out)
     (out / "sweep.json").write_text(json.dumps(rows, indent=1))
@@ -256,7 +257,8 @@ def run_mismatch_study(args, scene, runner: Runner, out: Path) -> dict:
     _say(f"mismatch: {stones} stones + {healthy} healthy truths on {runner.describe()}; pieces and runs in {store}")
     t0 = time.perf_counter()
     rows = _run(runner, lambda: run_pieces(run_mismatch_trial, shared, trials, [t.name for t in trials],
-                                           runner=runner, store=store, desc="mismatch trials"))
+                                           runner=runner, store=store, desc="mismatch trials",
+                                           shape=record_with("trial", "seed", "rc", "stone")))
     elapsed = time.perf_counter() - t0
     cmd = (f"palpate study mismatch --trials {stones} --healthy {healthy} --budget-probes {budget} "
            f"--seed {args.seed}{' --hyperelastic' if args.hyperelastic else ''}")
