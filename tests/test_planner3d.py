@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_kinematics import poe_tcp
 
+from app.figure_names import PLAN_FIGURES
 from core import ur5e
 from core.contracts import Limits, Plan, PlanError
 from fem.contact3d import surface_model3d
@@ -218,8 +219,7 @@ def test_cli_plans_an_area_and_refuses_bad_values_in_one_line(toml, tmp_path, ca
     s = json.loads(js.read_text())
     assert s["y_m"] == [p.y_m for p in plan.probes] and s["raster"]["order"].startswith("serpentine")
     assert (figs / "plan_area.png").stat().st_size > 10_000 and (figs / "plan_joints.png").stat().st_size > 0
-    from app.figure_names import PLAN_FIGURES      # (what plan refuses as an output path beside --plots)
-    assert {f.name for f in figs.iterdir()} <= set(PLAN_FIGURES)
+    assert {f.name for f in figs.iterdir()} <= set(PLAN_FIGURES)      # (what plan refuses as an output beside --plots)
     capsys.readouterr()
     for argv, want in ((["--grid", "0x3"], "--grid: must be NXxNY"),
                        (["--region", "0.02,0.03,0.04"], "--region: must be x0,y0,x1,y1"),
