@@ -263,8 +263,8 @@ def refuse_figures(plots: str | None, names, outputs: dict) -> None:
     figures = {(Path(plots) / n).resolve(): n for n in names}
     for option, path in outputs.items():
         if path and path != "-" and Path(path).resolve() in figures:
-            raise UsageError(f"{option} {path}: is the figure {figures[Path(path).resolve()]} that --plots {plots} "
-                             f"draws; give another path")
+            raise UsageError(f"{option} {path}: is named as a figure that --plots {plots} draws "
+                             f"({figures[Path(path).resolve()]}); give another path")
 
 
 def check_output_file(path: str | None, option: str, replaced: bool = False, inputs: dict | None = None) -> None:

@@ -239,5 +239,5 @@ def run_accuracy(sur, trials: list[Trial], runner: Runner = Runner(), store: Pat
     """Every trial's rows, in trial order, on ``runner`` (planner.tasks: serial, LocalCluster or a scheduler);
     finished trials are kept in ``store`` and read back by a re-run."""
     per = run_pieces(run_trial, sur, trials, [t.name for t in trials], runner=runner, store=store,
-                     desc="accuracy trials", shape=rows_with("seed", "method"))
+                     desc="accuracy trials", shape=rows_with("seed", "sensor", "method", "n_probes", "detected"))
     return [r for rows in per for r in rows]

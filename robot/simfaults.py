@@ -106,10 +106,12 @@ def parse(spec: str) -> FaultSpec:
 
 
 def never_fires(f: FaultSpec, probes: int) -> str | None:
-    """Why ``f`` cannot fire in a run that probes ``probes`` times, or None: after-probes=N needs N exits from the
-    tissue (``disconnect-after-probes=99`` on 5 probes passed silently, the fault never tried)."""
-    if f.trigger == "probes" and f.value > probes:
-        return f"never fires: this run probes {probes} time{'s' * (probes != 1)} (N at most that)"
+    """Why ``f`` cannot fire in a run that probes ``probes`` times, or None (``disconnect-after-probes=99`` on 5
+    probes passed silently, the fault never tried). after-probes=N fires at rest above the probe after the N-th
+    (``trigger``): after the last one the driver makes no move, so N must be below the probes."""
+    if f.trigger == "probes" and f.value >= probes:
+        allowed = f"N at most {probes - 1}" if probes > 1 else "no after-probes fault can fire"
+        return f"never fires: this run probes {probes} time{'s' * (probes != 1)} ({allowed})"
     return None
 
 

@@ -84,16 +84,19 @@ def test_an_injected_fault_that_cannot_fire_is_refused(tmp_path, capsys):
     plan = make_plan()
     plan.save(path)
     base = ["--sim", "--plan", str(path), "--out", str(tmp_path / "R"), "--force-model", "standin"]
-    assert cell.main(base + ["--inject", "disconnect-after-probes=4"]) == 2
+    assert cell.main(base + ["--inject", "disconnect-after-probes=3"]) == 2      # (no move after the last probe)
     err = capsys.readouterr().err
-    assert "--inject disconnect-after-probes=4: never fires: this run probes 3 times (N at most that)" in err
+    assert "--inject disconnect-after-probes=3: never fires: this run probes 3 times (N at most 2)" in err
     assert not (tmp_path / "R").exists()
+    assert cell.main([*base[:4], str(tmp_path / "F"), *base[5:], "--inject", "disconnect-after-probes=2"]) == 1
+    assert json.loads((tmp_path / "F" / "run.json").read_text())["fault"]["kind"] == "connection_lost"   # N = 2 fires
+    capsys.readouterr()
     deep = plan.limits.depth_limit_m + 1e-3
     assert cell.main(base + ["--inject", f"stall-at-depth-m={deep}"]) == 0
     assert "fires only if the tip goes past the plan's depth limit" in capsys.readouterr().err
     assert json.loads((tmp_path / "R" / "run.json").read_text())["status"] == "ok"
     assert cell.main(base + ["--inject", "disconnect-after-probes=1"]) == 2      # all 3 done: this run probes none
-    assert "this run probes 0 times" in capsys.readouterr().err
+    assert "this run probes 0 times (no after-probes fault can fire)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("cmd", [
@@ -109,7 +112,7 @@ def test_an_output_named_as_a_figure_of_plots_is_refused(tmp_path, capsys, cmd):
     argv = [a.format(d=tmp_path) for a in cmd]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert "is the figure" in err and "that --plots" in err and "Traceback" not in err
+    assert "is named as a figure that --plots" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
 
 
