@@ -13,6 +13,7 @@ from robot_fixtures import make_plan  # noqa: E402
 
 from app import cell  # noqa: E402
 from app.cli import main  # noqa: E402
+from app.figure_names import PLAN_FIGURES  # noqa: E402
 from core.textfile import InputFileError  # noqa: E402
 from planner.tasks import array_of, load_piece, record_with, rows_with, run_pieces  # noqa: E402
 
@@ -119,6 +120,5 @@ def test_an_output_named_as_a_figure_of_plots_is_refused(tmp_path, capsys, cmd):
 def test_the_plan_figures_are_the_names_refused(tmp_path):
     """app.figure_names.PLAN_FIGURES (what plan refuses as an output) holds what plan --plots draws (2D here; the 3D
     plan's figures: tests/test_planner3d.py)."""
-    from app.figure_names import PLAN_FIGURES
     assert main(["plan", "paper", "--waypoints", "5", "--out", str(tmp_path / "p.json"), "--plots", str(tmp_path)]) == 0
     assert {f.name for f in tmp_path.iterdir()} - {"p.json"} <= set(PLAN_FIGURES)
