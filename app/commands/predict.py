@@ -39,7 +39,6 @@ from fem.scene import SceneError, tip_taken_as_rigid
 DEFAULT_DEPTH_M = Limits().depth_limit_m      # (core.contracts.default_depth_limit_m: less on a small tip)
 DEFAULT_MARGIN_M = 0.005
 BATCH = 100            # waypoints per batched back-substitution (memory: n_dofs x BATCH doubles)
-FIGURE = FIG_PREDICT_2D
 
 DESCRIPTION = """Predict the probe's tip force and the maximum von Mises stress under the tip at N waypoints across
 the top surface (load B: a tip pressed --depth-m into the surface at each waypoint, frictionless contact), for
@@ -93,7 +92,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "(default 10x10); 2D scenes use --waypoints")
     p.add_argument("--force-only", action="store_true", help="skip the stresses (forces only: much faster)")
     p.add_argument("--json", metavar="PATH", help="write the machine-readable result here ('-': stdout)")
-    p.add_argument("--plots", metavar="DIR", help=f"write {FIGURE} into DIR")
+    p.add_argument("--plots", metavar="DIR", help=f"write {FIG_PREDICT_2D} into DIR")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     g = p.add_argument_group("analysis overrides (default: the scene's [analysis] table)")
     g.add_argument("--order", type=int, choices=(1, 2), help="1: P1 triangles, 2: P2 triangles")
@@ -320,7 +319,7 @@ def _figure(d: Path, sc, ref, out) -> Path:
     title = (f"{sc.name}: {sc.indenter.shape} tip R = {sc.indenter.radius_m * 1e3:g} mm pressed "
              f"{out['depth_m'] * 1e3:g} mm at {len(w['x_m'])} waypoints; plane {a.plane}, P{a.order}, "
              f"h = {a.mesh_size_m * 1e3:g} mm")
-    return plots.predict_graph(d / FIGURE, np.asarray(w["x_m"]), w, ref_w,
+    return plots.predict_graph(d / FIG_PREDICT_2D, np.asarray(w["x_m"]), w, ref_w,
                                labels=(sc.name, ref.name if ref is not None else sc.name),
                                stones=[(s.x_m, s.diameter_m) for s in sc.stones], title=title,
                                peak=_peak_xy(out.get("peak_ratio")))

@@ -32,7 +32,6 @@ from fem.results3d import SurfaceMap, quadratic_peak
 from fem.stress3d import components3d, recover3d
 from fem.uniform3d import nodal_fields3d, solve_uniform3d
 
-FIG_UNIFORM, FIG_INDENT, FIG_PREDICT = FIG_UNIFORM_3D, FIG_INDENT_3D, FIG_PREDICT_3D
 BATCH = 100            # waypoints per batched sweep (memory: a few n_dofs x BATCH doubles; one read of the factor each)
 
 
@@ -71,11 +70,11 @@ def run_simulate(args, sc, rigid) -> int:
                f"h = {a.mesh_size_m * 1e3:g} mm")
         d = Path(args.plots)
         out["files"]["surface"] = str(plots3d.surface_maps(
-            d / FIG_UNIFORM[0], sc, res.surface.x_m, res.surface.y_m,
+            d / FIG_UNIFORM_3D[0], sc, res.surface.x_m, res.surface.y_m,
             {"von_mises_pa": res.surface.fields["von_mises_pa"], "szz_pa": res.surface.fields["szz_pa"]},
             f"Top-face stress - {tag}", peak=(xp, yp)))
         ys = _section_y(sc, sc.tissue.length_m / 2)
-        out["files"]["section"] = str(plots3d.section(d / FIG_UNIFORM[1], sc, mesh, res.nodal["von_mises_pa"], ys,
+        out["files"]["section"] = str(plots3d.section(d / FIG_UNIFORM_3D[1], sc, mesh, res.nodal["von_mises_pa"], ys,
                                                       "von Mises (Pa)", f"Section y = {ys * 1e3:g} mm - {tag}"))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
     write_json(args.json, out)        # (first: a reader that closes the pipe early does not lose the file)
@@ -125,9 +124,9 @@ def _indent(args, sc, rigid) -> int:
         tag = (f"{sc.name}: {sc.indenter.shape} tip R = {R * 1e3:g} mm at ({r.x_m * 1e3:g}, {r.y_m * 1e3:g}) mm, "
                f"depth {r.depth_m * 1e3:g} mm, F = {r.force_n:.4g} N")
         out["files"]["surface"] = str(plots3d.surface_maps(
-            d / FIG_INDENT[0], sc, surf.x_m, surf.y_m,
+            d / FIG_INDENT_3D[0], sc, surf.x_m, surf.y_m,
             {"von_mises_pa": surf.fields["von_mises_pa"], "uz_m": u[2::3][top]}, tag))
-        out["files"]["section"] = str(plots3d.section(d / FIG_INDENT[1], sc, mesh, nodal["von_mises_pa"], r.y_m,
+        out["files"]["section"] = str(plots3d.section(d / FIG_INDENT_3D[1], sc, mesh, nodal["von_mises_pa"], r.y_m,
                                                       "von Mises (Pa)", f"Section y = {r.y_m * 1e3:g} mm - {tag}"))
     out["timings_s"]["total_s"] = time.perf_counter() - t0
     write_json(args.json, out)
@@ -306,7 +305,7 @@ def run_predict(args, sc, ref) -> int:
         from fem import plots3d
         title = (f"{sc.name}: {sc.indenter.shape} tip R = {sc.indenter.radius_m * 1e3:g} mm pressed "
                  f"{args.depth_m * 1e3:g} mm on a {nx} x {ny} grid" + (f", against {ref.name}" if ref else ""))
-        out["files"]["predict"] = str(plots3d.grid_maps(Path(args.plots) / FIG_PREDICT, sc, xs, ys, maps, title))
+        out["files"]["predict"] = str(plots3d.grid_maps(Path(args.plots) / FIG_PREDICT_3D, sc, xs, ys, maps, title))
     t = dict(main["timings_s"])
     if ref is not None:
         t.update({"reference_setup_s": out["reference"]["timings_s"]["setup_s"],
