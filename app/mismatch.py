@@ -12,8 +12,8 @@ localizer, refinement) where the planner and the localizer know only the prior (
     viscoelastic         on in half the trials: relaxation 20-30 %, tau 1-4 s (standard linear solid)
     hyperelastic         with ``--hyperelastic`` only: a finite-strain neo-Hookean tissue (fem.hypertruth) in half
                          the trials, drawn from its own generator (the other draws stay those of the study without
-                         it); off by default: each such trial costs a sweep in depth per probe (about 2-3 s each,
-                         some 60 s a run against 15 s)
+                         it); off by default: each such trial costs a sweep in depth per probe (about 1.5-2.5 s each
+                         since session 58, 2-3 s before, when a run took some 60 s against 15 s)
     stone                a random rigid stone inside the true tissue (planner.surrogate.random_stones), or none
 
 with the nano17 sensor (its own random bias and drift). The plan, made once on the prior, indents 3 mm (not 4 mm: a

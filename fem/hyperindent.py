@@ -95,6 +95,7 @@ class HyperIndenter:
 
     def __init__(self, scene, model: Model | None = None, residual_tol: float = RESIDUAL_TOL):
         self._order_kept = None           # (the tangent's sparsity pattern, its fill-reducing order)
+        self._chol: Cholesky | None = None  # the last tangent's factor (its symbolic analysis reused)
         if scene.indenter.youngs_pa is not None and scene.indenter.youngs_pa < 1e3 * scene.tissue.youngs_pa:
             raise ValueError("the finite-strain truth models a rigid tip; this scene's tip is soft "
                              f"(E_tip = {scene.indenter.youngs_pa:g} Pa)")
@@ -116,6 +117,10 @@ class HyperIndenter:
         self.force_scale = scene.tissue.youngs_pa * self.R
         self.residual_tol = residual_tol
         self.tangent_fallbacks = 0     # Newton steps that used the material tangent alone (see _newton_step)
+
+    def __getstate__(self):
+        """Pickled (a study's worker) without the kept factor: a CHOLMOD factor does not pickle; it is made again."""
+        return {**self.__dict__, "_chol": None}
 
     # -- geometry -------------------------------------------------------------------------------------------------
     def _tip(self, x0: float, depth: float, xy: np.ndarray):
@@ -168,15 +173,30 @@ class HyperIndenter:
                            f"(relative residuals {', '.join(f'{h:.1e}' for h in history[-4:])})")
 
     def _factorize(self, Kt):
-        """``_factorize`` with the fill-reducing order kept between Newton steps while the tangent's sparsity pattern
-        stays the same (it does: one mesh; the ordering was a quarter of a sweep's time when made every step)."""
+        """solve(rhs) for the material tangent: CHOLMOD, its symbolic analysis kept between Newton steps while the
+        tangent's sparsity pattern stays the same (it does: one mesh; the ordering was a quarter of a sweep's time when
+        made every step, the rest of the analysis a tenth of it after that) and the columns solved in one sweep; SuperLU
+        when the tangent is not positive definite or CHOLMOD is not installed."""
+        import scipy.sparse.linalg as spla
+        if available():
+            try:
+                if self._chol is None or not self._chol.refactor(Kt):
+                    self._chol = None
+                    self._chol = Cholesky(Kt, self._order_for(Kt))
+                return self._chol.solve_columns
+            except ArithmeticError:
+                self._chol = None
+        return spla.splu(Kt.tocsc()).solve
+
+    def _order_for(self, Kt):
+        """The fill-reducing order, kept for the tangent's sparsity pattern (made again only if that changes)."""
         pattern = (Kt.shape, Kt.indptr, Kt.indices)
         kept = self._order_kept
         if kept is None or kept[0][0] != pattern[0] or not (np.array_equal(kept[0][1], pattern[1])
                                                             and np.array_equal(kept[0][2], pattern[2])):
-            kept = ((Kt.shape, Kt.indptr.copy(), Kt.indices.copy()), Cholesky.order_for(Kt) if available() else None)
+            kept = ((Kt.shape, Kt.indptr.copy(), Kt.indices.copy()), Cholesky.order_for(Kt))
             self._order_kept = kept
-        return _factorize(Kt, kept[1])
+        return kept[1]
 
     def _newton_step(self, K, f, x0, idx, g, n, r, pv, a):
         """One Newton step: the LCP above with the consistent tangent K~ = K_T - U D U^T (U: the tangents t_a of
@@ -260,14 +280,3 @@ class HyperIndenter:
                           newton_iterations=np.array(out_it), residuals=out_res, stopped=stopped,
                           time_s=time.perf_counter() - t0)
 
-
-def _factorize(K, order=None):
-    """solve(rhs) with a sparse factorization of the material tangent: CHOLMOD (cvxopt; ``order``: its fill-reducing
-    order, None: computed) when it is positive definite, else SuperLU."""
-    import scipy.sparse.linalg as spla
-    if available():
-        try:
-            return Cholesky(K, order).solve
-        except ArithmeticError:
-            pass
-    return spla.splu(K.tocsc()).solve

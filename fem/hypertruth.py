@@ -29,6 +29,7 @@ from .contact import SurfaceModel, surface_model
 from .hyperindent import HyperIndenter, HyperSweep
 from .scene import Scene
 from .scene_mesh import code_version, sources_version
+from .tip import contact_scene
 
 DEPTH_STEP_M = 0.5e-3             # the sweep's depth step
 DEPTH_LAST_FRACTION = 0.98        # its last depth, as a fraction of the tip radius (the linear model's range ends there)
@@ -67,7 +68,9 @@ class HyperelasticForce:
                              f"{scene.analysis.plane!r}")
         self.scene = scene
         self.linear = linear or surface_model(scene, cache=cache)
-        self.corr = correction_scene(scene)
+        # (the sweeps' key: a tip fem treats as rigid keyed without its modulus, as fem.tip.contact_scene keys the
+        # linear model's operators; the finite-strain model's tip is rigid whatever it is given)
+        self.corr = correction_scene(contact_scene(scene))
         self.depths = sweep_depths(scene)
         self.cache = cache
         self._indenter: HyperIndenter | None = None

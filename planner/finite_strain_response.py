@@ -20,7 +20,8 @@ mm from the sides; a sweep 2 mm from the side folds the tissue over at 2 mm deep
 sweep's depths and extrapolated linearly beyond the last (g is close to linear in depth); a position whose sweep
 stopped early is continued the same way from the depths it reached.
 
-Cost: one sweep per node (11 for the paper prior: about 40 s of CPU on this machine, cold) and the correction
+Cost: one sweep per node (11 for the paper prior: about 20 s of CPU on this machine, cold; 35 s before session 58's
+CHOLMOD reuse in fem.hyperindent) and the correction
 mesh's linear model. The table is kept on disk (fem.diskcache, kind ``hypershape``, keyed by the prior's
 correction scene, the nodes and depths, ``FORMAT`` and the code of fem's finite-strain and linear models); a table for
 the built-in paper prior is shipped in planner/data/ (the same name; used when the disk cache has none), so the
@@ -40,6 +41,7 @@ from core.arrays import clip
 from fem import diskcache
 from fem.hypertruth import HyperelasticForce, correction_scene, sweep_depths
 from fem.scene_mesh import code_version, sources_version
+from fem.tip import contact_scene
 
 X_NODES_TIP_RADII = (0.7, 1.0, 1.3, 1.6, 2.0, 2.5, 3.0)    # from the side, then every tip radius to the middle
 MIN_NODES = 3              # fewer usable positions (a section narrower than a few tip radii): no finite-strain term
@@ -164,7 +166,12 @@ def build_shape(prior) -> FiniteStrainShape:
 
 
 def at_shape_modulus(prior):
-    """The prior with its tissue at SHAPE_YOUNGS_PA: what its shape is built, keyed and kept for."""
+    """The prior as its shape is built, keyed and kept: its tissue at SHAPE_YOUNGS_PA, and a tip fem treats as rigid
+    on the prior (fem.tip.contact_scene, at the prior's own modulus) without its modulus. Both forces of the ratio
+    take such a tip as rigid (the finite-strain model's tip always is; the linear model drops it through the same
+    contact_scene), so the study's 60 MPa tip and a scene's default rigid one share one table: until session 58 a
+    scene with the paper's tissue and no tip modulus built its own (35 s), the same numbers under another key."""
+    prior = contact_scene(prior)
     return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, youngs_pa=SHAPE_YOUNGS_PA))
 
 

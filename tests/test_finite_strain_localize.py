@@ -166,7 +166,7 @@ def test_the_term_is_off_where_fems_finite_strain_model_does_not_reach(paper_pri
 def test_the_shipped_table_is_the_current_codes(monkeypatch):
     """planner/data holds the paper prior's table under the key of fem's current code: a change to fem's linear or
     finite-strain code changes the key, and without this check every fresh machine would silently pay the sweeps
-    (about 40 s) again. Regenerate: PALPATE_CACHE_DIR=DIR python -c "from fem.scene import load; from
+    (about 20 s) again. Regenerate: PALPATE_CACHE_DIR=DIR python -c "from fem.scene import load; from
     planner.finite_strain_response import prior_finite_strain; prior_finite_strain(load('paper').prior())", then
     copy DIR/hypershape-*.npz to planner/data/ (and remove the old one)."""
     import planner.finite_strain_response as fsr

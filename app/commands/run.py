@@ -259,12 +259,12 @@ def _dimension_defaults(args, scene, prior) -> bool:
 
 def prepare_finite_strain(prior, where_prior: str) -> None:
     """The localizer's finite-strain shape (planner.finite_strain_response) for a prior that has none yet: built
-    here, said before and after (a dozen fem sweeps of the prior, some 3 s each), not silently inside the first fit."""
+    here, said before and after (a dozen fem sweeps of the prior, some 2 s each), not silently inside the first fit."""
     if unsupported(prior) or prior_finite_strain(prior, build=False) is not None:
         return
     t = time.perf_counter()
     _say(f"no finite-strain shape for this tissue yet: building it before probing ({len(x_nodes(prior))} fem "
-         f"sweeps of the prior, about 3 s each on one core; kept in the disk cache when it is on)")
+         f"sweeps of the prior, about 2 s each on one core; kept in the disk cache when it is on)")
     try:
         shape = prior_finite_strain(prior)
     except (RuntimeError, ArithmeticError, ValueError) as e:
