@@ -182,6 +182,9 @@ class _CholmodDirect:
             L = self._capsule(F, b"CHOLMOD FACTOR D L")
         except ValueError:
             return None
+        f = self.Factor.from_address(L)
+        if f.minor < f.n:               # (a factorization that failed: cvxopt's solve says so, CHOLMOD's gives NaN)
+            raise ArithmeticError(f"the factor is not positive definite (column {f.minor} of {f.n})")
         Y = np.asfortranarray(Y, dtype=float)
         n, k = Y.shape
         B = self.Dense(n, k, n * k, n, Y.ctypes.data, None, 1, 0)           # CHOLMOD_REAL, CHOLMOD_DOUBLE
@@ -398,26 +401,24 @@ class Cholesky:
     CHOLMOD's own AMD) for a sparse SPD K; ``solve(rhs)`` for (n,) or (n, k); ``refactor(K)`` for new values on the
     same pattern (a Newton iteration's tangents)."""
 
-    def __init__(self, K, order: np.ndarray | None = None):
+    def __init__(self, K, order: np.ndarray | None = None, reusable: bool = False):
         """``order``: a fill-reducing order of K's rows to use (``Cholesky.order_for(K)``; a Newton iteration's
-        tangents share their pattern, so one order serves them all); None: computed here."""
+        tangents share their pattern, so one order serves them all); None: computed here. ``reusable``: keep K's
+        pattern and its lower triangle's map for ``refactor`` (about 16 bytes per nonzero of K, kept)."""
         import cvxopt
         import cvxopt.cholmod as chm
         self._chm, self._cvx = chm, cvxopt
         K = sp.csc_matrix(K)
-        self._pattern = (K.shape, K.indptr.copy(), K.indices.copy())
         cols = np.repeat(np.arange(K.shape[1]), np.diff(K.indptr))
-        self._low = np.flatnonzero(K.indices >= cols)           # K's lower triangle, in K.data's order
-        self._I = cvxopt.matrix(K.indices[self._low].astype(np.int64))
-        self._J = cvxopt.matrix(cols[self._low].astype(np.int64))
-        A = self._lower(K)
+        low = np.flatnonzero(K.indices >= cols)                 # K's lower triangle, in K.data's order
+        rows, cols = cvxopt.matrix(K.indices[low].astype(np.int64)), cvxopt.matrix(cols[low].astype(np.int64))
+        self._reuse = (K.shape, K.indptr.copy(), K.indices.copy(), low, rows, cols) if reusable else None
+        A = cvxopt.spmatrix(cvxopt.matrix(K.data[low]), rows, cols, size=K.shape)
+        del low, rows, cols
         if order is None:
             order = self.order_for(K)
         self._F = chm.symbolic(A) if order is None else chm.symbolic(A, p=cvxopt.matrix(np.asarray(order, np.int64)))
         chm.numeric(A, self._F)
-
-    def _lower(self, K):
-        return self._cvx.spmatrix(self._cvx.matrix(K.data[self._low]), self._I, self._J, size=K.shape)
 
     @staticmethod
     def order_for(K) -> np.ndarray | None:
@@ -425,14 +426,18 @@ class Cholesky:
         return interior_order(K, np.arange(K.shape[0]), ordering="metis") if metis_available() else None
 
     def refactor(self, K) -> bool:
-        """Factor K's values into this factor's symbolic analysis (its order and supernodes: about a third of a
-        factorization's time saved; the factor the same bit for bit as a new one in the same order) when K has the
-        pattern this was made for, and say so; False (nothing done) when it has another. ArithmeticError when K is
-        not positive definite: this factor is then spent."""
-        if not (getattr(K, "format", None) == "csc" and K.shape == self._pattern[0] and np.array_equal(K.indptr, self._pattern[1])
-                and np.array_equal(K.indices, self._pattern[2])):
+        """Factor K's values into this factor's symbolic analysis (its order and supernodes: a refactorization took
+        7-12 ms where a new factorization in the same order took 23-34 ms, on the paper section's correction mesh;
+        the factor the same bit for bit) when this was made ``reusable`` for K's pattern, and say so; False
+        (nothing done) otherwise. ArithmeticError when K is not positive definite: solves then raise
+        ArithmeticError until a positive definite K is factorized into it."""
+        if self._reuse is None:
             return False
-        self._chm.numeric(self._lower(K), self._F)
+        shape, indptr, indices, low, rows, cols = self._reuse
+        if not (getattr(K, "format", None) == "csc" and K.shape == shape and np.array_equal(K.indptr, indptr)
+                and np.array_equal(K.indices, indices)):
+            return False
+        self._chm.numeric(self._cvx.spmatrix(self._cvx.matrix(K.data[low]), rows, cols, size=shape), self._F)
         return True
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
@@ -442,8 +447,9 @@ class Cholesky:
 
     def solve_columns(self, rhs: np.ndarray) -> np.ndarray:
         """``solve`` for an (n, k) right-hand side in one sweep through the factor for all its columns (CHOLMOD's
-        own solve: BLAS-3 on its supernodes, where cvxopt's sweeps once per column; half the time for 50 columns of
-        the paper section's correction mesh); the same to round-off. ``solve`` where that is not available."""
+        own solve: BLAS-3 on its supernodes, where cvxopt's sweeps once per column; 17-23 ms against 33-35 ms for 50
+        columns of the paper section's correction mesh); the same to round-off. ``solve`` where that is not
+        available."""
         direct = _CholmodDirect.get() if np.ndim(rhs) == 2 and np.shape(rhs)[1] > 1 else None
         X = direct.solve(self._F, rhs, sys=0) if direct is not None else None
         return self.solve(rhs) if X is None else X

@@ -169,15 +169,15 @@ class SurfaceModel3D:
         self._model = model if compliance is None else None     # restored: the model is built when fields are asked
         if compliance is None and model is None:
             self._model = build_model3d(scene, mesh=mesh, rigid_stones=rigid_stones)
-        if compliance is None:
-            self._model.K                                       # assembled here (timed as the set-up's)
         self.mesh = self._model.mesh if self._model is not None else (mesh if mesh is not None else model.mesh)
-        t1 = time.perf_counter()
         self.patch = patch_nodes(self.mesh, scene.analysis.patch_m)
-        if len(self.patch) > MAX_PATCH_NODES:
+        if len(self.patch) > MAX_PATCH_NODES:      # (refused before the stiffness is assembled: 18 s on a 2 mm mesh)
             raise SceneError(f"scene {scene.name!r}: the probed patch has {len(self.patch)} top nodes (a dense "
                              f"{8 * len(self.patch) ** 2 / 1e9:.3g} GB compliance), above {MAX_PATCH_NODES}: "
                              f"lower analysis.patch_m or analysis.surface_refine")
+        if compliance is None:
+            self._model.K                                       # assembled here (timed as the set-up's)
+        t1 = time.perf_counter()
         self.xy = self.mesh.nodes[self.patch, :2]
         self._fac = None
         self._band = None

@@ -31,6 +31,7 @@ from .condense import Cholesky, available
 from .finite_strain import FiniteStrainModel
 from .lcp import solve_lcp
 from .model import Model, build_model
+from .tip import tip_too_soft
 
 MAX_NEWTON = 25
 MIN_STEP_FRACTION = 1.0 / 64     # a load step is halved at most 6 times
@@ -96,7 +97,7 @@ class HyperIndenter:
     def __init__(self, scene, model: Model | None = None, residual_tol: float = RESIDUAL_TOL):
         self._order_kept = None           # (the tangent's sparsity pattern, its fill-reducing order)
         self._chol: Cholesky | None = None  # the last tangent's factor (its symbolic analysis reused)
-        if scene.indenter.youngs_pa is not None and scene.indenter.youngs_pa < 1e3 * scene.tissue.youngs_pa:
+        if tip_too_soft(scene):
             raise ValueError("the finite-strain truth models a rigid tip; this scene's tip is soft "
                              f"(E_tip = {scene.indenter.youngs_pa:g} Pa)")
         self.scene = scene
@@ -182,7 +183,7 @@ class HyperIndenter:
             try:
                 if self._chol is None or not self._chol.refactor(Kt):
                     self._chol = None
-                    self._chol = Cholesky(Kt, self._order_for(Kt))
+                    self._chol = Cholesky(Kt, self._order_for(Kt), reusable=True)
                 return self._chol.solve_columns
             except ArithmeticError:
                 self._chol = None

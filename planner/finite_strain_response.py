@@ -41,7 +41,7 @@ from core.arrays import clip
 from fem import diskcache
 from fem.hypertruth import HyperelasticForce, correction_scene, sweep_depths
 from fem.scene_mesh import code_version, sources_version
-from fem.tip import contact_scene
+from fem.tip import contact_scene, tip_too_soft
 
 X_NODES_TIP_RADII = (0.7, 1.0, 1.3, 1.6, 2.0, 2.5, 3.0)    # from the side, then every tip radius to the middle
 MIN_NODES = 3              # fewer usable positions (a section narrower than a few tip radii): no finite-strain term
@@ -118,7 +118,7 @@ def unsupported(prior) -> str:
         return "the finite-strain model is 2D (a plane-strain section)"
     if prior.analysis.plane != "strain":
         return f"the finite-strain model is plane strain; the prior's analysis.plane is {prior.analysis.plane!r}"
-    if prior.indenter.youngs_pa is not None and prior.indenter.youngs_pa < 1e3 * prior.tissue.youngs_pa:
+    if tip_too_soft(prior):
         return "the finite-strain model needs a rigid-treated tip"
     if 0.5 * prior.tissue.width_m < X_NODES_TIP_RADII[MIN_NODES - 1] * prior.indenter.radius_m:
         return "the section is too narrow for the tip"
@@ -166,13 +166,21 @@ def build_shape(prior) -> FiniteStrainShape:
 
 
 def at_shape_modulus(prior):
-    """The prior as its shape is built, keyed and kept: its tissue at SHAPE_YOUNGS_PA, and a tip fem treats as rigid
-    on the prior (fem.tip.contact_scene, at the prior's own modulus) without its modulus. Both forces of the ratio
-    take such a tip as rigid (the finite-strain model's tip always is; the linear model drops it through the same
-    contact_scene), so the study's 60 MPa tip and a scene's default rigid one share one table: until session 58 a
-    scene with the paper's tissue and no tip modulus built its own (35 s), the same numbers under another key."""
+    """The prior as its shape is built, keyed and kept: its tissue at SHAPE_YOUNGS_PA and an elastic tip's modulus
+    scaled with it (the ratio of the two, which fem's rigid-or-elastic decision and the finite-strain model's
+    refusal read, unchanged: g is then the same for every tissue modulus, an elastic tip's included), and a tip fem
+    treats as rigid without its modulus (fem.tip.contact_scene). Both forces of the ratio take such a tip as rigid
+    (the finite-strain model's tip always is; the linear model drops it through the same contact_scene), so the
+    study's 60 MPa tip and a scene's default rigid one share one table: until session 58 a scene with the paper's
+    tissue and no tip modulus built its own (35 s), the same numbers under another key, and an elastic tip kept its
+    modulus at 2500 Pa, where the decision could come out otherwise."""
     prior = contact_scene(prior)
-    return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, youngs_pa=SHAPE_YOUNGS_PA))
+    scale = SHAPE_YOUNGS_PA / prior.tissue.youngs_pa
+    ind = prior.indenter
+    if ind.youngs_pa is not None:
+        ind = dataclasses.replace(ind, youngs_pa=ind.youngs_pa * scale)
+    return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, youngs_pa=SHAPE_YOUNGS_PA),
+                               indenter=ind)
 
 
 def prior_finite_strain(prior, build: bool = True) -> FiniteStrainShape | None:

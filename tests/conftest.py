@@ -36,7 +36,7 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 # rest run on two workers (pytest-xdist). The README's test command does both. Single tests elsewhere that do so carry
 # @pytest.mark.realtime themselves.
 REALTIME_FILES = {"test_fault_drills.py", "test_simcontroller.py", "test_netft_cli.py", "test_netft.py",
-                  "test_run_sim.py", "test_run_data_safety.py"}
+                  "test_run_data_safety.py"}     # (test_run_sim.py marks its one controller test itself: session 58)
 
 
 # The longest files (measured in session 57: test_run3d.py about 370 s of a 726 s run on two workers), started

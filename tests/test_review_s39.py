@@ -72,7 +72,7 @@ def _examples(text: str, command: str) -> list[str]:
     return out
 
 
-def test_every_2d_example_in_the_help_runs(tmp_path, monkeypatch):
+def test_every_2d_example_in_the_help_runs(tmp_path, monkeypatch, capsys):
     """The examples `palpate --help` and `palpate plan --help` teach, on the 2D scenes, each run as written
     (outputs into a scratch directory): one of them asked for a depth limit beyond the tip and was refused. Each
     through the command line's own entry point in this process (until session 58 each in a fresh interpreter: 2 s
@@ -91,7 +91,8 @@ def test_every_2d_example_in_the_help_runs(tmp_path, monkeypatch):
         cwd = tmp_path / f"ex{k}"
         cwd.mkdir()
         monkeypatch.chdir(cwd)
-        assert main(argv) == 0, line
+        rc = main(argv)
+        assert rc == 0, (line, capsys.readouterr().err[-500:])
 
 
 def test_a_probed_patch_narrower_than_the_tip_is_refused_when_the_scene_is_read():

@@ -120,6 +120,7 @@ def test_the_belief_is_the_prior_not_the_truth_in_every_fit_and_plan(tmp_path, s
         assert prior.stones == () and prior.tissue.youngs_pa == 2500.0, where
     assert json.loads((out / "result.json").read_text())["sim"]["truth_tissue"]["youngs_pa"] == 3000.0
 
+@pytest.mark.realtime
 def test_run_through_simulated_controller_and_real_ur_rtde(tmp_path, surrogate):
     """The main job over the real ur_rtde client and the loopback controller (real time: a 5-probe raster). Its
     plan descends from 4 mm above the surface (`palpate plan --approach-height-m 0.004`; from the default 10 mm, at
