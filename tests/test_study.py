@@ -110,7 +110,8 @@ def _free_port() -> int:
 
 def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_path):
     """`dask scheduler` and `dask worker` as their own processes on loopback; `palpate study accuracy --scheduler`
-    gives the serial run's rows."""
+    gives the serial run's rows (its first trial: a study of one draws the same first stone and seed; until session
+    58 all three trials, 37 s, where the local cluster's test runs them all)."""
     sur, trials, serial = small_study
     dask = Path(sys.executable).with_name("dask")
     cmd = [str(dask)] if dask.exists() else [sys.executable, "-m", "distributed.cli.dask_scheduler"]
@@ -137,8 +138,8 @@ def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_
                                        "--local-directory", str(tmp_path / "worker")], env=env, stdout=logs,
                                       stderr=subprocess.STDOUT))
         out = tmp_path / "study"
-        assert main(["study", "accuracy", "--out", str(out), "--scheduler", addr, "--trials", str(TRIALS),
-                     "--healthy", str(HEALTHY), "--seed", "7", "--budget-probes", str(BUDGET),
+        assert main(["study", "accuracy", "--out", str(out), "--scheduler", addr, "--trials", "1",
+                     "--healthy", "0", "--seed", "7", "--budget-probes", str(BUDGET),
                      "--no-progress"]) == 0
     finally:
         for p in reversed(procs):
@@ -152,8 +153,9 @@ def test_study_on_a_scheduler_and_worker_in_separate_processes(small_study, tmp_
     with open(out / "accuracy.csv") as f:
         rows = list(csv.DictReader(f))
     by_key = {(int(r["seed"]), r["method"]): r for r in rows}
-    assert len(rows) == len(serial)
-    for r in serial:
+    first = [r for r in serial if r["seed"] == trials[0].seed]     # the study's first trial: the same stone and seed
+    assert first and len(rows) == len(first)                       # (one trial here: the local cluster runs all)
+    for r in first:
         got = by_key[(r["seed"], r["method"])]
         for k in ("x_est_m", "depth_est_m", "lr", "n_probes"):
             if k in r:
