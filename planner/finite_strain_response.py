@@ -21,11 +21,10 @@ sweep's depths and extrapolated linearly beyond the last (g is close to linear i
 stopped early is continued the same way from the depths it reached.
 
 Cost: one sweep per node (11 for the paper prior: about 20 s of CPU on this machine, cold; 35 s before session 58's
-CHOLMOD reuse in fem.hyperindent) and the correction
-mesh's linear model. The table is kept on disk (fem.diskcache, kind ``hypershape``, keyed by the prior's
-correction scene, the nodes and depths, ``FORMAT`` and the code of fem's finite-strain and linear models); a table for
-the built-in paper prior is shipped in planner/data/ (the same name; used when the disk cache has none), so the
-paper prior costs nothing cold either.
+CHOLMOD reuse in fem.hyperindent) and the correction mesh's linear model. The table is kept on disk (fem.diskcache,
+kind ``hypershape``, keyed by the prior's correction scene, the nodes and depths, ``FORMAT`` and the code of fem's
+finite-strain and linear models); a table for the built-in paper prior is shipped in planner/data/ (the same name;
+used when the disk cache has none), so the paper prior costs nothing cold either.
 """
 from __future__ import annotations
 
@@ -175,10 +174,10 @@ def at_shape_modulus(prior):
     tissue and no tip modulus built its own (35 s), the same numbers under another key, and an elastic tip kept its
     modulus at 2500 Pa, where the decision could come out otherwise."""
     prior = contact_scene(prior)
-    scale = SHAPE_YOUNGS_PA / prior.tissue.youngs_pa
     ind = prior.indenter
-    if ind.youngs_pa is not None:
-        ind = dataclasses.replace(ind, youngs_pa=ind.youngs_pa * scale)
+    if ind.youngs_pa is not None:          # (to 12 digits: the same ratio, the same key, whatever the rounding)
+        scaled = ind.youngs_pa / prior.tissue.youngs_pa * SHAPE_YOUNGS_PA
+        ind = dataclasses.replace(ind, youngs_pa=float(f"{scaled:.12g}"))
     return dataclasses.replace(prior, tissue=dataclasses.replace(prior.tissue, youngs_pa=SHAPE_YOUNGS_PA),
                                indenter=ind)
 
@@ -211,6 +210,7 @@ def prior_finite_strain(prior, build: bool = True) -> FiniteStrainShape | None:
             shape = build_shape(prior)
         except ValueError as e:       # fem's sweeps did not reach depth on enough positions: no term, said once
             warnings.warn(f"the localizer runs without its finite-strain term for this prior: {e}", stacklevel=2)
+            _MEM[key] = None          # (once per process: each fit asked again, and built and warned again)
             return None
         if diskcache.enabled():
             diskcache.write(diskcache.entry_path(KIND, spec), shape.to_arrays())

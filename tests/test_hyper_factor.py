@@ -8,6 +8,7 @@ scene with the paper's tissue and the default rigid tip finds the shipped shape 
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import numpy as np
 import pytest
@@ -129,6 +130,32 @@ def test_a_rigid_treated_tip_shares_the_shape_key_and_an_elastic_one_does_not():
     assert rigid_tip_bound(shaped) == pytest.approx(rigid_tip_bound(stiff), rel=1e-12)
     assert shaped.key() == fsr.at_shape_modulus(_with(paper, youngs_pa=1000.0, tip_pa=1.05e6)).key()
     assert shaped.key() != fsr.at_shape_modulus(rigid).key()
+    # the same ratio gives the same key whatever the product's rounding (1100 Pa x 1050 scaled to 2500 Pa came out
+    # 2625000.0000000005 before the scaled modulus was rounded to 12 digits: another key, another 20 s build)
+    keys = {fsr.at_shape_modulus(_with(paper, youngs_pa=e, tip_pa=1050.0 * e)).key()
+            for e in (0.3, 1000.0, 1100.0, 1234.5, 2500.0, 3300.0, 4321.7, 7000.0, 1e5)}
+    assert len(keys) == 1
+
+
+def test_a_failed_shape_is_said_once_and_not_built_again(monkeypatch):
+    """A prior whose sweeps do not reach depth: the localizer runs without the term, warned once per process (each
+    fit asked again, built the shape again and warned again before session 58)."""
+    calls = []
+
+    def fails(prior):
+        calls.append(prior)
+        raise ValueError("the finite-strain sweeps reached depth at only 2 positions")
+    monkeypatch.setattr(fsr, "build_shape", fails)
+    monkeypatch.setattr(fsr, "_MEM", {})
+    monkeypatch.setenv("PALPATE_CACHE", "0")
+    paper = load("paper").prior()
+    prior = _with(dataclasses.replace(paper, tissue=dataclasses.replace(paper.tissue, height_m=0.045)), tip_pa=None)
+    with pytest.warns(UserWarning, match="without its finite-strain term"):
+        assert fsr.prior_finite_strain(prior) is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fsr.prior_finite_strain(prior) is None and fsr.prior_finite_strain(prior, build=False) is None
+    assert len(calls) == 1
 
 
 def test_one_rule_for_a_tip_too_soft_for_the_finite_strain_model():

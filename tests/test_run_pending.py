@@ -34,6 +34,7 @@ def _no_finite_strain_shape(monkeypatch):
     def refuse(prior):
         raise ValueError("not built in this test")
     monkeypatch.setattr(fsr, "build_shape", refuse)
+    monkeypatch.setattr(fsr, "_MEM", {})          # (the refusal is remembered: not for the rest of the session)
 
 
 def test_run_probes_while_the_table_is_built(tmp_path, monkeypatch, capsys):
