@@ -4,7 +4,7 @@ ur_rtde client, as an operator would run it (``palpate-cell --host IP``).
 ``run_drill(name, workdir)`` starts a controller with the drill's fault (robot.simfaults), runs ``palpate-cell`` on a
 three-probe plan over the paper scene (coarse mesh), and returns a ``DrillResult``: the exit code, the wall time of
 the whole cell process, the fault report, the records, and how the motion ended as the controller saw it. Used by
-tests/test_fault_drills.py (each drill ends within ``DRILL_BOUND_S``) and bench/fault_table.py (README's table).
+tests/test_fault_drills.py (each drill ends within ``DRILL_BOUND_S``) and bench/fault_table.py (docs/robot.md's table).
 """
 from __future__ import annotations
 

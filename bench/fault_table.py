@@ -1,4 +1,4 @@
-"""The fault table of README's robot section: every fault drill (app/faultdrill.py) through the real ur_rtde client
+"""The fault table of docs/robot.md: every fault drill (app/faultdrill.py) through the real ur_rtde client
 against the simulated controller, repeated, with its measured bounds.
 
     python bench/fault_table.py --out runs/fault_table [--repeats 3] [--only partition-descent,...]

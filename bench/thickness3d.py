@@ -1,4 +1,4 @@
-"""The 3D loop on blocks thicker and thinner than the prior believes (docs/loop3d.md, README "The block's
+"""The 3D loop on blocks thicker and thinner than the prior believes (docs/loop3d.md, docs/localize.md "The block's
 thickness in 3D").
 
     python bench/thickness3d.py --out bench-out/thickness3d [--seeds 0 1 2] [--code DIR --label before]

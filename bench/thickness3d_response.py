@@ -1,4 +1,4 @@
-"""How exact the 3D localizer's thickness interpolation is (planner.tissue_response3d, README "The block's thickness
+"""How exact the 3D localizer's thickness interpolation is (planner.tissue_response3d, docs/localize.md "The block's thickness
 in 3D").
 
     python bench/thickness3d_response.py --out bench-out/thickness3d-s41

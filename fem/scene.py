@@ -469,7 +469,7 @@ def load_toml(path: str | Path) -> Scene:
 
 
 # A block's scene file leaves out what a block needs (load_toml): the 3D tip, and block3d's mesh (its element sizes
-# and grading, chosen by README's convergence study). The probed patch: the whole top face up to 50 mm across
+# and grading, chosen by the convergence study in docs/bench_3d.md). The probed patch: the whole top face up to 50 mm across
 # (block3d's probed side; a block 50 x 60 mm: 9,857 patch nodes), else a centred square with a 10 mm margin, at
 # most 50 mm (a 70 mm face whole: 16,217 nodes, beyond fem.contact3d.MAX_PATCH_NODES).
 BLOCK_FILE_PATCH_MAX_M = 0.050
@@ -534,7 +534,7 @@ BUILTIN = {
 # patch is the central 50 x 50 mm (a 40 x 40 mm raster plus the tip radius on each side). The mesh: P2, 1.2 mm on the
 # patch, growing by 0.2 per unit distance to 9.6 mm: 0.8 times the first default (12 mm, grade 0.25) in every size,
 # the coarsest of the uniformly refined family within 1 % of the converged force at every benchmark waypoint with a
-# margin (0.69 % at worst; the first default: 1.36 %); README's convergence table, bench/bench_3d.py.
+# margin (0.69 % at worst; the first default: 1.36 %); docs/bench_3d.md's convergence table, bench/bench_3d.py.
 BLOCK3D_ANALYSIS = Analysis(order=2, mesh_size_m=0.0096, surface_refine=8.0, patch_m=0.050, grade=0.2)
 
 

@@ -7,7 +7,7 @@ reports the tissue-side stress. At stress points (``point_operator3d``; the maxi
 element's own stress at the four points of the degree-2 rule, where a quadratic tetrahedron's stress is most
 accurate. Under a Hertz sphere the maximum over nodes came out +7 to +28 % above Hertz's at 2-6 surface elements per
 contact radius (a P2 stress evaluated at vertices and averaged), the maximum over these points +1 to +12 % at 3 or
-more (more for nu near 0.5, and mesh noise of several percent from one tip position to the next; README "3D
+more (more for nu near 0.5, and mesh noise of several percent from one tip position to the next; docs/fem.md "3D
 stresses under a round tip"). Components in the Voigt order of fem.assembly3d: [sxx, syy, szz, syz, sxz, sxy].
 """
 from __future__ import annotations

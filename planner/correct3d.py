@@ -3,7 +3,7 @@
 The 3D table (planner.surrogate3d) holds a stone's contrast as that of the same stone under the middle of the probed
 patch: translation-invariant. Near a side face the true contrast differs (a 10 mm stone 8-13 mm from a side of a
 50 mm block: 2.5-3.1 % RMS of the peak over a probe grid, up to 12-19 % at single probes; bench/side3d.py) and a fit
-on the table alone comes out several sigma off (README, "A stone near a block's side").
+on the table alone comes out several sigma off (docs/localize.md, "A stone near a block's side").
 
 ``table_error_n`` is the table's error at one stone, at the probes: fem's contrast of that stone where it is, on the
 prior's own mesh (the table's calibration mesh; the prior on the stone's mesh, so the ripple cancels), less the

@@ -245,14 +245,14 @@ FS_LEAN_PER_M = 300.0       # ... and a correlated part of it, one mode: a neo-H
 #                             stone's distance to that side, and at most k times its distance from the middle): 0 at
 #                             the middle, by symmetry (fs_lean). Measured
 #                             with fem on the paper section (bench/contrast_finite_strain.py, ten stones 2.5-25 mm from
-#                             the middle: README): k 0.15-0.8 / mm, 0.15 for deep stones, the most for small shallow
+#                             the middle: docs/mismatch.md): k 0.15-0.8 / mm, 0.15 for deep stones, the most for small shallow
 #                             ones; k = 0.3 / mm is the median. Independent per-reading errors average out over many
 #                             probes; a lean does not, and it moves x: its effect on the fit is added to the covariance
 #                             (_lean_cov)
 FS_LEAN_REACH_M = 0.035     # (the table's side effects reach as far: planner.surrogate._grid_xs)
 FS_LEAN_SPAN_M = 0.010      # (the mode: L a g(d) C clip((x - xs) / FS_LEAN_SPAN_M, -1, 1): measured to 10-15 mm)
 CRUSH_REL_ERR = 0.5         # model error, relative to the stone's contrast, of a reading the linear model does not cover
-#                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (README)
+#                             (the tissue over the stone crushed: see _fit_stone); set by session 45's study (docs/mismatch.md)
 CRUSH_PASSES = 3            # refits at most while the fitted stone moves to another set of such readings
 MIN_ONSETS = 4              # fewer contact onsets: the surface is taken as the nominal one (offset and tilt fixed)
 
@@ -653,7 +653,7 @@ NEAR_SIDE = "near side"     # ... and for a block's stone within SIDE_REACH3D_M 
 BELOW_BOTTOM = "below the bottom"   # ... and for a stone reaching below the tissue's bottom (as its thickness is fitted)
 SIDE_REACH3D_M = 0.022      # The 3D table (planner.surrogate3d) takes every stone's contrast as a stone's away from the
 #                             block's side faces. On a 50 x 50 x 30 mm block (a 10 mm stone 12 mm deep, y at the
-#                             middle; README "3D: a stone near a side"), against direct fem: RMS 2.5-3.1 % of the peak
+#                             middle; docs/localize.md "A stone near a block's side"), against direct fem: RMS 2.5-3.1 % of the peak
 #                             and up to 12-19 % at single probes (between the stone and the side) with its centre 8-13
 #                             mm from a side, 1.5-1.7 % / 6-7 % at 18 mm, 0.9-1.4 % / 3-4 % at 25 mm; and runs with a
 #                             noise-free sensor (the table's bias alone): the worst of x, depth and diameter 14, 9.6,

@@ -249,7 +249,7 @@ def contact_floor_m(plan) -> float:
 
 # session 51, the mismatch study's 27 shallow stones run again at the suggested depth: on linear tissue x within 2
 # sigma 81 -> 100 %, on neo-Hookean tissue 91 -> 45 % (the finite strain of the thin layer over the stone is not in
-# the model, and shallow probes' small sigmas no longer hide it; README)
+# the model, and shallow probes' small sigmas no longer hide it; docs/mismatch.md)
 HINT_CAUTION = " (on tissue stiffening at finite strain, x's sigma may then come out too small)"
 
 

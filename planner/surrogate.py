@@ -165,7 +165,7 @@ def _grid_xs(prior, grid: Grid) -> np.ndarray:
     localizer allows 1 %). A big deep stone feels the side further in (17 mm, its top 18.5 mm deep, on 200 x 50 mm:
     35-55 mm 1.00 %, 35-51.25 mm, the 200 mm section's own step, 0.75 %; a session-52 review). Session 50's rule (the positions within 15 mm of the side kept, the other four spread
     evenly) left 15-36.25 mm between positions on a 200 mm section, and stones there came out 5.5-7.9 sigma off
-    (README, "Wide sections")."""
+    (docs/mismatch.md, "Wide sections")."""
     g = np.asarray(grid.xs_m, float)
     W = prior.tissue.width_m
     if W <= REF_WIDTH_M:

@@ -294,7 +294,7 @@ def test_prior_response_at_three_thicknesses_against_fem():
 @pytest.mark.parametrize("seed", [1, 3])
 def test_a_thicker_healthy_block_is_no_stone_and_its_thickness_is_fitted(sur, seed):
     """Healthy tissue 10 % thicker than the prior (on the thickness node's own mesh, so that the coarse test mesh's
-    ripple between meshes does not decide; off the nodes it is measured on block3d's mesh, README): no stone, the
+    ripple between meshes does not decide; off the nodes it is measured on block3d's mesh, docs/mismatch.md): no stone, the
     thickness recovered within 3 %. The same measurements with the thickness taken as known (``thickness_sigma=0``,
     the localizer before session 41) give a false stone: the scene tells the two apart."""
     from planner.tissue_response import scene_with_height

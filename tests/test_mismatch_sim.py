@@ -42,7 +42,7 @@ def test_surface_offset_does_not_move_the_answer_beyond_its_uncertainty(tmp_path
     """The true surface 1.5 mm below the registered one (a [truth] table in the scene file): the plan's 4 mm
     indentation is really 2.5 mm. The contact onsets give the surface; the stone is where it was within the stated
     uncertainty. (Above the nominal surface, the 4 mm plan would press 5.5 mm: beyond the tip radius, where fem's
-    contact model ends; see README.)"""
+    contact model ends; see docs/mismatch.md.)"""
     truth = truth_file(tmp_path, "offset", truth_table="surface_offset_m = -0.0015")
     assert main(["run", truth, *ARGS, "--budget-probes", "25", "--out", str(tmp_path / "o")]) == 0
     r = result(tmp_path / "o")

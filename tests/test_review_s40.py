@@ -106,7 +106,7 @@ def test_the_refinement_design_survives_probes_stopped_at_a_surface_5_mm_high():
     """`palpate run paper --sim --truth-surface-offset-m 0.005` (inside the truth's allowed range) crashed after
     round 0: every probe stopped at the depth limit, their nominal depths about 0 (-22 um for the median), and the
     design asked fem for the prior's force there (fem: depth must lie in [0, H)). The design's depth is now held
-    inside fem's range; a whole run at +5 mm finds the stone (README)."""
+    inside fem's range; a whole run at +5 mm finds the stone (docs/robot.md)."""
     import numpy as np
 
     sys.path.insert(0, str(Path(__file__).parent))

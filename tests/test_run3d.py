@@ -78,7 +78,7 @@ def test_stone_off_the_centre_in_y_is_found_there(tmp_path, surrogate):
     """block3d-front (the stone at y = 20 mm, 5 mm inside the probed area's edge, x = 35 mm), its block's thickness
     measured to 1 mm (``--thickness-sigma-m 0.001``: this test is about the position in y): found there, within
     1 mm in the plane (measured 0.46 mm) and inside its 95 % ellipse; not at the centre. (With the default 6 % on
-    the thickness the same run gives y 21.52 +- 0.56 mm, 1.5 mm and 2.7 sigma off: README.) Its stone lies 20 mm from
+    the thickness the same run gives y 21.52 +- 0.56 mm, 1.5 mm and 2.7 sigma off: docs/localize.md.) Its stone lies 20 mm from
     a side: ``--no-fem-correction`` keeps the run to the table (fem's correction on block3d's mesh takes about two
     minutes a pass; it has its own tests in tests/test_loop3d.py)."""
     assert main(["run", "block3d-front", "--sim", "--no-figure", "--thickness-sigma-m", "0.001", "--no-fem-correction",

@@ -36,7 +36,7 @@ def test_run_finds_the_stone(tmp_path, surrogate, scene, x_tol, depth_tol):
     depth is then partly degenerate with a thicker tissue (sigma_depth about 2 mm for the paper stone at 25 probes),
     so the depth is asked to lie within ``depth_tol`` of its own stated sigma and inside the 95 % profile interval.
     paper-deep (10 mm at 40 mm, in the middle): with the tissue known it was found (its depth nearly degenerate with
-    its size); with the tissue's thickness and stiffness unknown it lies outside the detectability envelope (README:
+    its size); with the tissue's thickness and stiffness unknown it lies outside the detectability envelope (docs/localize.md:
     nothing of 10 mm at 40 mm is detectable in the middle), and the run must say "no stone" as predicted, not
     guess."""
     from fem.scene import load

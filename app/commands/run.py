@@ -182,7 +182,7 @@ def add_parser(sub) -> None:
                         "prior's height, what the 2D section assumes: a thickness known to +-10 %%; 0: known exactly, "
                         "not fitted; else between 0.1 and 10 %% of the height). The localizer fits the thickness with "
                         "this prior: a broad, deep stone and a thinner block look alike, so a looser prior costs "
-                        "precision and a tighter one than the truth can raise a false stone (README)")
+                        "precision and a tighter one than the truth can raise a false stone (docs/localize.md)")
     p.add_argument("--no-fem-correction", action="store_true",
                    help=f"3D block: a stone found within {SIDE_REACH3D_M * 1e3:g} mm of a side is not fitted again with "
                         "fem's contrast at the fitted stone (the 3D table takes every stone as one away from the sides "

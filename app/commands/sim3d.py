@@ -202,7 +202,7 @@ def grid(sc, nx: int, ny: int) -> tuple[np.ndarray, np.ndarray]:
     return axis(x0, x1, nx), axis(y0, y1, ny)
 
 
-# README, "In 3D"; measured 2026-11-26 (the estimate before meshing, fem.mesh3d.estimate_nodes3d, said 156,587 there)
+# docs/fem.md, "In 3D"; measured 2026-11-26 (the estimate before meshing, fem.mesh3d.estimate_nodes3d, said 156,587 there)
 REFERENCE_BUILD = "for comparison block3d's prior, 137,445 DOFs once meshed, takes about 35 s on 2 cores"
 
 

@@ -64,7 +64,7 @@ studies:
 
 where it runs: --workers 1 (serial, this process), --workers N (a dask LocalCluster of N processes on this machine;
 default: one per CPU) or --scheduler tcp://HOST:8786 (an existing cluster: `dask scheduler` on one machine, `dask
-worker tcp://HOST:8786 --nthreads 1` on each machine, palpate installed on all; see README).
+worker tcp://HOST:8786 --nthreads 1` on each machine, palpate installed on all; see docs/scale_out.md).
 
 examples:
   palpate study accuracy --out study/ --quick              20 stones + 10 healthy scenes, LocalCluster
