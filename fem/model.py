@@ -165,10 +165,16 @@ def warn_if_locking(scene) -> None:
     nu = scene.tissue.poisson
     if nu > NU_WARN and getattr(scene.analysis, "formulation", "displacement") == "displacement":
         bulk_to_shear = 2 * (1 + nu) / (3 * (1 - 2 * nu))
+        if getattr(scene, "is_3d", False):
+            advice = ("3D has the displacement form only: refine (analysis.mesh_size_m, analysis.surface_refine) and "
+                      "compare two meshes")
+        else:
+            advice = ("for load A set [analysis] formulation = \"mixed\" (Taylor-Hood P2/P1); the contact model "
+                      "(load B) has the displacement form only: its force converges, its nodal contact pressure "
+                      "oscillates (refine analysis.surface_refine)")
         warnings.warn(f"scene {scene.name!r}: tissue poisson = {nu} > {NU_WARN} with the displacement formulation "
                       f"(P{scene.analysis.order}): volumetric locking (bulk modulus {bulk_to_shear:.3g} times the "
-                      f"shear modulus) makes stresses untrustworthy; set [analysis] formulation = \"mixed\" "
-                      f"(Taylor-Hood P2/P1)", stacklevel=3)
+                      f"shear modulus) makes stresses untrustworthy; {advice}", stacklevel=3)
 
 
 ELASTIC_RATIO_WARN = 1.0e8   # an elastic (not rigid) stone stiffer than this loses accuracy to round-off

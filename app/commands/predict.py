@@ -193,7 +193,8 @@ def ratio_line(out: dict) -> str:
 def _peak(xs, ratio) -> dict | None:
     """Peak of a ratio profile. Near its top the ratio is flat to ~1e-6 while the two meshes differ by ~1e-4, so the
     largest sample can sit a waypoint or two off; ``x_m`` is the vertex of a least-squares parabola through the
-    contiguous samples in the peak's upper quarter up to a valley (``core.peak.upper_window``; ``x_max_sample_m``:
+    contiguous samples in the peak's upper quarter up to a valley (``core.peak.upper_window``; where fewer than three
+    lie there, a peak sharper than the spacing, the largest and its two neighbours; ``x_max_sample_m``:
     the largest sample); ``ratio``: the parabola's value there, or the largest sample's where that is higher (a
     lopsided hump). Where the window's parabola rises above the largest sample by more than the drop from it to its
     lower neighbour (it does not describe the top), both come from the parabola through the largest sample and its
@@ -204,6 +205,8 @@ def _peak(xs, ratio) -> dict | None:
     i = int(np.nanargmax(ratio))
     out = {"x_m": float(xs[i]), "ratio": float(ratio[i]), "index": i, "x_max_sample_m": float(xs[i])}
     lo, hi = upper_window(ratio, i)
+    if hi - lo < 2 and 0 < i < len(ratio) - 1 and np.isfinite(ratio[i - 1:i + 2]).all():
+        lo, hi = i - 1, i + 1       # a peak sharper than the waypoints' spacing: the parabola through its top three
     x_fit, fit = parabola_peak(xs, ratio, lo, hi)
     near = ratio[max(i - 1, 0):i + 2]
     near = near[np.isfinite(near)]

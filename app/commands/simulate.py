@@ -27,7 +27,7 @@ from app.options import (
     positive_float,
     refuse_figures,
 )
-from app.resolution import warn_unresolved2d
+from app.resolution import warn_pressure_near_incompressible2d, warn_unresolved2d
 from fem.contact import surface_model
 from fem.rigid_stress import nodal_fields
 from fem.scene import SceneError, check_load_a
@@ -200,6 +200,7 @@ def _run_indent(args) -> int:
     write_json(args.json, out)        # (first: a reader that closes the pipe early does not lose the file)
     _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
     warn_unresolved2d(sc, "simulate", [r.half_width_m])
+    warn_pressure_near_incompressible2d(sc, "simulate", [r.half_width_m])
     warn_strain("simulate", sc, args.depth_m)
     return 0
 
