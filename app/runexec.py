@@ -21,8 +21,8 @@ from app.isolate import ChildDied, ChildError, ChildTimeout, run_in_child
 from core.contracts import MEASURED, Limits, Plan, default_depth_limit_m
 from fem.scene import BUILTIN
 from planner.plan import replan
-from planner.refine import renumber
-from robot.driver import preflight, run_plan
+from planner.refine import CONTACT_MARGIN, contact_floor_m, prior_force, renumber
+from robot.driver import preflight, run_plan, unfelt_probes
 from robot.link import connect, end_session, receive_once
 from robot.records import DONE, damaged_note, done_indices, latest_by_index, move_aside
 from robot.sim import SimRTDEControl, SimRTDEReceive
@@ -241,6 +241,26 @@ def run_limits(args, tip_radius_m: float) -> Limits:
     given = getattr(args, "depth_limit_m", None)
     lim.depth_limit_m = float(given) if given is not None else default_depth_limit_m(tip_radius_m)
     return lim
+
+
+def refuse_unfelt(plan, args) -> None:
+    """UsageError, before any motion, when the run's own coarse plan has probes the driver would stop at at once
+    (robot.driver.unfelt_probes: the prior's force at the depth limit not FEEL_MARGIN x the contact threshold), as
+    a given --plan's are: the run would end at its first such probe with contact_unfelt, and the same command could
+    never resume (session 59's review: a run told `--depth-limit-m 0.002` by the previous one's hint). Names the
+    shallowest limit at which every probe feels the tissue by fem's force (planner.refine.contact_floor_m)."""
+    bad = unfelt_probes(plan)
+    if not bad:
+        return
+    k, why = min(bad.items())
+    limit = plan.limits.depth_limit_m
+    floor = contact_floor_m(plan, prior_force(plan))
+    given = getattr(args, "depth_limit_m", None) is not None
+    better = (f"; every probe presses the tissue {CONTACT_MARGIN:g}x the threshold from --depth-limit-m {floor:g}"
+              if math.isfinite(floor) and floor > limit else "")
+    more = f" (and {len(bad) - 1} more probes)" if len(bad) > 1 else ""
+    raise UsageError(f"--depth-limit-m {limit:g}{'' if given else ' (the default)'}: refused before any motion: "
+                     f"probe {k}{more}: {why}{better}")
 
 
 def _previous_options(out: Path) -> dict | None:
@@ -550,6 +570,10 @@ def verdict(loc, res, described: str, status: str, fault: dict | None, nc: dict 
         described += ("; warning: no probe felt contact: the surface was taken as registered (no contact onsets), "
                       "and the forces were below the contact threshold")
     return ("STONE " if loc.detected else "NO STONE ") + described
+
+
+INTERRUPTED_AT_REST = ("NO RESULT: interrupted (Ctrl-C or a stop signal) while the arm was at rest (a localization, a "
+                       "plan or fem between rounds): its probes are kept; the same command resumes")
 
 
 EXIT_INTERRUPTED = 130         # a run the user interrupted (as the shell reports a SIGINT; palpate-cell's too)

@@ -32,7 +32,9 @@ from typing import NamedTuple
 import numpy as np
 
 from core.contracts import MEASURED, PlanOptions
+from fem import recall
 from fem.contact import STONE_LAYER_MAX
+from fem.scene import from_dict
 from planner.localize import (
     BELOW_BOTTOM,
     CRUSH_REL_ERR,
@@ -175,7 +177,8 @@ def adaptive(prior, execute, *, coarse_x_m, plan_round=None, budget_probes: int 
         rounds.append(Round(k, [float(v) for v in x], [float(v) for v in dep], len(x), loc.to_dict(), plan,
                             time.perf_counter() - t0))
         if k == 0:
-            reach = probe_reach(plan)         # (the coarse plan's: what a re-run's depth limit may be)
+            # (the coarse plan's: what a re-run's depth limit may be)
+            reach = probe_reach(plan, prior_force(plan) if plan is not None else None)
         say(f"round {k}: {len(x)} probes ({used} in all): " + describe(loc, reach))
         if converged(loc, target_m):
             reason = "target uncertainty reached"
@@ -228,11 +231,15 @@ FORCE_EXPONENT = 1.5         # a probe's force ~ depth^p where its plan has no e
 #                              than the 2D cylinder's 1.1-1.2)
 
 
-def contact_floor_m(plan) -> float:
+def contact_floor_m(plan, force_n=None) -> float:
     """The shallowest depth limit (0.1 mm steps) at which every probe of ``plan`` is still predicted to press
     ``CONTACT_MARGIN`` x the contact threshold on the prior tissue: its predicted force continued from its planned
-    depth as depth^p (its plan's force exponent, else ``FORCE_EXPONENT``). NaN without a plan or its predictions, or
-    when that is not shallower than the plan's own depth limit."""
+    depth as depth^p (its plan's force exponent, else ``FORCE_EXPONENT``), then, with ``force_n(probe, depth_m)``
+    (fem's force of the plan's prior: ``prior_force``), raised in 0.1 mm steps until fem's own force at every probe
+    exceeds that (the continuation alone came out up to 5 % short: session 59's review was told a 2.0 mm limit at
+    which its next run's probes pressed 0.0298 N against 0.030 N, and that run stopped at its first probe). The
+    result may be the plan's own depth limit or deeper (no shallower limit lets its probes feel the tissue). NaN
+    without a plan or its predictions, or where fem refuses the depth."""
     probes = getattr(plan, "probes", None)
     if not probes or getattr(plan, "limits", None) is None:
         return math.nan
@@ -244,7 +251,24 @@ def contact_floor_m(plan) -> float:
             return math.nan
         need.append(d * (target / f) ** (1.0 / (p.force_exponent or FORCE_EXPONENT)))
     floor = math.ceil(max(need) * 1e4 - 1e-6) / 1e4
-    return floor if floor < plan.limits.depth_limit_m else math.nan
+    if force_n is None:
+        return floor
+    try:
+        while floor < plan.limits.depth_limit_m and not all(force_n(p, floor) > target for p in probes):
+            floor = round(floor + 1e-4, 4)
+    except ValueError:              # fem refuses the depth (deeper than its model covers): no floor to say
+        return math.nan
+    return floor
+
+
+def prior_force(plan):
+    """``force_n(probe, depth_m)``: fem's force of ``plan``'s prior scene at a probe's position (what plan_raster
+    predicts its forces with), remembered (fem.recall, fem.recall3d)."""
+    prior = from_dict(plan.scene, default_name=plan.scene.get("name", "prior"))
+    if prior.is_3d:
+        from fem import recall3d  # (the 3D model's code: loaded for a block only)
+        return lambda p, d: recall3d.force_n(prior, p.x_m, p.y_m, d)
+    return lambda p, d: recall.force_n(prior, p.x_m, d)
 
 
 # session 51, the mismatch study's 27 shallow stones run again at the suggested depth: on linear tissue x within 2
@@ -259,9 +283,10 @@ class ProbeReach(NamedTuple):
     deepest_m: float = math.nan    # its deepest planned probe: a limit this deep or deeper changes nothing
 
 
-def probe_reach(plan) -> ProbeReach:
+def probe_reach(plan, force_n=None) -> ProbeReach:
+    """``plan``'s ProbeReach; ``force_n`` as contact_floor_m takes it."""
     depths = [p.depth_m for p in getattr(plan, "probes", None) or ()]
-    return ProbeReach(contact_floor_m(plan), max(depths) if depths else math.nan)
+    return ProbeReach(contact_floor_m(plan, force_n), max(depths) if depths else math.nan)
 
 
 def suggested_limit_m(loc, reach: ProbeReach = ProbeReach()) -> tuple[float, float]:
@@ -274,7 +299,10 @@ def suggested_limit_m(loc, reach: ProbeReach = ProbeReach()) -> tuple[float, flo
     if not math.isfinite(safe) or safe >= reach.deepest_m:
         return math.nan, safe
     lo = max(MIN_HINT_DEPTH_M, reach.floor_m) if math.isfinite(reach.floor_m) else MIN_HINT_DEPTH_M
-    return max(safe, lo), safe
+    limit = max(safe, lo)
+    if limit >= reach.deepest_m:     # no limit shallower than the probes went lets them feel the tissue
+        return math.nan, safe
+    return limit, safe
 
 
 def depth_hint(loc, reach: ProbeReach = ProbeReach()) -> str:

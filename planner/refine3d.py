@@ -26,7 +26,17 @@ import numpy as np
 from core.contracts import MEASURED
 from planner.localize import MIN_MEASUREMENTS3D, NEAR_SIDE, SIDE_REACH3D_M, THICKNESS_SIGMA, Measurements
 from planner.localize3d import Localization3D, localize3d
-from planner.refine import WEAK_LR, AdaptiveResult, ProbeReach, Round, caveats, no_stone_caveats, probe_reach, too_few
+from planner.refine import (
+    WEAK_LR,
+    AdaptiveResult,
+    ProbeReach,
+    Round,
+    caveats,
+    no_stone_caveats,
+    prior_force,
+    probe_reach,
+    too_few,
+)
 from planner.tissue_response3d import prior_and_thickness_slope3d
 
 DESIGN_STEP_M = 1e-3
@@ -182,7 +192,7 @@ def adaptive3d(prior, execute, *, coarse_xy_m, plan_round, surrogate, region, bu
         rounds.append(Round(k, [[float(a), float(b)] for a, b in xy], [float(p.depth_m) for p in plan.probes],
                             len(xy), loc.to_dict(), plan, time.perf_counter() - t0))
         if k == 0:
-            reach = probe_reach(plan)         # (the coarse plan's: what a re-run's depth limit may be)
+            reach = probe_reach(plan, prior_force(plan))   # (the coarse plan's: what a re-run's depth limit may be)
         say(f"round {k}: {len(xy)} probes ({used} in all): " + describe3d(loc, reach))
         if converged3d(loc, target_m):
             reason = "target uncertainty reached"

@@ -86,11 +86,12 @@ def test_a_suggested_depth_limit_leaves_the_probes_feeling_the_tissue(paper_prio
     assert "--depth-limit-m 0.002" in depth_hint(_loc(), ProbeReach(1.5e-3, 0.004))
     # no shallower than the run went (the readings past the range were where the surface is higher): nothing to say
     assert depth_hint(_loc(rise_m=-2e-3), ProbeReach(1.5e-3, 0.003)) == ""
-    # a plan that feels the tissue only at its own limit has no shallower floor
+    # a plan that feels the tissue only at its own limit has no shallower floor: none is suggested
     soft = plan_raster(paper_prior, n_waypoints=5)
     for p in soft.probes:
         p.predicted_force_n = 0.5 * target
-    assert math.isnan(contact_floor_m(soft)) and math.isnan(contact_floor_m(None))
+    assert contact_floor_m(soft) >= soft.limits.depth_limit_m and math.isnan(contact_floor_m(None))
+    assert depth_hint(_loc(depth_m=0.0055, diameter_m=0.008), probe_reach(soft)) == ""
 
 
 def _fit_study_trial(name, prior, surrogate, monkeypatch, fs_contrast_err):

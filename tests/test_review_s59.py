@@ -77,3 +77,76 @@ def test_the_locking_warning_advises_what_the_scene_can_do(name, mixed):
     assert ('formulation = "mixed"' in msg) is mixed
     assert ("load B" in msg) is mixed and "refine" in msg
     assert math.isclose(float(msg.split("bulk modulus ")[1].split(" ")[0]), 2 * 1.499 / (3 * 0.002), rel_tol=1e-2)
+
+
+# --- session 59's review of whole runs: the depth limit a shallow stone's warning suggests --------------------------
+
+SHALLOW = """name = "rev-shallow"
+[tissue]
+width_m = 0.070
+height_m = 0.050
+youngs_pa = 2500.0
+poisson = 0.4
+[[stone]]
+x_m = 0.042
+depth_m = 0.0045
+diameter_m = 0.004
+youngs_pa = 5.0e9
+poisson = 0.3
+"""
+
+
+def test_the_contact_floor_is_where_fems_own_force_feels_the_tissue(paper_prior):
+    """The floor a hint may suggest: continued from the planned depths as depth^p it came out 2.0 mm on the paper
+    section, where fem's force at the probes is 0.0298 N against the 0.030 N a run's driver needs (the review's next
+    run stopped at its first probe). With fem's force it is the shallowest 0.1 mm step where every probe presses more
+    than CONTACT_MARGIN x the threshold."""
+    from planner.plan import plan_raster
+    from planner.refine import CONTACT_MARGIN, contact_floor_m, prior_force
+
+    plan = plan_raster(paper_prior, n_waypoints=15)
+    force = prior_force(plan)
+    target = CONTACT_MARGIN * plan.motion.contact_threshold_n
+    floor = contact_floor_m(plan, force)
+    assert floor >= contact_floor_m(plan) and 1e-3 < floor < plan.limits.depth_limit_m
+    assert min(force(p, floor) for p in plan.probes) > target
+    assert min(force(p, round(floor - 1e-4, 4)) for p in plan.probes) <= target
+
+
+def test_a_run_whose_probes_cannot_feel_the_tissue_is_refused_before_any_motion(tmp_path, capsys):
+    """`palpate run SCENE --sim --depth-limit-m 0.002` on the paper's tissue: every probe's prior force there is
+    below 1.5 x the contact threshold, so the driver would stop at the first probe (exit 1, and the same command
+    could never resume). It is refused with exit 2 before anything is written, naming the limit that works."""
+    from app.cli import main
+
+    scene = tmp_path / "shallow.toml"
+    scene.write_text(SHALLOW)
+    out = tmp_path / "run"
+    assert main(["run", str(scene), "--sim", "--no-figure", "--depth-limit-m", "0.002", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("palpate: --depth-limit-m 0.002: refused before any motion: probe ")
+    assert "from --depth-limit-m 0.0021" in err
+    assert not (out / "probes.jsonl").exists()
+
+
+def test_ctrl_c_while_localizing_says_no_result_and_the_run_resumes(tmp_path, capsys, monkeypatch):
+    """A Ctrl-C between rounds (here in the first localization) ended with only `palpate: interrupted`; it now says
+    NO RESULT as one during probing does, exits 130, keeps the round's probes, and the same command finishes."""
+    import planner.refine as refine
+    from app.cli import main
+    from robot.records import read_records
+
+    real = refine.localize
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(refine, "localize", interrupted)
+    args = ["run", "paper", "--sim", "--no-figure", "--budget-probes", "25", "--out", str(tmp_path)]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert "NO RESULT: interrupted (Ctrl-C or a stop signal) while the arm was at rest" in err
+    assert f"(15 probes in {tmp_path})" in err
+    assert len(read_records(tmp_path)) == 15 and not (tmp_path / "result.json").exists()
+    monkeypatch.setattr(refine, "localize", real)
+    assert main(args) == 0
+    assert len(read_records(tmp_path)) == 25

@@ -51,6 +51,7 @@ from app.options import (
 )
 from app.outlock import holding
 from app.runexec import (
+    INTERRUPTED_AT_REST,
     RUN_FILES,
     RunAborted,
     check_fresh_inputs,
@@ -63,6 +64,7 @@ from app.runexec import (
     new_stats,
     open_out,
     plan_options_hint,
+    refuse_unfelt,
     resuming_note,
     round_planner,
     run_limits,
@@ -96,7 +98,7 @@ from planner.localize import (
 )
 from planner.pending import PendingSurrogate, TableBuildError
 from planner.plan import plan_prior, plan_raster
-from planner.refine import adaptive, describe, probe_reach
+from planner.refine import adaptive, describe, prior_force, probe_reach
 from planner.surrogate import check_table_fits, load_surrogate
 from robot.driver import unfelt_probes
 from robot.safety import check_plan
@@ -392,6 +394,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             plan0 = plan_raster(prior, n_waypoints=args.waypoints, limits=run_limits(args, prior.indenter.radius_m))
         except PlanError as e:
             raise PlanError(plan_options_hint(str(e), args)) from None
+        refuse_unfelt(plan0, args)
     if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):
         _say("warning: " + warning)
     try:
@@ -459,6 +462,9 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         fault, res = e.report.to_dict(), None
         stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
+    except KeyboardInterrupt:       # between rounds (a fit, a plan, fem): the arm is at rest; 130 follows
+        _say(f"{INTERRUPTED_AT_REST} ({measured_on_disk(out)} probes in {out})")
+        raise
     except TableBuildError as e:    # the measured probes are on disk; a re-run resumes them
         raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                          f"sizes)") from None
@@ -508,7 +514,7 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    reach = probe_reach(plan0)          # what a depth limit a warning suggests may be
+    reach = probe_reach(plan0, prior_force(plan0))   # what a depth limit a warning suggests may be
     head = conclude(result, out, loc, res, describe(loc, reach) if res is not None else "", status, fault, _say,
                     three_d=False, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1))

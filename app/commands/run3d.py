@@ -24,6 +24,7 @@ from app.errors import UsageError
 from app.figchild import FigureChild
 from app.outlock import holding
 from app.runexec import (
+    INTERRUPTED_AT_REST,
     RunAborted,
     choose_executor,
     conclude,
@@ -33,6 +34,7 @@ from app.runexec import (
     new_stats,
     open_out,
     plan_options_hint,
+    refuse_unfelt,
     resuming_note,
     round_planner,
     run_limits,
@@ -46,7 +48,7 @@ from planner.draw_run3d import draw_run3d
 from planner.localize import SIDE_REACH3D_M, THICKNESS_SIGMA
 from planner.localize3d import Localization3D, surrogate_bounds
 from planner.plan import plan_raster, replan
-from planner.refine import probe_reach
+from planner.refine import prior_force, probe_reach
 from planner.refine3d import adaptive3d, coarse_depths, describe3d
 from planner.surrogate3d import load_surrogate3d
 from planner.tissue_response3d import prior_and_thickness_slope3d, thickness_models_to_build
@@ -130,6 +132,7 @@ def run_block(args, ctx: RunContext) -> int:
             hint = (f" (the depth limit is {full_limit_m(args, prior):g} m; scene field indenter.radius_m must exceed it)"
                     if "radius" in str(e) and "depth" in str(e) else "")
             raise UsageError(f"{args.scene}: the coarse raster cannot be planned on its prior: {e}{hint}") from None
+        refuse_unfelt(plan0, args)
     if warning := below_contact_threshold(plan0, RUN_THRESHOLD_HINT):
         _say("warning: " + warning)
     where_prior = f"--plan {args.plan}: its prior scene" if args.plan else f"scene {args.scene}: its prior"
@@ -177,6 +180,9 @@ def run_block(args, ctx: RunContext) -> int:
         fault = e.report.to_dict()
         stats["n_probes"] = measured_on_disk(out)       # (an interrupted round's too: kept, resumed)
         _say(str(e))
+    except KeyboardInterrupt:       # between rounds (a fit, a plan, fem): the arm is at rest; 130 follows
+        _say(f"{INTERRUPTED_AT_REST} ({measured_on_disk(out)} probes in {out})")
+        raise
     finally:
         cleanup.close()
     result = {"scene": args.scene, "prior": prior.name, "where": where, "status": status, "dimension": 3}
@@ -214,7 +220,7 @@ def run_block(args, ctx: RunContext) -> int:
             result.setdefault("sim", {})["force_beyond_model_range"] = rr
             _say(f"warning: {rr['note']} ({rr['samples_beyond_model_range']} samples, deepest "
                  f"{rr['deepest_m'] * 1e3:.2f} mm)")
-    reach = probe_reach(plan0)          # what a depth limit a warning suggests may be
+    reach = probe_reach(plan0, prior_force(plan0))   # what a depth limit a warning suggests may be
     head = conclude(result, out, loc, res, describe3d(loc, reach) if res is not None else "", status, fault, _say,
                     three_d=True, tissue=prior.tissue)
     (out / "result.json").write_text(json.dumps(result, indent=1, allow_nan=False))
