@@ -43,12 +43,16 @@ class PendingSurrogate:
             self._last_say = now
             self._say(self.status())
 
-    def status(self) -> str:
+    def status(self, live: bool = False) -> str:
+        """The build's progress at its last finished stone; ``live``: its time and time left counted to now (a
+        waiting line between two stones said the same words as the one before: a review's log held one line nine
+        times)."""
         d, n, t = self._state["done"], self._state["total"], self._state["elapsed_s"]
         if not n:
             return "surrogate table: starting the fem workers"
-        eta = f", about {t / d * (n - d):.0f} s to go" if 0 < d < n else ""
-        return f"surrogate table: {d}/{n} stones ({t:.0f} s{eta})"
+        now = max(time.perf_counter() - self.t_start, t) if live else t
+        eta = f", about {max(t / d * (n - d) - (now - t), 0.0):.0f} s to go" if 0 < d < n else ""
+        return f"surrogate table: {d}/{n} stones ({now:.0f} s{eta})"
 
     def _build(self) -> None:
         try:
@@ -69,7 +73,7 @@ class PendingSurrogate:
         while not self._done.wait(self._every_s):
             if time.perf_counter() - self._last_say >= self._every_s:    # the build's own line not said meanwhile
                 self._last_say = time.perf_counter()
-                self._say("waiting for the table: " + self.status())
+                self._say("waiting for the table: " + self.status(live=True))
         if isinstance(self._error, Exception):
             raise TableBuildError(f"the surrogate table could not be built: {self._error}") from self._error
         if self._error is not None:

@@ -144,6 +144,19 @@ def test_waiting_for_a_building_table_says_one_status_line_at_a_time(monkeypatch
     assert any(m.startswith("surrogate table: ") for _, m in said)
 
 
+def test_a_waiting_line_counts_its_time_to_now():
+    """Between two finished stones the waiting line said the build's last count word for word (a review's log held
+    one line nine times): it now counts the time, and the time left, to now (session 59)."""
+    import time as _time
+
+    import planner.pending as pending
+    p = object.__new__(pending.PendingSurrogate)
+    p._state = {"done": 40, "total": 485, "elapsed_s": 134.0}
+    p.t_start = _time.perf_counter() - 160.0
+    assert p.status() == "surrogate table: 40/485 stones (134 s, about 1491 s to go)"
+    assert p.status(live=True) == "surrogate table: 40/485 stones (160 s, about 1465 s to go)"
+
+
 def test_a_table_key_changes_only_where_the_positions_did():
     """Up to 70 mm the tables keep their keys (the shipped paper table's name included); a wider section's key holds
     its positions, so a table built with the old scaled ones is never read for it."""
