@@ -22,7 +22,7 @@ chord from SURFACE_FIT_FROM_FRACTION of ``motion.contact_threshold_n`` (before s
 ``depth_m``; the driver counts its depth limit from the surface a line through F^(1/p) gives (robot.tissue_depth).
 
 Timing (planner/timing.py): every move is a moveL; the descent runs at ``motion.probe_speed_m_s`` over approach height
-plus depth, the retract at the approach speed; each move takes the larger of its tool-speed and joint-limit times.
+plus depth, the retract at ``RETRACT_SPEED_M_S``; each move takes the larger of its tool-speed and joint-limit times.
 ``options`` holds the planning options a re-plan must reuse (IK branch, tilt tolerance, force fraction, minimum
 depth); ``notes`` only the planner's diagnostics, which nothing reads back: ``solver`` (status, iterations, ``used``:
 "nlp" or "seed"), ``timing`` (per-move breakdown), ``times_s``, ``depth_limited_by`` (per probe: "force" or
@@ -62,6 +62,8 @@ MIN_TOOL_SPEED_M_S = 1e-3          # moves between probes
 MIN_ACCEL_M_S2 = 1e-2
 HARD_ACCEL_M_S2 = 1.5
 MAX_DWELL_S = 10.0                 # hold at depth
+MIN_APPROACH_HEIGHT_M = 0.002      # the tip above the registered surface before a descent (robot.safety)
+MAX_APPROACH_HEIGHT_M = 0.05
 DEFAULT_TIP_RADIUS_M = 0.005       # fem.scene.Indenter's default, for a plan scene without [indenter]
 
 

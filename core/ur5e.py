@@ -177,6 +177,16 @@ def fk_flange(q) -> np.ndarray:
     return T
 
 
+def joint_origins(q) -> np.ndarray:
+    """(5, 3): the base-frame origins of DH frames 1-5 for joint angles ``q`` (shoulder, elbow, the three wrist
+    joints; the links are not modelled, only where their joints sit)."""
+    T, out = np.eye(4), []
+    for i in range(5):
+        T = T @ dh_matrix(float(q[i]), i)
+        out.append(T[:3, 3].copy())
+    return np.array(out)
+
+
 def fk(q, tcp_offset=(0, 0, 0, 0, 0, 0)) -> np.ndarray:
     """Base->TCP transform for joint angles ``q`` (rad) and a TCP offset (ur_rtde's setTcp pose)."""
     return fk_flange(q) @ pose_to_T(tcp_offset)

@@ -31,7 +31,9 @@ from core.contracts import (  # noqa: F401  (re-exported: the driver's hard caps
     HARD_FORCE_LIMIT_N,
     HARD_PROBE_SPEED_M_S,
     HARD_TOOL_SPEED_M_S,
+    MAX_APPROACH_HEIGHT_M,
     MAX_FORCE_EXPONENT,
+    MIN_APPROACH_HEIGHT_M,
     MIN_FORCE_EXPONENT,
     NOISE_SAMPLE_S,
     RETRACT_SPEED_M_S,
@@ -183,8 +185,9 @@ def check_plan(plan) -> tuple[list[str], dict[int, str]]:
             problems.append(f"motion.{name} {v} outside (0, {HARD_ACCEL_M_S2}]")
     if not (0 < mo.contact_threshold_n < lim.force_limit_n):
         problems.append(f"motion.contact_threshold_n {mo.contact_threshold_n} outside (0, force limit)")
-    if not (0.002 <= mo.approach_height_m <= 0.05):
-        problems.append(f"motion.approach_height_m {mo.approach_height_m} outside [0.002, 0.05] m")
+    if not (MIN_APPROACH_HEIGHT_M <= mo.approach_height_m <= MAX_APPROACH_HEIGHT_M):
+        problems.append(f"motion.approach_height_m {mo.approach_height_m} outside [{MIN_APPROACH_HEIGHT_M:g}, "
+                        f"{MAX_APPROACH_HEIGHT_M:g}] m")
     if not (0 <= mo.dwell_s <= 10):
         problems.append(f"motion.dwell_s {mo.dwell_s} outside [0, 10] s")
     off = plan.frames.tcp_offset

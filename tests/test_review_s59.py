@@ -150,3 +150,37 @@ def test_ctrl_c_while_localizing_says_no_result_and_the_run_resumes(tmp_path, ca
     monkeypatch.setattr(refine, "localize", real)
     assert main(args) == 0
     assert len(read_records(tmp_path)) == 25
+
+
+# --- session 59's review of the planner ------------------------------------------------------------------------------
+
+def test_a_plan_whose_elbow_goes_below_the_base_is_said(tmp_path, capsys):
+    """`--branch 1,-1,-1` planned without a word with the elbow 0.15 m below the base's plane (the table the arm and,
+    by default, the tissue stand on): only the tool is checked against the workspace. The plan command says so; the
+    default branch says nothing. The joint origins are checked against the flange by the DH chain's own lengths."""
+    from app.cli import main
+    from core import ur5e
+
+    q = [0.3, -1.2, 1.1, -1.4, -1.57, 0.2]
+    origins = ur5e.joint_origins(q)
+    assert origins[0] == pytest.approx([0.0, 0.0, ur5e.DH_D[0]], abs=1e-12)       # the shoulder: on the base axis
+    assert np.linalg.norm(origins[1] - origins[0]) == pytest.approx(abs(ur5e.DH_A[1]), abs=1e-12)    # upper arm
+    assert np.linalg.norm(ur5e.fk_flange(q)[:3, 3] - origins[4]) == pytest.approx(ur5e.DH_D[5], abs=1e-12)
+    assert main(["plan", "paper", "--out", str(tmp_path / "down.json"), "--branch", "1,-1,-1"]) == 0
+    err = capsys.readouterr().err
+    assert "warning: the elbow joint sits " in err and "m below the base's plane" in err
+    assert main(["plan", "paper", "--out", str(tmp_path / "up.json")]) == 0
+    assert "below the base's plane" not in capsys.readouterr().err
+
+
+def test_motion_options_are_refused_under_their_own_names(capsys):
+    """`--probe-speed-m-s 1e-12` passed the option check and was refused later as plan field
+    motion.probe_speed_m_s; the options now take the ranges the plan and the driver allow."""
+    from app.cli import main
+
+    for opt, bad, rng in (("--probe-speed-m-s", "1e-12", "[0.0001, 0.01] m/s"),
+                          ("--approach-speed-m-s", "1e-5", "[0.001, 0.25] m/s"),
+                          ("--approach-height-m", "1e-9", "[0.002, 0.05] m")):
+        assert main(["plan", "paper", "--out", "/tmp/never-written.json", opt, bad]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"argument {opt}: must be a finite number in {rng}, got '{bad}'" in err

@@ -25,12 +25,17 @@ from app.options import (
     positive_float,
     refuse_figures,
 )
+from core import ur5e
 from core.contracts import (
     HARD_FORCE_LIMIT_N,
     HARD_PROBE_SPEED_M_S,
     HARD_TOOL_SPEED_M_S,
+    MAX_APPROACH_HEIGHT_M,
     MAX_DWELL_S,
+    MIN_APPROACH_HEIGHT_M,
     MIN_PROBE_SPACING_M,
+    MIN_PROBE_SPEED_M_S,
+    MIN_TOOL_SPEED_M_S,
     TIP_DEPTH_FRACTION,
     Frames,
     Limits,
@@ -120,17 +125,21 @@ def add_parser(subparsers) -> None:
                    help="tissue frame in the base frame (m, rotation vector rad)")
     a.add_argument("--tcp-offset", type=finite_float, nargs=6, metavar=("X", "Y", "Z", "RX", "RY", "RZ"),
                    help="probe tip in the flange frame, as for setTcp (default 0 0 0.10 0 0 0)")
-    a.add_argument("--approach-height-m", type=float_range(0, 0.05, unit="m"), default=MOT.approach_height_m,
+    a.add_argument("--approach-height-m", type=float_range(MIN_APPROACH_HEIGHT_M, MAX_APPROACH_HEIGHT_M, lo_open=False, unit="m"),
+                   default=MOT.approach_height_m,
                    help="tip above the surface before descending")
-    a.add_argument("--approach-speed-m-s", type=float_range(0, HARD_TOOL_SPEED_M_S, unit="m/s"), default=MOT.approach_speed_m_s,
+    a.add_argument("--approach-speed-m-s", type=float_range(MIN_TOOL_SPEED_M_S, HARD_TOOL_SPEED_M_S, lo_open=False, unit="m/s"),
+                   default=MOT.approach_speed_m_s,
                    help="tool speed between probes")
-    a.add_argument("--probe-speed-m-s", type=float_range(0, HARD_PROBE_SPEED_M_S, unit="m/s"), default=MOT.probe_speed_m_s,
+    a.add_argument("--probe-speed-m-s", type=float_range(MIN_PROBE_SPEED_M_S, HARD_PROBE_SPEED_M_S, lo_open=False, unit="m/s"),
+                   default=MOT.probe_speed_m_s,
                    help="tool speed of the descent")
     a.add_argument("--dwell-s", type=float_range(0, MAX_DWELL_S, unit="s"), default=MOT.dwell_s, help="hold at depth while sampling")
     a.add_argument("--tilt-tol-deg", type=float_range(0, 90, hi_open=True, unit="deg"), default=math.degrees(OPT.tilt_tol_rad),
                    help="tool axis within this of the normal (default 0.5)")
     a.add_argument("--branch", default=",".join(map(str, OPT.branch)), metavar="S,E,W",
-                   help="IK branch signs (shoulder, elbow, wrist); default 1,1,-1 = elbow up, tool down")
+                   help="IK branch signs (shoulder, elbow, wrist); default 1,1,-1 = elbow up, tool down (a plan whose "
+                        "joints go below the base's plane is said: only the tool is checked against the workspace)")
     p.set_defaults(func=run)
 
 
@@ -276,9 +285,9 @@ def run(args) -> int:
               f"planning took {plan.notes['times_s']['total']:.2f} s", file=stream)
     for f in figs:
         print(f"figure: {f}", file=stream)
-    warning = below_contact_threshold(plan)
-    if warning:
-        print(f"palpate plan: warning: {warning}", file=sys.stderr)
+    for warning in (below_contact_threshold(plan), joints_below_base(plan)):
+        if warning:
+            print(f"palpate plan: warning: {warning}", file=sys.stderr)
     return 0
 
 
@@ -306,6 +315,28 @@ def check_frames(args) -> None:
 # what a run's warning suggests (a run refuses --depth-limit-m beside --plan)
 RUN_THRESHOLD_HINT = ("plan with `palpate plan`, lower motion.contact_threshold_n in the plan file and pass it with "
                       "--plan")
+
+
+JOINT_NAMES = ("shoulder", "elbow", "wrist 1", "wrist 2", "wrist 3")
+
+
+def joints_below_base(plan) -> str:
+    """A warning when a planned configuration puts a joint of the arm below the base's plane (z < 0 in the base
+    frame; "" otherwise): only the tool is checked against the workspace box, and with the tissue on the table the
+    arm stands on (the default tissue pose) such a joint is in the table. A session-59 review planned `--branch
+    1,-1,-1` without a word: the elbow 0.17 m below the base."""
+    low, where = 0.0, None
+    for p in plan.probes:
+        for q in (p.q_approach_rad, p.q_indent_rad):
+            z = ur5e.joint_origins(q)[:, 2]
+            k = int(np.argmin(z))
+            if z[k] < low:
+                low, where = float(z[k]), (JOINT_NAMES[k], p.index)
+    if where is None:
+        return ""
+    return (f"the {where[0]} joint sits {-low:.3f} m below the base's plane at probe {where[1]} (branch "
+            f"{','.join(map(str, plan.options.branch))}): only the tool is checked against the workspace, so on the "
+            f"table the arm stands on that is a collision; the default branch 1,1,-1 keeps the elbow up")
 
 
 def below_contact_threshold(plan, how: str = "lower motion.contact_threshold_n in the plan file") -> str:
