@@ -396,7 +396,11 @@ def _main(args, held: contextlib.ExitStack) -> int:
               + "; ".join(rep.fault.get("notes", [])))
         first = ("free the tip first (freedrive on the pendant, out of the tissue: a resume does not pull it out "
                  "through the force that stopped the retract), then " if rep.fault.get("retract_blocked") else "")
-        print(f"  completed probes are in {out / 'probes.jsonl'}; {first}run again with the same --out to resume")
+        then = (f"{first}run again with the same --out to resume" if rep.fault["kind"] != "force_limit" else
+                "a resume would press the probes that stopped at the force limit again and stop the same way: the "
+                "tissue is stiffer than the plan expects, or the sensor reads high; plan shallower or with a higher "
+                "force limit if the tissue allows, into another --out")
+        print(f"  completed probes are in {out / 'probes.jsonl'}; {then}")
     report = rep.to_dict()
     rr = sim_range_report(arm) if arm is not None else None
     if rr is not None:         # the simulated force left the model's range: recorded in run.json, never silent

@@ -514,11 +514,16 @@ _REPLAN = ("if the tissue's surface is higher than registered, re-register it or
 RETRACT_BLOCKED_FIX = ("the arm is held where a retract met a force, the tip perhaps in the tissue: free it first "
                        "(freedrive on the pendant, out of the tissue), then the same command resumes (with the tip "
                        "still in the tissue it refuses to pull it out)")
+FORCE_LIMIT_FIX = ("the same command would press those probes again and stop the same way (a stop at the force "
+                   "limit is pressed again on a resume: it may have been a sensor's spike): the tissue is stiffer than "
+                   "the plan expects, or the sensor reads high; plan shallower (--depth-limit-m) or, if the tissue "
+                   "allows, with a higher --force-limit-n, with --fresh or another --out")
 FIRST_FIX = {"free_air_force": "the same command resumes once the sensor reads steady in free air with its force "
                                "sign right (until then it ends the same way); " + _REPLAN,
              "surface_high": _REPLAN[len("if the tissue's surface is higher than registered, "):],
              "sensor_noise": "the same command resumes once the sensor's free-air noise is below the force limit's "
-                             "allowance (until then it ends the same way)"}
+                             "allowance (until then it ends the same way)",
+             "force_limit": FORCE_LIMIT_FIX}
 
 
 def unplaced(loc, tissue) -> str | None:

@@ -11,8 +11,9 @@ the approach pose. Only moveL is used (the plan's joint targets q_* are not need
 inside the convex workspace box). Every command passes safety.GuardedControl; every bool is checked; None/NaN/short
 receive vectors, a protective stop, a lost connection (RuntimeError, or stale data with isConnected() False: what
 ur_rtde shows), stale data and time-outs are faults that end the run in a safe state (stopped; retracted when the
-arm still accepts commands) with a report in run.json. The interrupted probe's record and samples are written before
-any safe-state command. While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one after its
+arm still accepts commands) with a report in run.json. A fault during a probe sends one stopL first (the arm may still
+be descending), then the interrupted probe's record, its samples and run.json are written, then the rest of the safe
+state (the retract). While the link is down no command is sent (ur_rtde 1.6.5 can block for good on one after its
 own reconnect failed); reconnect() is tried once after ``DriverConfig.reconnect_after_s``.
 
 The wrench comes from a force source (robot.forcesource): the UR's wrist sensor over the receive interface by
@@ -1061,6 +1062,22 @@ class Driver(Recovery):
     def _stop(self) -> None:
         self._call(self.c.stopL, self.cfg.stop_decel_m_s2)
 
+    def _halt_first(self) -> list[str]:
+        """One stopL at a fault raised during a probe, before its record, samples and run.json are written (with
+        fsync: 15-17 ms in memory, 68 ms through the real client, in which a descending tip went 0.03-0.14 mm on
+        with no force read; a session-59 review) and before the rest of the safe state (safe_state stops again, then
+        retracts). Nothing is sent over a silent or dead link, nor in a protective stop (the controller holds the arm
+        and refuses commands): safe_state says so. Returns notes (a failed stop: the safe state tries again)."""
+        if self.link_dead or self.stale >= self.cfg.stale_periods or not self._connected(self.c):
+            return []
+        try:
+            if self._call(self.r.isProtectiveStopped) is True:
+                return []
+            self._stop()
+        except Exception as w:              # noqa: BLE001 -- noted; safe_state() stops (or says why not)
+            return [f"the first stopL at the fault failed ({type(w).__name__}: {w}); the safe state stopped again"]
+        return []
+
     def _move(self, pose, speed, accel, watch=None, strict=True, what="move"):
         """Asynchronous moveL to ``pose``, polled each period; ``watch(sample)`` may stop it early (its result)."""
         start = self._read(strict)["pose"]
@@ -1391,7 +1408,9 @@ class Driver(Recovery):
         if self.retract_blocked:            # a resume must not pull the tip out through that force (_setup)
             rep.fault["retract_blocked"] = True
         lost = []
-        if current is not None:             # on disk first: a hang in safe_state() must not lose them
+        if current is not None:
+            lost += self._halt_first()      # mid-probe the arm may still be descending: one stopL before any write
+        if current is not None:             # on disk before the retract: a hang in safe_state() must not lose them
             try:
                 raw = self.samples.arrays()
                 st = ProbeStatus.INTERRUPTED if kind == FaultKind.INTERRUPTED else ProbeStatus.FAULT

@@ -40,7 +40,10 @@ from core.contracts import (
     ProbeStatus,
 )
 
-DONE = (ProbeStatus.OK,)   # a force_limit stop may be a sensor spike: a resumed run probes it again
+# what a resumed run does not press again: an ok probe, and a depth_limit one (a measurement a repeat would only
+# repeat; session 59's review found a resume pressing them again); a force_limit stop may be a sensor's spike:
+# a resumed run probes it again
+DONE = (ProbeStatus.OK, ProbeStatus.DEPTH_LIMIT)
 
 
 HISTORY = "run_history.jsonl"     # every run.json a later report replaced, one per line

@@ -184,3 +184,58 @@ def test_motion_options_are_refused_under_their_own_names(capsys):
         assert main(["plan", "paper", "--out", "/tmp/never-written.json", opt, bad]) == 2
         err = capsys.readouterr().err.strip()
         assert f"argument {opt}: must be a finite number in {rng}, got '{bad}'" in err
+
+
+# --- session 59's review of the robot's safety -----------------------------------------------------------------------
+
+def test_a_fault_during_a_descent_stops_the_arm_before_anything_is_written(tmp_path, monkeypatch):
+    """A NaN reading 2 mm into probe 1's descent: the driver wrote the probe's record, its samples and run.json (with
+    fsync: 15-70 ms, the tip descending meanwhile) before its first stopL. The arm is now stopped first: when the
+    interrupted probe's record is written, it no longer moves; then the safe state retracts it as before."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).parent))
+    from robot_fixtures import make_plan, make_sim
+    from test_driver_faults import DEPTH, XS, at_probe
+
+    from robot import records as records_mod
+    from robot.driver import run_plan
+
+    arm, c, r = make_sim()
+    arm.inject("nan", when=at_probe(1, 0.002), duration_s=0.01)
+    real = records_mod.RunLog.write_probe
+    moving_when_written = []
+
+    def write_probe(self, rec, raw=None):
+        if rec.status != "ok":
+            moving_when_written.append(arm.is_moving)
+        return real(self, rec, raw)
+    monkeypatch.setattr(records_mod.RunLog, "write_probe", write_probe)
+    rep = run_plan(make_plan(XS, depth_m=DEPTH), c, r, tmp_path)
+    assert rep.fault["kind"] == "invalid_reading" and rep.fault["stopped"] and rep.fault["retracted"]
+    assert moving_when_written == [False], moving_when_written
+    assert not any("first stopL" in n for n in rep.fault["notes"])
+
+
+def test_a_resume_does_not_press_a_depth_limit_probe_again(tmp_path):
+    """Measured probes were pressed again on a resume unless their whole round was measured: an ok probe was skipped,
+    a depth_limit one (a measurement a repeat only repeats) was not. It is now; a force_limit stop, which may have
+    been a sensor's spike, is still pressed again."""
+    from core.contracts import ProbeRecord, ProbeStatus
+    from robot.records import RunLog, done_indices
+
+    log = RunLog(tmp_path)
+    for i, st in enumerate((ProbeStatus.OK, ProbeStatus.DEPTH_LIMIT, ProbeStatus.FORCE_LIMIT, ProbeStatus.FAULT)):
+        log.write_probe(ProbeRecord(index=i, x_m=0.01 * (i + 1), status=st))
+    assert done_indices(tmp_path) == {0, 1}
+
+
+def test_consecutive_force_limit_stops_do_not_say_the_same_command_resumes():
+    """After "3 consecutive probes stopped at the force limit" the run said "the same command resumes", which pressed
+    the same three probes again and stopped the same way, every time. It says what to change instead."""
+    from app.runexec import FORCE_LIMIT_FIX, verdict
+
+    fault = {"fault": {"kind": "force_limit", "message": "3 consecutive probes stopped at the force limit"}}
+    line = verdict(None, None, "", "fault", fault)
+    assert line.startswith("NO RESULT: the arm run ended with a fault (force_limit)") and line.endswith(FORCE_LIMIT_FIX)
+    assert "resumes" not in line and "--depth-limit-m" in line and "--fresh" in line

@@ -14,8 +14,8 @@ simulated arm ``--ft netft``, a simulated box): app/ftoptions.py, issue 18.
 Data safety (issue 13): every input (options, scene, plan file, output paths) is checked before OUT is touched, and
 no record is ever deleted. OUT/run_options.json holds what decides the run's rounds (scene, plan file, arm, sensor,
 seed, raster, budget, target, strategy). A re-run with the same --out and the same options RESUMES: each round's
-saved plan (OUT/plan_round<k>.json) is reused, probes already measured (ok/force_limit/depth_limit in probes.jsonl) are not
-pressed again, and the localization replays from the records. A re-run with other options is refused; ``--fresh``
+saved plan (OUT/plan_round<k>.json) is reused, probes already measured (ok/depth_limit in probes.jsonl; a force_limit
+stop, which may have been a sensor's spike, is pressed again unless its whole round was measured) are not pressed again, and the localization replays from the records. A re-run with other options is refused; ``--fresh``
 moves the old files into OUT/previous-<UTC time>/ first. ``--json`` may not point at a measured file.
 """
 from __future__ import annotations
