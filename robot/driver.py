@@ -706,6 +706,8 @@ class Driver(Recovery):
         self.c, self.r = GuardedControl(rtde_c, self.lim), rtde_r
         # the wrench: the UR's wrist sensor (default) or an external one (robot.forcesource); the caller owns it
         self.fs = force_source if force_source is not None else RtdeForce(self.c, rtde_r)
+        if isinstance(self.fs, RtdeForce) and self.fs.c is rtde_c:     # the caller's wrist sensor on this link: its
+            self.fs = RtdeForce(self.c, self.fs.r)                      # zeroFtSensor through the guard too
         self.backstop = self.fs.name != "rtde" and self.cfg.wrist_backstop_margin_n > 0
         self.wrist_filt = deque(maxlen=self.cfg.filter_window)
         self.filt = deque(maxlen=self.cfg.filter_window)

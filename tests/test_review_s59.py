@@ -239,3 +239,22 @@ def test_consecutive_force_limit_stops_do_not_say_the_same_command_resumes():
     line = verdict(None, None, "", "fault", fault)
     assert line.startswith("NO RESULT: the arm run ended with a fault (force_limit)") and line.endswith(FORCE_LIMIT_FIX)
     assert "resumes" not in line and "--depth-limit-m" in line and "--fresh" in line
+
+
+def test_the_wrist_sensor_a_caller_made_on_the_raw_link_zeroes_through_the_guard():
+    """On the real and simulated-controller paths the cell made the wrist sensor's source on the raw ur_rtde control
+    interface, so its zeroFtSensor went around robot.safety.GuardedControl (the in-memory path went through it). The
+    driver now takes such a source onto its guarded interface."""
+    import sys
+    from pathlib import Path
+    sys.path.insert(0, str(Path(__file__).parent))
+    from robot_fixtures import make_plan, make_sim
+    from test_driver_faults import DEPTH, XS
+
+    from robot.driver import Driver
+    from robot.forcesource import RtdeForce
+    from robot.safety import GuardedControl
+
+    _, c, r = make_sim()
+    d = Driver(make_plan(XS, depth_m=DEPTH), c, r, force_source=RtdeForce(c, r))
+    assert isinstance(d.c, GuardedControl) and d.fs.c is d.c and d.fs.r is r
