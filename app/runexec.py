@@ -424,9 +424,11 @@ def measured_on_disk(out: Path) -> int:
 
 
 def resuming_note(out: Path) -> str:
-    """What a resumed run keeps and what it presses again (a stop at a limit may have been a spike: pressed again)."""
+    """What a resumed run keeps and what it presses again (a stop at the force limit may have been a spike: pressed
+    again)."""
     done, measured = len(done_indices(out)), measured_on_disk(out)
-    again = f" ({measured - done} stopped at the force or depth limit are pressed again)" if measured > done else ""
+    again = (f" ({measured - done} stopped at the force limit are pressed again: a stop there may have been a "
+             f"sensor's spike)" if measured > done else "")
     note = f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
     damaged = damaged_note(out)
     if damaged:

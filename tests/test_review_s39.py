@@ -105,8 +105,8 @@ def test_a_probed_patch_narrower_than_the_tip_is_refused_when_the_scene_is_read(
 
 def test_a_resumed_run_says_which_probes_it_presses_again(tmp_path):
     """Probes stopped at a limit hold a measurement (counted by measured_on_disk, which an interrupted run's last line
-    reports: it said 0 probes after 5) but a resumed run presses them again (a stop may have been a spike); the
-    resume note says both (it counted only the first kind)."""
+    reports: it said 0 probes after 5). Since session 59 a resumed run presses a depth_limit probe no more than an ok
+    one (a force_limit stop, which may have been a spike, it does): the resume note counts them with the ok ones."""
     sys.path.insert(0, str(Path(__file__).parent))
     from robot_fixtures import make_plan, make_sim
 
@@ -117,8 +117,7 @@ def test_a_resumed_run_says_which_probes_it_presses_again(tmp_path):
     arm, c, r = make_sim(surface_height_m=lambda x: 0.003 if x > 0.03 else 0.0)    # the last two: depth_limit
     assert run_plan(plan, c, r, tmp_path).status == "ok"
     assert measured_on_disk(tmp_path) == 3
-    assert resuming_note(tmp_path).endswith(
-        "1 probes measured before are not pressed again (2 stopped at the force or depth limit are pressed again)")
+    assert resuming_note(tmp_path).endswith("3 probes measured before are not pressed again")
 
 
 def test_probes_that_felt_no_contact_are_named_and_all_of_them_make_the_run_not_detectable(tmp_path):

@@ -228,6 +228,9 @@ def test_a_resume_does_not_press_a_depth_limit_probe_again(tmp_path):
     for i, st in enumerate((ProbeStatus.OK, ProbeStatus.DEPTH_LIMIT, ProbeStatus.FORCE_LIMIT, ProbeStatus.FAULT)):
         log.write_probe(ProbeRecord(index=i, x_m=0.01 * (i + 1), status=st))
     assert done_indices(tmp_path) == {0, 1}
+    from app.runexec import resuming_note
+    assert resuming_note(tmp_path).endswith("2 probes measured before are not pressed again (1 stopped at the force "
+                                            "limit are pressed again: a stop there may have been a sensor's spike)")
 
 
 def test_consecutive_force_limit_stops_do_not_say_the_same_command_resumes():
