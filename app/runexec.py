@@ -254,7 +254,7 @@ def refuse_unfelt(plan, args) -> None:
         return
     k, why = min(bad.items())
     limit = plan.limits.depth_limit_m
-    floor = contact_floor_m(plan, prior_force(plan))
+    floor = contact_floor_m(plan, prior_force(plan), upto_m=plan.tip_radius_m())
     given = getattr(args, "depth_limit_m", None) is not None
     better = (f"; every probe presses the tissue {CONTACT_MARGIN:g}x the threshold from --depth-limit-m {floor:g}"
               if math.isfinite(floor) and floor > limit else "")

@@ -231,15 +231,16 @@ FORCE_EXPONENT = 1.5         # a probe's force ~ depth^p where its plan has no e
 #                              than the 2D cylinder's 1.1-1.2)
 
 
-def contact_floor_m(plan, force_n=None) -> float:
+def contact_floor_m(plan, force_n=None, upto_m: float | None = None) -> float:
     """The shallowest depth limit (0.1 mm steps) at which every probe of ``plan`` is still predicted to press
     ``CONTACT_MARGIN`` x the contact threshold on the prior tissue: its predicted force continued from its planned
     depth as depth^p (its plan's force exponent, else ``FORCE_EXPONENT``), then, with ``force_n(probe, depth_m)``
     (fem's force of the plan's prior: ``prior_force``), raised in 0.1 mm steps until fem's own force at every probe
     exceeds that (the continuation alone came out up to 5 % short: session 59's review was told a 2.0 mm limit at
     which its next run's probes pressed 0.0298 N against 0.030 N, and that run stopped at its first probe). The
-    result may be the plan's own depth limit or deeper (no shallower limit lets its probes feel the tissue). NaN
-    without a plan or its predictions, or where fem refuses the depth."""
+    result may be the plan's own depth limit or deeper (no shallower limit lets its probes feel the tissue); the
+    steps go up to ``upto_m`` (default: the plan's depth limit, all a hint needs to know). NaN without a plan or its
+    predictions, or where fem refuses the depth."""
     probes = getattr(plan, "probes", None)
     if not probes or getattr(plan, "limits", None) is None:
         return math.nan
@@ -254,7 +255,8 @@ def contact_floor_m(plan, force_n=None) -> float:
     if force_n is None:
         return floor
     try:
-        while floor < plan.limits.depth_limit_m and not all(force_n(p, floor) > target for p in probes):
+        top = plan.limits.depth_limit_m if upto_m is None else upto_m
+        while floor < top and not all(force_n(p, floor) > target for p in probes):
             floor = round(floor + 1e-4, 4)
     except ValueError:              # fem refuses the depth (deeper than its model covers): no floor to say
         return math.nan

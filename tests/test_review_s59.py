@@ -111,6 +111,12 @@ def test_the_contact_floor_is_where_fems_own_force_feels_the_tissue(paper_prior)
     assert floor >= contact_floor_m(plan) and 1e-3 < floor < plan.limits.depth_limit_m
     assert min(force(p, floor) for p in plan.probes) > target
     assert min(force(p, round(floor - 1e-4, 4)) for p in plan.probes) <= target
+    # a plan too shallow to feel the tissue (the run refuses it, naming the floor): checked past its own limit
+    from core.contracts import Limits
+    shallow = plan_raster(paper_prior, n_waypoints=15, limits=Limits(depth_limit_m=0.0015))
+    deeper = contact_floor_m(shallow, force, upto_m=shallow.tip_radius_m())
+    assert deeper > shallow.limits.depth_limit_m and deeper == floor
+    assert contact_floor_m(shallow, force) >= shallow.limits.depth_limit_m     # a hint needs to know no more than that
 
 
 def test_a_run_whose_probes_cannot_feel_the_tissue_is_refused_before_any_motion(tmp_path, capsys):
