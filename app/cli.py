@@ -44,7 +44,7 @@ EPILOG = """examples:
   palpate ft --ft netft:192.168.1.1 --ft-range-n 25 --ft-range-nm 0.25   check an ATI Net F/T box
   palpate cache                                            the disk cache: where, how big, what; prune, clear
 scenes: a built-in name (2D: paper, paper-left, paper-right, paper-deep, healthy; 3D blocks: block3d,
-  block3d-healthy, block3d-left, block3d-front, block3d-deep) or a TOML file (see README).
+  block3d-healthy, block3d-left, block3d-front, block3d-deep) or a TOML file (README; a block: docs/fem.md).
 environment: PALPATE_CACHE_DIR (the disk cache; default ~/.cache/palpate), PALPATE_CACHE=0 (no disk cache),
   PALPATE_CACHE_MAX_BYTES (its size bound in bytes; default 20e9: the entries used least recently go first),
   PALPATE_MAX_DOFS (the largest finite-element model a command builds; default 2e6 degrees of freedom).

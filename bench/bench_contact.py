@@ -23,7 +23,7 @@ of the finer one) keyed by the scene's content, the reference analysis and the w
 recomputes them; the report says when cached forces were used and when they were computed).
 
 ``run(out_dir, quick=False) -> dict`` is the entry point for ``palpate bench``; it writes OUT/contact.json and
-OUT/contact.md (markdown, ready for the README).
+OUT/contact.md (markdown, ready for docs/fem.md).
 """
 from __future__ import annotations
 

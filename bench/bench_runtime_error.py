@@ -10,7 +10,7 @@ largest reference force. Times are wall-clock medians of --repeat runs (the mach
 meshing, assembly, factorization, and the query, with the disk cache off unless a row says otherwise.
 
 Writes OUT/runtime_error.csv (mesh/order grid and skip variants), OUT/skips.csv, OUT/locking.csv,
-OUT/scaling.csv, OUT/runtime_error.md (markdown tables for the README), OUT/pareto.png, OUT/scaling.png.
+OUT/scaling.csv, OUT/runtime_error.md (markdown tables for docs/speed.md), OUT/pareto.png, OUT/scaling.png.
 """
 from __future__ import annotations
 

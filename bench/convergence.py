@@ -2,7 +2,7 @@
 
     python bench/convergence.py --out bench-out [--scene paper] [--sizes 0.004 0.002 0.001 0.0005]
 
-Prints a table, writes OUT/convergence.csv and OUT/convergence.md (markdown, ready for the README). The reference
+Prints a table, writes OUT/convergence.csv and OUT/convergence.md (markdown, ready for docs/fem.md). The reference
 is the finest P2 run; the verdict line says whether the scene's default analysis puts the peak von Mises within
 0.5 % of it.
 """

@@ -1,5 +1,5 @@
 """Numbers that are not finite in outputs: null in JSON, an empty cell in CSV (a rate of no trials, a median of
-none). The project writes no NaN or inf to a file a user reads (README, "Standards")."""
+none). The project writes no NaN or inf to a file a user reads (docs/architecture.md, core)."""
 from __future__ import annotations
 
 import math

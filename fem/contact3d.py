@@ -49,7 +49,7 @@ from .tip3d import TipCompliance3D, load_or_build_tip3d
 # The contact model keeps a dense compliance of the patch's top nodes (8 n^2 bytes): 16000 nodes are 2 GB.
 MAX_PATCH_NODES = 16_000
 # Contact radius over the patch's element size below which the maximum von Mises is not resolved: an independent
-# review (session 34; README "3D stresses under a round tip") found it +1 to +12 % above Hertz at >= 3 (nu 0.3-0.49),
+# review (session 34; docs/fem.md "3D stresses under a round tip") found it +1 to +12 % above Hertz at >= 3 (nu 0.3-0.49),
 # up to +21 % at 2-2.3 and false peaks near the contact's edge at 1.4; forces are not affected.
 STRESS_RESOLVED = 3.0
 

@@ -34,7 +34,7 @@ parts (--only NAME ...; default all that exist):
 """ + "\n".join(f"  {k:12s} bench/{v[0]}: {v[1]}" for k, v in PARTS.items()) + """
 
 figures: pareto.png (error against wall time for mesh sizes, element orders and each skip, the default marked),
-scaling.png (cost against waypoints and DOFs). Tables: runtime_error.md, sweep.md (README-ready).
+scaling.png (cost against waypoints and DOFs). Tables: runtime_error.md, sweep.md (ready for docs/speed.md).
 Runs from a source checkout: the scripts are in the repository's bench/ directory, not in the installed package
 (give --bench-dir or $PALPATE_BENCH_DIR otherwise). Full run: ~10 minutes on 2 cores; --quick: ~2 minutes.
 
