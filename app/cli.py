@@ -9,6 +9,7 @@ import importlib
 import math
 import os
 import re
+import signal
 import sys
 
 # Single-threaded BLAS unless the environment says otherwise (before any numpy import, so before app.errors, which
@@ -104,6 +105,11 @@ def main(argv: list[str] | None = None) -> int:
         # collection, 0.11-0.16 s of a cached `palpate run paper --sim`, 0.06-0.08 s after), and not copied by
         # the forked fits' children touching their counts
         gc.freeze()
+        if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+            # a supervisor's SIGTERM (systemd's stop, `kill`) is a Ctrl-C wherever it lands: the command's own line
+            # and exit 130 (between a run's rounds its NO RESULT line), not a silent death. Python's own Ctrl-C
+            # handler, which robot.signals' gate takes over around the arm's motion as before
+            signal.signal(signal.SIGTERM, signal.default_int_handler)
     return guarded("palpate", lambda: check_environment() or args.func(args),
                    debug=getattr(args, "debug", False) or args.debug_any)
 

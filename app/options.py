@@ -332,13 +332,15 @@ def is_measured(path: str | Path) -> bool:
         return True
     if p.name == "probes.jsonl" or p.suffix == ".jsonl" and p.exists():
         return True
+    if p.name.startswith("probes.jsonl.") and p.exists():      # a torn record set aside by a resume (.torn)
+        return True
     if _in_raw(p):              # raw/ itself too
         return True
     if p.name == "run.json" and (p.parent / "probes.jsonl").exists():
         return True
     # what a run resumes from (its options, its rounds' plans) and reports: another command must not replace them
     run_dir = (p.parent / "probes.jsonl").exists() or (p.parent / "run_options.json").exists()
-    return run_dir and (p.name in RUN_OWN_NAMES or p.name.startswith("plan_round"))
+    return run_dir and (p.name in RUN_OWN_NAMES or p.name.startswith(("plan_round", "fig_run")))
 
 
 RUN_OWN_NAMES = ("run_options.json", "result.json", "cell_world.json")
@@ -347,8 +349,9 @@ RUN_OWN_NAMES = ("run_options.json", "result.json", "cell_world.json")
 def refuse_measured(path: str | None, option: str) -> None:
     """UsageError when ``path``, or what it links to, is a run's measured data or a file the run resumes from."""
     if path and path != "-" and (is_measured(path) or is_measured(os.path.realpath(path))):   # realpath: no raise
-        raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl, raw/, run.json, "
-                         f"run_options.json, plan_round*.json, result.json, cell_world.json); choose another path")
+        raise UsageError(f"{option} {path}: would overwrite a run's data (probes.jsonl and what a resume set aside of "
+                         f"it, raw/, run.json, run_options.json, plan_round*.json, result.json, cell_world.json, its "
+                         f"figure); choose another path")
 
 
 def check_simulated_sensor(name: str, force_limit_n: float) -> None:

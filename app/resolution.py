@@ -5,10 +5,13 @@ the same section with a top 8 times finer (`palpate simulate healthy --load inde
 --surface-refine 4 / 8 / 32`): at 0.8-2.5 of the top's elements across the contact half-width the force is within
 1.4 % and the peak pressure 1.6-8.8 % high; from 4 elements both within 0.2 %. An independent review's section (E
 20 kPa, nu 0.3, a 4 mm cylinder, 4 mm elements at depth) below one element: force -9 to +11 %, peak pressure down to
--53 %, maximum von Mises -49 to +13 %.
+-53 %, maximum von Mises -49 to +13 %. Session 60's review (the paper-like section, 0.5 mm top elements, 1 um deep,
+one node carrying the contact) against a 15.6 um top: force +28 %, peak pressure and maximum von Mises -80 %; and a
+tip 1 um deep between two nodes touched none (force 0, said since).
 """
 from __future__ import annotations
 
+import math
 import sys
 
 RESOLVED_ELEMENTS = 3.0      # the contact half-width over the top's element size below which the line is printed
@@ -20,13 +23,24 @@ def top_element_m(scene) -> float:
     return scene.analysis.mesh_size_m / scene.analysis.surface_refine
 
 
-def warn_unresolved2d(scene, command: str, half_widths_m, stresses: bool = True) -> None:
+def warn_unresolved2d(scene, command: str, half_widths_m, stresses: bool = True, depths_m=None) -> None:
     """One line on stderr when the smallest contact half-width of ``half_widths_m`` (those in contact) spans fewer
-    than RESOLVED_ELEMENTS of the top's elements."""
+    than RESOLVED_ELEMENTS of the top's elements; or, given ``depths_m``, when a tip pressed in touched no top node at
+    all (its footprint fell between two nodes: a force of 0 that is the mesh's, not the tissue's)."""
     a = [w for w in half_widths_m if w > 0]
+    h = top_element_m(scene)
+    if depths_m is not None:
+        missed = [d for w, d in zip(half_widths_m, depths_m) if w <= 0 and d > 0]
+        if missed:
+            d = min(missed)
+            R = scene.indenter.radius_m
+            b = math.sqrt(max(2 * R * d - d * d, 0.0)) if scene.indenter.shape == "cylinder" else R
+            print(f"palpate {command}: {scene.name}: warning: the tip pressed {d:.3g} m in touched no node of the top "
+                  f"(its footprint, {2 * b * 1e3:.3g} mm wide, fell between nodes {h / scene.analysis.order * 1e3:.3g}"
+                  f" mm apart): the force 0 is the mesh's, not the tissue's; raise analysis.surface_refine (now "
+                  f"{scene.analysis.surface_refine:g}) or indent deeper", file=sys.stderr)
     if not a:
         return
-    h = top_element_m(scene)
     k = min(a) / h
     if k >= RESOLVED_ELEMENTS:
         return
@@ -34,8 +48,9 @@ def warn_unresolved2d(scene, command: str, half_widths_m, stresses: bool = True)
     print(f"palpate {command}: {scene.name}: warning: the contact half-width spans {k:.2g} of the top's elements "
           f"({h * 1e3:.3g} mm) at its smallest, under {RESOLVED_ELEMENTS:g}: {what} not resolved there and the "
           f"force may be off (measured: at 0.8-2.5 elements force within 1.4 %, pressure up to +9 %; below one "
-          f"element a review found force -9 to +11 %, pressure and stress peaks up to 50 % off); raise "
-          f"analysis.surface_refine (now {scene.analysis.surface_refine:g}) or indent deeper", file=sys.stderr)
+          f"element reviews found force -9 to +28 % and pressure and stress peaks up to 80 % off, the most where "
+          f"one node carries the whole contact); raise analysis.surface_refine (now "
+          f"{scene.analysis.surface_refine:g}) or indent deeper", file=sys.stderr)
 
 
 def warn_pressure_near_incompressible2d(scene, command: str, half_widths_m) -> None:

@@ -24,7 +24,7 @@ from planner.plan import replan
 from planner.refine import CONTACT_MARGIN, contact_floor_m, prior_force, renumber
 from robot.driver import preflight, run_plan, unfelt_probes
 from robot.link import connect, end_session, receive_once
-from robot.records import DONE, damaged_note, done_indices, latest_by_index, move_aside
+from robot.records import DONE, damaged_note, done_indices, latest_by_index, move_aside, raw_damaged_note
 from robot.sim import SimRTDEControl, SimRTDEReceive
 from robot.simarm import build_truth_arm
 from robot.simlaunch import start_controller
@@ -332,6 +332,20 @@ def new_stats() -> dict:
     return {"clean_end": False, "n_probes": 0, "next_index": 0, "planned_s": 0.0, "controller_s": 0.0, "reports": []}
 
 
+def noise_seed(seed: int, out: Path, resume: bool) -> tuple[int, str]:
+    """(the simulated sensor's seed for this process, a note for the run's "probing on" line): ``seed`` itself on a
+    fresh run; on a resumed run with records on disk, a seed drawn from (``seed``, the number of probes recorded), so
+    the probes pressed after a resume draw noise (and the sensor's bias and drift) of their own. Until session 60 a
+    resumed process restarted the noise from ``seed``: its first probe's free-air samples repeated the run's first
+    probe's, noise the localizer takes as independent. The same interruptions give the same seeds (reproducible), but
+    a resumed run's later probes are not those of an uninterrupted run with the same seed."""
+    k = len(latest_by_index(out)) if resume else 0
+    if k == 0:
+        return seed, ""
+    resumed = int.from_bytes(hashlib.sha256(f"palpate noise {seed} after {k}".encode()).digest()[:4], "little")
+    return resumed, f"; resumed after {k} probes: noise stream {resumed}"
+
+
 def choose_executor(args, out: Path, scene, cond, plan0, resume: bool, stats: dict, cleanup: contextlib.ExitStack,
                     sim_arm: dict, say) -> tuple:
     """(execute, where, truth) for the run's arm: a real UR controller (after the pre-flight and the operator's
@@ -346,14 +360,16 @@ def choose_executor(args, out: Path, scene, cond, plan0, resume: bool, stats: di
         execute = arm_executor(args.host, out, stats, cleanup, ft=args)
         truth = None
     elif args.sim == "controller":
-        where = f"simulated UR controller over ur_rtde (sensor {args.sensor}, seed {args.seed}; real time)"
+        seed, said = noise_seed(args.seed, out, resume)
+        where = f"simulated UR controller over ur_rtde (sensor {args.sensor}, seed {args.seed}{said}; real time)"
         truth = scene
-        execute = controller_executor(args.scene, sensor=args.sensor, seed=args.seed, out=out, stats=stats,
+        execute = controller_executor(args.scene, sensor=args.sensor, seed=seed, out=out, stats=stats,
                                       cleanup=cleanup, ft=args)
     else:
-        where = f"simulated arm (sensor {args.sensor}, seed {args.seed})"
+        seed, said = noise_seed(args.seed, out, resume)
+        where = f"simulated arm (sensor {args.sensor}, seed {args.seed}{said})"
         truth = scene
-        execute = sim_executor(truth, sensor=args.sensor, seed=args.seed, out=out, stats=stats, holder=sim_arm,
+        execute = sim_executor(truth, sensor=args.sensor, seed=seed, out=out, stats=stats, holder=sim_arm,
                                conditions=cond, ft=args if args.ft.kind == "netft" else None, cleanup=cleanup)
     if args.ft.kind == "netft":
         where += (f"; force from the Net F/T box ({args.ft.host or 'simulated'}), which the UR's own force "
@@ -430,9 +446,9 @@ def resuming_note(out: Path) -> str:
     again = (f" ({measured - done} stopped at the force limit are pressed again: a stop there may have been a "
              f"sensor's spike)" if measured > done else "")
     note = f"resuming the run in {out}: {done} probes measured before are not pressed again{again}"
-    damaged = damaged_note(out)
-    if damaged:
-        note += "\n" + damaged
+    for damaged in (damaged_note(out), raw_damaged_note(out)):
+        if damaged:
+            note += "\n" + damaged
     if not (out / "probes.jsonl").exists() and any((out / "raw").glob("probe_*.npz")):
         note += (f"\nwarning: {out / 'probes.jsonl'} is missing but {out / 'raw'} holds probes' samples: they are "
                  f"kept, and every probe is pressed again (new samples get new file names)")

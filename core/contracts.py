@@ -421,6 +421,7 @@ class RunStatus(StrEnum):
     FAULT = "fault"
     INTERRUPTED = "interrupted"
     REJECTED = "rejected"            # the plan failed the safety checks: nothing was sent
+    RUNNING = "running"              # written as a round starts: a run.json that still says so was cut off (killed)
 
 
 class FaultKind(StrEnum):

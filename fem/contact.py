@@ -16,15 +16,15 @@ its own active-set loop, refactorizing every iteration. The two must agree to ro
 ``surface_model`` keeps SurfaceModels in memory and on disk (fem.diskcache, keyed by the scene's content, the
 options and the code version). What is stored is the compliance C of the top surface (and an elastic tip's arc
 compliance), see ``SurfaceModel.to_arrays``; a restored SurfaceModel answers force queries (the LCP needs only C) at
-once. Fields (stresses without the influence operators, displacements) need the interior of a factorization: the
-first request makes one (CHOLMOD, with the top last) and stores its interior columns beside C (kind ``factor``,
-fem.interior_factor: SuperLU's factors could not be stored), so a later process sweeps through them with no assembly
-and no factorization; without cvxopt the SuperLU factorization serves, made again in each process. The restored C
-is bitwise the C a fresh build computes (tests check it).
+once. C is the inverse of the Schur complement read from CHOLMOD's factor of K_ff with the top last (fem.condense, as
+in 3D; SuperLU's, fem.schur_lu, without cvxopt). Fields (stresses without the influence operators, displacements)
+need the interior of a factorization: the first request makes one (CHOLMOD, with the top last) and stores its
+interior columns beside C (kind ``factor``, fem.interior_factor), so a later process sweeps through them with no
+assembly and no factorization; without cvxopt the SuperLU factorization serves, made again in each process. The
+restored C is bitwise the C a fresh build computes (tests check it).
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 import time
@@ -37,9 +37,8 @@ from .guards import check_finite, check_not_inverted
 from .influence import Influence, band_nodes, fits
 from .lcp import solve_lcp
 from .model import Model, build_model
-from .scene import STRAIN_MAX, STRAIN_WARN, Indenter, SceneError
+from .scene import STRAIN_MAX, STRAIN_WARN, SceneError
 from .scene_mesh import check_surface_budget, code_version, mesh_for, sources_version
-from .schur_lu import SchurFactor
 from .stress import components, nodal_poisson, recovery_operator
 from .tip import TIP_TOLERANCE, TipCompliance, contact_scene, rigid_tip_bound
 
@@ -87,6 +86,16 @@ def tip_profile(indenter, x_m: float, depth_m: float, x: np.ndarray) -> np.ndarr
     else:  # flat punch of half-width R
         out[inside] = -depth_m
     return out
+
+
+def condensation(K, free: np.ndarray, contact: np.ndarray):
+    """K_ff factorized with the top's vertical DOFs last, and its condensed compliance: CHOLMOD's supernodal
+    factorization (fem.condense.CholmodSchur, as in 3D, but in AMD's order: on a 2D model METIS's nested dissection
+    took longer than the factorization it orders) when cvxopt is installed, else SuperLU's (fem.schur_lu.SchurFactor).
+    Since session 60; SuperLU's before, whose two factorizations (one for the ordering, one with the top last) took
+    about five times as long on a paper-sized model; the compliances agree to about 5e-14 relative."""
+    from .condense import schur  # scipy and CHOLMOD: loaded only to factorize
+    return schur(K, free, contact, ordering="amd")                 # method "auto": SuperLU without cvxopt
 
 
 def _load_b_fixed(model: Model) -> np.ndarray:
@@ -145,7 +154,7 @@ class SurfaceModel:
         self._interior, self._interior_tried = None, False
         self.interior_cache: tuple[dict, bool | None] | None = None     # (spec, use): where ``interior`` is kept
         if compliance is None:
-            self._fac = SchurFactor(self.model.K, free, self.top_red)
+            self._fac = condensation(self.model.K, free, self.top_red)
             compliance = self._fac.compliance
         if not np.all(np.isfinite(compliance)):
             raise FloatingPointError(f"the condensed surface compliance of scene {scene.name!r} is not finite")
@@ -193,10 +202,10 @@ class SurfaceModel:
 
     @property
     def fac(self):
-        """The SuperLU factorization (fem.schur_lu.SchurFactor; made on first use when the compliance came from
-        the disk cache): the fields' solver when the factor's interior columns cannot be had (``interior``)."""
+        """The condensation's factorization (``condensation``; made on first use when the compliance came from the
+        disk cache): the fields' solver when the factor's interior columns cannot be had (``interior``)."""
         if self._fac is None:
-            self._fac = SchurFactor(self.model.K, self._free, self.top_red)
+            self._fac = condensation(self.model.K, self._free, self.top_red)
         return self._fac
 
     def interior(self):
@@ -223,7 +232,7 @@ class SurfaceModel:
 
             def build():
                 from .condense import interior_factor  # CHOLMOD: only to factorize
-                f = interior_factor(self.model.K, self._free, self.top_red)
+                f = interior_factor(self.model.K, self._free, self.top_red, ordering="amd")   # as condensation
                 if f is None:
                     raise _NoFactor
                 return f
@@ -239,7 +248,7 @@ class SurfaceModel:
     def displacements(self, F_top: np.ndarray) -> np.ndarray:
         """Full displacement vectors (2N, k) for downward nodal forces F_top (n_top, k) on the top nodes: the top's
         own from the compliance (-C F), the interior's by the stored factor's backward sweep (``interior``); else
-        by the SuperLU factorization (``fac``)."""
+        by the condensation's factorization (``fac``)."""
         F_top = np.asarray(F_top, dtype=float).reshape(len(self.top), -1)
         itf = self.interior()
         if itf is None:
@@ -336,7 +345,7 @@ class SurfaceModel:
         q = tip_profile(self.scene.indenter, x_m, depth_m, self.x[idx])
         if depth_m == 0.0 or not np.any(q < 0):
             return idx, np.zeros(len(idx)), q
-        M = self.C[np.ix_(idx, idx)]
+        M = self.C[idx[0]:idx[-1] + 1, idx[0]:idx[-1] + 1]            # the window is contiguous (x sorted)
         if self.tip is not None:
             M = M + self.tip.compliance(self.x[idx] - x_m)
         start = q < 0
@@ -362,6 +371,25 @@ class SurfaceModel:
             reach = self._reach(idx, f, x_m)
             out.append(check_finite(float(f.sum()), f"scene {self.scene.name!r}: force at x_m={x_m}, depth_m={d}"))
         return np.array(out) * self.scene.indenter.thickness_m
+
+    def force_grid_n(self, x_m, depths_m) -> np.ndarray:
+        """``force_n`` on a grid, (len(depths_m), len(x_m)), NaN where ``check_waypoint`` refuses the waypoint. Each
+        position's depths run as ``force_curve_n``'s sweep, each LCP starting from the contact the depth before it
+        reached: the same forces bit for bit as one ``force_n`` per waypoint (the same final active set solved the
+        same way), in about a third of the active-set steps."""
+        xs, ds = np.atleast_1d(np.asarray(x_m, float)), np.atleast_1d(np.asarray(depths_m, float))
+        out = np.full((len(ds), len(xs)), np.nan)
+        for b, x in enumerate(xs):
+            reach = None
+            for a, d in enumerate(ds):
+                try:
+                    idx, f, _ = self.contact_forces(float(x), float(d), reach)
+                except ValueError:
+                    reach = None
+                    continue
+                reach = self._reach(idx, f, float(x))
+                out[a, b] = check_finite(float(f.sum()), f"scene {self.scene.name!r}: force at x_m={x}, depth_m={d}")
+        return out * self.scene.indenter.thickness_m
 
     def _reach(self, idx: np.ndarray, f: np.ndarray, x_m: float) -> float | None:
         """A solved contact's half-width from the tip plus the top nodes' widest spacing (the next LCP's warm start
@@ -529,9 +557,13 @@ def load_or_build_surface(scene, options: dict, use: bool | None = None) -> Surf
 def _factor_spec(scene, options: dict) -> dict:
     """What the fields' factor depends on: the tissue and its stones (the stiffness and the top), whether stones are
     made rigid, fem's code and the factor's own (not the tip, the stress band or the use of influence operators:
-    ``simulate`` and ``predict`` share one entry)."""
-    tissue = dataclasses.replace(scene, name="", indenter=Indenter())
-    return {"scene": tissue.key(), "rigid_stones": options.get("rigid_stones", "auto"), "code": code_version(),
+    ``simulate`` and ``predict`` share one entry). The scene's content without its tip, as a dictionary: a scene
+    with another tip would be validated against that tip (until session 60 the default 5 mm one, which refused every
+    section under 10 mm wide)."""
+    tissue = scene.to_dict()
+    tissue.pop("name")
+    tissue.pop("indenter")
+    return {"tissue": tissue, "rigid_stones": options.get("rigid_stones", "auto"), "code": code_version(),
             "factor": _factor_version()}
 
 

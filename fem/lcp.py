@@ -26,7 +26,11 @@ def _solve_active(M: np.ndarray, q: np.ndarray, P: np.ndarray) -> np.ndarray:
     s = np.zeros(len(q))
     idx = np.flatnonzero(P)
     if len(idx):
-        s[idx] = np.linalg.solve(M[np.ix_(idx, idx)], -q[idx])
+        if idx[-1] - idx[0] == len(idx) - 1:        # a contiguous set (a contact interval, as a rule): views
+            idx = slice(int(idx[0]), int(idx[-1]) + 1)
+            s[idx] = np.linalg.solve(M[idx, idx], -q[idx])
+        else:
+            s[idx] = np.linalg.solve(M[idx][:, idx], -q[idx])
     return s
 
 
@@ -41,7 +45,7 @@ def solve_lcp(M: np.ndarray, q: np.ndarray, start: np.ndarray | None = None, max
     while P.any():
         it += 1
         s = _solve_active(M, q, P)
-        if np.all(s[P] > 0):
+        if (s[P] > 0).all():
             z = s
             break
         P &= s > 0
@@ -56,7 +60,7 @@ def solve_lcp(M: np.ndarray, q: np.ndarray, start: np.ndarray | None = None, max
             if it > max_iter:
                 raise RuntimeError(f"LCP active-set iteration did not terminate in {max_iter} steps")
             s = _solve_active(M, q, P)
-            if np.all(s[P] > 0):
+            if (s[P] > 0).all():
                 z = s
                 break
             bad = P & (s <= 0)

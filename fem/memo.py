@@ -53,6 +53,7 @@ class Memo:
     def __init__(self, kind: str, spec: dict, n_key: int, width: int):
         self.kind, self.spec, self.n_key, self.width = kind, spec, n_key, width
         self.path = diskcache.entry_path(kind, spec) if diskcache.enabled() else None
+        self.digest = diskcache.digest(spec)    # written into the file and checked on reading (its name's digest)
         self._rows: dict[Key, Row] | None = None
         self._new: dict[Key, Row] = {}
         self._used: set[Key] = set()         # keys read back here: kept before the others when a file is trimmed
@@ -68,6 +69,8 @@ class Memo:
             return {}
         try:
             keys, rows = arrays["keys"], arrays["rows"]
+            if str(arrays["digest"]) != self.digest:     # another entry's rows under this name (copied, swapped)
+                raise ValueError(f"it holds the rows of entry {str(arrays['digest'])!r}, not of {self.digest!r}")
             if (keys.ndim != 2 or rows.ndim != 2 or keys.shape != (len(rows), self.n_key)
                     or rows.shape[1] != self.width or keys.dtype != np.float64 or rows.dtype != np.float64):
                 raise ValueError(f"keys {keys.shape} {keys.dtype}, rows {rows.shape} {rows.dtype}: expected "
@@ -119,7 +122,8 @@ class Memo:
             if len(keys) > MAX_ROWS:
                 rank = {k: 1 for k in self._new} | {k: 2 for k in self._used}
                 keys = sorted(keys, key=lambda k: rank.get(k, 0))[-MAX_ROWS:]     # (stable: the oldest first)
-            diskcache.write(self.path, {"keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
+            diskcache.write(self.path, {"digest": np.array(self.digest),
+                                        "keys": np.array(keys, dtype=np.float64).reshape(len(keys), self.n_key),
                                         "rows": np.array([merged[k] for k in keys], dtype=np.float64)
                                         .reshape(len(keys), self.width)})
         self._new = {}

@@ -129,7 +129,7 @@ def trial(prior, sur, stone, sensor, seed, budget, target_m):
     coarse = raster_positions(W, n=15, margin_m=0.005)
     sig = probe_sigma_n(sensor_spec(sensor))
     pd0 = (p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=coarse, depth_m=np.full(15, DEPTH_M),
-                    sigma_n=sig, surrogate=sur) if stone is not None else float("nan"))
+                    sigma_n=sig, surrogate=sur) if stone is not None else None)   # null in JSON: no stone
     for strategy in STRATEGIES:
         t0 = time.perf_counter()
         res = adaptive(prior, fast.execute, coarse_x_m=coarse, budget_probes=budget, target_m=target_m,
@@ -167,7 +167,7 @@ def trial(prior, sur, stone, sensor, seed, budget, target_m):
             continue
         loc = localize(prior, m, sur)
         pd = (p_detect(prior, (stone.x_m, stone.depth_m, stone.diameter_m), x_m=x, depth_m=np.full(N, DEPTH_M),
-                       sigma_n=sig, surrogate=sur) if stone is not None else float("nan"))
+                       sigma_n=sig, surrogate=sur) if stone is not None else None)   # null in JSON: no stone
         row(f"dense-{N}", loc, N, {"p_detect_pred": pd, **extra})
     return rows
 

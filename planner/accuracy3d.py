@@ -132,7 +132,7 @@ def trial3d(prior, sur, stone, sensor: str, seed: int, budget: int, target_m: fl
     def predicted(xy, d):
         """(p_detect of the stone, prior forces) for probes at ``xy`` pressed ``d`` deep (planner.detect3d)."""
         if stone is None:
-            return float("nan")
+            return None                  # null in the piece's JSON (NaN is not JSON): no stone to detect
         P, dP = prior_and_thickness_slope3d(prior, xy[:, 0], xy[:, 1], d)
         return p_detect3d((stone.x_m, stone.y_m, stone.depth_m, stone.diameter_m), x_m=xy[:, 0], y_m=xy[:, 1],
                           depth_m=d, sigma_n=sig, surrogate=sur, prior_force_n=P, tau_s=probe_tau_s(Motion(), d),

@@ -98,8 +98,10 @@ def sensor_usable(sensor_spec, force_limit_n: float) -> tuple[bool, str]:
 
 def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_limit_m: float = 0.004,
                   x_positions_m=None, n_waypoints: int = 15, margin_m: float = 0.005, stones=None, xs_m=None,
-                  surrogate=None, lr_threshold: float = LR_THRESHOLD, motion=None, nuisance: bool = True) -> dict:
-    """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) by a raster.
+                  surrogate=None, lr_threshold: float = LR_THRESHOLD, motion=None, nuisance: bool = True,
+                  force_fraction: float = 0.5, min_depth_m: float = 0.001) -> dict:
+    """Predicted detection of stones (``stones``: (diameter_m, depth_m) pairs; default a grid) by a raster whose
+    depths are chosen as the planner chooses them (``force_fraction``, ``min_depth_m``: a plan's own options).
 
     Returns {"sensor", "usable", "reason", "sigma_n", "depths_m", "rows": [{diameter_m, depth_m, peak_contrast_n,
     snr, p_detect, detectable}]}. Stones are placed at ``xs_m`` (default: the middle of the section)."""
@@ -110,7 +112,8 @@ def detectability(prior, *, sensor="nano17", force_limit_n: float = 2.0, depth_l
     W = prior.tissue.width_m
     x = (np.asarray(x_positions_m, float) if x_positions_m is not None
          else raster_positions(W, n=n_waypoints, margin_m=margin_m))
-    dc = choose_depths(surface_model(prior).force_n, x, force_limit_n=force_limit_n, depth_limit_m=depth_limit_m)
+    dc = choose_depths(surface_model(prior).force_n, x, force_limit_n=force_limit_n, depth_limit_m=depth_limit_m,
+                       force_fraction=force_fraction, min_depth_m=min_depth_m)
     d = dc.depth_m
     usable, reason = sensor_usable(sp, force_limit_n)
     sig = probe_sigma_n(sp, motion)

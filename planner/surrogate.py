@@ -223,14 +223,8 @@ def _forces(model, levels, x0, past_crush: bool = True) -> np.ndarray:
     """Force curves (levels x positions), past the crush limit too (``_past_the_crush_limit``; ``past_crush``
     False: refused there). Where fem refuses a waypoint the force is continued from the deepest allowed levels with
     their local power law (``_continue_in_depth``)."""
-    out = np.full((len(levels), len(x0)), np.nan)
     with _past_the_crush_limit() if past_crush else contextlib.nullcontext():
-        for a, d in enumerate(levels):
-            for b, x in enumerate(x0):
-                try:
-                    out[a, b] = model.force_n(float(x), float(d))
-                except ValueError:
-                    pass
+        out = model.force_grid_n(x0, levels)
     if np.isnan(out).any():
         _continue_in_depth(out, np.asarray(levels, float))
     return out
@@ -719,4 +713,8 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # the importable module's main, not this __main__ copy's: dask sends the stones' function to its workers by
+    # reference, and this copy's (with its lock) could not be (`python -m planner.surrogate SCENE` failed at its
+    # first stone until session 60)
+    from planner.surrogate import main as _main
+    sys.exit(_main())

@@ -1328,6 +1328,9 @@ class Driver(Recovery):
                 rep.problems = problems + [f"probe {k}: {v}" for k, v in bad.items()]
                 return rep
             current = None
+            rep.status = RunStatus.RUNNING      # on disk while the round runs: a process killed meanwhile (SIGKILL,
+            write_run()                         # a power cut) leaves "running", not the last round's "ok"
+            rep.status = RunStatus.OK
             gate.__enter__()
             try:
                 self._setup()

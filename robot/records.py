@@ -8,7 +8,7 @@
 ``<out>/raw/probe_NNN[_aK].npz``  the raw samples of that attempt: ``time_s`` (N), ``tcp_pose`` (N x 6, base
                         frame), ``wrench`` (N x 6, as read), ``force_n`` (N, contact force along the tissue normal),
                         ``depth_m`` (N), ``phase`` (N: 0 free air, 1 descent, 2 dwell, 3 retract).
-``<out>/run.json``      the run's summary: status, fault report, counts (written atomically).
+``<out>/run.json``      the run's summary: status ("running" while a round runs), fault report, counts (written atomically).
 
 Resume: the last record of each index wins; indices whose last status is "ok" are not probed again ("force_limit"
 and "depth_limit" ones are: the stop may have been a sensor spike, the surface may have been registered again). A torn last line (a crash mid-write) is ignored, and the next record starts on a
@@ -22,6 +22,7 @@ import json
 import math
 import os
 import time
+import zipfile
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -70,6 +71,7 @@ class RunLog:
         if self.jsonl.exists() and self.jsonl.stat().st_size:
             self._set_torn_line_aside()
         self._f = open(self.jsonl, "a", encoding="utf-8")
+        self._own_running = False      # run.json holds this log's own "running" marker (write_run)
 
     def _set_torn_line_aside(self) -> None:
         """A process killed mid-line left a torn last line (no newline after it): appended to probes.jsonl.torn
@@ -118,8 +120,10 @@ class RunLog:
         so a resumed run keeps every earlier fault's report (a session-54 safety review: after four interrupts and a
         resume, run.json said "ok" and the stops' reports were gone)."""
         old = self.out / "run.json"
-        with contextlib.suppress(OSError):      # (the history must not keep the report itself from the disk)
-            self._keep(old)
+        if not self._own_running:               # (this round's own "running" marker is not history; a
+            with contextlib.suppress(OSError):  # killed process's is: it says the process was cut off)
+                self._keep(old)
+        self._own_running = summary.get("status") == "running"
         tmp = self.out / "run.json.tmp"
         with open(tmp, "w", encoding="utf-8") as f:
             json.dump(summary, f, indent=1, default=_jsonable)
@@ -199,6 +203,28 @@ def damaged_note(out_dir: str | Path) -> str | None:
     where = "; ".join(f"line {k}: {why}" for k, why in damaged[:3]) + ("; ..." if len(damaged) > 3 else "")
     return (f"warning: {len(damaged)} line(s) of {Path(out_dir) / 'probes.jsonl'} are not probe records (edited or "
             f"damaged; {where}): they are left as they are and not used, and their probes are pressed again")
+
+
+def raw_damaged_note(out_dir: str | Path) -> str | None:
+    """A warning line when a kept probe's raw samples (its record's ``raw_file``) are missing or cannot be read
+    whole (truncated, garbled: the zip's checksums); else None. The record holds what the fit uses, so the probe is
+    not pressed again, but its samples are gone: said, never silent (a resume read only the records until session
+    60)."""
+    bad = []
+    for i, r in sorted(latest_by_index(out_dir).items()):
+        if not r.raw_file:
+            continue
+        try:
+            with np.load(Path(out_dir) / r.raw_file) as z:
+                for k in z.files:
+                    z[k]
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+            bad.append(f"probe {i}: {r.raw_file} ({type(e).__name__})")
+    if not bad:
+        return None
+    return (f"warning: the raw samples of {len(bad)} probe(s) measured before are missing or damaged "
+            f"({'; '.join(bad[:3])}{'; ...' if len(bad) > 3 else ''}): their records are kept and used (the fit needs "
+            f"no more), but those samples cannot be read again")
 
 
 def latest_by_index(out_dir: str | Path) -> dict[int, ProbeRecord]:

@@ -290,6 +290,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
     # ---- everything checked before OUT is touched
     out = Path(args.out)
     check_output_dir(args.out, "--out")
+    if (out / "pieces").is_dir():       # as a study refuses a run's directory (its pieces beside probes would block it)
+        raise UsageError(f"--out {args.out}: a study's directory (its pieces/); a run goes into a directory of its own")
     check_output_file(args.json, "--json", inputs={"SCENE": args.scene, "--plan": args.plan,
                                                         "--prior": args.prior})
     if args.host and args.seed is not None:     # (it did nothing next to a real arm, silently)
@@ -416,7 +418,8 @@ def _run(args, on_exit: contextlib.ExitStack) -> int:
         try:
             det = detectability(prior, sensor=args.sensor, force_limit_n=plan0.limits.force_limit_n,
                                 depth_limit_m=plan0.limits.depth_limit_m,
-                                x_positions_m=[p.x_m for p in plan0.probes], surrogate=table, motion=plan0.motion)
+                                x_positions_m=[p.x_m for p in plan0.probes], surrogate=table, motion=plan0.motion,
+                                force_fraction=plan0.options.force_fraction, min_depth_m=plan0.options.min_depth_m)
         except (RuntimeError, ArithmeticError, ValueError) as e:
             raise UsageError(f"{where_prior} cannot be modelled: {e} (check the tissue and indenter moduli and "
                              f"sizes)") from None

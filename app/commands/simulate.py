@@ -199,7 +199,7 @@ def _run_indent(args) -> int:
     out["timings_s"]["total_s"] = time.perf_counter() - t0
     write_json(args.json, out)        # (first: a reader that closes the pipe early does not lose the file)
     _indent_summary(sc, r, out, sys.stderr if args.json == "-" else sys.stdout)
-    warn_unresolved2d(sc, "simulate", [r.half_width_m])
+    warn_unresolved2d(sc, "simulate", [r.half_width_m], depths_m=[args.depth_m])
     warn_pressure_near_incompressible2d(sc, "simulate", [r.half_width_m])
     warn_strain("simulate", sc, args.depth_m)
     return 0
