@@ -343,7 +343,7 @@ def noise_seed(seed: int, out: Path, resume: bool) -> tuple[int, str]:
     if k == 0:
         return seed, ""
     resumed = int.from_bytes(hashlib.sha256(f"palpate noise {seed} after {k}".encode()).digest()[:4], "little")
-    return resumed, f"; resumed after {k} probes: noise stream {resumed}"
+    return resumed, f"; resumed after {k} probe records: noise stream {resumed}"
 
 
 def choose_executor(args, out: Path, scene, cond, plan0, resume: bool, stats: dict, cleanup: contextlib.ExitStack,

@@ -54,6 +54,7 @@ class Memo:
         self.kind, self.spec, self.n_key, self.width = kind, spec, n_key, width
         self.path = diskcache.entry_path(kind, spec) if diskcache.enabled() else None
         self.digest = diskcache.digest(spec)    # written into the file and checked on reading (its name's digest)
+        self._said_ignored = False               # a file ignored is said once (not again at the merge of save())
         self._rows: dict[Key, Row] | None = None
         self._new: dict[Key, Row] = {}
         self._used: set[Key] = set()         # keys read back here: kept before the others when a file is trimmed
@@ -66,6 +67,7 @@ class Memo:
     def _read(self) -> dict[Key, Row]:
         arrays = diskcache.read(self.path) if self.path is not None else None
         if arrays is None:
+            self._said_ignored |= self.path is not None and self.path.exists()   # unreadable: diskcache said so
             return {}
         try:
             keys, rows = arrays["keys"], arrays["rows"]
@@ -79,7 +81,9 @@ class Memo:
                 raise ValueError("an entry is not finite")
         except (KeyError, ValueError) as e:
             diskcache.stats["corrupt"] += 1
-            warnings.warn(f"palpate cache: ignoring memo {self.path} ({type(e).__name__}: {e})", stacklevel=4)
+            if not self._said_ignored:
+                warnings.warn(f"palpate cache: ignoring memo {self.path} ({type(e).__name__}: {e})", stacklevel=4)
+            self._said_ignored = True
             return {}
         diskcache.stats[f"{self.kind}_read"] += 1
         return dict(zip(map(tuple, keys.tolist()), map(tuple, rows.tolist())))
@@ -115,7 +119,9 @@ class Memo:
         _DIRTY.discard(self)
         if self.path is None or not self._new:
             return
-        with _locked(self.path):
+        with _locked(self.path), warnings.catch_warnings():
+            if self._said_ignored:                   # the file this process found unusable: said once, on reading
+                warnings.simplefilter("ignore")
             merged = self._read()
             merged.update(self._new)
             keys = list(merged)

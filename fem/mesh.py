@@ -6,6 +6,7 @@ A stone's boundary is a mesh curve shared by tissue and stone (glued = shared no
 from __future__ import annotations
 
 import math
+import signal
 import threading
 from dataclasses import dataclass, field
 
@@ -62,12 +63,23 @@ class Mesh:
 
 def _start(gmsh):
     gmsh.initialize(readConfigFiles=False, interruptible=False)
+    _rearm_sigterm()
     gmsh.option.setNumber("General.Terminal", 0)
     gmsh.option.setNumber("General.NumThreads", 1)
     gmsh.option.setNumber("Mesh.MeshSizeFromPoints", 0)
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
     gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
     gmsh.option.setNumber("Mesh.Algorithm", 6)
+
+
+def _rearm_sigterm() -> None:
+    """gmsh's initialize sets SIGTERM's disposition back to the default at the C level while Python still reports
+    its own handler, so a supervisor's SIGTERM after the first mesh killed palpate without a word (exit -15; a
+    session-60 review) instead of raising KeyboardInterrupt as palpate's entry points arrange (app.entry): the
+    handler Python believes in is installed again (main thread only; a worker thread's meshing leaves it as is)."""
+    if threading.current_thread() is threading.main_thread():
+        h = signal.getsignal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if h is None else h)
 
 
 def _extract(gmsh, surfaces_by_region: list[list[int]], order: int, width: float, height: float) -> Mesh:

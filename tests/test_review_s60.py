@@ -16,9 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from app import entry, runexec
 from app.cli import main
 from app.resolution import warn_unresolved2d
+from app.runexec import resuming_note
 from fem.scene import load
+from robot.records import RunLog
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,18 +127,17 @@ def test_a_resumed_run_draws_noise_of_its_own(tmp_path, monkeypatch, capsys):
     """The review's SIGKILL and resume: the first probe pressed after the resume repeated probe 0's free-air noise
     sample for sample (the simulated sensor restarted from the seed). A resumed process now draws from (seed, the
     probes recorded): reproducible, and not the first process's stream."""
-    from app import runexec
     monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path / "cache"))
     d, raws = _short_run(tmp_path)
     assert runexec.noise_seed(0, d, resume=False) == (0, "")
     seed, said = runexec.noise_seed(0, d, resume=True)
-    assert seed != 0 and said.startswith("; resumed after 15 probes") and runexec.noise_seed(0, d, True)[0] == seed
+    assert seed != 0 and said.startswith("; resumed after 15 probe records") and runexec.noise_seed(0, d, True)[0] == seed
     assert runexec.noise_seed(1, d, resume=True)[0] not in (seed, 1)
     lines = (d / "probes.jsonl").read_text().splitlines(keepends=True)
     (d / "probes.jsonl").write_text("".join(lines[:8]))          # as if killed after 8 records: 7 pressed again
     capsys.readouterr()
     assert main(["run", "paper", "--sim", "--budget-probes", "15", "--no-figure", "--out", str(d)]) == 0
-    assert "resumed after 8 probes: noise stream" in capsys.readouterr().err
+    assert "resumed after 8 probe records: noise stream" in capsys.readouterr().err
     with np.load(raws[0]) as z0:
         first = z0["force_n"][:200]
     again = sorted(set((d / "raw").glob("probe_*.npz")) - set(raws))
@@ -145,7 +147,6 @@ def test_a_resumed_run_draws_noise_of_its_own(tmp_path, monkeypatch, capsys):
 
 
 def test_a_damaged_or_missing_raw_file_is_said_on_resume(tmp_path, monkeypatch):
-    from app.runexec import resuming_note
     monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path / "cache"))
     d, raws = _short_run(tmp_path)
     assert "missing or damaged" not in resuming_note(d)
@@ -175,7 +176,6 @@ def test_sigterm_between_rounds_ends_as_ctrl_c_does(tmp_path):
 
 
 def test_the_console_script_takes_sigterm_as_ctrl_c_from_its_first_import(monkeypatch):
-    from app import entry
     monkeypatch.setattr(signal, "getsignal", lambda s: signal.SIG_DFL)
     installed = {}
     monkeypatch.setattr(signal, "signal", lambda s, h: installed.setdefault(s, h))
@@ -202,7 +202,6 @@ def test_a_run_refuses_a_studys_directory_and_json_spares_what_a_resume_set_asid
 def test_run_json_says_running_while_a_round_runs(tmp_path, monkeypatch):
     """A run killed mid-round (SIGKILL) left run.json saying "ok" from its last finished round; each round now
     writes "running" before its first motion and its ending status after."""
-    from robot.records import RunLog
     monkeypatch.setenv("PALPATE_CACHE_DIR", str(tmp_path / "cache"))
     written = []
     real = RunLog.write_run
@@ -216,3 +215,22 @@ def test_run_json_says_running_while_a_round_runs(tmp_path, monkeypatch):
     h = d / "run_history.jsonl"                   # (one round per driver run: the earlier rounds' reports)
     history = [json.loads(line) for line in h.read_text().splitlines()] if h.exists() else []
     assert len(history) == written.count("ok") - 1 and all(h["status"] == "ok" for h in history)   # no own marker
+
+
+def test_sigterm_after_gmsh_has_meshed_is_still_ctrl_c():
+    """gmsh's initialize sets SIGTERM back to the default at the C level (Python still reports its own handler):
+    after the first mesh of a cold command, a SIGTERM killed palpate silently (exit -15; session 60's third review).
+    fem.mesh re-arms the handler Python believes in."""
+    code = ("import os, signal, time\n"
+            "signal.signal(signal.SIGTERM, signal.default_int_handler)\n"
+            "from fem.scene import load\n"
+            "from fem.scene_mesh import mesh_for\n"
+            "mesh_for(load('paper').with_analysis(mesh_size_m=0.01, surface_refine=1.0), use=False)\n"
+            "try:\n"
+            "    os.kill(os.getpid(), signal.SIGTERM)\n"
+            "    time.sleep(5)\n"
+            "except KeyboardInterrupt:\n"
+            "    print('interrupted')\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120,
+                       env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert r.returncode == 0 and r.stdout.strip() == "interrupted", (r.returncode, r.stderr[-500:])
